@@ -1,0 +1,301 @@
+"""Command line: python -m neulf_core {reconstruct, train, render, eval, video, demo} ...
+
+Every user-caused error ends in one line on stderr and exit status 2, never a traceback.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import signal
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from .errors import NeulfError
+
+EXIT_USAGE = 2
+
+
+class _Parser(argparse.ArgumentParser):
+    def error(self, message):  # one clear line instead of usage + message
+        raise NeulfError(f"{message} (see: {self.prog} --help)")
+
+
+def _names(text: str | None) -> list[str] | None:
+    return [n.strip() for n in text.split(",") if n.strip()] if text else None
+
+
+# ----------------------------------------------------------------------------- reconstruct
+
+
+def cmd_reconstruct(args) -> int:
+    from .reconstruct import reconstruct
+
+    def report(event):
+        total = f" ({event['registered']}/{event['total']})" if event.get("stage") == "mapping" else ""
+        print(f"[{event['stage']}] {event['message']}{total}", file=sys.stderr, flush=True)
+
+    model = reconstruct(args.images_dir, args.out, progress=report, camera_model=args.camera_model)
+    print(f"model written to {model}")
+    return 0
+
+
+# ----------------------------------------------------------------------------- train
+
+
+def cmd_train(args) -> int:
+    from .progress import make_reporter
+    from .train import TrainConfig, train
+
+    if args.minutes is not None and args.minutes <= 0 or args.steps is not None and args.steps <= 0:
+        raise NeulfError("--minutes and --steps must be positive.")
+    config = TrainConfig(
+        preset=args.preset, steps=args.steps, minutes=args.minutes, scale=args.scale, holdout_every=args.holdout_every,
+        exclude=_names(args.exclude), seed=args.seed, checkpoint_seconds=args.checkpoint_seconds,
+        st_depth=args.st_depth, near=args.near, far=args.far, device=args.device, batch_size=args.batch_size,
+    )
+    stop = {"signal": None}
+
+    def on_signal(signum, _frame):
+        stop["signal"] = signum
+
+    previous = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        result = train(args.scene_dir, args.out, config, images_dir=args.images, resume=args.resume,
+                       progress=make_reporter(args.progress), should_stop=lambda: stop["signal"] is not None)
+    finally:
+        for s, handler in previous.items():
+            signal.signal(s, handler)
+    if result.status == "cancelled":
+        print(f"cancelled at step {result.step}; checkpoint saved. Continue with: python -m neulf_core train "
+              f"{args.scene_dir} --out {args.out} --resume --minutes/--steps ...", file=sys.stderr)
+        return 128 + int(stop["signal"] or signal.SIGINT)
+    return 0
+
+
+# ----------------------------------------------------------------------------- render
+
+
+def _load_cameras_json(path: Path) -> list[dict]:
+    try:
+        data = json.loads(Path(path).read_text())
+    except FileNotFoundError:
+        raise NeulfError(f"cameras file {path} does not exist.") from None
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise NeulfError(f"cameras file {path} is not valid JSON ({exc}).") from None
+    cameras = data if isinstance(data, list) else data.get("cameras", data.get("views")) if isinstance(data, dict) else None
+    if not isinstance(cameras, list) or not cameras:
+        raise NeulfError(f"{path} should hold a list of cameras (or {{\"cameras\": [...]}}); see README 'Camera JSON'.")
+    parsed = []
+    for i, cam in enumerate(cameras):
+        try:
+            K = np.asarray(cam["K"], dtype=np.float64).reshape(3, 3)
+            R = np.asarray(cam["R"], dtype=np.float64).reshape(3, 3)
+            t = np.asarray(cam["t"], dtype=np.float64).reshape(3)
+            width, height = int(cam["width"]), int(cam["height"])
+        except (KeyError, TypeError, ValueError) as exc:
+            raise NeulfError(f"camera {i} in {path} needs K (3x3), R (3x3), t (3), width and height: {exc!r} is wrong.") from None
+        if not np.allclose(R @ R.T, np.eye(3), atol=1e-4) or np.linalg.det(R) < 0:
+            raise NeulfError(f"camera {i} in {path}: R is not a rotation matrix.")
+        name = Path(str(cam.get("name", f"camera_{i:03d}"))).stem
+        parsed.append({"name": name, "K": K, "R": R, "t": t, "width": width, "height": height})
+    return parsed
+
+
+def _save_rendering(out: Path, stem: str, rendering, want_depth: bool) -> None:
+    from .images import save_rgb
+    from .video import depth_to_colour
+
+    save_rgb(out / f"{stem}.png", rendering.rgb)
+    if want_depth and rendering.depth is not None:
+        np.save(out / f"{stem}_depth.npy", rendering.depth.astype(np.float32))
+        save_rgb(out / f"{stem}_depth.png", depth_to_colour(rendering.depth))
+    for note in rendering.warnings:
+        print(f"warning ({stem}): {note}", file=sys.stderr)
+
+
+def _select_views(scene, light_field, names: list[str]):
+    if names == ["held-out"]:
+        held = light_field.meta["scene"]["held_out"]
+        if not held:
+            raise NeulfError("the model was trained without held-out views; name the views to render.")
+        return [scene.view(n) for n in held]
+    if names == ["all"]:
+        return list(scene.views)
+    return [scene.view(n) for n in names]
+
+
+def cmd_render(args) -> int:
+    from .render import LightField
+    from .scene import load_scene
+
+    if (args.scene is None) == (args.cameras is None):
+        raise NeulfError("render needs either --scene SCENE_DIR --views NAME,... or --cameras CAMERAS.json.")
+    light_field = LightField.load(args.model_dir, args.device)
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    count, started = 0, time.perf_counter()
+    if args.cameras:
+        for cam in _load_cameras_json(args.cameras):
+            rendering = light_field.render(cam["K"], cam["width"], cam["height"], cam["R"], cam["t"], depth=args.depth)
+            _save_rendering(out, cam["name"], rendering, args.depth)
+            count += 1
+    else:
+        names = _names(args.views)
+        if not names:
+            raise NeulfError("--views needs view names (comma-separated), 'held-out' or 'all'.")
+        scene = load_scene(args.scene, args.images)
+        light_field.check_scene(scene)
+        for view in _select_views(scene, light_field, names):
+            rendering = light_field.render_view(view, args.scale, depth=args.depth)
+            _save_rendering(out, view.stem, rendering, args.depth)
+            count += 1
+    print(f"rendered {count} image(s) into {out} in {time.perf_counter() - started:.1f} s")
+    return 0
+
+
+# ----------------------------------------------------------------------------- eval
+
+
+def cmd_eval(args) -> int:
+    from .evaluate import evaluate_model
+
+    report = evaluate_model(args.model_dir, args.scene, images_dir=args.images, out_dir=args.out,
+                            views=_names(args.views), device=args.device)
+    print(f"{'view':<24}{'PSNR':>9}{'SSIM':>8}")
+    for row in report["views"]:
+        print(f"{row['view']:<24}{row['psnr']:9.3f}{row['ssim']:8.4f}")
+    print(f"{'mean':<24}{report['mean_psnr']:9.3f}{report['mean_ssim']:8.4f}")
+    print(f"(mean-colour image: {report['mean_colour_psnr']:.2f} dB; written {report['written']})")
+    return 0
+
+
+# ----------------------------------------------------------------------------- video
+
+
+def cmd_video(args) -> int:
+    from .paths import spiral_path
+    from .render import LightField
+    from .video import write_video
+
+    light_field = LightField.load(args.model_dir, args.device)
+    centres, K, width, height = _rig_from_meta(light_field)
+    poses = spiral_path(light_field.slab, centres, frames=args.frames)
+    started = time.perf_counter()
+
+    def frames():
+        for i, (R, t) in enumerate(poses):
+            yield light_field.render(K, width, height, R, t, depth=False).rgb
+            print(f"\rframe {i + 1}/{len(poses)}", end="", file=sys.stderr, flush=True)
+
+    count = write_video(frames(), args.out, fps=args.fps)
+    seconds = time.perf_counter() - started
+    print(f"\nwrote {count} frames to {args.out} ({seconds / count * 1000:.0f} ms per frame)", file=sys.stderr)
+    return 0
+
+
+def _rig_from_meta(light_field):
+    rig = light_field.meta.get("rig")
+    if not rig:
+        raise NeulfError("this model has no saved camera rig; retrain it with this version.")
+    return np.asarray(rig["centres"]), np.asarray(rig["K"]), int(rig["width"]), int(rig["height"])
+
+
+# ----------------------------------------------------------------------------- demo
+
+
+def cmd_demo(args) -> int:
+    from .demo import run_demo
+
+    run_demo(Path(args.out), minutes=args.minutes, keep=args.keep)
+    return 0
+
+
+# ----------------------------------------------------------------------------- parser
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = _Parser(prog="python -m neulf_core", description="Neural 4D light fields (NeuLF) from forward-facing captures.")
+    sub = parser.add_subparsers(dest="command", required=True, parser_class=_Parser)
+
+    p = sub.add_parser("reconstruct", help="photos -> COLMAP model (pycolmap SfM)")
+    p.add_argument("images_dir")
+    p.add_argument("--out", required=True, help="scene folder to write (images/, sparse/0)")
+    p.add_argument("--camera-model", default="SIMPLE_RADIAL")
+    p.set_defaults(run=cmd_reconstruct)
+
+    p = sub.add_parser("train", help="train a light field on a scene")
+    p.add_argument("scene_dir")
+    p.add_argument("--out", required=True, help="model folder")
+    p.add_argument("--images", help="images folder (default: SCENE/images, else SCENE/images_N)")
+    p.add_argument("--scale", type=float, default=1.0, help="train at this image scale (e.g. 0.5)")
+    p.add_argument("--preset", default="fast", help="fast (default), authors (8x256 MLP), paper (20x256 MLP)")
+    budget = p.add_mutually_exclusive_group()
+    budget.add_argument("--minutes", type=float, help="training time budget (total, including resumed time)")
+    budget.add_argument("--steps", type=int, help="training steps (total, including resumed steps)")
+    p.add_argument("--holdout-every", type=int, default=8, help="hold out every Nth view (0: none)")
+    p.add_argument("--exclude", help="comma-separated view names to hold out instead")
+    p.add_argument("--resume", action="store_true", help="continue the model in --out")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--progress", choices=("bar", "json"), default="bar", help="bar on stderr, or JSON lines on stdout")
+    p.add_argument("--checkpoint-seconds", type=float, default=60.0)
+    p.add_argument("--batch-size", type=int)
+    p.add_argument("--st-depth", type=float, help="st plane depth along the slab axis (scene units)")
+    p.add_argument("--near", type=float)
+    p.add_argument("--far", type=float)
+    p.add_argument("--device", help="cpu, cuda, mps (default: the fastest available)")
+    p.set_defaults(run=cmd_train)
+
+    p = sub.add_parser("render", help="render registered views or arbitrary cameras")
+    p.add_argument("model_dir")
+    p.add_argument("--scene", help="scene folder whose views to render")
+    p.add_argument("--images", help="images folder of the scene")
+    p.add_argument("--views", help="comma-separated view names, 'held-out' or 'all'")
+    p.add_argument("--cameras", help="JSON file of pinhole cameras (see README)")
+    p.add_argument("--out", required=True)
+    p.add_argument("--depth", action="store_true", help="also write <stem>_depth.npy and a colour map")
+    p.add_argument("--scale", type=float, help="image scale (default: the trained scale)")
+    p.add_argument("--device")
+    p.set_defaults(run=cmd_render)
+
+    p = sub.add_parser("eval", help="PSNR/SSIM on the held-out views")
+    p.add_argument("model_dir")
+    p.add_argument("--scene", required=True)
+    p.add_argument("--images")
+    p.add_argument("--views", help="views to evaluate (default: the model's held-out views)")
+    p.add_argument("--out", help="folder for eval.json, eval.csv and the renders (default: MODEL_DIR/eval)")
+    p.add_argument("--device")
+    p.set_defaults(run=cmd_eval)
+
+    p = sub.add_parser("video", help="render a spiral camera path through the capture to MP4")
+    p.add_argument("model_dir")
+    p.add_argument("--out", required=True, help="video file (.mp4)")
+    p.add_argument("--frames", type=int, default=60)
+    p.add_argument("--fps", type=int, default=30)
+    p.add_argument("--device")
+    p.set_defaults(run=cmd_video)
+
+    p = sub.add_parser("demo", help="render a small Blender scene, reconstruct, train, render (needs bpy)")
+    p.add_argument("--out", default="neulf_demo")
+    p.add_argument("--minutes", type=float, default=3.0)
+    p.add_argument("--keep", action="store_true", help="reuse scene files already in --out")
+    p.set_defaults(run=cmd_demo)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    try:
+        args = build_parser().parse_args(argv)
+        return args.run(args)
+    except NeulfError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return EXIT_USAGE
+    except KeyboardInterrupt:
+        print("interrupted", file=sys.stderr)
+        return 130
+    except MemoryError:
+        print("error: out of memory; train at a smaller --scale or render smaller images.", file=sys.stderr)
+        return 1

@@ -1,0 +1,116 @@
+"""Reading photos: finding the file a model names, and decoding any common photo to RGB.
+
+A COLMAP model names its images ("IMG_4026.JPG"); the folder on disk may hold the same
+names, the same stems with another extension ("IMG_4026.png"), or LLFF's downscaled
+copies in sorted order ("image000.png", ...).  Photos come as 8 or 16 bit, grayscale,
+palette, RGBA, CMYK, with an EXIF orientation.  Everything here turns that into an
+(H, W, 3) uint8 array the way the camera saw it.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+from PIL import Image, ImageOps, UnidentifiedImageError
+
+from .errors import NeulfError
+
+IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp", ".webp", ".exr")
+
+
+def is_image_file(path: Path) -> bool:
+    return path.is_file() and path.suffix.lower() in IMAGE_EXTENSIONS and not path.name.startswith(".")
+
+
+def list_images(folder: Path) -> list[Path]:
+    """Image files directly inside `folder`, sorted by name."""
+    return sorted((p for p in folder.iterdir() if is_image_file(p)), key=lambda p: p.name)
+
+
+def _open(path: Path) -> Image.Image:
+    try:
+        image = Image.open(path)
+        image.load()
+    except (UnidentifiedImageError, OSError, ValueError) as exc:
+        raise NeulfError(f"cannot read image {path}: {exc}. Replace or remove the file.") from None
+    # Phones store portrait photos landscape plus an EXIF rotation; COLMAP saw them upright.
+    return ImageOps.exif_transpose(image)
+
+
+def image_size(path: Path) -> tuple[int, int]:
+    """(width, height) of the photo as displayed (EXIF orientation applied)."""
+    try:
+        with Image.open(path) as image:
+            width, height = image.size
+            orientation = image.getexif().get(0x0112, 1)
+    except (UnidentifiedImageError, OSError, ValueError) as exc:
+        raise NeulfError(f"cannot read image {path}: {exc}. Replace or remove the file.") from None
+    # EXIF orientations 5-8 swap the axes.
+    return (height, width) if orientation in (5, 6, 7, 8) else (width, height)
+
+
+def _to_rgb_uint8(image: Image.Image) -> np.ndarray:
+    """Any PIL mode to (H, W, 3) uint8; 16-bit and float images are scaled, not clipped."""
+    if image.mode in ("I;16", "I;16B", "I;16L", "I;16N", "I", "F"):
+        values = np.asarray(image, dtype=np.float64)
+        top = 65535.0 if image.mode.startswith("I;16") or values.max() > 255 else 255.0
+        if image.mode == "F":
+            top = 1.0 if values.max() <= 1.0 else values.max()
+        gray = np.clip(np.round(values / top * 255.0), 0, 255).astype(np.uint8)
+        return np.repeat(gray[..., None], 3, axis=2)
+    if image.mode in ("RGBA", "LA", "PA") or (image.mode == "P" and "transparency" in image.info):
+        # Composite onto black: transparent pixels carry no colour the camera saw.
+        rgba = image.convert("RGBA")
+        background = Image.new("RGBA", rgba.size, (0, 0, 0, 255))
+        image = Image.alpha_composite(background, rgba)
+    array = np.asarray(image.convert("RGB"), dtype=np.uint8)
+    return np.ascontiguousarray(array)
+
+
+def load_rgb(path: Path, size: tuple[int, int] | None = None) -> np.ndarray:
+    """Decode `path` to (H, W, 3) uint8, resized to `size` = (width, height) if given.
+
+    Downscaling uses an area (box) filter, the anti-aliased choice for a light field's
+    training targets; upscaling uses bicubic.
+    """
+    image = _open(Path(path))
+    rgb = _to_rgb_uint8(image)
+    if size is not None and (rgb.shape[1], rgb.shape[0]) != tuple(size):
+        resample = Image.BOX if size[0] <= rgb.shape[1] else Image.BICUBIC
+        rgb = np.asarray(Image.fromarray(rgb).resize(tuple(size), resample=resample))
+    return rgb
+
+
+def save_rgb(path: Path, rgb: np.ndarray) -> None:
+    """Save float [0,1] or uint8 (H, W, 3) as an 8-bit PNG."""
+    if rgb.dtype != np.uint8:
+        rgb = np.clip(np.round(np.asarray(rgb, dtype=np.float64) * 255.0), 0, 255).astype(np.uint8)
+    Path(path).parent.mkdir(parents=True, exist_ok=True)
+    Image.fromarray(rgb).save(path)
+
+
+def resolve_image_paths(folder: Path, names: list[str]) -> dict[str, Path | None]:
+    """Map each model image name to a file in `folder` (None where no file fits).
+
+    Tried in order, per name: the exact relative path; the same stem with another image
+    extension (case-insensitive).  If no name resolves that way and the folder holds
+    exactly as many images as there are names, pair them in sorted order (LLFF's
+    `images_N/image000.png` copies are numbered in the sorted order of the originals).
+    """
+    files = list_images(folder)
+    by_stem: dict[str, Path] = {}
+    for path in files:
+        by_stem.setdefault(path.stem.lower(), path)
+    found: dict[str, Path | None] = {}
+    for name in names:
+        exact = folder / name
+        if exact.is_file():
+            found[name] = exact
+            continue
+        stem_dir = exact.parent
+        candidates = [p for p in stem_dir.glob(Path(name).stem + ".*") if is_image_file(p)] if stem_dir.is_dir() else []
+        found[name] = sorted(candidates)[0] if candidates else by_stem.get(Path(name).stem.lower())
+    if not any(found.values()) and len(files) == len(names) and names:
+        found = dict(zip(sorted(names), files))
+    return found

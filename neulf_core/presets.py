@@ -1,0 +1,40 @@
+"""Named training presets: a field representation, its size, and the recipe that trains it.
+
+`paper` and `authors` are the published NeuLF networks with the published recipe (Adam,
+learning rate 5e-4 decayed x0.995 per epoch, 8192-ray batches).  `fast` is this project's
+default for CPUs and small GPUs; see docs/BENCHMARKS.md for how it was chosen.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+from .errors import NeulfError
+
+
+@dataclass(frozen=True)
+class Preset:
+    field: str
+    field_config: dict = field(default_factory=dict)
+    lr: float = 5e-4
+    lr_decay_per_epoch: float | None = None   # the paper's schedule; None: decay over the budget
+    lr_final_ratio: float = 0.1               # learning rate at the end of the budget / at start
+    batch_size: int = 8192
+    description: str = ""
+
+
+PRESETS: dict[str, Preset] = {
+    "paper": Preset("mlp", {"depth": 20, "width": 256, "skip": "input"}, lr=5e-4, lr_decay_per_epoch=0.995,
+                    description="the paper's network: 20 x 256 ReLU layers, raw-input skips every 4 layers"),
+    "authors": Preset("mlp", {"depth": 8, "width": 256, "skip": "embedding"}, lr=5e-4, lr_decay_per_epoch=0.995,
+                      description="the authors' code default: 8 x 256, embedding skips"),
+    "fast": Preset("planes", {}, lr=2e-3, lr_final_ratio=0.1, batch_size=8192,
+                   description="six factorised feature planes + tiny MLP; trains in minutes on a CPU"),
+}
+DEFAULT_PRESET = "fast"
+
+
+def get_preset(name: str) -> Preset:
+    if name not in PRESETS:
+        raise NeulfError(f"unknown preset '{name}'; choose one of: {', '.join(PRESETS)}.")
+    return PRESETS[name]

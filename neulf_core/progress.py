@@ -1,0 +1,74 @@
+"""Progress reporting for people (a bar on stderr) and for programs (JSON lines on stdout)."""
+
+from __future__ import annotations
+
+import json
+import sys
+import time
+
+
+class JsonLines:
+    """One JSON object per event, flushed at once (the Blender worker reads these)."""
+
+    def __init__(self, stream=None, every_seconds: float = 0.5):
+        self.stream = stream or sys.stdout
+        self.every = every_seconds
+        self._last_step = 0.0
+
+    def __call__(self, event: dict) -> None:
+        if event.get("event") == "step":  # thin out per-step events
+            now = time.monotonic()
+            if now - self._last_step < self.every:
+                return
+            self._last_step = now
+        self.stream.write(json.dumps(event, default=str) + "\n")
+        self.stream.flush()
+
+
+class Bar:
+    """A one-line progress bar redrawn in place, plus plain lines for notable events."""
+
+    def __init__(self, stream=None, width: int = 30):
+        self.stream = stream or sys.stderr
+        self.width = width
+        self.val = None
+        self._last = 0.0
+
+    def _bar(self, fraction: float, text: str) -> None:
+        filled = int(round(self.width * min(1.0, max(0.0, fraction))))
+        self.stream.write(f"\r[{'#' * filled}{'.' * (self.width - filled)}] {fraction:6.1%} {text}\033[K")
+        self.stream.flush()
+
+    def __call__(self, event: dict) -> None:
+        kind = event.get("event")
+        if kind == "start":
+            self._line(f"training on {event['train_views']} views ({len(event['held_out'])} held out), "
+                       f"preset {event['preset']}, {event['device']}")
+            for note in event.get("notes", []):
+                self._line(f"note: {note}")
+        elif kind == "loading" and "done" in event:
+            self._bar(event["done"] / event["total"], f"loading {event['message']}")
+        elif kind in ("step", "validate"):
+            if kind == "validate" and event.get("val_psnr") is not None:
+                self.val = event["val_psnr"]
+            now = time.monotonic()
+            if kind == "step" and now - self._last < 0.2:
+                return
+            self._last = now
+            val = f" val {self.val:.2f} dB" if self.val is not None else ""
+            self._bar(event.get("fraction", 0.0), f"step {event['step']} {event['elapsed']:.0f}s loss {event['loss']:.5f}{val}")
+        elif kind == "warning":
+            self._line(f"warning: {event['message']}")
+        elif kind in ("finished", "cancelled"):
+            val = f", held-out PSNR {event['val_psnr']:.2f} dB (ray sample)" if event.get("val_psnr") is not None else ""
+            self._line(f"{kind} after {event['step']} steps, {event['elapsed']:.0f} s{val}; model in {event['model_dir']}")
+        elif kind == "stage":
+            self._line(event.get("message", ""))
+
+    def _line(self, text: str) -> None:
+        self.stream.write("\r\033[K" + text + "\n")
+        self.stream.flush()
+
+
+def make_reporter(mode: str):
+    return JsonLines() if mode == "json" else Bar()

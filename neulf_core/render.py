@@ -1,0 +1,167 @@
+"""Rendering a trained light field for any camera: RGB and depth, in bounded-memory chunks.
+
+One code path serves the CLI, evaluation, the benchmark and the Blender layer: rays of a
+camera -> (u, v, s, t) through the slab -> the field, `chunk` rays at a time, on the
+model's device.  Depth is the distance along the camera's optical axis in scene units.
+"""
+
+from __future__ import annotations
+
+import math
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import pycolmap
+import torch
+
+from .checkpoint import load_checkpoint
+from .device import pick_device
+from .errors import NeulfError
+from .fields import build_field, make_config
+from .rays import pinhole_rays, view_rays
+from .scene import View
+from .slab import Slab
+
+DEFAULT_CHUNK = 1 << 16
+# Rays whose (u, v, s, t) lie this far outside the trained range are extrapolation.
+EXTRAPOLATION_MARGIN = 0.1
+
+
+@dataclass
+class Rendering:
+    rgb: np.ndarray                 # (H, W, 3) float32 in [0, 1]
+    depth: np.ndarray | None        # (H, W) float32, along the optical axis; nan where not representable
+    valid: np.ndarray               # (H, W) bool: the ray crosses the slab forwards
+    warnings: list[str] = field(default_factory=list)
+
+
+class LightField:
+    """A trained field with its slab, ready to render."""
+
+    def __init__(self, field_module: torch.nn.Module, slab: Slab, meta: dict, device: torch.device):
+        self.field = field_module.to(device).eval()
+        self.slab = slab
+        self.meta = meta
+        self.device = device
+        self.background = torch.tensor(meta.get("scene", {}).get("mean_colour", [0, 0, 0]), dtype=torch.float32, device=device)
+
+    @classmethod
+    def load(cls, model_dir: str | Path, device: str | None = None) -> "LightField":
+        device = pick_device(device)
+        payload = load_checkpoint(model_dir, map_location="cpu")
+        try:
+            config = make_config(payload["field"], payload["field_config"])
+            module = build_field(payload["field"], config)
+            module.load_state_dict(payload["state_dict"])
+            slab = Slab.from_dict(payload["slab"])
+        except (KeyError, RuntimeError, TypeError, ValueError) as exc:
+            raise NeulfError(f"the checkpoint in {model_dir} is damaged or incomplete ({type(exc).__name__}: {exc}); train again.") from None
+        meta = {k: v for k, v in payload.items() if k not in ("state_dict", "optimizer", "rng")}
+        return cls(module, slab, meta, device)
+
+    @property
+    def trained_scale(self) -> float:
+        return float(self.meta.get("scene", {}).get("scale", 1.0))
+
+    def check_scene(self, scene) -> None:
+        """Registered views can only be rendered in the frame the model was trained in."""
+        saved = self.meta.get("scene", {})
+        if saved.get("fingerprint") not in (None, scene.fingerprint()):
+            raise NeulfError(
+                f"the model was trained on another reconstruction ({saved.get('root')}); its light slab lives in that "
+                "scene's coordinate frame, so render views of that scene (or give --cameras in its frame)."
+            )
+
+    # ------------------------------------------------------------------ core
+    @torch.no_grad()
+    def query(self, origins: torch.Tensor, directions: torch.Tensor, want_depth: bool = True):
+        """Colour (N, 3), camera-independent depth along the slab axis (N,), valid (N,)."""
+        uvst, valid = self.slab.rays_to_uvst(origins, directions)
+        rgb, depth_unit = self.field(uvst.float())
+        rgb = torch.where(valid[:, None], rgb.float(), self.background)
+        slab_depth = self.slab.depth_from_unit(depth_unit[:, 0].double()) if want_depth else None
+        return rgb, slab_depth, valid, uvst
+
+    def _axis_depth(self, origin: torch.Tensor, directions: torch.Tensor, slab_depth: torch.Tensor, forward: torch.Tensor):
+        """Slab-axis depth of the surface point -> distance along the camera's optical axis."""
+        rotation = torch.as_tensor(self.slab.rotation, device=directions.device, dtype=torch.float64)
+        slab_origin = torch.as_tensor(self.slab.origin, device=directions.device, dtype=torch.float64)
+        o_z = (origin.double() - slab_origin) @ rotation[2]
+        d_z = directions.double() @ rotation[2]
+        ray_length = (slab_depth - o_z) / d_z
+        return ray_length * (directions.double() @ forward)
+
+    def render(self, K, width: int, height: int, R, t, *, depth: bool = True, chunk: int = DEFAULT_CHUNK,
+               on_chunk=None) -> Rendering:
+        """Render a pinhole camera (K, world-to-camera R, t in the scene's COLMAP frame)."""
+        width, height = int(width), int(height)
+        if width <= 0 or height <= 0:
+            raise NeulfError(f"cannot render a {width}x{height} image: width and height must be at least 1 pixel.")
+        K, R, t = (np.asarray(a, dtype=np.float64) for a in (K, R, t))
+        rows_per_chunk = max(1, chunk // width)
+        forward = torch.as_tensor(R[2], device=self.device, dtype=torch.float64)
+        rgb_out = np.empty((height, width, 3), np.float32)
+        depth_out = np.empty((height, width), np.float32) if depth else None
+        valid_out = np.empty((height, width), bool)
+        outside = 0
+        for top in range(0, height, rows_per_chunk):
+            rows = slice(top, min(height, top + rows_per_chunk))
+            origin, directions = pinhole_rays(K, R, t, width, height, self.device, torch.float64, rows)
+            rgb, slab_depth, valid, uvst = self.query(origin, directions, depth)
+            band = rows.stop - rows.start
+            rgb_out[rows] = rgb.reshape(band, width, 3).cpu().numpy()
+            valid_out[rows] = valid.reshape(band, width).cpu().numpy()
+            outside += int((uvst.abs() > 1 + EXTRAPOLATION_MARGIN).any(dim=1).logical_and(valid).sum())
+            if depth:
+                axis = self._axis_depth(origin, directions, slab_depth, forward)
+                axis = torch.where(valid, axis, torch.full_like(axis, math.nan))
+                depth_out[rows] = axis.reshape(band, width).float().cpu().numpy()
+            if on_chunk is not None and on_chunk(rows.stop, height) is False:
+                break
+        return Rendering(rgb_out, depth_out, valid_out, self._camera_warnings(R, t, valid_out, outside))
+
+    def _camera_warnings(self, R, t, valid: np.ndarray, outside: int) -> list[str]:
+        notes = []
+        centre = -R.T @ t
+        z = float(self.slab.to_slab(centre[None])[0, 2])
+        if z > self.slab.z_near:
+            notes.append(f"the camera is {z - self.slab.z_near:.3g} units inside the scene's depth range (past the nearest "
+                         "content): rays may start behind objects the light field has seen from the front")
+        elif z > self.slab.z_uv + 0.5 * (self.slab.z_st - self.slab.z_uv):
+            notes.append("the camera is far in front of the uv plane (closer to the st plane than to the capture)")
+        invisible = int((~valid).sum())
+        if invisible:
+            notes.append(f"{invisible / valid.size:.1%} of the pixels look away from the light slab (facing away or "
+                         "too oblique) and show the background colour")
+        total = int(valid.sum())
+        if total and outside / total > 0.05:
+            notes.append(f"{outside / total:.0%} of the rays leave the region the cameras captured: "
+                         "move the camera closer to the capture positions for reliable results")
+        return notes
+
+    def render_view(self, view: View, scale: float | None = None, *, depth: bool = True, chunk: int = DEFAULT_CHUNK) -> Rendering:
+        """Render a registered view through its own camera model (distortion included), so
+        the result lines up pixel for pixel with its photo."""
+        scale = self.trained_scale if scale is None else scale
+        camera: pycolmap.Camera = view.scaled_camera(scale)
+        width, height = int(camera.width), int(camera.height)
+        origin, directions = view_rays(camera, view.R, view.t)
+        origin_t = torch.as_tensor(origin, device=self.device)
+        forward = torch.as_tensor(view.R[2], device=self.device, dtype=torch.float64)
+        rgb_parts, depth_parts, valid_parts = [], [], []
+        for start in range(0, len(directions), chunk):
+            d = torch.as_tensor(directions[start:start + chunk], device=self.device)
+            rgb, slab_depth, valid, _ = self.query(origin_t, d, depth)
+            rgb_parts.append(rgb.cpu().numpy())
+            valid_parts.append(valid.cpu().numpy())
+            if depth:
+                depth_parts.append(self._axis_depth(origin_t, d, slab_depth, forward).float().cpu().numpy())
+        valid = np.concatenate(valid_parts).reshape(height, width)
+        depth_map = np.concatenate(depth_parts).reshape(height, width) if depth else None
+        if depth_map is not None:
+            depth_map[~valid] = np.nan
+        return Rendering(np.concatenate(rgb_parts).reshape(height, width, 3).astype(np.float32), depth_map, valid)
+
+

@@ -1,0 +1,269 @@
+"""Scenes: registered photos with their cameras, read from COLMAP models or LLFF pose files.
+
+Everything downstream works in the COLMAP world frame with COLMAP's camera convention
+(x right, y down, z forward, world-to-camera poses, pixel centres at +0.5).  Each view
+carries its own `pycolmap.Camera`, rescaled to the size of its image file on disk, so
+ray directions always come from the camera model's own unprojection (distortion
+included).
+"""
+
+from __future__ import annotations
+
+import copy
+import hashlib
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import pycolmap
+
+from .errors import NeulfError
+from .images import image_size, list_images, load_rgb, resolve_image_paths
+
+MODEL_FILES = ("cameras.bin", "cameras.txt")
+
+
+@dataclass
+class View:
+    """One registered photo."""
+
+    name: str                  # the image name as the model stores it
+    camera: pycolmap.Camera    # intrinsics at the size of `image_path`
+    R: np.ndarray              # (3, 3) world-to-camera rotation
+    t: np.ndarray              # (3,) world-to-camera translation
+    image_path: Path | None = None
+
+    @property
+    def center(self) -> np.ndarray:
+        return -self.R.T @ self.t
+
+    @property
+    def forward(self) -> np.ndarray:
+        """Viewing direction (camera +z) in world coordinates."""
+        return self.R[2].copy()
+
+    @property
+    def size(self) -> tuple[int, int]:
+        return int(self.camera.width), int(self.camera.height)
+
+    @property
+    def stem(self) -> str:
+        return Path(self.name).stem
+
+    def scaled_camera(self, scale: float) -> pycolmap.Camera:
+        """This view's camera for images resized by `scale` (rounded to whole pixels)."""
+        camera = copy.copy(self.camera)
+        width, height = scaled_size(self.size, scale)
+        camera.rescale(width, height)
+        return camera
+
+    def load_image(self, scale: float = 1.0) -> np.ndarray:
+        if self.image_path is None:
+            raise NeulfError(f"view {self.name} has no image file; pass --images with the folder that holds it.")
+        return load_rgb(self.image_path, scaled_size(self.size, scale))
+
+
+@dataclass
+class Scene:
+    root: Path
+    views: list[View]                       # sorted by name
+    points: np.ndarray                      # (N, 3) sparse 3D points, world frame (may be empty)
+    kind: str                               # "colmap" or "llff"
+    depth_bounds: np.ndarray | None = None  # (V, 2) near/far per view (LLFF only)
+    notes: list[str] = field(default_factory=list)  # what loading had to adapt, for the user
+
+    def view(self, name: str) -> View:
+        for view in self.views:
+            if name in (view.name, view.stem, Path(view.name).name):
+                return view
+        known = ", ".join(v.name for v in self.views[:5])
+        raise NeulfError(f"the scene has no view named '{name}' (it has {len(self.views)} views: {known}, ...).")
+
+    def fingerprint(self) -> str:
+        """Identifies the capture (view names and poses), so a checkpoint finds its scene."""
+        digest = hashlib.sha256()
+        for view in self.views:
+            digest.update(view.name.encode())
+            digest.update(np.round(view.center, 4).astype(np.float64).tobytes())
+        return digest.hexdigest()[:16]
+
+
+def scaled_size(size: tuple[int, int], scale: float) -> tuple[int, int]:
+    return max(1, int(round(size[0] * scale))), max(1, int(round(size[1] * scale)))
+
+
+# ----------------------------------------------------------------------------- finding the model
+
+
+def find_model_dir(scene_dir: Path) -> Path | None:
+    """The folder holding the COLMAP model: sparse/0, sparse, or the folder itself."""
+    for candidate in (scene_dir / "sparse" / "0", scene_dir / "sparse", scene_dir):
+        if any((candidate / name).is_file() for name in MODEL_FILES):
+            return candidate
+    sparse = scene_dir / "sparse"
+    if sparse.is_dir():  # sparse/1, sparse/2 ... when the mapper split the capture
+        for candidate in sorted(p for p in sparse.iterdir() if p.is_dir()):
+            if any((candidate / name).is_file() for name in MODEL_FILES):
+                return candidate
+    return None
+
+
+def find_images_dir(scene_dir: Path) -> Path | None:
+    """`images/` if present, else the full-resolution-most `images_N/` (smallest N)."""
+    if (scene_dir / "images").is_dir():
+        return scene_dir / "images"
+    scaled = []
+    for path in scene_dir.glob("images_*"):
+        suffix = path.name[len("images_"):]
+        if path.is_dir() and suffix.isdigit():
+            scaled.append((int(suffix), path))
+    return min(scaled)[1] if scaled else None
+
+
+def load_scene(scene_dir: str | Path, images_dir: str | Path | None = None) -> Scene:
+    """Read a scene folder: a COLMAP model (sparse/0 or sparse/) or an LLFF poses_bounds.npy."""
+    scene_dir = Path(scene_dir).expanduser()
+    if not scene_dir.exists():
+        raise NeulfError(f"scene folder {scene_dir} does not exist.")
+    if not scene_dir.is_dir():
+        raise NeulfError(f"{scene_dir} is not a folder; give the scene folder that holds sparse/0 and images/.")
+    if images_dir is not None:
+        images_dir = Path(images_dir).expanduser()
+        if not images_dir.is_dir():
+            raise NeulfError(f"images folder {images_dir} does not exist.")
+    else:
+        images_dir = find_images_dir(scene_dir)
+
+    model_dir = find_model_dir(scene_dir)
+    if model_dir is not None:
+        return _load_colmap(scene_dir, model_dir, images_dir)
+    if (scene_dir / "poses_bounds.npy").is_file():
+        return _load_llff(scene_dir, images_dir)
+    raise NeulfError(
+        f"no camera model in {scene_dir}: expected sparse/0/cameras.bin (or .txt) from COLMAP, "
+        f"or poses_bounds.npy from LLFF. To make one from photos run: python -m neulf_core reconstruct PHOTOS --out {scene_dir}"
+    )
+
+
+def _read_reconstruction(model_dir: Path) -> pycolmap.Reconstruction:
+    missing = [n for n in ("cameras", "images") if not any((model_dir / f"{n}.{e}").is_file() for e in ("bin", "txt"))]
+    if missing:
+        raise NeulfError(f"COLMAP model in {model_dir} is incomplete: {' and '.join(missing)} file missing.")
+    try:
+        return pycolmap.Reconstruction(str(model_dir))
+    except Exception as exc:  # pycolmap raises plain RuntimeError/ValueError with C++ messages
+        detail = str(exc).strip().splitlines()[-1] if str(exc).strip() else type(exc).__name__
+        raise NeulfError(
+            f"cannot read the COLMAP model in {model_dir} ({detail}): the files may be truncated or corrupted; "
+            "export the model again from COLMAP or rerun reconstruct."
+        ) from None
+
+
+def _load_colmap(scene_dir: Path, model_dir: Path, images_dir: Path | None) -> Scene:
+    recon = _read_reconstruction(model_dir)
+    registered = sorted((im for im in recon.images.values() if im.has_pose), key=lambda im: im.name)
+    if not registered:
+        raise NeulfError(f"the COLMAP model in {model_dir} has no registered images.")
+    if images_dir is None:
+        raise NeulfError(f"no images folder next to the model in {scene_dir}; pass --images DIR.")
+    paths = resolve_image_paths(images_dir, [im.name for im in registered])
+    _require_all_images(paths, images_dir)
+
+    notes: list[str] = []
+    views = []
+    for image in registered:
+        camera = copy.copy(recon.cameras[image.camera_id])  # views may be rescaled one by one
+        path = paths[image.name]
+        _fit_camera_to_file(camera, path, notes)
+        pose = image.cam_from_world()
+        matrix = np.asarray(pose.matrix(), dtype=np.float64)
+        views.append(View(image.name, camera, matrix[:, :3].copy(), matrix[:, 3].copy(), path))
+    points = np.array([p.xyz for p in recon.points3D.values()], dtype=np.float64).reshape(-1, 3)
+    return Scene(scene_dir, views, points, "colmap", notes=_dedupe(notes))
+
+
+def _require_all_images(paths: dict[str, Path | None], images_dir: Path) -> None:
+    missing = [name for name, path in paths.items() if path is None]
+    if not missing:
+        return
+    shown = ", ".join(missing[:3]) + (" ..." if len(missing) > 3 else "")
+    raise NeulfError(
+        f"{len(missing)} of {len(paths)} images the model names are not in {images_dir} ({shown}); "
+        "put them there or pass --images with the folder that holds them."
+    )
+
+
+def _fit_camera_to_file(camera: pycolmap.Camera, path: Path, notes: list[str]) -> None:
+    """Rescale intrinsics when the file is a resized copy of what the model calibrated."""
+    width, height = image_size(path)
+    if (width, height) == (camera.width, camera.height):
+        return
+    model_aspect = camera.width / camera.height
+    if abs(width / height - model_aspect) > 0.01 * model_aspect:
+        raise NeulfError(
+            f"image {path.name} is {width}x{height} but the model's camera is {camera.width}x{camera.height} "
+            "(another aspect ratio): the photo was cropped or rotated, or belongs to another model."
+        )
+    notes.append(f"intrinsics scaled from {camera.width}x{camera.height} to the image files' {width}x{height}")
+    camera.rescale(width, height)
+
+
+def _dedupe(items: list[str]) -> list[str]:
+    return list(dict.fromkeys(items))
+
+
+# ----------------------------------------------------------------------------- LLFF
+
+
+def _load_llff(scene_dir: Path, images_dir: Path | None) -> Scene:
+    """LLFF's poses_bounds.npy: per view a 3x5 [down, right, backwards, centre, (h, w, f)]
+    camera-to-world matrix, then near and far depth."""
+    try:
+        data = np.load(scene_dir / "poses_bounds.npy")
+        poses = data[:, :15].reshape(-1, 3, 5).astype(np.float64)
+        bounds = data[:, 15:17].astype(np.float64)
+    except Exception as exc:
+        raise NeulfError(f"cannot read {scene_dir / 'poses_bounds.npy'} ({exc}); it should be an (N, 17) array.") from None
+    if images_dir is None:
+        raise NeulfError(f"no images folder in {scene_dir}; pass --images DIR.")
+    files = list_images(images_dir)
+    if len(files) != len(poses):
+        raise NeulfError(
+            f"{images_dir} holds {len(files)} images but poses_bounds.npy has {len(poses)} poses; "
+            "LLFF pairs them in sorted order, so the counts must match."
+        )
+    views = []
+    notes: list[str] = []
+    for pose, path in zip(poses, files):
+        height, width, focal = pose[:, 4]
+        camera = pycolmap.Camera(
+            model="PINHOLE", width=int(round(width)), height=int(round(height)),
+            params=[focal, focal, width / 2.0, height / 2.0],
+        )
+        _fit_camera_to_file(camera, path, notes)
+        down, right, backwards, centre = pose[:, 0], pose[:, 1], pose[:, 2], pose[:, 3]
+        cam_to_world = np.stack([right, down, -backwards], axis=1)  # columns: COLMAP x, y, z
+        R = cam_to_world.T
+        views.append(View(path.name, camera, R, -R @ centre, path))
+    order = np.argsort([v.name for v in views])
+    views = [views[i] for i in order]
+    return Scene(scene_dir, views, np.zeros((0, 3)), "llff", depth_bounds=bounds[order], notes=_dedupe(notes))
+
+
+# ----------------------------------------------------------------------------- held-out views
+
+
+def split_views(scene: Scene, holdout_every: int = 8, exclude: list[str] | None = None) -> tuple[list[View], list[View]]:
+    """(train, held_out).  Held out: the named views, or every `holdout_every`-th view in
+    name order starting with the first (the NeRF/LLFF convention); 0 holds out none."""
+    if exclude:
+        held = {scene.view(name).name for name in exclude}
+    elif holdout_every and holdout_every > 0:
+        held = {v.name for i, v in enumerate(scene.views) if i % holdout_every == 0}
+    else:
+        held = set()
+    train = [v for v in scene.views if v.name not in held]
+    test = [v for v in scene.views if v.name in held]
+    if len(train) < 2:
+        raise NeulfError(f"only {len(train)} training views remain after holding out {len(test)}; hold out fewer views.")
+    return train, test

@@ -1,0 +1,203 @@
+"""The light slab: two parallel planes that turn a ray into four numbers (u, v, s, t).
+
+The slab frame has its origin at the mean camera centre and its z axis along the mean
+viewing direction (x right and y down, like the cameras).  The uv plane is z = z_uv
+(near the camera rig) and the st plane z = z_st (inside the scene).  A ray's (u, v) and
+(s, t) are where its line crosses those planes; each axis is then mapped to [-1, 1] with
+the training rays' range, and that normalisation is saved with the model.
+
+Placement of the st plane: at the depth of the scene's mean disparity (the harmonic mean
+of the sparse points' depths).  There the parallax of the scene around the plane averages
+out, so the colour changes least with (u, v) for a fixed (s, t) and the field is smoothest
+along the sparsely sampled angular axes.  See docs/BENCHMARKS.md for the measurement.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+
+import numpy as np
+import torch
+
+from .errors import NeulfError
+from .rays import pixel_centres, view_rays
+from .scene import Scene, View
+
+# A ray must cross the planes at no more than this angle from the slab axis (cosine).
+MIN_AXIS_COSINE = float(np.cos(np.radians(80.0)))
+# Cameras whose view direction is further than this from the mean cannot share one slab.
+MAX_VIEW_ANGLE_DEG = 65.0
+
+
+@dataclass
+class Slab:
+    rotation: np.ndarray   # (3, 3) rows: slab x, y, z axes in world coordinates
+    origin: np.ndarray     # (3,) slab origin in world coordinates
+    z_uv: float            # uv plane depth along the slab axis
+    z_st: float            # st plane depth along the slab axis
+    z_near: float          # scene depth range along the slab axis (for the depth output)
+    z_far: float
+    lo: np.ndarray         # (4,) per-axis minimum of the training (u, v, s, t)
+    hi: np.ndarray         # (4,) per-axis maximum
+
+    # ------------------------------------------------------------------ (de)serialisation
+    def to_dict(self) -> dict:
+        data = asdict(self)
+        for key, value in data.items():
+            if isinstance(value, np.ndarray):
+                data[key] = value.tolist()
+        data["uv_corners_world"] = self.plane_corners("uv").tolist()
+        data["st_corners_world"] = self.plane_corners("st").tolist()
+        return data
+
+    @classmethod
+    def from_dict(cls, data: dict) -> "Slab":
+        arrays = {"rotation", "origin", "lo", "hi"}
+        fields = cls.__dataclass_fields__
+        return cls(**{k: (np.asarray(v, dtype=np.float64) if k in arrays else float(v)) for k, v in data.items() if k in fields})
+
+    # ------------------------------------------------------------------ geometry
+    def to_slab(self, points: np.ndarray) -> np.ndarray:
+        return (np.asarray(points, dtype=np.float64) - self.origin) @ self.rotation.T
+
+    def to_world(self, points: np.ndarray) -> np.ndarray:
+        return np.asarray(points, dtype=np.float64) @ self.rotation + self.origin
+
+    def plane_corners(self, plane: str) -> np.ndarray:
+        """(4, 3) world corners of the uv or st plane's extent (the training rays' range)."""
+        a, z = (0, self.z_uv) if plane == "uv" else (2, self.z_st)
+        (x0, y0), (x1, y1) = self.lo[a:a + 2], self.hi[a:a + 2]
+        corners = np.array([[x0, y0, z], [x1, y0, z], [x1, y1, z], [x0, y1, z]])
+        return self.to_world(corners)
+
+    def _tensors(self, device, dtype):
+        as_t = lambda a: torch.as_tensor(np.asarray(a, dtype=np.float64), device=device, dtype=dtype)  # noqa: E731
+        return as_t(self.rotation), as_t(self.origin), as_t((self.lo + self.hi) / 2), as_t((self.hi - self.lo) / 2)
+
+    def rays_to_uvst(self, origins: torch.Tensor, directions: torch.Tensor, normalise: bool = True):
+        """World rays -> (N, 4) (u, v, s, t) and (N,) bool: the ray crosses the planes forwards.
+
+        Differentiable in origins and directions.  `origins` may be (3,) or (N, 3).
+        """
+        rotation, origin, centre, half = self._tensors(directions.device, directions.dtype)
+        o = (origins - origin) @ rotation.T
+        d = directions @ rotation.T
+        if o.dim() == 1:
+            o = o.expand_as(d)
+        dz = d[:, 2]
+        valid = dz > MIN_AXIS_COSINE * directions.norm(dim=1)
+        dz_safe = torch.where(valid, dz, torch.ones_like(dz))
+        uv = o[:, :2] + d[:, :2] * ((self.z_uv - o[:, 2]) / dz_safe)[:, None]
+        st = o[:, :2] + d[:, :2] * ((self.z_st - o[:, 2]) / dz_safe)[:, None]
+        uvst = torch.cat([uv, st], dim=1)
+        if normalise:
+            uvst = (uvst - centre) / half
+        return uvst, valid
+
+    def uvst_to_rays(self, uvst: torch.Tensor, normalised: bool = True):
+        """(N, 4) -> world points on the uv plane (N, 3) and unit directions towards st (N, 3)."""
+        rotation, origin, centre, half = self._tensors(uvst.device, uvst.dtype)
+        if normalised:
+            uvst = uvst * half + centre
+        n = uvst.shape[0]
+        p_uv = torch.cat([uvst[:, :2], torch.full((n, 1), self.z_uv, device=uvst.device, dtype=uvst.dtype)], 1)
+        p_st = torch.cat([uvst[:, 2:], torch.full((n, 1), self.z_st, device=uvst.device, dtype=uvst.dtype)], 1)
+        d = p_st - p_uv
+        d = d / d.norm(dim=1, keepdim=True)
+        return p_uv @ rotation + origin, d @ rotation
+
+    def depth_from_unit(self, unit: torch.Tensor) -> torch.Tensor:
+        """Map the field's [0, 1] depth output to slab-axis depth, linear in disparity
+        (1 -> near, 0 -> far) so near objects get the finer resolution."""
+        inv_near, inv_far = 1.0 / self.z_near, 1.0 / self.z_far
+        return 1.0 / (inv_far + unit * (inv_near - inv_far))
+
+    def unit_from_depth(self, depth: torch.Tensor) -> torch.Tensor:
+        inv_near, inv_far = 1.0 / self.z_near, 1.0 / self.z_far
+        return (1.0 / depth - inv_far) / (inv_near - inv_far)
+
+
+# ----------------------------------------------------------------------------- fitting
+
+
+def slab_frame(views: list[View]) -> tuple[np.ndarray, np.ndarray]:
+    """(rotation, origin) from the mean camera orientation and centre; raises when the
+    cameras do not look one way (a 360-degree or inward-facing ring)."""
+    forwards = np.stack([v.forward for v in views])
+    rights = np.stack([v.R[0] for v in views])
+    mean_forward = forwards.mean(axis=0)
+    spread = np.linalg.norm(mean_forward)
+    z = mean_forward / max(spread, 1e-12)
+    angles = np.degrees(np.arccos(np.clip(forwards @ z, -1, 1)))
+    worst = int(np.argmax(angles))
+    if spread < 0.5 or angles[worst] > MAX_VIEW_ANGLE_DEG:
+        raise NeulfError(
+            f"the capture is not forward-facing: camera {views[worst].name} looks {angles[worst]:.0f} degrees away "
+            f"from the mean view direction (limit {MAX_VIEW_ANGLE_DEG:.0f}). A two-plane light field needs all cameras "
+            "on one side of the scene looking the same way; a 360-degree or surround capture cannot share one light slab."
+        )
+    x = rights.mean(axis=0)
+    x = x - (x @ z) * z
+    x /= np.linalg.norm(x)
+    y = np.cross(z, x)
+    origin = np.mean([v.center for v in views], axis=0)
+    return np.stack([x, y, z]), origin
+
+
+def scene_depths(scene: Scene, rotation: np.ndarray, origin: np.ndarray) -> np.ndarray:
+    """Depths of the scene's content along the slab axis (from sparse points or LLFF bounds)."""
+    if len(scene.points) >= 8:
+        z = (scene.points - origin) @ rotation[2]
+        z = z[z > 0]
+        if len(z) >= 8:
+            lo, hi = np.percentile(z, [1, 99])
+            return z[(z >= lo) & (z <= hi)]
+    if scene.depth_bounds is not None:
+        return np.array([scene.depth_bounds[:, 0].min(), scene.depth_bounds[:, 1].max()])
+    raise NeulfError(
+        "the model has no usable 3D points in front of the cameras, so the scene's depth is unknown; "
+        "rerun reconstruct, or give the depth of the st plane and the depth range with --st-depth, --near, --far."
+    )
+
+
+def fit_slab(scene: Scene, train_views: list[View], *, scale: float = 1.0, st_depth: float | None = None,
+             uv_depth: float = 0.0, near: float | None = None, far: float | None = None) -> Slab:
+    """Place the slab for `train_views` and fit the (u, v, s, t) normalisation to their rays."""
+    rotation, origin = slab_frame(train_views)
+    if st_depth is None or near is None or far is None:
+        depths = scene_depths(scene, rotation, origin)
+        near = float(near if near is not None else depths.min())
+        far = float(far if far is not None else depths.max())
+        st_depth = float(st_depth if st_depth is not None else 1.0 / np.mean(1.0 / depths))
+    if not (0 < near < far):
+        raise NeulfError(f"depth range near={near} far={far} is not valid: need 0 < near < far.")
+    if st_depth <= uv_depth:
+        raise NeulfError(f"the st plane (depth {st_depth}) must lie beyond the uv plane (depth {uv_depth}).")
+    slab = Slab(rotation, origin, float(uv_depth), float(st_depth), 0.9 * near, 1.1 * far, np.zeros(4), np.ones(4))
+    lo, hi = _uvst_range(slab, train_views, scale)
+    slab.lo, slab.hi = lo, hi
+    return slab
+
+
+def _border_pixels(width: int, height: int) -> np.ndarray:
+    """The outermost pixel centres: a view's (u, v, s, t) extremes lie on its border."""
+    pixels = pixel_centres(width, height).reshape(height, width, 2)
+    return np.concatenate([pixels[0], pixels[-1], pixels[:, 0], pixels[:, -1]])
+
+
+def _uvst_range(slab: Slab, views: list[View], scale: float) -> tuple[np.ndarray, np.ndarray]:
+    lo, hi = np.full(4, np.inf), np.full(4, -np.inf)
+    for view in views:
+        camera = view.scaled_camera(scale)
+        origin, dirs = view_rays(camera, view.R, view.t, _border_pixels(int(camera.width), int(camera.height)))
+        uvst, valid = slab.rays_to_uvst(torch.from_numpy(origin), torch.from_numpy(dirs), normalise=False)
+        if not bool(valid.all()):
+            raise NeulfError(
+                f"some rays of view {view.name} run almost parallel to the light slab (more than 80 degrees off its "
+                "axis): the field of view is too wide or the camera turned too far for a two-plane light field."
+            )
+        lo = np.minimum(lo, uvst.min(0).values.numpy())
+        hi = np.maximum(hi, uvst.max(0).values.numpy())
+    # Guard against a degenerate axis (all cameras on a line): give it a small width.
+    width = np.maximum(hi - lo, 1e-6 * max(1.0, float(np.abs(hi - lo).max())))
+    return (lo + hi) / 2 - width / 2, (lo + hi) / 2 + width / 2

@@ -1,0 +1,283 @@
+"""Training a light field: random ray batches, photometric loss, checkpoints, resume, cancel.
+
+`train(...)` is the one entry point used by the CLI, the benchmark and the Blender worker.
+It reports through a `progress` callback (plain dicts; see `progress.py` for the bar and
+JSON-lines printers) and stops early, after saving, when `should_stop()` returns True.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+import torch
+
+from . import __version__
+from .checkpoint import checkpoint_path, load_checkpoint, save_checkpoint
+from .dataset import RaySet, build_rayset, mean_colour
+from .device import describe_device, pick_device
+from .errors import NeulfError
+from .fields import build_field, count_parameters, make_config
+from .presets import DEFAULT_PRESET, get_preset
+from .scene import Scene, load_scene, split_views
+from .slab import Slab, fit_slab
+
+VALIDATION_RAYS = 1 << 16
+
+
+@dataclass
+class TrainConfig:
+    preset: str = DEFAULT_PRESET
+    steps: int | None = None            # stop after this many steps in total ...
+    minutes: float | None = None        # ... or after this much training time in total
+    scale: float = 1.0                  # image scale to train at
+    holdout_every: int = 8
+    exclude: list[str] | None = None    # held-out view names (instead of every 8th)
+    seed: int = 0
+    batch_size: int | None = None       # default: the preset's
+    checkpoint_seconds: float = 60.0
+    validate_seconds: float = 10.0
+    st_depth: float | None = None       # slab placement overrides (slab-axis depths, scene units)
+    uv_depth: float = 0.0
+    near: float | None = None
+    far: float | None = None
+    field_overrides: dict = field(default_factory=dict)
+    device: str | None = None
+
+    def budget_fraction(self, step: int, elapsed: float) -> float:
+        fractions = []
+        if self.steps:
+            fractions.append(step / self.steps)
+        if self.minutes:
+            fractions.append(elapsed / (60.0 * self.minutes))
+        return min(1.0, max(fractions)) if fractions else 0.0
+
+
+@dataclass
+class TrainResult:
+    model_dir: Path
+    status: str            # "finished" or "cancelled"
+    step: int
+    elapsed: float
+    val_psnr: float | None
+    history: list[dict]
+
+
+def _emit(progress, **event):
+    if progress is not None:
+        progress(event)
+
+
+def _seed_everything(seed: int) -> torch.Generator:
+    torch.manual_seed(seed)
+    np.random.seed(seed)
+    generator = torch.Generator()
+    generator.manual_seed(seed)
+    return generator
+
+
+def _angular_resolution(n_views: int) -> int:
+    """Angular cells per axis: about the number of cameras along one axis of the rig, plus
+    margin; more cells than that are never observed (docs/BENCHMARKS.md)."""
+    return int(min(16, max(4, round(2 * math.sqrt(n_views)))))
+
+
+def _build_field(preset_name: str, overrides: dict, n_train_views: int):
+    preset = get_preset(preset_name)
+    options = dict(preset.field_config)
+    if preset.field == "planes" and "angular_res" not in overrides:
+        options["angular_res"] = _angular_resolution(n_train_views)
+    options.update(overrides)
+    config = make_config(preset.field, options)
+    return build_field(preset.field, config), preset
+
+
+def _optimizer(field_module, lr: float) -> torch.optim.Optimizer:
+    groups = field_module.param_groups(lr) if hasattr(field_module, "param_groups") else [{"params": field_module.parameters(), "lr": lr}]
+    for group in groups:
+        group["initial_lr"] = group["lr"]
+    return torch.optim.Adam(groups, betas=(0.9, 0.999), eps=1e-15 if len(groups) > 1 else 1e-8)
+
+
+def _set_learning_rate(optimizer, preset, step: int, n_rays: int, batch: int, fraction: float, lr_scale: float) -> float:
+    if preset.lr_decay_per_epoch is not None:
+        factor = preset.lr_decay_per_epoch ** (step * batch / max(1, n_rays))
+    else:
+        factor = preset.lr_final_ratio ** fraction
+    for group in optimizer.param_groups:
+        group["lr"] = group["initial_lr"] * factor * lr_scale
+    return optimizer.param_groups[-1]["lr"]
+
+
+@torch.no_grad()
+def validation_psnr(field_module, rays: RaySet, chunk: int = 1 << 15) -> float:
+    field_module.eval()
+    total, count = 0.0, 0
+    for start in range(0, len(rays), chunk):
+        index = torch.arange(start, min(start + chunk, len(rays)), device=rays.rgb.device)
+        uvst, target = rays.batch(index)
+        rgb, _ = field_module(uvst)
+        total += float(((rgb - target) ** 2).sum())
+        count += target.numel()
+    field_module.train()
+    return -10.0 * math.log10(max(total / max(count, 1), 1e-12))
+
+
+def train(scene: Scene | str | Path, model_dir: str | Path, config: TrainConfig, *, images_dir=None, resume: bool = False,
+          progress: Callable[[dict], None] | None = None, should_stop: Callable[[], bool] | None = None) -> TrainResult:
+    model_dir = Path(model_dir).expanduser()
+    if not config.steps and not config.minutes:
+        raise NeulfError("give a training budget: --steps N or --minutes M.")
+    if config.scale <= 0:
+        raise NeulfError(f"--scale must be positive, not {config.scale}.")
+    existing = checkpoint_path(model_dir).is_file()
+    if existing and not resume:
+        raise NeulfError(f"{model_dir} already holds a trained model; pass --resume to continue it, or choose another --out.")
+    resumed = load_checkpoint(model_dir) if (resume and existing) else None
+
+    if not isinstance(scene, Scene):
+        scene = load_scene(scene, images_dir)
+    if resumed is not None:
+        config = _config_for_resume(resumed, config, scene)
+    train_views, held_views = split_views(scene, config.holdout_every, config.exclude)
+    device = pick_device(config.device)
+    generator = _seed_everything(config.seed)
+
+    slab = Slab.from_dict(resumed["slab"]) if resumed else fit_slab(
+        scene, train_views, scale=config.scale, st_depth=config.st_depth, uv_depth=config.uv_depth, near=config.near, far=config.far)
+    _emit(progress, event="start", scene=str(scene.root), views=len(scene.views), train_views=len(train_views),
+          held_out=[v.name for v in held_views], device=describe_device(device), preset=config.preset, notes=scene.notes)
+
+    _emit(progress, event="loading", message="building training rays")
+    train_rays = build_rayset(train_views, slab, config.scale,
+                              on_view=lambda i, n, v: _emit(progress, event="loading", message=f"rays of {v.name}", done=i + 1, total=n))
+    train_rays = train_rays.to(device)
+    val_rays = build_rayset(held_views, slab, config.scale).subset(VALIDATION_RAYS, generator).to(device) if held_views else None
+
+    field_module, preset = _build_field(config.preset, config.field_overrides, len(train_views))
+    if resumed:
+        field_module.load_state_dict(resumed["state_dict"])
+    field_module.to(device).train()
+    optimizer = _optimizer(field_module, preset.lr)
+    batch = config.batch_size or preset.batch_size
+    step, elapsed_before, history = 0, 0.0, []
+    if resumed:
+        optimizer.load_state_dict(resumed["optimizer"])
+        step, elapsed_before = resumed["progress"]["step"], resumed["progress"]["elapsed"]
+        history = list(resumed["progress"]["history"])
+        _restore_rng(resumed.get("rng"), generator)
+
+    meta = {
+        "neulf_core_version": __version__,
+        "field": field_module.field_name,
+        "field_config": field_module.field_config,
+        "parameters": count_parameters(field_module),
+        "slab": slab.to_dict(),
+        "scene": {
+            "root": str(scene.root), "kind": scene.kind, "fingerprint": scene.fingerprint(),
+            "views": [v.name for v in scene.views], "train": [v.name for v in train_views],
+            "held_out": [v.name for v in held_views], "scale": config.scale,
+            "mean_colour": mean_colour(train_rays).tolist(),
+        },
+        "train_config": asdict(config),
+        "rig": _rig(train_views, config.scale),
+    }
+
+    def save(status: str, val: float | None):
+        payload = {**meta, "state_dict": field_module.state_dict(), "optimizer": optimizer.state_dict(),
+                   "rng": {"torch": torch.get_rng_state(), "generator": generator.get_state()},
+                   "progress": {"step": step, "elapsed": elapsed, "status": status, "val_psnr": val, "history": history}}
+        path = save_checkpoint(model_dir, payload)
+        _emit(progress, event="checkpoint", path=str(path), step=step)
+
+    n_rays = len(train_rays)
+    start_time = time.monotonic()
+    last_checkpoint = last_validation = start_time
+    elapsed = elapsed_before
+    val = history[-1]["val_psnr"] if history else None
+    lr_scale, bad_steps, skipped = 1.0, 0, 0
+    status = "finished"
+    loss_value = float("nan")
+    while config.budget_fraction(step, elapsed) < 1.0:
+        if should_stop is not None and should_stop():
+            status = "cancelled"
+            break
+        fraction = config.budget_fraction(step, elapsed)
+        lr = _set_learning_rate(optimizer, preset, step, n_rays, batch, fraction, lr_scale)
+        index = torch.randint(n_rays, (batch,), generator=generator).to(device)
+        uvst, target = train_rays.batch(index)
+        rgb, _ = field_module(uvst)
+        loss = torch.mean((rgb - target) ** 2)
+        objective = loss + field_module.regularisation() if hasattr(field_module, "regularisation") else loss
+        optimizer.zero_grad(set_to_none=True)
+        if not torch.isfinite(objective):
+            # A NaN/inf step is skipped; repeated ones halve the learning rate (reported).
+            skipped += 1
+            bad_steps += 1
+            if bad_steps >= 3:
+                lr_scale *= 0.5
+                bad_steps = 0
+                _emit(progress, event="warning", message=f"non-finite loss at step {step}: learning rate lowered to x{lr_scale:g}")
+            step += 1
+            continue
+        bad_steps = 0
+        objective.backward()
+        optimizer.step()
+        step += 1
+        loss_value = float(loss.detach())
+        now = time.monotonic()
+        elapsed = elapsed_before + (now - start_time)
+        if now - last_validation >= config.validate_seconds or config.budget_fraction(step, elapsed) >= 1.0:
+            val = validation_psnr(field_module, val_rays) if val_rays is not None else None
+            record = {"step": step, "elapsed": round(elapsed, 2), "loss": loss_value,
+                      "train_psnr": -10 * math.log10(max(loss_value, 1e-12)), "val_psnr": val, "lr": lr}
+            history.append(record)
+            _emit(progress, event="validate", fraction=config.budget_fraction(step, elapsed), **record)
+            last_validation = time.monotonic()
+            start_time += last_validation - now  # validation time does not count against the budget
+            now = last_validation
+        else:
+            _emit(progress, event="step", step=step, elapsed=elapsed, loss=loss_value,
+                  fraction=config.budget_fraction(step, elapsed), lr=lr)
+        if now - last_checkpoint >= config.checkpoint_seconds:
+            save("training", val)
+            last_checkpoint = time.monotonic()
+    if skipped:
+        _emit(progress, event="warning", message=f"{skipped} training steps had a non-finite loss and were skipped")
+    save(status, val)
+    _emit(progress, event=status, step=step, elapsed=elapsed, val_psnr=val, model_dir=str(model_dir))
+    return TrainResult(model_dir, status, step, elapsed, val, history)
+
+
+def _rig(views, scale: float) -> dict:
+    """Camera centres and a representative pinhole (the first view's) for camera paths."""
+    camera = views[0].scaled_camera(scale)
+    return {"centres": [v.center.tolist() for v in views], "K": camera.calibration_matrix().tolist(),
+            "width": int(camera.width), "height": int(camera.height)}
+
+
+def _config_for_resume(payload: dict, config: TrainConfig, scene: Scene) -> TrainConfig:
+    """Resuming keeps what defines the model (preset, split, scale, slab); the budget and the
+    checkpoint interval may change."""
+    saved = payload["scene"]
+    if saved["fingerprint"] != scene.fingerprint():
+        raise NeulfError(
+            f"the checkpoint was trained on another scene ({saved['root']}, {len(saved['views'])} views); "
+            "resume it with that scene, or train a new model into another --out folder."
+        )
+    previous = TrainConfig(**{k: v for k, v in payload["train_config"].items() if k in TrainConfig.__dataclass_fields__})
+    previous.steps, previous.minutes = config.steps, config.minutes
+    previous.checkpoint_seconds, previous.validate_seconds = config.checkpoint_seconds, config.validate_seconds
+    previous.device = config.device
+    return previous
+
+
+def _restore_rng(state: dict | None, generator: torch.Generator) -> None:
+    if not state:
+        return
+    torch.set_rng_state(state["torch"])
+    generator.set_state(state["generator"])

@@ -1,0 +1,328 @@
+"""Tests for neulf_core.reconstruct on a synthetic forward-facing capture (CPU, no bpy).
+
+The capture is rendered here with numpy: two textured planes at different depths (so the
+views are not related by a single homography) seen by 8 pinhole cameras on a 4x2 grid that
+all look at one point, like a handheld forward-facing light-field capture.
+"""
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+from PIL import Image
+
+import pycolmap
+
+from neulf_core import reconstruct as reconstruct_module
+from neulf_core.errors import NeulfError
+from neulf_core.reconstruct import find_photos, reconstruct, stage_photos
+
+WIDTH, HEIGHT = 200, 150
+FOCAL_PX = 170.0
+SUPERSAMPLE = 2  # render at 2x and average down, against aliasing of the texture
+LOOK_AT = np.array([0.0, 0.0, 4.0])
+# (depth along +z, half side of the square plane, texture seed): a card in front of a wall.
+PLANES = [(3.0, 0.9, 1), (5.0, 6.0, 2)]
+GRID_COLUMNS, GRID_ROWS, GRID_SPACING = 4, 2, 0.3
+
+
+# ------------------------------------------------------------------ synthetic capture
+
+
+def blurred_noise(rng, size, sigma):
+    """White noise low-passed by a Gaussian of ``sigma`` texels (via FFT: no scipy needed)."""
+    noise = rng.standard_normal((size, size))
+    fy = np.fft.fftfreq(size)[:, None]
+    fx = np.fft.rfftfreq(size)[None, :]
+    gaussian = np.exp(-2 * (np.pi * sigma) ** 2 * (fx**2 + fy**2))
+    blurred = np.fft.irfft2(np.fft.rfft2(noise) * gaussian, s=(size, size))
+    return blurred / blurred.std()
+
+
+def plane_texture(seed, size):
+    """Multi-scale blob texture in [0, 1]: plenty of SIFT features at every octave."""
+    rng = np.random.default_rng(seed)
+    texture = sum(blurred_noise(rng, size, sigma) for sigma in (1.0, 2.5, 6.0))
+    return np.clip(0.5 + texture / (6 * texture.std()), 0, 1)
+
+
+def world_to_camera_rotation(centre):
+    """OpenCV-style camera (x right, y down, z forward) at ``centre`` looking at LOOK_AT."""
+    forward = LOOK_AT - centre
+    forward /= np.linalg.norm(forward)
+    right = np.cross([0.0, 1.0, 0.0], forward)
+    right /= np.linalg.norm(right)
+    down = np.cross(forward, right)
+    return np.stack([right, down, forward])
+
+
+def sample_bilinear(texture, u, v):
+    """Texture value at normalised coordinates (u, v) in [0, 1]."""
+    n = texture.shape[0]
+    x = np.clip(u * (n - 1), 0, n - 1.001)
+    y = np.clip(v * (n - 1), 0, n - 1.001)
+    x0, y0 = np.floor(x).astype(int), np.floor(y).astype(int)
+    fx, fy = x - x0, y - y0
+    return (
+        texture[y0, x0] * (1 - fx) * (1 - fy)
+        + texture[y0, x0 + 1] * fx * (1 - fy)
+        + texture[y0 + 1, x0] * (1 - fx) * fy
+        + texture[y0 + 1, x0 + 1] * fx * fy
+    )
+
+
+def render_view(centre, textures):
+    """Ray-cast the planes (nearest hit wins) into an 8-bit grey image."""
+    width, height, focal = WIDTH * SUPERSAMPLE, HEIGHT * SUPERSAMPLE, FOCAL_PX * SUPERSAMPLE
+    xs, ys = np.meshgrid(np.arange(width) + 0.5, np.arange(height) + 0.5)
+    rays_camera = np.stack([(xs - width / 2) / focal, (ys - height / 2) / focal, np.ones_like(xs)], -1)
+    rays = rays_camera @ world_to_camera_rotation(centre)  # rotate camera rays into the world
+    image = np.zeros((height, width))
+    nearest = np.full((height, width), np.inf)
+    for (depth, half_side, _), texture in zip(PLANES, textures):
+        distance = (depth - centre[2]) / rays[..., 2]
+        hit = centre[:2] + distance[..., None] * rays[..., :2]
+        visible = (np.abs(hit) < half_side).all(-1) & (distance < nearest)
+        uv = (hit + half_side) / (2 * half_side)
+        image[visible] = sample_bilinear(texture, uv[..., 0], uv[..., 1])[visible]
+        nearest[visible] = distance[visible]
+    image = image.reshape(HEIGHT, SUPERSAMPLE, WIDTH, SUPERSAMPLE).mean(axis=(1, 3))
+    return (image * 255).astype(np.uint8)
+
+
+def grid_camera_centres():
+    xs = (np.arange(GRID_COLUMNS) - (GRID_COLUMNS - 1) / 2) * GRID_SPACING
+    ys = (np.arange(GRID_ROWS) - (GRID_ROWS - 1) / 2) * GRID_SPACING
+    return np.array([[x, y, 0.0] for y in ys for x in xs])
+
+
+def write_synthetic_capture(folder):
+    """Write the 8 views as view_NN.png; returns {file name: true camera centre}."""
+    folder.mkdir(parents=True, exist_ok=True)
+    # Texture resolution about one texel per pixel of the view, so every blob scale survives.
+    textures = [
+        plane_texture(seed, int(2 * half_side * FOCAL_PX / depth)) for depth, half_side, seed in PLANES
+    ]
+    centres = {}
+    for index, centre in enumerate(grid_camera_centres()):
+        name = f"view_{index:02d}.png"
+        Image.fromarray(render_view(centre, textures)).convert("RGB").save(folder / name)
+        centres[name] = centre
+    return centres
+
+
+def write_noise_photos(folder, count, seed=0):
+    folder.mkdir(parents=True, exist_ok=True)
+    rng = np.random.default_rng(seed)
+    for index in range(count):
+        pixels = rng.integers(0, 256, (HEIGHT, WIDTH, 3), dtype=np.uint8)
+        Image.fromarray(pixels).save(folder / f"noise_{index:02d}.png")
+
+
+def similarity_residuals(source, target):
+    """Distances left after the best similarity transform source -> target (Umeyama 1991)."""
+    source_mean, target_mean = source.mean(0), target.mean(0)
+    source_centred, target_centred = source - source_mean, target - target_mean
+    u, singular_values, vt = np.linalg.svd(target_centred.T @ source_centred / len(source))
+    sign = np.diag([1.0, 1.0, np.sign(np.linalg.det(u @ vt))])  # a rotation, never a reflection
+    rotation = u @ sign @ vt
+    scale = np.trace(np.diag(singular_values) @ sign) / source_centred.var(0).sum()
+    aligned = scale * source_centred @ rotation.T + target_mean
+    return np.linalg.norm(aligned - target, axis=1)
+
+
+@pytest.fixture(scope="module")
+def capture(tmp_path_factory):
+    """A folder of synthetic photos and their true camera centres (rendered once per module)."""
+    folder = tmp_path_factory.mktemp("capture") / "photos"
+    return folder, write_synthetic_capture(folder)
+
+
+def copy_photos(names, source, destination):
+    destination.mkdir(parents=True, exist_ok=True)
+    for name in names:
+        (destination / name).write_bytes((source / name).read_bytes())
+    return destination
+
+
+# -------------------------------------------------------------------------- success
+
+
+def test_reconstructs_synthetic_capture(capture, tmp_path, capfd):
+    photos, true_centres = capture
+    events = []
+
+    model_dir = reconstruct(photos, tmp_path / "scene", progress=events.append)
+
+    assert model_dir == tmp_path / "scene" / "sparse" / "0"
+    assert {"cameras.bin", "images.bin", "points3D.bin"} <= {p.name for p in model_dir.iterdir()}
+    assert (tmp_path / "scene" / "database.db").is_file()
+    assert sorted(p.name for p in (tmp_path / "scene" / "images").iterdir()) == sorted(true_centres)
+
+    model = pycolmap.Reconstruction(model_dir)
+    assert model.num_reg_images() == len(true_centres)
+    assert model.num_cameras() == 1  # single_camera: one shared intrinsics
+    focal = next(iter(model.cameras.values())).params[0]
+    assert focal == pytest.approx(FOCAL_PX, rel=0.05)
+    names = sorted(true_centres)
+    recovered = np.array([model.find_image_with_name(name).projection_center() for name in names])
+    expected = np.array([true_centres[name] for name in names])
+    baseline = np.linalg.norm(expected[:, None] - expected[None], axis=-1).max()
+    assert similarity_residuals(recovered, expected).max() < 0.02 * baseline
+
+    stages = [event["stage"] for event in events]
+    assert stages[0] == "features" and stages[-1] == "done"
+    assert set(stages) == {"features", "matching", "mapping", "done"}
+    assert stages.index("matching") < stages.index("mapping")
+    mapping_counts = [event["registered"] for event in events if event["stage"] == "mapping"]
+    assert mapping_counts[-1] == len(true_centres)  # per-image progress during mapping
+    assert events[-1]["registered"] == events[-1]["total"] == len(true_centres)
+    assert all(isinstance(event["message"], str) and event["message"] for event in events)
+
+    assert capfd.readouterr().err == ""  # pycolmap's glog INFO/WARNING output is silenced
+
+
+def test_rerun_in_place_reuses_scene_images(capture, tmp_path):
+    # A SCENE_DIR whose images/ is the input: photos stay, the old model is replaced.
+    photos, true_centres = capture
+    scene = tmp_path / "scene"
+    copy_photos(sorted(true_centres), photos, scene / "images")
+    (scene / "sparse" / "0").mkdir(parents=True)
+    (scene / "sparse" / "0" / "stale.txt").write_text("old")
+
+    model_dir = reconstruct(scene / "images", scene)
+
+    assert not (model_dir / "stale.txt").exists()
+    assert pycolmap.Reconstruction(model_dir).num_reg_images() == len(true_centres)
+
+
+def test_per_photo_cameras_and_sequential_matching(capture, tmp_path):
+    photos, true_centres = capture
+    model_dir = reconstruct(photos, tmp_path / "scene", single_camera=False, matcher="sequential")
+    model = pycolmap.Reconstruction(model_dir)
+    assert model.num_reg_images() == len(true_centres)
+    assert model.num_cameras() == len(true_centres)
+
+def test_find_photos_filters_by_extension_case_insensitively(tmp_path):
+    for name in ["a.JPG", "b.jpeg", "c.Png", "d.tif", "e.TIFF", "f.bmp", "g.webp", "notes.txt", ".h.jpg"]:
+        (tmp_path / name).write_bytes(b"x")
+    (tmp_path / "sub.png").mkdir()
+    expected = ["a.JPG", "b.jpeg", "c.Png", "d.tif", "e.TIFF", "f.bmp", "g.webp"]
+    assert [p.name for p in find_photos(tmp_path)] == expected
+
+
+def test_stage_photos_keeps_names_and_links(tmp_path):
+    source = tmp_path / "in"
+    source.mkdir()
+    photos = []
+    for name in ["one.jpg", "two.png"]:
+        (source / name).write_bytes(name.encode())
+        photos.append(source / name)
+
+    images = stage_photos(photos, tmp_path / "scene" / "images")
+    stage_photos(photos, images)  # idempotent
+
+    assert sorted(p.name for p in images.iterdir()) == ["one.jpg", "two.png"]
+    assert (images / "one.jpg").read_bytes() == b"one.jpg"
+    assert (images / "one.jpg").samefile(source / "one.jpg")  # tmp_path is one file system: hard link
+
+
+# --------------------------------------------------------------------------- errors
+
+
+def test_missing_folder(tmp_path):
+    with pytest.raises(NeulfError, match="does not exist"):
+        reconstruct(tmp_path / "nope", tmp_path / "scene")
+
+
+def test_unwritable_output(capture, tmp_path):
+    (tmp_path / "scene").write_text("a file where the scene folder should go")
+    with pytest.raises(NeulfError, match="Cannot write the scene folder"):
+        reconstruct(capture[0], tmp_path / "scene")
+
+
+def test_file_instead_of_folder(tmp_path):
+    (tmp_path / "photo.jpg").write_bytes(b"x")
+    with pytest.raises(NeulfError, match="not a folder"):
+        reconstruct(tmp_path / "photo.jpg", tmp_path / "scene")
+
+
+def test_folder_without_photos_lists_accepted_extensions(tmp_path):
+    (tmp_path / "photos").mkdir()
+    (tmp_path / "photos" / "readme.txt").write_text("hi")
+    with pytest.raises(NeulfError, match=r"No photos found.*\.png.*\.jpg"):
+        reconstruct(tmp_path / "photos", tmp_path / "scene")
+
+
+def test_two_photos_are_not_enough(capture, tmp_path):
+    photos, true_centres = capture
+    two = copy_photos(sorted(true_centres)[:2], photos, tmp_path / "photos")
+    with pytest.raises(NeulfError, match="Only 2 photo.*at least 3 overlapping photos"):
+        reconstruct(two, tmp_path / "scene")
+
+
+def test_unreadable_photo(capture, tmp_path):
+    photos, true_centres = capture
+    folder = copy_photos(sorted(true_centres)[:3], photos, tmp_path / "photos")
+    (folder / "broken.jpg").write_bytes(b"not a jpeg")
+    with pytest.raises(NeulfError, match="Could not read 1 photo.*broken.jpg"):
+        reconstruct(folder, tmp_path / "scene")
+
+
+def test_photo_of_another_size_with_single_camera(capture, tmp_path):
+    photos, true_centres = capture
+    folder = copy_photos(sorted(true_centres)[:3], photos, tmp_path / "photos")
+    Image.open(photos / "view_00.png").resize((120, 90)).save(folder / "small.png")
+    expected = r"small.png differ\(s\) in size from the other photos \(200x150\).*single_camera=False"
+    with pytest.raises(NeulfError, match=expected):
+        reconstruct(folder, tmp_path / "scene")
+
+
+def test_photos_that_cannot_match(tmp_path):
+    write_noise_photos(tmp_path / "photos", 4)
+    with pytest.raises(NeulfError, match="No two photos could be matched: the photos need to overlap"):
+        reconstruct(tmp_path / "photos", tmp_path / "scene")
+
+
+def test_too_few_registered(capture, tmp_path):
+    photos, true_centres = capture
+    folder = copy_photos(sorted(true_centres), photos, tmp_path / "photos")
+    write_noise_photos(folder, 1)
+    with pytest.raises(NeulfError, match=r"Only 8 of 9 photos.*more overlap"):
+        reconstruct(folder, tmp_path / "scene", min_registered_fraction=1.0)
+    assert not (tmp_path / "scene" / "sparse" / "0").exists()  # no model that looks valid
+
+
+@pytest.mark.parametrize(
+    "options, message",
+    [
+        ({"matcher": "fancy"}, "Unknown matcher 'fancy'"),
+        ({"camera_model": "FISH"}, "Unknown camera model 'FISH'"),
+    ],
+)
+def test_bad_options(capture, tmp_path, options, message):
+    with pytest.raises(NeulfError, match=message):
+        reconstruct(capture[0], tmp_path / "scene", **options)
+
+
+def test_pycolmap_failure_is_wrapped(capture, tmp_path, monkeypatch):
+    def failing_match(*args, **kwargs):
+        raise RuntimeError("[matching.cc:1] Check failed:\n something broke")
+
+    monkeypatch.setattr(reconstruct_module.pycolmap, "match_exhaustive", failing_match)
+    with pytest.raises(NeulfError, match="COLMAP failed during matching: .*something broke") as caught:
+        reconstruct(capture[0], tmp_path / "scene")
+    assert "\n" not in str(caught.value)
+
+
+def test_progress_callback_exception_passes_through(capture, tmp_path):
+    class Cancelled(Exception):
+        pass
+
+    def cancel_during_mapping(event):
+        if event["stage"] == "mapping" and event["registered"] >= 3:
+            raise Cancelled()
+
+    with pytest.raises(Cancelled):
+        reconstruct(capture[0], tmp_path / "scene", progress=cancel_during_mapping)
+
