@@ -52,7 +52,7 @@ def build_rayset(views: list[View], slab: Slab, scale: float, coord_dtype=torch.
     uvst_parts, rgb_parts, index_parts = [], [], []
     for i, view in enumerate(views):
         uvst, valid = view_uvst(view, slab, scale)
-        rgb = torch.from_numpy(np.ascontiguousarray(view.load_image(scale).reshape(-1, 3)))
+        rgb = torch.from_numpy(view.load_image(scale).reshape(-1, 3).copy())
         uvst_parts.append(uvst[valid].to(coord_dtype))
         rgb_parts.append(rgb[valid])
         index_parts.append(torch.full((int(valid.sum()),), i, dtype=torch.int16))

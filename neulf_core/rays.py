@@ -33,25 +33,24 @@ def view_rays(camera: pycolmap.Camera, R: np.ndarray, t: np.ndarray, pixels: np.
     return -R.T @ t, directions
 
 
-def pinhole_rays(K, R, t, width: int, height: int, device="cpu", dtype=torch.float32, rows: slice | None = None):
+def pinhole_rays(K, R, t, width: int, height: int, device="cpu", dtype=torch.float64, rows: slice | None = None):
     """Origin (3,) and unit world directions (N, 3) of a pinhole camera, as torch tensors.
 
     `rows` limits the rays to a band of image rows (chunked rendering of huge frames).
     """
-    K = torch.as_tensor(np.asarray(K, dtype=np.float64), device=device)
-    R = torch.as_tensor(np.asarray(R, dtype=np.float64), device=device)
-    t = torch.as_tensor(np.asarray(t, dtype=np.float64), device=device)
+    K = torch.as_tensor(np.asarray(K, dtype=np.float64), dtype=dtype, device=device)
+    R = torch.as_tensor(np.asarray(R, dtype=np.float64), dtype=dtype, device=device)
+    t = torch.as_tensor(np.asarray(t, dtype=np.float64), dtype=dtype, device=device)
     row_range = range(height)[rows] if rows is not None else range(height)
-    ys = torch.arange(row_range.start, row_range.stop, device=device, dtype=torch.float64) + 0.5
-    xs = torch.arange(width, device=device, dtype=torch.float64) + 0.5
+    ys = torch.arange(row_range.start, row_range.stop, device=device, dtype=dtype) + 0.5
+    xs = torch.arange(width, device=device, dtype=dtype) + 0.5
     grid_y, grid_x = torch.meshgrid(ys, xs, indexing="ij")
     x = (grid_x - K[0, 2] - K[0, 1] * (grid_y - K[1, 2]) / K[1, 1]) / K[0, 0]  # K[0,1]: skew
     y = (grid_y - K[1, 2]) / K[1, 1]
     bearings = torch.stack([x, y, torch.ones_like(x)], dim=-1).reshape(-1, 3)
     directions = bearings @ R
     directions = directions / directions.norm(dim=1, keepdim=True)
-    origin = -R.T @ t
-    return origin.to(dtype), directions.to(dtype)
+    return -R.T @ t, directions
 
 
 def pinhole_K(camera: pycolmap.Camera) -> np.ndarray:

@@ -45,6 +45,8 @@ class LightField:
         self.slab = slab
         self.meta = meta
         self.device = device
+        # Ray geometry in float64 where the device has it (Apple MPS does not).
+        self.geometry_dtype = torch.float32 if device.type == "mps" else torch.float64
         self.background = torch.tensor(meta.get("scene", {}).get("mean_colour", [0, 0, 0]), dtype=torch.float32, device=device)
 
     @classmethod
@@ -81,17 +83,18 @@ class LightField:
         uvst, valid = self.slab.rays_to_uvst(origins, directions)
         rgb, depth_unit = self.field(uvst.float())
         rgb = torch.where(valid[:, None], rgb.float(), self.background)
-        slab_depth = self.slab.depth_from_unit(depth_unit[:, 0].double()) if want_depth else None
+        slab_depth = self.slab.depth_from_unit(depth_unit[:, 0].to(self.geometry_dtype)) if want_depth else None
         return rgb, slab_depth, valid, uvst
 
     def _axis_depth(self, origin: torch.Tensor, directions: torch.Tensor, slab_depth: torch.Tensor, forward: torch.Tensor):
         """Slab-axis depth of the surface point -> distance along the camera's optical axis."""
-        rotation = torch.as_tensor(self.slab.rotation, device=directions.device, dtype=torch.float64)
-        slab_origin = torch.as_tensor(self.slab.origin, device=directions.device, dtype=torch.float64)
-        o_z = (origin.double() - slab_origin) @ rotation[2]
-        d_z = directions.double() @ rotation[2]
-        ray_length = (slab_depth - o_z) / d_z
-        return ray_length * (directions.double() @ forward)
+        dtype = self.geometry_dtype
+        rotation = torch.as_tensor(self.slab.rotation, device=directions.device, dtype=dtype)
+        slab_origin = torch.as_tensor(self.slab.origin, device=directions.device, dtype=dtype)
+        o_z = (origin.to(dtype) - slab_origin) @ rotation[2]
+        d_z = directions.to(dtype) @ rotation[2]
+        ray_length = (slab_depth.to(dtype) - o_z) / d_z
+        return ray_length * (directions.to(dtype) @ forward.to(dtype))
 
     def render(self, K, width: int, height: int, R, t, *, depth: bool = True, chunk: int = DEFAULT_CHUNK,
                on_chunk=None) -> Rendering:
@@ -101,14 +104,14 @@ class LightField:
             raise NeulfError(f"cannot render a {width}x{height} image: width and height must be at least 1 pixel.")
         K, R, t = (np.asarray(a, dtype=np.float64) for a in (K, R, t))
         rows_per_chunk = max(1, chunk // width)
-        forward = torch.as_tensor(R[2], device=self.device, dtype=torch.float64)
+        forward = torch.as_tensor(R[2], device=self.device, dtype=self.geometry_dtype)
         rgb_out = np.empty((height, width, 3), np.float32)
         depth_out = np.empty((height, width), np.float32) if depth else None
         valid_out = np.empty((height, width), bool)
         outside = 0
         for top in range(0, height, rows_per_chunk):
             rows = slice(top, min(height, top + rows_per_chunk))
-            origin, directions = pinhole_rays(K, R, t, width, height, self.device, torch.float64, rows)
+            origin, directions = pinhole_rays(K, R, t, width, height, self.device, self.geometry_dtype, rows)
             rgb, slab_depth, valid, uvst = self.query(origin, directions, depth)
             band = rows.stop - rows.start
             rgb_out[rows] = rgb.reshape(band, width, 3).cpu().numpy()
@@ -148,11 +151,11 @@ class LightField:
         camera: pycolmap.Camera = view.scaled_camera(scale)
         width, height = int(camera.width), int(camera.height)
         origin, directions = view_rays(camera, view.R, view.t)
-        origin_t = torch.as_tensor(origin, device=self.device)
-        forward = torch.as_tensor(view.R[2], device=self.device, dtype=torch.float64)
+        origin_t = torch.as_tensor(origin, device=self.device, dtype=self.geometry_dtype)
+        forward = torch.as_tensor(view.R[2], device=self.device, dtype=self.geometry_dtype)
         rgb_parts, depth_parts, valid_parts = [], [], []
         for start in range(0, len(directions), chunk):
-            d = torch.as_tensor(directions[start:start + chunk], device=self.device)
+            d = torch.as_tensor(directions[start:start + chunk], device=self.device, dtype=self.geometry_dtype)
             rgb, slab_depth, valid, _ = self.query(origin_t, d, depth)
             rgb_parts.append(rgb.cpu().numpy())
             valid_parts.append(valid.cpu().numpy())

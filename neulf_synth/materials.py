@@ -22,6 +22,8 @@ CUBE_B = (0.75, 0.6, 0.08, 1.0)
 METAL_TINT = (0.9, 0.85, 0.78, 1.0)
 GLASS_TINT = (0.95, 0.98, 1.0, 1.0)
 
+# Fill light: emitted radiance per unit albedo (see ShaderGraph.diffuse).
+FILL_LIGHT = 0.3
 MIRROR_ROUGHNESS = 0.05
 GLASS_IOR = 1.45
 
@@ -70,12 +72,22 @@ class ShaderGraph:
                         Factor_Float=factor, A_Color=a, B_Color=b)
         return next(socket for socket in node.outputs if socket.identifier == "Result_Color")
 
-    def surface(self, shader: bpy.types.Node) -> None:
-        self.links.new(shader.outputs["BSDF"], self.output.inputs["Surface"])
+    def surface(self, shader_output: bpy.types.NodeSocket) -> None:
+        self.links.new(shader_output, self.output.inputs["Surface"])
 
     def diffuse(self, color) -> None:
-        # Diffuse BSDF with roughness 0 is the pure Lambertian reflector.
-        self.surface(self.add("ShaderNodeBsdfDiffuse", Color=color, Roughness=0.0))
+        """Lambertian surface (Diffuse BSDF, roughness 0) plus a fill-light term.
+
+        The fill term is emission equal to albedo x FILL_LIGHT: a noise-free stand-in for
+        sky light. It is view-independent like the BSDF, so the surface stays Lambertian,
+        and it lets the scene render cleanly without indirect bounces (much faster).
+        """
+        bsdf = self.add("ShaderNodeBsdfDiffuse", Color=color, Roughness=0.0)
+        fill = self.add("ShaderNodeEmission", Color=color, Strength=FILL_LIGHT)
+        total = self.add("ShaderNodeAddShader")
+        self.links.new(bsdf.outputs["BSDF"], total.inputs[0])
+        self.links.new(fill.outputs["Emission"], total.inputs[1])
+        self.surface(total.outputs["Shader"])
 
 
 def _pastel(graph: ShaderGraph, color, amount: float = 0.35) -> bpy.types.NodeSocket:
@@ -85,7 +97,7 @@ def _pastel(graph: ShaderGraph, color, amount: float = 0.35) -> bpy.types.NodeSo
 
 def _detail(graph: ShaderGraph, color, scale: float, amount: float = 0.35) -> bpy.types.NodeSocket:
     """Overlay fine coloured noise: texture inside otherwise flat patches."""
-    noise = graph.texture("ShaderNodeTexNoise", scale, Detail=6.0, Roughness=0.6)
+    noise = graph.texture("ShaderNodeTexNoise", scale, Detail=2.0, Roughness=0.6)
     return graph.mix(color, noise.outputs["Color"], amount, blend="OVERLAY")
 
 
@@ -132,12 +144,12 @@ def build_cube(graph: ShaderGraph, f: float) -> None:
 
 def build_mirror(graph: ShaderGraph, f: float) -> None:
     graph.surface(graph.add("ShaderNodeBsdfPrincipled", Base_Color=METAL_TINT, Metallic=1.0,
-                            Roughness=MIRROR_ROUGHNESS))
+                            Roughness=MIRROR_ROUGHNESS).outputs["BSDF"])
 
 
 def build_glass(graph: ShaderGraph, f: float) -> None:
     graph.surface(graph.add("ShaderNodeBsdfPrincipled", Base_Color=GLASS_TINT, Metallic=0.0,
-                            Roughness=0.0, IOR=GLASS_IOR, Transmission_Weight=1.0))
+                            Roughness=0.0, IOR=GLASS_IOR, Transmission_Weight=1.0).outputs["BSDF"])
 
 
 LAMBERTIAN_BUILDERS = {

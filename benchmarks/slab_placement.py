@@ -1,0 +1,83 @@
+"""Where to put the light slab's planes: held-out PSNR for several placements, same budget.
+
+    python benchmarks/slab_placement.py [--steps 600] [--scenes canclip,statue,fern]
+
+Trains the default field for a fixed number of steps per placement on each scene (every
+8th view held out) and writes docs/slab_placement.csv and a markdown table on stdout.
+Fixed steps, not time, so a busy machine does not bias the comparison.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import platform
+import sys
+import tempfile
+import time
+from datetime import date
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from neulf_core.evaluate import evaluate_model  # noqa: E402
+from neulf_core.scene import load_scene, split_views  # noqa: E402
+from neulf_core.slab import scene_depths, slab_frame  # noqa: E402
+from neulf_core.train import TrainConfig, train  # noqa: E402
+
+SHARED = Path(__file__).resolve().parents[2] / "shared" / "data"
+SCENES = {"canclip": (SHARED / "canclip", None, 0.5), "statue": (SHARED / "statue", None, 0.5),
+          "fern": (SHARED / "fern", SHARED / "fern" / "images_8", 1.0)}
+
+
+def placements(scene, views):
+    rotation, origin = slab_frame(views)
+    z = scene_depths(scene, rotation, origin)
+    near, far = float(z.min()), float(z.max())
+    return {
+        "harmonic mean depth (default)": 1.0 / np.mean(1.0 / z),
+        "median depth": float(np.median(z)),
+        "nearest content": near,
+        "farthest content": far,
+        "NeRF spiral focus": 1.0 / (0.25 / (0.9 * near) + 0.75 / (5 * far)),
+    }
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser()
+    parser.add_argument("--steps", type=int, default=600)
+    parser.add_argument("--scenes", default="canclip,statue,fern")
+    parser.add_argument("--out", default=str(Path(__file__).resolve().parents[1] / "docs" / "slab_placement.csv"))
+    args = parser.parse_args()
+    rows = []
+    for name in args.scenes.split(","):
+        path, images, scale = SCENES[name]
+        if not path.exists():
+            print(f"skip {name}: {path} missing")
+            continue
+        scene = load_scene(path, images)
+        train_views, _ = split_views(scene)
+        for label, st in placements(scene, train_views).items():
+            with tempfile.TemporaryDirectory() as tmp:
+                started = time.perf_counter()
+                train(scene, tmp, TrainConfig(steps=args.steps, scale=scale, st_depth=st, validate_seconds=1e9))
+                report = evaluate_model(tmp, path, images_dir=images, save_images=False)
+                rows.append({"scene": name, "placement": label, "st_depth": round(st, 4), "psnr": round(report["mean_psnr"], 3),
+                             "ssim": round(report["mean_ssim"], 4), "steps": args.steps, "scale": scale,
+                             "seconds": round(time.perf_counter() - started, 1), "machine": platform.processor() or platform.machine(),
+                             "date": date.today().isoformat()})
+                print(rows[-1], flush=True)
+    Path(args.out).parent.mkdir(parents=True, exist_ok=True)
+    with open(args.out, "w", newline="") as handle:
+        writer = csv.DictWriter(handle, fieldnames=list(rows[0]))
+        writer.writeheader()
+        writer.writerows(rows)
+    print("\n| scene | placement | st depth | PSNR | SSIM |\n|---|---|---|---|---|")
+    for r in rows:
+        print(f"| {r['scene']} | {r['placement']} | {r['st_depth']} | {r['psnr']} | {r['ssim']} |")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,41 @@
+"""NeuLF for Blender: import captures, train and render neural light fields.
+
+Modules: convert (camera maths, numpy only), jobs (processes, no bpy), core (where
+neulf_core runs), capture (Blender objects), properties, operators, panel, engine,
+preferences, tasks (job polling).  Nothing here imports bpy at import time, so the
+Blender-free parts can be tested without Blender.
+"""
+
+
+def _modules():
+    from . import engine, operators, panel, preferences, properties
+
+    return properties, preferences, operators, panel, engine
+
+
+def register():
+    import bpy
+
+    properties, preferences, operators, panel, engine = _modules()
+    for module in (properties, preferences, operators, panel, engine):
+        for cls in module.CLASSES:
+            bpy.utils.register_class(cls)
+    properties.register()
+    engine.register()
+    bpy.types.TOPBAR_MT_file_import.append(operators.menu_import)
+
+
+def unregister():
+    import bpy
+
+    from . import core, tasks
+
+    properties, preferences, operators, panel, engine = _modules()
+    tasks.cancel_all()
+    core.shutdown()
+    bpy.types.TOPBAR_MT_file_import.remove(operators.menu_import)
+    engine.unregister()
+    properties.unregister()
+    for module in (engine, panel, operators, preferences, properties):
+        for cls in reversed(module.CLASSES):
+            bpy.utils.unregister_class(cls)

@@ -1,0 +1,230 @@
+"""Blender data for a capture: one collection, a root empty, one camera per photo, the two
+slab planes and the sparse points; and the reverse, a Blender camera as a pinhole in the
+model's COLMAP frame.  Objects are found again by their `neulf_role` / `neulf_view`
+custom properties, so importing twice updates instead of duplicating."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import bpy
+import numpy as np
+from mathutils import Matrix
+
+from . import convert
+from ..neulf_core.errors import NeulfError
+
+ROLE = "neulf_role"
+
+
+def _matrix(array) -> Matrix:
+    return Matrix([list(map(float, row)) for row in np.asarray(array).reshape(4, 4)])
+
+
+def find_capture(scene):
+    """(collection, root) of the imported capture, or (None, None)."""
+    props = scene.neulf
+    collection = bpy.data.collections.get(props.collection_name) if props.collection_name else None
+    root = bpy.data.objects.get(props.root_name) if props.root_name else None
+    return collection, root
+
+
+def _ensure_collection(scene, name: str, fingerprint: str):
+    collection = next((c for c in bpy.data.collections if c.get("neulf_fingerprint") == fingerprint), None)
+    if collection is None:
+        collection = bpy.data.collections.new(name)
+        collection["neulf_fingerprint"] = fingerprint
+    if collection.name not in scene.collection.children and not any(
+            c == collection for c in scene.collection.children_recursive):
+        scene.collection.children.link(collection)
+    return collection
+
+
+def _members(collection) -> dict:
+    found = {}
+    for obj in collection.objects:
+        if obj.get(ROLE) == "camera":
+            found[("camera", obj.get("neulf_view"))] = obj
+        elif obj.get(ROLE):
+            found[(obj[ROLE], None)] = obj
+    return found
+
+
+def _mesh_object(collection, members, role: str, name: str, vertices, faces, root):
+    mesh = bpy.data.meshes.new(name)
+    mesh.from_pydata([tuple(map(float, v)) for v in vertices], [], faces)
+    mesh.update()
+    obj = members.get((role, None))
+    if obj is None:
+        obj = bpy.data.objects.new(name, mesh)
+        collection.objects.link(obj)
+        obj[ROLE] = role
+    else:
+        old = obj.data
+        obj.data = mesh
+        if old.users == 0:
+            bpy.data.meshes.remove(old)
+    obj.parent = root
+    obj.matrix_parent_inverse = Matrix.Identity(4)
+    obj.matrix_basis = Matrix.Identity(4)
+    return obj
+
+
+def set_slab_planes(collection, root, slab: dict) -> None:
+    """The uv and st planes as wireframe quads at the slab's world corners (model frame)."""
+    members = _members(collection)
+    for plane in ("uv", "st"):
+        corners = np.asarray(slab[f"{plane}_corners_world"], dtype=np.float64)
+        obj = _mesh_object(collection, members, f"{plane}_plane", f"NeuLF {plane} plane", corners, [(0, 1, 2, 3)], root)
+        obj.display_type = "WIRE"
+        obj.show_name = True
+        obj.hide_render = True
+
+
+def apply_capture_camera(scene, camera_obj) -> bool:
+    """Set the scene's resolution and pixel aspect to the photo size of an imported camera."""
+    size, K = camera_obj.get("neulf_size"), camera_obj.get("neulf_K")
+    if size is None or K is None:
+        return False
+    fx, fy, cx, cy = (float(v) for v in K)
+    settings = convert.blender_camera_from_K(fx, fy, cx, cy, int(size[0]), int(size[1]))
+    render = scene.render
+    render.resolution_x, render.resolution_y = settings["resolution_x"], settings["resolution_y"]
+    render.resolution_percentage = 100
+    render.pixel_aspect_x, render.pixel_aspect_y = settings["pixel_aspect_x"], settings["pixel_aspect_y"]
+    return True
+
+
+def build_capture(context, description: dict, *, import_points: bool = True):
+    """Create or update the capture's objects from `Service.describe_scene`'s result."""
+    scene = context.scene
+    root_path = Path(description["root"])
+    collection = _ensure_collection(scene, f"NeuLF {root_path.name}", description["fingerprint"])
+    members = _members(collection)
+
+    root = members.get(("root", None))
+    if root is None:
+        root = bpy.data.objects.new(f"NeuLF Root {root_path.name}", None)
+        root.empty_display_type = "ARROWS"
+        collection.objects.link(root)
+        root[ROLE] = "root"
+        # COLMAP's world is y-down, z-forward: turn it so the capture stands upright in Blender.
+        root.matrix_world = Matrix.Rotation(-np.pi / 2, 4, "X")
+    views = description["views"]
+    centres = np.array([-np.asarray(v["R"]).T @ np.asarray(v["t"]) for v in views])
+    spacing = float(np.median(np.linalg.norm(centres - centres.mean(0), axis=1))) if len(views) > 1 else 1.0
+    root.empty_display_size = max(spacing, 1e-3)
+
+    keep = set()
+    for view in views:
+        name = view["name"]
+        keep.add(name)
+        obj = members.get(("camera", name))
+        if obj is None:
+            data = bpy.data.cameras.new(Path(name).stem)
+            obj = bpy.data.objects.new(Path(name).stem, data)
+            collection.objects.link(obj)
+            obj[ROLE] = "camera"
+            obj["neulf_view"] = name
+        K = np.asarray(view["K"], dtype=np.float64)
+        fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
+        settings = convert.blender_camera_from_K(fx, fy, cx, cy, view["width"], view["height"])
+        data = obj.data
+        data.sensor_fit = settings["sensor_fit"]
+        data.sensor_width = settings["sensor_width"]
+        data.lens = settings["lens"]
+        data.shift_x, data.shift_y = settings["shift_x"], settings["shift_y"]
+        data.display_size = max(0.3 * spacing, 1e-3)
+        obj["neulf_K"] = [float(fx), float(fy), float(cx), float(cy)]
+        obj["neulf_size"] = [int(view["width"]), int(view["height"])]
+        if view.get("image_path"):
+            obj["neulf_image"] = view["image_path"]
+        obj.parent = root
+        obj.matrix_parent_inverse = Matrix.Identity(4)
+        obj.matrix_basis = _matrix(convert.matrix_from_pose(view["R"], view["t"]))
+    for (role, name), obj in list(members.items()):
+        if role == "camera" and name not in keep:
+            bpy.data.objects.remove(obj)
+
+    set_slab_planes(collection, root, description["slab"])
+    points = np.asarray(description.get("points", np.zeros((0, 3))), dtype=np.float64).reshape(-1, 3)
+    if import_points and len(points):
+        obj = _mesh_object(collection, members, "points", "NeuLF points", points, [], root)
+        obj.hide_render = True
+    elif ("points", None) in members:
+        bpy.data.objects.remove(members[("points", None)])
+
+    props = scene.neulf
+    props.collection_name, props.root_name = collection.name, root.name
+    props.fingerprint = description["fingerprint"]
+    # The middle camera of the rig becomes the active one; the scene renders at its photo size.
+    middle = views[int(np.argmin(np.linalg.norm(centres - centres.mean(0), axis=1)))]["name"]
+    active = _members(collection)[("camera", middle)]
+    scene.camera = active
+    apply_capture_camera(scene, active)
+    # Network outputs are sRGB: a Standard view transform shows them as the photos look.
+    scene.view_settings.view_transform = "Standard"
+    return collection, root
+
+
+# ----------------------------------------------------------------------------- Blender camera -> pinhole
+
+
+def camera_request(scene, camera_obj, matrix_world=None, root_matrix=None) -> dict:
+    """The pinhole a Blender camera renders, in the model's COLMAP frame.
+
+    Returns K, width, height, R, t (world-to-camera, model units) and `scale`, the root's
+    uniform scale (model units x scale = Blender units)."""
+    if camera_obj is None or camera_obj.type != "CAMERA":
+        raise NeulfError("the scene has no active camera; add one or make a capture camera active (Ctrl+Numpad 0).")
+    if root_matrix is None:
+        _collection, root = find_capture(scene)
+        root_matrix = root.matrix_world if root is not None else Matrix.Identity(4)
+    matrix_world = camera_obj.matrix_world if matrix_world is None else matrix_world
+    render = scene.render
+    width, height = convert.render_size(render.resolution_x, render.resolution_y, render.resolution_percentage)
+    cam = camera_obj.data
+    if cam.type != "PERSP":
+        raise NeulfError(f"camera {camera_obj.name} is {cam.type.lower()}; NeuLF renders perspective cameras only.")
+    K = convert.K_from_blender(lens=cam.lens, sensor_width=cam.sensor_width, sensor_height=cam.sensor_height,
+                               sensor_fit=cam.sensor_fit, shift_x=cam.shift_x, shift_y=cam.shift_y, width=width,
+                               height=height, pixel_aspect_x=render.pixel_aspect_x, pixel_aspect_y=render.pixel_aspect_y)
+    relative = np.array(root_matrix.inverted()) @ np.array(matrix_world)
+    try:
+        R, t = convert.pose_from_matrix(relative)
+    except ValueError as exc:
+        raise NeulfError(str(exc)) from None
+    return {"K": K.tolist(), "width": width, "height": height, "R": R.tolist(), "t": t.tolist(),
+            "scale": convert.uniform_scale(np.array(root_matrix))}
+
+
+def matrix_for_pose(root_matrix, R, t) -> Matrix:
+    """A camera's world matrix for a model-frame pose, through the root."""
+    return root_matrix @ _matrix(convert.matrix_from_pose(R, t))
+
+
+# ----------------------------------------------------------------------------- images
+
+
+def show_image(name: str, rgb: np.ndarray, *, float_buffer: bool = False, non_color: bool = False):
+    """Write (H, W, 3) top-row-first values into image `name` (created or resized)."""
+    height, width = rgb.shape[:2]
+    image = bpy.data.images.get(name)
+    if image is not None and (tuple(image.size) != (width, height) or image.is_float != float_buffer):
+        bpy.data.images.remove(image)
+        image = None
+    if image is None:
+        image = bpy.data.images.new(name, width, height, alpha=False, float_buffer=float_buffer)
+    if non_color:
+        image.colorspace_settings.name = "Non-Color"
+    image.pixels.foreach_set(convert.image_rows_for_blender(rgb))
+    image.update()
+    for window in getattr(bpy.context.window_manager, "windows", []):
+        for area in window.screen.areas:
+            if area.type != "IMAGE_EDITOR":
+                continue
+            shown = area.spaces.active.image
+            if shown is None or shown == image or (name.endswith("Render") and shown.name.startswith("NeuLF")):
+                area.spaces.active.image = image
+                area.tag_redraw()
+    return image

@@ -1,0 +1,98 @@
+"""Blender <-> COLMAP cameras: intrinsics, poses, the root empty's scale.  numpy only.
+
+COLMAP: x right, y down, z forward, world-to-camera (R, t), pixel centres at +0.5 from
+the top-left corner.  Blender: the camera looks down its local -z with +y up, and its
+intrinsics are lens, sensor, sensor fit, shift, and the scene's resolution and pixel
+aspect.  The formulas are exact both ways (see docs in BLENDER_NOTES): a pinhole K set on a
+Blender camera comes back to within float rounding.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+FLIP = np.diag([1.0, -1.0, -1.0, 1.0])  # COLMAP camera axes <-> Blender camera axes
+SENSOR_WIDTH = 36.0
+
+
+def blender_camera_from_K(fx: float, fy: float, cx: float, cy: float, width: int, height: int) -> dict:
+    """Camera and render settings that reproduce a pinhole K at width x height."""
+    ax, ay = (fy / fx, 1.0) if fy >= fx else (1.0, fx / fy)
+    return {
+        "resolution_x": int(width), "resolution_y": int(height), "resolution_percentage": 100,
+        "pixel_aspect_x": float(ax), "pixel_aspect_y": float(ay),
+        "sensor_fit": "HORIZONTAL", "sensor_width": SENSOR_WIDTH,
+        "lens": float(fx) * SENSOR_WIDTH / width,
+        "shift_x": (width / 2.0 - cx) / width,
+        "shift_y": (cy - height / 2.0) / (width * ax / ay),
+    }
+
+
+def render_size(resolution_x: int, resolution_y: int, percentage: int) -> tuple[int, int]:
+    """The rendered image size in pixels, as Blender computes it."""
+    return int(resolution_x * percentage / 100), int(resolution_y * percentage / 100)
+
+
+def K_from_blender(*, lens: float, sensor_width: float, sensor_height: float, sensor_fit: str, shift_x: float,
+                   shift_y: float, width: int, height: int, pixel_aspect_x: float = 1.0,
+                   pixel_aspect_y: float = 1.0) -> np.ndarray:
+    """3x3 pinhole K (top-left origin, pixel centres at +0.5) of a Blender camera rendering
+    width x height pixels."""
+    ax, ay = pixel_aspect_x, pixel_aspect_y
+    fit = sensor_fit
+    if fit == "AUTO":
+        sensor = sensor_width
+        fit = "HORIZONTAL" if width * ax >= height * ay else "VERTICAL"
+    else:
+        sensor = sensor_width if fit == "HORIZONTAL" else sensor_height
+    viewfac = width if fit == "HORIZONTAL" else height * ay / ax
+    fx = lens / sensor * viewfac
+    fy = fx * ax / ay
+    cx = width / 2.0 - shift_x * viewfac
+    cy = height / 2.0 + shift_y * viewfac * ax / ay
+    return np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
+
+
+def matrix_from_pose(R, t) -> np.ndarray:
+    """A Blender camera's 4x4 matrix (in the COLMAP world frame) from world-to-camera R, t."""
+    R = np.asarray(R, dtype=np.float64).reshape(3, 3)
+    t = np.asarray(t, dtype=np.float64).reshape(3)
+    C = np.eye(4)
+    C[:3, :3] = R.T
+    C[:3, 3] = -R.T @ t
+    return C @ FLIP
+
+
+def pose_from_matrix(matrix) -> tuple[np.ndarray, np.ndarray]:
+    """World-to-camera (R, t) from a camera's 4x4 matrix in the COLMAP world frame.
+
+    Any scale in the matrix (a scaled root empty) is removed from the rotation; the
+    position is kept as it is, in model units."""
+    M = np.asarray(matrix, dtype=np.float64).reshape(4, 4)
+    C = M @ FLIP
+    u, _, vt = np.linalg.svd(C[:3, :3])
+    rotation = u @ vt  # nearest rotation: drops scale (and numerical shear)
+    if np.linalg.det(rotation) < 0:
+        raise ValueError("the camera's matrix is mirrored (negative scale); cameras and the root need positive scale.")
+    R = rotation.T
+    return R, -R @ C[:3, 3]
+
+
+def uniform_scale(matrix) -> float:
+    """The uniform scale of a 4x4 matrix (cube root of the 3x3 determinant)."""
+    M = np.asarray(matrix, dtype=np.float64).reshape(4, 4)
+    return float(abs(np.linalg.det(M[:3, :3])) ** (1.0 / 3.0))
+
+
+def image_rows_for_blender(rgb: np.ndarray, alpha: float = 1.0) -> np.ndarray:
+    """(H, W, 3) top-row-first -> flat float32 RGBA bottom-row-first (Blender's pixel order)."""
+    height, width = rgb.shape[:2]
+    rgba = np.empty((height, width, 4), np.float32)
+    rgba[..., :3] = rgb[::-1]
+    rgba[..., 3] = alpha
+    return rgba.ravel()
+
+
+def srgb_to_linear(rgb: np.ndarray) -> np.ndarray:
+    rgb = np.clip(np.asarray(rgb, dtype=np.float32), 0.0, 1.0)
+    return np.where(rgb <= 0.04045, rgb / 12.92, ((rgb + 0.055) / 1.055) ** 2.4).astype(np.float32)

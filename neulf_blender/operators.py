@@ -1,0 +1,536 @@
+"""Operators: thin Blender <-> neulf_core translation.  User errors are one-line reports."""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+
+import bpy
+import numpy as np
+from bpy.props import FloatProperty, IntProperty, StringProperty
+
+from . import capture, jobs, tasks
+from .preferences import get_core, get_prefs, worker_python
+from ..neulf_core.errors import NeulfError
+
+RENDER_IMAGE = "NeuLF Render"
+DEPTH_IMAGE = "NeuLF Depth"
+
+
+def abspath(path: str) -> str:
+    return os.path.normpath(bpy.path.abspath(path)) if path else ""
+
+
+def model_dir(scene) -> str:
+    path = abspath(scene.neulf.model_dir)
+    if not path:
+        raise NeulfError("no NeuLF model: train one (Train NeuLF) or load a model folder (Load Model).")
+    if not (Path(path) / "checkpoint.pt").is_file():
+        raise NeulfError(f"{path} holds no trained model (checkpoint.pt missing); train it or load another folder.")
+    return path
+
+
+def store_path(path: str) -> str:
+    """Relative to the .blend when it is saved (so moving both keeps the link)."""
+    if bpy.data.filepath:
+        try:
+            return bpy.path.relpath(path)
+        except ValueError:  # another drive on Windows
+            return path
+    return path
+
+
+def read_model_json(path: str) -> dict:
+    try:
+        return json.loads((Path(path) / "model.json").read_text())
+    except (OSError, json.JSONDecodeError):
+        return {}
+
+
+class _Reporting:
+    """`run()` does the work; NeulfError becomes one ERROR line, never a traceback."""
+
+    def execute(self, context):
+        try:
+            return self.run(context)
+        except NeulfError as exc:
+            self.report({"ERROR"}, str(exc))
+            return {"CANCELLED"}
+
+
+# ----------------------------------------------------------------------------- import
+
+
+def import_scene(context, scene_dir: str, images_dir: str = "", import_points: bool = True) -> dict:
+    props = context.scene.neulf
+    existing_model = abspath(props.model_dir)
+    description = get_core(context).call("describe_scene", scene_dir=scene_dir, images_dir=images_dir or None,
+                                         model_dir=existing_model or None)
+    capture.build_capture(context, description, import_points=import_points)
+    props.scene_dir = store_path(scene_dir)
+    props.images_dir = store_path(images_dir) if images_dir else ""
+    return description
+
+
+class NEULF_OT_import_colmap(_Reporting, bpy.types.Operator):
+    """Import a COLMAP scene (sparse/0 + images/) or an LLFF folder: cameras, light slab, points"""
+
+    bl_idname = "neulf.import_colmap"
+    bl_label = "Import NeuLF Capture (COLMAP/LLFF)"
+    bl_options = {"REGISTER", "UNDO"}
+
+    directory: StringProperty(subtype="DIR_PATH")
+    images_dir: StringProperty(name="Images", subtype="DIR_PATH", description="Images folder if not SCENE/images")
+    import_points: bpy.props.BoolProperty(name="Sparse Points", default=True)
+    filter_folder: bpy.props.BoolProperty(default=True, options={"HIDDEN"})
+
+    def invoke(self, context, event):
+        context.window_manager.fileselect_add(self)
+        return {"RUNNING_MODAL"}
+
+    def run(self, context):
+        if not self.directory:
+            raise NeulfError("choose the scene folder (the one holding sparse/0 and images/, or poses_bounds.npy).")
+        description = import_scene(context, abspath(self.directory), abspath(self.images_dir), self.import_points)
+        notes = "; ".join(description.get("notes", []))
+        self.report({"INFO"}, f"imported {len(description['views'])} cameras" + (f" ({notes})" if notes else ""))
+        return {"FINISHED"}
+
+
+class NEULF_OT_reconstruct(_Reporting, bpy.types.Operator):
+    """Reconstruct a folder of photos with pycolmap in the background, then import it"""
+
+    bl_idname = "neulf.reconstruct"
+    bl_label = "Reconstruct Photos (pycolmap)"
+
+    directory: StringProperty(subtype="DIR_PATH", description="Folder of photos")
+    scene_dir: StringProperty(name="Scene Folder", subtype="DIR_PATH",
+                              description="Where to write the COLMAP scene (default: next to the photos)")
+    filter_folder: bpy.props.BoolProperty(default=True, options={"HIDDEN"})
+
+    @classmethod
+    def poll(cls, context):
+        return not tasks.running("reconstruct")
+
+    def invoke(self, context, event):
+        context.window_manager.fileselect_add(self)
+        return {"RUNNING_MODAL"}
+
+    def run(self, context):
+        photos = abspath(self.directory)
+        if not photos or not Path(photos).is_dir():
+            raise NeulfError("choose the folder that holds the photos.")
+        out = abspath(self.scene_dir) or str(Path(photos).parent / f"{Path(photos).name}_neulf")
+        python, extra = worker_python(get_prefs(context))
+        job = jobs.ReconstructJob(python, photos, out, env=jobs.core_environment(extra))
+        scene_name = context.scene.name
+
+        def done(job):
+            scene = bpy.data.scenes.get(scene_name)
+            if job.state["status"] != "finished" or scene is None:
+                print(f"NeuLF: reconstruction {job.state['status']}: {job.state.get('error')}")
+                return
+            with bpy.context.temp_override(scene=scene):
+                bpy.ops.neulf.import_colmap(directory=out)
+
+        tasks.start("reconstruct", job, done)
+        if bpy.app.background:
+            job.wait()
+            tasks.poll_all()
+            if job.state["status"] != "finished":
+                raise NeulfError(f"reconstruction failed: {job.state['error']}")
+        else:
+            self.report({"INFO"}, f"reconstructing {photos} into {out} in the background")
+        return {"FINISHED"}
+
+
+# ----------------------------------------------------------------------------- model
+
+
+def attach_model(context, path: str) -> dict:
+    """Store the model folder (relative to the .blend) and show its slab."""
+    props = context.scene.neulf
+    meta = read_model_json(path)
+    if not meta:
+        raise NeulfError(f"{path} holds no NeuLF model (model.json missing).")
+    props.model_dir = store_path(path)
+    progress = meta.get("progress", {})
+    if progress.get("val_psnr") is not None:
+        props.last_psnr = float(progress["val_psnr"])
+    props.last_status = f"{progress.get('status', '?')} at step {progress.get('step', '?')}"
+    collection, root = capture.find_capture(context.scene)
+    fingerprint = meta.get("scene", {}).get("fingerprint")
+    if collection is not None and meta.get("slab") and fingerprint in (None, props.fingerprint):
+        capture.set_slab_planes(collection, root, meta["slab"])
+    return meta
+
+
+class NEULF_OT_load_model(_Reporting, bpy.types.Operator):
+    """Attach a trained NeuLF model folder to this scene"""
+
+    bl_idname = "neulf.load_model"
+    bl_label = "Load NeuLF Model"
+    bl_options = {"REGISTER", "UNDO"}
+
+    directory: StringProperty(subtype="DIR_PATH")
+    filter_folder: bpy.props.BoolProperty(default=True, options={"HIDDEN"})
+
+    def invoke(self, context, event):
+        context.window_manager.fileselect_add(self)
+        return {"RUNNING_MODAL"}
+
+    def run(self, context):
+        path = abspath(self.directory)
+        meta = attach_model(context, path)
+        scene_meta = meta.get("scene", {})
+        fingerprint = scene_meta.get("fingerprint")
+        if context.scene.neulf.fingerprint and fingerprint not in (None, context.scene.neulf.fingerprint):
+            self.report({"WARNING"}, "the model was trained on another reconstruction than the imported cameras; "
+                                     "its renders will not line up with them.")
+        elif not context.scene.neulf.scene_dir and scene_meta.get("root") and Path(scene_meta["root"]).is_dir():
+            import_scene(context, scene_meta["root"])
+        self.report({"INFO"}, f"model loaded: {path}")
+        return {"FINISHED"}
+
+
+# ----------------------------------------------------------------------------- training
+
+
+def start_training(context, *, minutes=None, steps=None):
+    """Start (or continue) training the scene's model in a separate process."""
+    props = context.scene.neulf
+    scene_dir = abspath(props.scene_dir)
+    if not scene_dir:
+        raise NeulfError("import a capture first (NeuLF > Import), then train.")
+    out = abspath(props.model_dir) or str(Path(scene_dir) / "neulf_model")
+    resume = (Path(out) / "checkpoint.pt").is_file()
+    if resume:  # budgets count from the start of training: add to what is done
+        progress = read_model_json(out).get("progress", {})
+        if steps:
+            steps = int(progress.get("step", 0)) + int(steps)
+        else:
+            minutes = float(progress.get("elapsed", 0.0)) / 60.0 + float(minutes)
+    prefs = get_prefs(context)
+    python, extra = worker_python(prefs)
+    device = None if prefs is None or prefs.device == "AUTO" else prefs.device.lower()
+    job = jobs.TrainJob(python, scene_dir, out, minutes=minutes, steps=steps, resume=resume, preset=props.preset,
+                        scale=props.train_scale, images_dir=abspath(props.images_dir) or None, device=device,
+                        env=jobs.core_environment(extra))
+    props.model_dir = store_path(out)
+    scene_name = context.scene.name
+
+    def done(job):
+        scene = bpy.data.scenes.get(scene_name)
+        if scene is None:
+            return
+        state = job.state
+        scene.neulf.last_status = (f"{state['status']} at step {state.get('step', 0)}" if state["status"] != "failed"
+                                   else f"failed: {state['error']}")
+        if state.get("val_psnr") is not None:
+            scene.neulf.last_psnr = float(state["val_psnr"])
+        if (Path(out) / "model.json").is_file():
+            with bpy.context.temp_override(scene=scene):
+                try:
+                    attach_model(bpy.context, out)
+                except NeulfError:
+                    pass
+
+    tasks.start("train", job, done)
+    return job, resume
+
+
+class NEULF_OT_train(_Reporting, bpy.types.Operator):
+    """Train (or continue training) the light field in a separate process; Blender stays usable"""
+
+    bl_idname = "neulf.train"
+    bl_label = "Train NeuLF"
+
+    minutes: FloatProperty(name="Minutes", default=0.0, min=0.0, description="0: the panel's setting")
+    steps: IntProperty(name="Steps", default=0, min=0, description="0: the panel's setting")
+
+    @classmethod
+    def poll(cls, context):
+        return not tasks.running("train")
+
+    def run(self, context):
+        props = context.scene.neulf
+        steps = self.steps or (props.train_steps if not self.minutes else 0)
+        minutes = self.minutes or props.train_minutes
+        job, resume = start_training(context, minutes=None if steps else minutes, steps=steps or None)
+        if not bpy.app.background:
+            self.report({"INFO"}, ("continuing" if resume else "training") + " in the background")
+            return {"FINISHED"}
+        state = job.wait()
+        tasks.poll_all()
+        if state["status"] == "failed":
+            raise NeulfError(f"training failed: {state['error']}")
+        psnr = f", validation {state['val_psnr']:.2f} dB" if state.get("val_psnr") is not None else ""
+        self.report({"INFO"}, f"training {state['status']} at step {state['step']}{psnr}")
+        return {"FINISHED"}
+
+
+class NEULF_OT_cancel_train(bpy.types.Operator):
+    """Stop training; the model is saved where it is and can be continued later"""
+
+    bl_idname = "neulf.cancel_train"
+    bl_label = "Cancel Training"
+
+    @classmethod
+    def poll(cls, context):
+        return tasks.running("train")
+
+    def execute(self, context):
+        tasks.get("train").cancel()
+        return {"FINISHED"}
+
+
+# ----------------------------------------------------------------------------- rendering
+
+
+def render_active_camera(context, *, depth=True):
+    scene = context.scene
+    request = capture.camera_request(scene, scene.camera)
+    scale = request.pop("scale")
+    result = get_core(context).call("render", model_dir=model_dir(scene), depth=depth, chunk=scene.neulf.chunk,
+                                    **request)
+    if result.get("depth") is not None:
+        result["depth"] = result["depth"] * scale  # model units -> Blender units
+    return result, request
+
+
+class NEULF_OT_render_camera(_Reporting, bpy.types.Operator):
+    """Render the active camera through the light field into the images 'NeuLF Render' and 'NeuLF Depth'"""
+
+    bl_idname = "neulf.render_camera"
+    bl_label = "Render Camera (NeuLF)"
+
+    def run(self, context):
+        result, request = render_active_camera(context)
+        capture.show_image(RENDER_IMAGE, result["rgb"])  # byte image: sRGB, stored as computed
+        depth = np.nan_to_num(result["depth"], nan=0.0)
+        capture.show_image(DEPTH_IMAGE, np.repeat(depth[..., None], 3, axis=2), float_buffer=True, non_color=True)
+        for note in result.get("warnings", []):
+            self.report({"WARNING"}, note)
+        self.report({"INFO"}, f"rendered {request['width']}x{request['height']} into '{RENDER_IMAGE}'")
+        return {"FINISHED"}
+
+
+def focus_at(context, x: float, y: float) -> float:
+    """Set the active camera's focus distance to the light field's depth at image point (x, y)."""
+    scene = context.scene
+    camera = scene.camera
+    request = capture.camera_request(scene, camera)
+    width, height = request["width"], request["height"]
+    if not (0 <= x <= width and 0 <= y <= height):
+        raise NeulfError(f"point ({x:.0f}, {y:.0f}) is outside the {width}x{height} camera image.")
+    result = get_core(context).call("depth_at", model_dir=model_dir(scene), K=request["K"], R=request["R"],
+                                    t=request["t"], x=float(x), y=float(y))
+    distance = result["depth"] * request["scale"]
+    dof = camera.data.dof
+    dof.use_dof = True
+    dof.focus_object = None
+    dof.focus_distance = distance
+    return distance
+
+
+class NEULF_OT_focus_at(_Reporting, bpy.types.Operator):
+    """Focus the active camera on the light field's depth at an image point (pixels, top-left origin)"""
+
+    bl_idname = "neulf.focus_at"
+    bl_label = "Focus At Point"
+    bl_options = {"REGISTER", "UNDO"}
+
+    x: FloatProperty(name="X", description="Pixels from the left edge (pixel i's centre is i + 0.5)")
+    y: FloatProperty(name="Y", description="Pixels from the top edge (pixel j's centre is j + 0.5)")
+
+    def run(self, context):
+        distance = focus_at(context, self.x, self.y)
+        self.report({"INFO"}, f"focus distance {distance:.4g}")
+        return {"FINISHED"}
+
+
+def _window_region_under(context, event):
+    area = context.area
+    areas = [area] if area is not None and area.type == "VIEW_3D" else []
+    areas += [a for a in context.screen.areas if a.type == "VIEW_3D" and a not in areas]
+    for candidate in areas:
+        for region in candidate.regions:
+            if region.type == "WINDOW" and region.x <= event.mouse_x < region.x + region.width and \
+                    region.y <= event.mouse_y < region.y + region.height:
+                return candidate, region
+    return None, None
+
+
+class NEULF_OT_pick_focus(bpy.types.Operator):
+    """Click on what should be sharp in the camera view; its light-field depth becomes the focus distance"""
+
+    bl_idname = "neulf.pick_focus"
+    bl_label = "Pick Focus"
+    bl_options = {"REGISTER", "UNDO"}
+
+    def invoke(self, context, event):
+        if context.scene.camera is None:
+            self.report({"ERROR"}, "the scene has no active camera.")
+            return {"CANCELLED"}
+        context.window.cursor_modal_set("EYEDROPPER")
+        context.window_manager.modal_handler_add(self)
+        context.workspace.status_text_set("Click on what should be sharp (camera view); Esc / right click cancels")
+        return {"RUNNING_MODAL"}
+
+    def _end(self, context):
+        context.window.cursor_modal_restore()
+        context.workspace.status_text_set(None)
+
+    def modal(self, context, event):
+        if event.type in {"ESC", "RIGHTMOUSE"}:
+            self._end(context)
+            return {"CANCELLED"}
+        if event.type != "LEFTMOUSE" or event.value != "PRESS":
+            return {"RUNNING_MODAL"}
+        self._end(context)
+        area, region = _window_region_under(context, event)
+        if region is None:
+            self.report({"ERROR"}, "click inside a 3D viewport that looks through the camera.")
+            return {"CANCELLED"}
+        space = area.spaces.active
+        if space.region_3d.view_perspective != "CAMERA":
+            self.report({"ERROR"}, "look through the camera first (Numpad 0), then pick the focus.")
+            return {"CANCELLED"}
+        from bpy_extras.view3d_utils import location_3d_to_region_2d
+
+        scene, camera = context.scene, context.scene.camera
+        frame = [camera.matrix_world @ corner for corner in camera.data.view_frame(scene=scene)]
+        corners = [location_3d_to_region_2d(region, space.region_3d, c) for c in frame]
+        if any(c is None for c in corners):
+            self.report({"ERROR"}, "the camera frame is not visible in this viewport.")
+            return {"CANCELLED"}
+        xs, ys = [c.x for c in corners], [c.y for c in corners]
+        mx, my = event.mouse_x - region.x, event.mouse_y - region.y
+        request = capture.camera_request(scene, camera)
+        x = (mx - min(xs)) / max(max(xs) - min(xs), 1e-9) * request["width"]
+        y = (max(ys) - my) / max(max(ys) - min(ys), 1e-9) * request["height"]
+        try:
+            distance = focus_at(context, x, y)
+        except NeulfError as exc:
+            self.report({"ERROR"}, str(exc))
+            return {"CANCELLED"}
+        self.report({"INFO"}, f"focus distance {distance:.4g}")
+        return {"FINISHED"}
+
+
+# ----------------------------------------------------------------------------- camera paths and video
+
+
+class NEULF_OT_spiral_path(_Reporting, bpy.types.Operator):
+    """Keyframe a smooth spiral through the capture on the active camera (frame range set to it)"""
+
+    bl_idname = "neulf.spiral_path"
+    bl_label = "Spiral Camera Path"
+    bl_options = {"REGISTER", "UNDO"}
+
+    frames: IntProperty(name="Frames", default=0, min=0, description="0: the panel's setting")
+
+    def run(self, context):
+        scene = context.scene
+        camera = scene.camera
+        if camera is None:
+            raise NeulfError("the scene has no active camera to animate.")
+        frames = self.frames or scene.neulf.spiral_frames
+        path = get_core(context).call("spiral", model_dir=model_dir(scene), frames=frames)
+        _collection, root = capture.find_capture(scene)
+        root_matrix = root.matrix_world.copy() if root is not None else capture.Matrix.Identity(4)
+        if camera.animation_data is not None:
+            camera.animation_data_clear()
+        parent_inverse = (camera.parent.matrix_world.inverted() if camera.parent is not None
+                          else capture.Matrix.Identity(4))
+        start = scene.frame_start
+        if camera.rotation_mode == "AXIS_ANGLE":
+            camera.rotation_mode = "XYZ"
+        previous = None
+        for i, (R, t) in enumerate(zip(path["R"], path["t"])):
+            world = capture.matrix_for_pose(root_matrix, R, t)
+            location, rotation, _scale = (camera.matrix_parent_inverse.inverted() @ parent_inverse @ world).decompose()
+            camera.location = location
+            if camera.rotation_mode == "QUATERNION":
+                if previous is not None:
+                    rotation.make_compatible(previous)
+                camera.rotation_quaternion = previous = rotation
+                camera.keyframe_insert("rotation_quaternion", frame=start + i)
+            else:  # continuous Euler angles: no 360-degree jumps between keys
+                euler = rotation.to_euler(camera.rotation_mode, previous) if previous else rotation.to_euler(
+                    camera.rotation_mode)
+                camera.rotation_euler = previous = euler
+                camera.keyframe_insert("rotation_euler", frame=start + i)
+            camera.keyframe_insert("location", frame=start + i)
+        scene.frame_end = start + len(path["R"]) - 1
+        self.report({"INFO"}, f"keyframed {len(path['R'])} frames on {camera.name}")
+        return {"FINISHED"}
+
+
+def configure_video(scene, filepath: str) -> None:
+    settings = scene.render.image_settings
+    if hasattr(settings, "media_type"):  # 5.0+
+        settings.media_type = "VIDEO"
+    settings.file_format = "FFMPEG"
+    scene.render.ffmpeg.format = "MPEG4"
+    scene.render.ffmpeg.codec = "H264"
+    scene.render.filepath = filepath
+
+
+class NEULF_OT_render_video(_Reporting, bpy.types.Operator):
+    """Render the frame range through the light field into a video (MP4, H.264)"""
+
+    bl_idname = "neulf.render_video"
+    bl_label = "Render Video (NeuLF)"
+
+    filepath: StringProperty(subtype="FILE_PATH", default="//neulf.mp4")
+    filter_glob: StringProperty(default="*.mp4", options={"HIDDEN"})
+
+    def invoke(self, context, event):
+        context.window_manager.fileselect_add(self)
+        return {"RUNNING_MODAL"}
+
+    def run(self, context):
+        scene = context.scene
+        model_dir(scene)  # a clear error before the render starts
+        if scene.camera is None:
+            raise NeulfError("the scene has no active camera.")
+        path = abspath(self.filepath) if self.filepath else abspath("//neulf.mp4")
+        if not path.lower().endswith(".mp4"):
+            path += ".mp4"
+        Path(path).parent.mkdir(parents=True, exist_ok=True)
+        scene.render.engine = "NEULF"
+        configure_video(scene, path)
+        if bpy.app.background:
+            bpy.ops.render.render(animation=True, scene=scene.name)
+            self.report({"INFO"}, f"wrote {path}")
+        else:
+            bpy.ops.render.render("INVOKE_DEFAULT", animation=True, scene=scene.name)
+        return {"FINISHED"}
+
+
+class NEULF_OT_use_capture_camera(_Reporting, bpy.types.Operator):
+    """Make the selected capture camera active and set the render size to its photo"""
+
+    bl_idname = "neulf.use_capture_camera"
+    bl_label = "Use Capture Camera"
+    bl_options = {"REGISTER", "UNDO"}
+
+    def run(self, context):
+        obj = context.active_object
+        if obj is None or obj.type != "CAMERA":
+            raise NeulfError("select a camera first.")
+        context.scene.camera = obj
+        if not capture.apply_capture_camera(context.scene, obj):
+            self.report({"INFO"}, f"{obj.name} is not a capture camera; the render size is unchanged")
+        return {"FINISHED"}
+
+
+def menu_import(self, context):
+    self.layout.operator(NEULF_OT_import_colmap.bl_idname, text="NeuLF Capture (COLMAP/LLFF)")
+
+
+CLASSES = (NEULF_OT_import_colmap, NEULF_OT_reconstruct, NEULF_OT_load_model, NEULF_OT_train, NEULF_OT_cancel_train,
+           NEULF_OT_render_camera, NEULF_OT_focus_at, NEULF_OT_pick_focus, NEULF_OT_spiral_path,
+           NEULF_OT_render_video, NEULF_OT_use_capture_camera)

@@ -1,0 +1,86 @@
+"""The N-panel (3D viewport > sidebar > NeuLF): capture, training, rendering."""
+
+import bpy
+
+from . import tasks
+
+
+def _job_box(layout, job, label: str, cancel_op: str | None = None):
+    state = job.state
+    box = layout.box()
+    elapsed = state.get("elapsed") or state.get("elapsed_wall", 0.0)
+    text = f"{label}: {state.get('message', '')}"[:60]
+    box.progress(factor=float(state.get("fraction", 0.0)), type="BAR", text=text)
+    row = box.row()
+    minutes, seconds = divmod(int(elapsed), 60)
+    row.label(text=f"{minutes}:{seconds:02d}", icon="TIME")
+    if state.get("val_psnr") is not None:
+        row.label(text=f"val {state['val_psnr']:.2f} dB")
+    if cancel_op:
+        box.operator(cancel_op, icon="CANCEL", text="Cancel")
+
+
+class NEULF_PT_main(bpy.types.Panel):
+    bl_label = "NeuLF"
+    bl_idname = "NEULF_PT_main"
+    bl_space_type = "VIEW_3D"
+    bl_region_type = "UI"
+    bl_category = "NeuLF"
+
+    def draw(self, context):
+        layout = self.layout
+        props = context.scene.neulf
+
+        col = layout.column(align=True)
+        col.label(text="Capture", icon="OUTLINER_OB_CAMERA")
+        col.operator("neulf.import_colmap", text="Import COLMAP / LLFF", icon="IMPORT")
+        col.operator("neulf.reconstruct", text="Reconstruct Photos", icon="IMAGE_DATA")
+        recon = tasks.get("reconstruct")
+        if recon is not None and recon.running:
+            _job_box(layout, recon, "Reconstructing")
+        elif recon is not None and recon.state["status"] == "failed":
+            layout.label(text=f"Reconstruction failed: {recon.state['error']}"[:120], icon="ERROR")
+        if props.scene_dir:
+            layout.label(text=bpy.path.basename(props.scene_dir.rstrip("/\\")) or props.scene_dir, icon="FILE_FOLDER")
+        layout.operator("neulf.use_capture_camera", icon="VIEW_CAMERA")
+
+        layout.separator()
+        col = layout.column(align=True)
+        col.label(text="Training", icon="SHADERFX")
+        row = col.row(align=True)
+        row.prop(props, "train_minutes")
+        row.prop(props, "train_steps")
+        row = col.row(align=True)
+        row.prop(props, "preset", text="")
+        row.prop(props, "train_scale")
+        train = tasks.get("train")
+        if train is not None and train.running:
+            _job_box(layout, train, "Training", "neulf.cancel_train")
+        else:
+            label = "Continue Training" if props.model_dir else "Train NeuLF"
+            layout.operator("neulf.train", text=label, icon="PLAY")
+            if train is not None and train.state["status"] == "failed":
+                layout.label(text=f"Failed: {train.state['error']}"[:120], icon="ERROR")
+        if props.last_status:
+            psnr = f", val {props.last_psnr:.2f} dB" if props.last_psnr else ""
+            layout.label(text=f"Last: {props.last_status}{psnr}")
+
+        layout.separator()
+        col = layout.column(align=True)
+        col.label(text="Model", icon="FILE_3D")
+        col.prop(props, "model_dir", text="")
+        col.operator("neulf.load_model", icon="FILEBROWSER")
+
+        layout.separator()
+        col = layout.column(align=True)
+        col.label(text="Render", icon="RENDER_STILL")
+        col.operator("neulf.render_camera", icon="RENDER_STILL")
+        col.operator("neulf.pick_focus", icon="EYEDROPPER")
+        row = col.row(align=True)
+        row.prop(props, "spiral_frames")
+        row.operator("neulf.spiral_path", text="Spiral Path", icon="CURVE_BEZCIRCLE")
+        col.operator("neulf.render_video", icon="RENDER_ANIMATION")
+        layout.label(text="Depth of field: focus only (refocus blur not yet)", icon="INFO")
+
+
+CLASSES = (NEULF_PT_main,)

@@ -1,0 +1,53 @@
+"""The add-on's settings on the scene: one PropertyGroup, `scene.neulf`."""
+
+import bpy
+from bpy.props import BoolProperty, EnumProperty, FloatProperty, IntProperty, StringProperty
+
+PRESETS = [
+    ("fast", "Fast", "Factorised feature planes and a tiny MLP: minutes on a CPU"),
+    ("authors", "Authors", "The authors' 8 x 256 MLP (slow without a GPU)"),
+    ("paper", "Paper", "The paper's 20 x 256 MLP (hours on a GPU)"),
+]
+
+
+class NeulfSceneSettings(bpy.types.PropertyGroup):
+    scene_dir: StringProperty(name="Capture", subtype="DIR_PATH",
+                              description="COLMAP scene (sparse/0 and images/) or LLFF folder of the imported capture")
+    images_dir: StringProperty(name="Images", subtype="DIR_PATH",
+                               description="Images folder when it is not SCENE/images (optional)")
+    model_dir: StringProperty(name="Model", subtype="DIR_PATH",
+                              description="Trained NeuLF model folder (stored relative to the .blend)")
+    collection_name: StringProperty(name="Collection", description="Collection of the imported capture")
+    root_name: StringProperty(name="Root", description="Root empty of the capture: move it to orient the scene")
+    fingerprint: StringProperty(description="Identifies the imported reconstruction")
+
+    import_points: BoolProperty(name="Sparse Points", default=True, description="Import the sparse 3D points")
+    train_minutes: FloatProperty(name="Minutes", default=5.0, min=0.05, soft_max=120.0,
+                                 description="Training time to add (continues a trained model)")
+    train_steps: IntProperty(name="Steps", default=0, min=0,
+                             description="Training steps to add instead of minutes (0: use minutes)")
+    preset: EnumProperty(name="Preset", items=PRESETS, default="fast")
+    train_scale: FloatProperty(name="Image Scale", default=1.0, min=0.05, max=1.0,
+                               description="Train on images resized by this factor")
+    spiral_frames: IntProperty(name="Frames", default=60, min=3, max=2000, description="Frames of the spiral path")
+    chunk: IntProperty(name="Chunk", default=1 << 15, min=256, max=1 << 22,
+                       description="Rays per network call (lower it when memory runs out)")
+
+    last_status: StringProperty(description="Last training result")
+    last_psnr: FloatProperty(description="Validation PSNR of the last training run (dB)")
+
+
+def settings(context_or_scene):
+    scene = getattr(context_or_scene, "scene", context_or_scene)
+    return scene.neulf
+
+
+CLASSES = (NeulfSceneSettings,)
+
+
+def register():
+    bpy.types.Scene.neulf = bpy.props.PointerProperty(type=NeulfSceneSettings)
+
+
+def unregister():
+    del bpy.types.Scene.neulf

@@ -1,0 +1,251 @@
+"""Services for the Blender extension, callable in-process or from a worker process.
+
+Blender's own Python has no torch or pycolmap, so the extension runs this module in another
+interpreter: ``python -m neulf_core.worker --scratch DIR`` reads one JSON request per line on
+stdin and answers one JSON line per request on stdout::
+
+    -> {"id": 3, "op": "render", "args": {"model_dir": "...", "K": [[...]], ...}}
+    <- {"id": 3, "progress": 0.5}                           (zero or more)
+    <- {"id": 3, "ok": true, "result": {...}}               or
+    <- {"id": 3, "ok": false, "error": "one line for the user", "kind": "NeulfError"}
+
+Arrays in a result travel as ``.npy`` files in the scratch folder: ``{"__npy__": PATH}``.
+When torch imports inside Blender (or in tests) the extension calls :class:`Service`
+directly and gets the arrays themselves: both routes run the same code.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import traceback
+import uuid
+from pathlib import Path
+
+import numpy as np
+
+from .errors import NeulfError
+
+PROTOCOL_VERSION = 1
+
+
+class Service:
+    """What the Blender side asks of neulf_core; plain values and numpy arrays in and out."""
+
+    def __init__(self, device: str | None = None):
+        self.device = device
+        self._cached: tuple[tuple, object] | None = None  # ((path, mtime, device), LightField)
+
+    # ------------------------------------------------------------------ environment
+    def info(self) -> dict:
+        import pycolmap
+        import torch
+
+        from . import __version__
+        from .device import describe_device, pick_device
+
+        device = pick_device(self.device)
+        return {"protocol": PROTOCOL_VERSION, "neulf_core": __version__, "python": sys.executable,
+                "python_version": sys.version.split()[0], "torch": torch.__version__,
+                "pycolmap": getattr(pycolmap, "__version__", "?"), "device": device.type,
+                "device_name": describe_device(device)}
+
+    # ------------------------------------------------------------------ scenes
+    def describe_scene(self, scene_dir: str, images_dir: str | None = None, model_dir: str | None = None,
+                       holdout_every: int = 8) -> dict:
+        """Cameras (pinhole K, world-to-camera R, t), sparse points and the light slab of a scene.
+
+        The slab is the trained model's when `model_dir` holds one, else fitted like training
+        would (every `holdout_every`-th view held out)."""
+        from .rays import pinhole_K
+        from .scene import load_scene, split_views
+        from .slab import fit_slab
+
+        scene = load_scene(scene_dir, images_dir)
+        views = []
+        for view in scene.views:
+            width, height = view.size
+            views.append({"name": view.name, "width": width, "height": height, "K": pinhole_K(view.camera).tolist(),
+                          "R": view.R.tolist(), "t": view.t.tolist(), "model": view.camera.model.name,
+                          "image_path": str(view.image_path) if view.image_path else None})
+        notes = list(scene.notes)
+        distorted = sorted({v["model"] for v in views} - {"PINHOLE", "SIMPLE_PINHOLE"})
+        if distorted:
+            notes.append(f"camera model {', '.join(distorted)}: Blender cameras are the undistorted pinhole part")
+        slab, slab_source = None, "fitted"
+        if model_dir and _has_model(model_dir):
+            info = self.model_info(model_dir)
+            if info["fingerprint"] not in (None, scene.fingerprint()):
+                notes.append(f"the model in {model_dir} was trained on another reconstruction; its slab is not shown")
+            else:
+                slab, slab_source = info["slab"], "model"
+        if slab is None:
+            train_views, _ = split_views(scene, holdout_every)
+            slab = fit_slab(scene, train_views).to_dict()
+        return {"root": str(scene.root), "kind": scene.kind, "fingerprint": scene.fingerprint(), "views": views,
+                "points": np.asarray(scene.points, dtype=np.float32), "slab": slab, "slab_source": slab_source,
+                "notes": notes}
+
+    # ------------------------------------------------------------------ models
+    def model_info(self, model_dir: str) -> dict:
+        """The model's metadata (slab, scene, rig, training progress) without loading weights."""
+        path = Path(model_dir).expanduser()
+        meta_path = path / "model.json"
+        if not meta_path.is_file():
+            self.light_field(model_dir)  # raises the checkpoint's own clear error
+            raise NeulfError(f"{path} has a checkpoint but no model.json; train or resume it once more to rewrite it.")
+        try:
+            meta = json.loads(meta_path.read_text())
+        except (OSError, json.JSONDecodeError) as exc:
+            raise NeulfError(f"cannot read {meta_path} ({exc}); train or resume the model once more.") from None
+        scene = meta.get("scene", {})
+        return {"model_dir": str(path), "slab": meta.get("slab"), "rig": meta.get("rig"),
+                "fingerprint": scene.get("fingerprint"), "scene_root": scene.get("root"),
+                "views": scene.get("views", []), "progress": meta.get("progress", {}),
+                "train_config": meta.get("train_config", {})}
+
+    def light_field(self, model_dir: str):
+        from .checkpoint import checkpoint_path
+        from .render import LightField
+
+        path = checkpoint_path(Path(model_dir))
+        stamp = path.stat().st_mtime_ns if path.is_file() else None
+        key = (str(path.resolve()), stamp, self.device)
+        if self._cached is None or self._cached[0] != key:
+            self._cached = None  # free the previous model first
+            self._cached = (key, LightField.load(model_dir, self.device))
+        return self._cached[1]
+
+    def render(self, model_dir: str, K, width: int, height: int, R, t, depth: bool = True, chunk: int = 1 << 15,
+               on_progress=None) -> dict:
+        """RGB (H, W, 3) float32 in [0, 1], row 0 at the top; depth along the optical axis."""
+        field = self.light_field(model_dir)
+        report = None if on_progress is None else (lambda done, total: on_progress(done / total))
+        rendering = field.render(np.asarray(K), int(width), int(height), np.asarray(R), np.asarray(t), depth=depth,
+                                 chunk=int(chunk), on_chunk=report)
+        return {"rgb": rendering.rgb, "depth": rendering.depth, "warnings": list(rendering.warnings)}
+
+    def depth_at(self, model_dir: str, K, R, t, x: float, y: float) -> dict:
+        """Depth along the optical axis of the ray through image point (x, y) (pixel units,
+        top-left origin; pixel (i, j) has its centre at (i + 0.5, j + 0.5)): a 1-ray render."""
+        K1 = single_pixel_K(K, x, y)
+        field = self.light_field(model_dir)
+        rendering = field.render(K1, 1, 1, np.asarray(R), np.asarray(t), depth=True)
+        value = float(rendering.depth[0, 0])
+        if not np.isfinite(value) or value <= 0:
+            raise NeulfError("the light field has no depth at that point (the ray misses the light slab); "
+                             "click on the captured scene itself.")
+        return {"depth": value, "rgb": rendering.rgb[0, 0].tolist(), "warnings": list(rendering.warnings)}
+
+    def spiral(self, model_dir: str, frames: int = 60) -> dict:
+        """A camera path through the capture: world-to-camera poses plus the rig's pinhole."""
+        from .paths import spiral_path
+        from .slab import Slab
+
+        info = self.model_info(model_dir)
+        rig = info.get("rig")
+        if not rig or not info.get("slab"):
+            raise NeulfError("this model has no saved camera rig; retrain it with this version.")
+        poses = spiral_path(Slab.from_dict(info["slab"]), np.asarray(rig["centres"]), frames=int(frames))
+        return {"R": [p[0].tolist() for p in poses], "t": [p[1].tolist() for p in poses], "K": rig["K"],
+                "width": rig["width"], "height": rig["height"]}
+
+
+def single_pixel_K(K, x: float, y: float) -> np.ndarray:
+    """K of a 1x1 image whose only pixel centre is image point (x, y) of the camera `K`."""
+    K1 = np.array(K, dtype=np.float64).reshape(3, 3)
+    K1[0, 2] -= float(x) - 0.5
+    K1[1, 2] -= float(y) - 0.5
+    return K1
+
+
+def _has_model(model_dir: str) -> bool:
+    path = Path(model_dir).expanduser()
+    return (path / "model.json").is_file() or (path / "checkpoint.pt").is_file()
+
+
+# ----------------------------------------------------------------------------- JSON lines
+
+
+def _encode(value, scratch: Path):
+    if isinstance(value, np.ndarray):
+        path = scratch / f"{uuid.uuid4().hex}.npy"
+        np.save(path, value)
+        return {"__npy__": str(path)}
+    if isinstance(value, dict):
+        return {k: _encode(v, scratch) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_encode(v, scratch) for v in value]
+    return value
+
+
+def decode(value):
+    """Inverse of the worker's encoding: ``{"__npy__": PATH}`` -> the array (file removed)."""
+    if isinstance(value, dict):
+        if set(value) == {"__npy__"}:
+            path = Path(value["__npy__"])
+            array = np.load(path)
+            path.unlink(missing_ok=True)
+            return array
+        return {k: decode(v) for k, v in value.items()}
+    if isinstance(value, list):
+        return [decode(v) for v in value]
+    return value
+
+
+OPS = {"info", "describe_scene", "model_info", "render", "depth_at", "spiral"}
+
+
+def serve(stdin, stdout, scratch: Path, device: str | None = None) -> None:
+    service = Service(device)
+
+    def send(message: dict) -> None:
+        stdout.write(json.dumps(message) + "\n")
+        stdout.flush()
+
+    for line in stdin:
+        if not line.strip():
+            continue
+        request_id = None
+        try:
+            request = json.loads(line)
+            request_id = request.get("id")
+            op, args = request.get("op"), dict(request.get("args") or {})
+            if op == "quit":
+                send({"id": request_id, "ok": True, "result": None})
+                return
+            if op not in OPS:
+                raise NeulfError(f"the worker has no operation '{op}' (update the extension and neulf_core together).")
+            if op == "render":
+                args["on_progress"] = lambda f: send({"id": request_id, "progress": f})
+            result = getattr(service, op)(**args)
+            send({"id": request_id, "ok": True, "result": _encode(result, scratch)})
+        except NeulfError as exc:
+            send({"id": request_id, "ok": False, "error": str(exc), "kind": "NeulfError"})
+        except MemoryError:
+            send({"id": request_id, "ok": False, "kind": "MemoryError",
+                  "error": "out of memory in the NeuLF worker; render a smaller image or lower the chunk size."})
+        except Exception as exc:  # programming errors: one line back, the traceback on stderr
+            traceback.print_exc(file=sys.stderr)
+            send({"id": request_id, "ok": False, "error": f"{type(exc).__name__}: {exc}", "kind": type(exc).__name__})
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m neulf_core.worker", description=__doc__.splitlines()[0])
+    parser.add_argument("--scratch", required=True, help="folder for .npy results (the client removes them)")
+    parser.add_argument("--device", help="cpu, cuda, mps (default: the fastest available)")
+    args = parser.parse_args(argv)
+    scratch = Path(args.scratch)
+    scratch.mkdir(parents=True, exist_ok=True)
+    # Keep stdout for the protocol: anything a library prints goes to stderr.
+    protocol_out = os.fdopen(os.dup(1), "w", buffering=1)
+    os.dup2(2, 1)  # C libraries writing to fd 1 land on stderr too
+    sys.stdout = sys.stderr
+    serve(sys.stdin, protocol_out, scratch, args.device)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
