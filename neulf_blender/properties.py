@@ -3,6 +3,17 @@
 import bpy
 from bpy.props import BoolProperty, EnumProperty, FloatProperty, IntProperty, StringProperty
 
+def _relative_path_options() -> set:
+    """Blender 4.5+ warns about '//' paths unless the property says it supports them."""
+    try:
+        bpy.props.StringProperty(options={"PATH_SUPPORTS_BLEND_RELATIVE"})
+    except (TypeError, ValueError):
+        return set()
+    return {"PATH_SUPPORTS_BLEND_RELATIVE"}
+
+
+PATH_OPTIONS = _relative_path_options()
+
 PRESETS = [
     ("fast", "Fast", "Factorised feature planes and a tiny MLP: minutes on a CPU"),
     ("authors", "Authors", "The authors' 8 x 256 MLP (slow without a GPU)"),
@@ -11,11 +22,11 @@ PRESETS = [
 
 
 class NeulfSceneSettings(bpy.types.PropertyGroup):
-    scene_dir: StringProperty(name="Capture", subtype="DIR_PATH",
+    scene_dir: StringProperty(name="Capture", subtype="DIR_PATH", options=PATH_OPTIONS,
                               description="COLMAP scene (sparse/0 and images/) or LLFF folder of the imported capture")
-    images_dir: StringProperty(name="Images", subtype="DIR_PATH",
+    images_dir: StringProperty(name="Images", subtype="DIR_PATH", options=PATH_OPTIONS,
                                description="Images folder when it is not SCENE/images (optional)")
-    model_dir: StringProperty(name="Model", subtype="DIR_PATH",
+    model_dir: StringProperty(name="Model", subtype="DIR_PATH", options=PATH_OPTIONS,
                               description="Trained NeuLF model folder (stored relative to the .blend)")
     collection_name: StringProperty(name="Collection", description="Collection of the imported capture")
     root_name: StringProperty(name="Root", description="Root empty of the capture: move it to orient the scene")

@@ -47,11 +47,13 @@ def cmd_reconstruct(args) -> int:
 
 
 def cmd_train(args) -> int:
+    from .presets import get_preset
     from .progress import make_reporter
     from .train import TrainConfig, train
 
     if args.minutes is not None and args.minutes <= 0 or args.steps is not None and args.steps <= 0:
         raise NeulfError("--minutes and --steps must be positive.")
+    get_preset(args.preset)  # fail before loading the scene and drawing progress, not after
     config = TrainConfig(
         preset=args.preset, steps=args.steps, minutes=args.minutes, scale=args.scale, holdout_every=args.holdout_every,
         exclude=_names(args.exclude), seed=args.seed, checkpoint_seconds=args.checkpoint_seconds,

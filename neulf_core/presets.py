@@ -30,6 +30,8 @@ PRESETS: dict[str, Preset] = {
                       description="the authors' code default: 8 x 256, embedding skips"),
     "fast": Preset("planes", {}, lr=2e-3, lr_final_ratio=0.1, batch_size=8192,
                    description="six factorised feature planes + tiny MLP; trains in minutes on a CPU"),
+    "disparity": Preset("disparity", {}, lr=2e-3, lr_final_ratio=0.1, batch_size=8192,
+                        description="per-ray disparity shearing one shared st texture (experimental)"),
 }
 DEFAULT_PRESET = "fast"
 

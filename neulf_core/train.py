@@ -22,6 +22,7 @@ from .dataset import RaySet, build_rayset, mean_colour
 from .device import describe_device, pick_device
 from .errors import NeulfError
 from .fields import build_field, count_parameters, make_config
+from .fields.disparity import slab_geometry
 from .presets import DEFAULT_PRESET, get_preset
 from .scene import Scene, load_scene, split_views
 from .slab import Slab, fit_slab
@@ -86,11 +87,13 @@ def _angular_resolution(n_views: int) -> int:
     return int(min(16, max(4, round(2 * math.sqrt(n_views)))))
 
 
-def _build_field(preset_name: str, overrides: dict, n_train_views: int):
+def _build_field(preset_name: str, overrides: dict, n_train_views: int, slab: Slab):
     preset = get_preset(preset_name)
     options = dict(preset.field_config)
     if preset.field == "planes" and "angular_res" not in overrides:
         options["angular_res"] = _angular_resolution(n_train_views)
+    if preset.field == "disparity":
+        options.update(slab_geometry(slab))
     options.update(overrides)
     config = make_config(preset.field, options)
     return build_field(preset.field, config), preset
@@ -158,7 +161,7 @@ def train(scene: Scene | str | Path, model_dir: str | Path, config: TrainConfig,
     train_rays = train_rays.to(device)
     val_rays = build_rayset(held_views, slab, config.scale).subset(VALIDATION_RAYS, generator).to(device) if held_views else None
 
-    field_module, preset = _build_field(config.preset, config.field_overrides, len(train_views))
+    field_module, preset = _build_field(config.preset, config.field_overrides, len(train_views), slab)
     if resumed:
         field_module.load_state_dict(resumed["state_dict"])
     field_module.to(device).train()

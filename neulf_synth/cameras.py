@@ -40,11 +40,24 @@ def intrinsics_from_blender(camera_data, render) -> np.ndarray:
 
 
 def world_to_camera(matrix_world) -> tuple[np.ndarray, np.ndarray]:
-    """COLMAP (R, t) from a Blender camera's matrix_world (which must have unit scale)."""
+    """COLMAP (R, t) from a Blender camera's matrix_world (which must have unit scale).
+
+    Blender stores matrix_world in float32, so its rotation part is orthonormal only to
+    ~1e-7. R is snapped to the nearest true rotation (a ~1e-7 rad change, far below a pixel)
+    so that quaternion round trips, e.g. through a COLMAP model, reproduce it exactly; the
+    camera centre is kept as Blender has it.
+    """
     camera_to_world = np.array(matrix_world, dtype=np.float64) @ BLENDER_TO_COLMAP_AXES
-    rotation = camera_to_world[:3, :3].T
+    rotation = nearest_rotation(camera_to_world[:3, :3].T)
     translation = -rotation @ camera_to_world[:3, 3]
     return rotation, translation
+
+
+def nearest_rotation(matrix: np.ndarray) -> np.ndarray:
+    """The rotation closest to `matrix` in the Frobenius norm (SVD projection)."""
+    u, _, vt = np.linalg.svd(matrix)
+    correction = np.diag([1.0, 1.0, np.sign(np.linalg.det(u @ vt))])
+    return u @ correction @ vt
 
 
 def project(K: np.ndarray, R: np.ndarray, t: np.ndarray, points_world: np.ndarray):

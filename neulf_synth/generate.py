@@ -57,7 +57,7 @@ def generate_scene(out_dir, *, variant: str = "lambertian", grid=(4, 4), size=(3
     cameras = [add_camera(scene, view.name, view.position, layout.LOOK_AT) for view in views]
     build_seconds = time.perf_counter() - started
 
-    records, render_seconds, outputs = [], [], []
+    records, render_seconds, render_cpu_seconds, outputs = [], [], [], []
     for number, (view, camera) in enumerate(zip(views, cameras), start=1):
         image_path = images_dir / f"{view.name}.png"
         rendered = render_view(scene, camera, view.exposure_stops, image_path)
@@ -67,6 +67,7 @@ def generate_scene(out_dir, *, variant: str = "lambertian", grid=(4, 4), size=(3
         np.save(index_path, rendered.object_index)
         records.append(_view_record(scene, camera, image_path.name, view.exposure_stops))
         render_seconds.append(rendered.seconds)
+        render_cpu_seconds.append(rendered.cpu_seconds)
         outputs.append((image_path, depth_path, index_path))
         if progress:
             progress(f"[{number}/{len(views)}] {image_path.name} rendered in "
@@ -99,6 +100,9 @@ def generate_scene(out_dir, *, variant: str = "lambertian", grid=(4, 4), size=(3
             "build_scene_s": round(build_seconds, 3),
             "render_s": [round(s, 3) for s in render_seconds],
             "render_total_s": round(sum(render_seconds), 3),
+            # CPU time of all render threads: on a shared machine, this divided by the core
+            # count estimates the wall time the renders would take on an idle one.
+            "render_cpu_total_s": round(sum(render_cpu_seconds), 3),
             "gt_model_s": round(model_seconds, 3),
             "total_s": round(time.perf_counter() - started, 3),
         },

@@ -4,8 +4,8 @@ Blender world coordinates, Z up, scene units (metres). The cameras stand near th
 origin and look along +Y at a small table-top arrangement in front of a back wall:
 
     y = 0      camera rig (a roughly planar grid, slight toe-in)
-    y ~ 2.7    near object (sphere)           nearest surface ~2.4 units away
-    y ~ 4.1    mid-depth object (Suzanne)
+    y ~ 2.8    near object (sphere)           nearest surface ~2.5 units away
+    y ~ 4.0    mid-depth object (Suzanne)
     y ~ 5.6    far objects (cylinder, cube)
     y = 7.2    textured back wall filling the background
 
@@ -62,15 +62,15 @@ def scene_objects() -> list[ObjectSpec]:
                    pass_index=1),
         ObjectSpec("Floor", "quad", (0.0, 2.5, FLOOR_Z), "floor",
                    size={"width": 24.0, "height": 9.6}, pass_index=2),
-        ObjectSpec("NearSphere", "sphere", (0.55, 2.7, 0.42), "sphere",
-                   size={"radius": 0.42}, pass_index=3),
-        ObjectSpec("MidMonkey", "monkey", (-0.75, 4.1, 0.62), "monkey",
-                   rotation=(0.0, 0.0, math.radians(-20.0)), size={"scale": 0.6},
+        ObjectSpec("NearSphere", "sphere", (0.5, 2.8, 0.33), "sphere",
+                   size={"radius": 0.33}, pass_index=3),
+        ObjectSpec("MidMonkey", "monkey", (-0.55, 4.0, 0.45), "monkey",
+                   rotation=(0.0, 0.0, math.radians(-20.0)), size={"scale": 0.42},
                    pass_index=4),
-        ObjectSpec("FarCylinder", "cylinder", (1.35, 5.6, 0.65), "cylinder",
-                   size={"radius": 0.4, "depth": 1.3}, pass_index=5),
-        ObjectSpec("FarCube", "cube", (-2.0, 5.8, 0.4), "cube",
-                   rotation=(0.0, 0.0, math.radians(35.0)), size={"size": 0.8},
+        ObjectSpec("FarCylinder", "cylinder", (1.2, 5.4, 0.55), "cylinder",
+                   size={"radius": 0.32, "depth": 1.1}, pass_index=5),
+        ObjectSpec("FarCube", "cube", (-1.55, 5.8, 0.35), "cube",
+                   rotation=(0.0, 0.0, math.radians(35.0)), size={"size": 0.7},
                    pass_index=6),
     ]
 

@@ -23,7 +23,7 @@ METAL_TINT = (0.9, 0.85, 0.78, 1.0)
 GLASS_TINT = (0.95, 0.98, 1.0, 1.0)
 
 # Fill light: emitted radiance per unit albedo (see ShaderGraph.diffuse).
-FILL_LIGHT = 0.3
+FILL_LIGHT = 0.18
 MIRROR_ROUGHNESS = 0.05
 GLASS_IOR = 1.45
 
@@ -90,7 +90,7 @@ class ShaderGraph:
         self.surface(total.outputs["Shader"])
 
 
-def _pastel(graph: ShaderGraph, color, amount: float = 0.35) -> bpy.types.NodeSocket:
+def _pastel(graph: ShaderGraph, color, amount: float = 0.2) -> bpy.types.NodeSocket:
     """Blend towards light grey so random texture colours are never near black."""
     return graph.mix(color, (0.8, 0.8, 0.8, 1.0), amount)
 
@@ -118,13 +118,13 @@ def build_floor(graph: ShaderGraph, f: float) -> None:
 
 
 def build_sphere(graph: ShaderGraph, f: float) -> None:
-    cells = graph.texture("ShaderNodeTexVoronoi", 4.0 * f)
-    graph.diffuse(_detail(graph, _pastel(graph, cells.outputs["Color"], 0.3), 20.0 * f))
+    cells = graph.texture("ShaderNodeTexVoronoi", 9.0 * f)
+    graph.diffuse(_detail(graph, _pastel(graph, cells.outputs["Color"]), 30.0 * f, 0.5))
 
 
 def build_monkey(graph: ShaderGraph, f: float) -> None:
     swirls = graph.texture("ShaderNodeTexMagic", 2.5 * f, Distortion=2.0)
-    graph.diffuse(_detail(graph, _pastel(graph, swirls.outputs["Color"], 0.3), 15.0 * f))
+    graph.diffuse(_detail(graph, _pastel(graph, swirls.outputs["Color"]), 15.0 * f))
 
 
 def build_cylinder(graph: ShaderGraph, f: float) -> None:

@@ -7,8 +7,11 @@ pixels get Cycles' 1e10 sentinel, which becomes inf here.
 
 from __future__ import annotations
 
+from contextlib import contextmanager
 from dataclasses import dataclass
+import os
 from pathlib import Path
+import sys
 import tempfile
 import time
 
@@ -22,7 +25,8 @@ from .blender_scene import GROUND_TRUTH_OUTPUT_NODE
 class RenderedView:
     depth: np.ndarray  # float32 (H, W), row 0 at the top, inf where nothing was hit
     object_index: np.ndarray  # uint8 (H, W), the hit object's pass_index, 0 for background
-    seconds: float
+    seconds: float  # wall-clock time of the render
+    cpu_seconds: float  # CPU time of this process (all render threads) during the render
 
 
 def render_view(scene, camera, exposure_stops: float, image_path: Path) -> RenderedView:
@@ -32,13 +36,32 @@ def render_view(scene, camera, exposure_stops: float, image_path: Path) -> Rende
     file_output = scene.compositing_node_group.nodes[GROUND_TRUTH_OUTPUT_NODE]
     with tempfile.TemporaryDirectory(prefix="neulf_synth_exr_") as exr_dir:
         file_output.directory = exr_dir + "/"
-        start = time.perf_counter()
-        bpy.ops.render.render(write_still=True)
-        seconds = time.perf_counter() - start
+        start, cpu_start = time.perf_counter(), time.process_time()
+        with _blender_log_silenced():
+            bpy.ops.render.render(write_still=True)
+        seconds, cpu_seconds = time.perf_counter() - start, time.process_time() - cpu_start
         depth = read_single_channel_exr(_find_exr(exr_dir, "Depth"))
         object_index = read_single_channel_exr(_find_exr(exr_dir, "ObjectIndex"))
     depth[depth >= camera.data.clip_end] = np.inf
-    return RenderedView(depth, np.rint(object_index).astype(np.uint8), seconds)
+    return RenderedView(depth, np.rint(object_index).astype(np.uint8), seconds, cpu_seconds)
+
+
+@contextmanager
+def _blender_log_silenced():
+    """Hide Blender's "Saved: ..." lines, which it prints to file descriptor 1 for every file.
+
+    Render failures still surface: bpy.ops raises them as Python exceptions.
+    """
+    sys.stdout.flush()
+    saved_stdout = os.dup(1)
+    devnull = os.open(os.devnull, os.O_WRONLY)
+    try:
+        os.dup2(devnull, 1)
+        yield
+    finally:
+        os.dup2(saved_stdout, 1)
+        os.close(saved_stdout)
+        os.close(devnull)
 
 
 def _find_exr(directory: str, item_name: str) -> Path:

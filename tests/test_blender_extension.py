@@ -150,7 +150,7 @@ def test_build_validate_and_contents(extension_zip):
 
 STEPS = ["install", "import", "cameras_match_pycolmap", "slab_planes", "reimport_no_duplicates", "train_blocking",
          "train_timer_resume", "train_cancel", "render_camera", "render_worker_process", "focus_at", "root_scale",
-         "engine_f12", "spiral_video", "save_reload", "user_errors"]
+         "engine_f12", "spiral_video", "save_reload", "user_errors", "preferences"]
 
 
 @pytest.fixture(scope="module")
@@ -328,16 +328,16 @@ def run_story(zip_path: Path, work: Path, results: Path) -> None:  # noqa: C901 
         props = bpy.context.scene.neulf
         props.model_dir = str(model)
         started = time.monotonic()
-        assert bpy.ops.neulf.train(steps=150) == {"FINISHED"}
+        assert bpy.ops.neulf.train(steps=40) == {"FINISHED"}
         assert (model / "checkpoint.pt").is_file()
         meta = json.loads((model / "model.json").read_text())
-        assert meta["progress"]["step"] == 150 and props.last_status.startswith("finished"), props.last_status
-        return f"150 steps in {time.monotonic() - started:.1f} s, val {props.last_psnr:.2f} dB"
+        assert meta["progress"]["step"] == 40 and props.last_status.startswith("finished"), props.last_status
+        return f"40 steps in {time.monotonic() - started:.1f} s, val {props.last_psnr:.2f} dB"
 
     @story.step("train_timer_resume", "train_blocking")
     def _():
         # The UI path: start returns at once; the timer's poll (called here) drains the job.
-        job, resumed = mod("operators").start_training(bpy.context, steps=150)
+        job, resumed = mod("operators").start_training(bpy.context, steps=20)
         assert resumed and mod("tasks").running("train")
         fractions = []
         while mod("tasks").poll_all():
@@ -345,7 +345,7 @@ def run_story(zip_path: Path, work: Path, results: Path) -> None:  # noqa: C901 
             time.sleep(0.1)
         assert job.state["status"] == "finished", job.state
         meta = json.loads((model / "model.json").read_text())
-        assert meta["progress"]["step"] == 300, meta["progress"]
+        assert meta["progress"]["step"] == 60, meta["progress"]
         assert bpy.context.scene.neulf.last_status.startswith("finished")
         return f"polled {len(fractions)} times, val {job.state['val_psnr']}"
 
@@ -506,6 +506,22 @@ def run_story(zip_path: Path, work: Path, results: Path) -> None:  # noqa: C901 
                 raise AssertionError("expected an error report")
         assert all("Traceback" not in m and m.startswith("Error:") for m in messages), messages
         return " | ".join(m.strip() for m in messages)
+
+    @story.step("preferences", "install")
+    def _():
+        prefs = bpy.context.preferences.addons[PACKAGE].preferences
+        assert bpy.ops.neulf.check_dependencies() == {"FINISHED"}
+        assert prefs.status.startswith("torch ") and "device: cpu" in prefs.status, prefs.status
+        deps = Path(mod("preferences").deps_dir(create=True))
+        assert str(work / "blender_user") in str(deps) and deps.is_dir()
+        if not bpy.app.online_access:  # the default headless: installing must refuse, clearly
+            try:
+                bpy.ops.neulf.install_dependencies()
+            except RuntimeError as exc:
+                assert "Online access is disabled" in str(exc), exc
+            else:
+                raise AssertionError("install ran without online access")
+        return prefs.status
 
     story.results_path.write_text(json.dumps(story.results, indent=1, default=str))
 

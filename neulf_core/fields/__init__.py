@@ -53,4 +53,4 @@ def count_parameters(field: torch.nn.Module) -> int:
     return sum(p.numel() for p in field.parameters())
 
 
-from . import mlp, planes  # noqa: E402,F401  (registration side effects)
+from . import disparity, mlp, planes  # noqa: E402,F401  (registration side effects)

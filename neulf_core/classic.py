@@ -1,0 +1,116 @@
+"""Classic light field rendering straight from the training photos (no training).
+
+The paper's "baseline" and the floor every learned method must clear; also an instant
+preview while a network trains.  Two modes (Levoy & Hanrahan 1996; Isaksen et al. 2000):
+
+- `plane`: every output ray meets one focal plane (the slab's st plane); that point is
+  projected into the `k` training photos nearest the output camera and their colours are
+  blended with inverse-square distance weights.
+- `sweep`: a per-pixel plane sweep: for `depths` planes between the scene's near and far
+  (uniform in disparity), the same projection and blend; each pixel keeps the depth where
+  the photos agree best (lowest weighted colour variance, smoothed over a small window).
+
+Photos are undistorted to pinhole images once at load (through pycolmap's own camera
+model), so the renderer only projects with K.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from .rays import pinhole_rays, view_rays
+from .scene import View
+from .slab import Slab
+
+
+def undistort_to_pinhole(view: View, scale: float) -> tuple[np.ndarray, np.ndarray]:
+    """The view's photo resampled to the pinhole camera with the same K: (image, K)."""
+    camera = view.scaled_camera(scale)
+    photo = view.load_image(scale)
+    K = np.asarray(camera.calibration_matrix(), dtype=np.float64)
+    if camera.model_name in ("PINHOLE", "SIMPLE_PINHOLE"):
+        return photo, K
+    width, height = int(camera.width), int(camera.height)
+    xs, ys = np.meshgrid(np.arange(width) + 0.5, np.arange(height) + 0.5)
+    normalised = np.stack([(xs - K[0, 2]) / K[0, 0], (ys - K[1, 2]) / K[1, 1]], -1).reshape(-1, 2)
+    distorted = np.asarray(camera.img_from_cam(np.concatenate([normalised, np.ones((len(normalised), 1))], 1)))
+    grid = torch.from_numpy(distorted.reshape(1, height, width, 2)).float()
+    grid[..., 0] = grid[..., 0] / width * 2 - 1
+    grid[..., 1] = grid[..., 1] / height * 2 - 1
+    image = torch.from_numpy(photo).permute(2, 0, 1)[None].float()
+    resampled = F.grid_sample(image, grid, mode="bilinear", padding_mode="border", align_corners=False)
+    return resampled[0].permute(1, 2, 0).round().clamp(0, 255).byte().numpy(), K
+
+
+class ClassicLightField:
+    def __init__(self, views: list[View], slab: Slab, scale: float, device="cpu"):
+        self.slab = slab
+        self.device = torch.device(device)
+        images, Ks = zip(*(undistort_to_pinhole(v, scale) for v in views))
+        self.images = torch.stack([torch.from_numpy(i).permute(2, 0, 1) for i in images]).to(self.device)  # (V, 3, H, W) uint8
+        self.K = torch.as_tensor(np.stack(Ks), device=self.device, dtype=torch.float32)
+        self.R = torch.as_tensor(np.stack([v.R for v in views]), device=self.device, dtype=torch.float32)
+        self.t = torch.as_tensor(np.stack([v.t for v in views]), device=self.device, dtype=torch.float32)
+        self.centres = torch.as_tensor(np.stack([v.center for v in views]), device=self.device, dtype=torch.float32)
+
+    def _nearest(self, centre: torch.Tensor, k: int):
+        distance = (self.centres - centre).norm(dim=1)
+        order = torch.argsort(distance)[:k]
+        weights = 1.0 / (distance[order] ** 2 + 1e-8)
+        return order, weights / weights.sum()
+
+    def _sample(self, index: torch.Tensor, points: torch.Tensor) -> torch.Tensor:
+        """Colours (k, N, 3) and visibility (k, N) of world points (N, 3) in photos `index`."""
+        cam = torch.einsum("kij,nj->kni", self.R[index], points) + self.t[index][:, None]
+        z = cam[..., 2].clamp_min(1e-6)
+        pix = torch.einsum("kij,knj->kni", self.K[index], cam / z[..., None])[..., :2]
+        height, width = self.images.shape[2:]
+        grid = torch.stack([pix[..., 0] / width * 2 - 1, pix[..., 1] / height * 2 - 1], -1)[:, :, None]
+        colours = F.grid_sample(self.images[index].float() / 255.0, grid, mode="bilinear", padding_mode="border", align_corners=False)
+        inside = (grid.abs() <= 1).all(-1)[..., 0] & (cam[..., 2] > 0)
+        return colours[..., 0].permute(0, 2, 1), inside
+
+    def render(self, K, width: int, height: int, R, t, **options) -> np.ndarray:
+        """(H, W, 3) float image of a pinhole camera (world-to-camera R, t)."""
+        origin, directions = pinhole_rays(K, R, t, width, height, self.device, torch.float32)
+        return self.render_rays(origin, directions, width, height, **options)
+
+    def render_view(self, view: View, scale: float, **options) -> np.ndarray:
+        """A registered view through its own camera model, aligned with its photo."""
+        camera = view.scaled_camera(scale)
+        origin, directions = view_rays(camera, view.R, view.t)
+        as_t = lambda a: torch.as_tensor(a, device=self.device, dtype=torch.float32)  # noqa: E731
+        return self.render_rays(as_t(origin), as_t(directions), int(camera.width), int(camera.height), **options)
+
+    @torch.no_grad()
+    def render_rays(self, origin: torch.Tensor, directions: torch.Tensor, width: int, height: int, *,
+                    mode: str = "sweep", depths: int = 32, k: int = 4, window: int = 5) -> np.ndarray:
+        index, weights = self._nearest(origin, min(k, len(self.centres)))
+        rotation = torch.as_tensor(self.slab.rotation, device=self.device, dtype=torch.float32)
+        slab_origin = torch.as_tensor(self.slab.origin, device=self.device, dtype=torch.float32)
+        o_z = float((origin - slab_origin) @ rotation[2])
+        d_z = directions @ rotation[2]
+        if mode == "plane":
+            plane_depths = torch.tensor([self.slab.z_st], device=self.device)
+        else:
+            unit = torch.linspace(0, 1, depths, device=self.device)
+            plane_depths = self.slab.depth_from_unit(unit).float()
+        best_cost = torch.full((height * width,), float("inf"), device=self.device)
+        best_colour = torch.zeros(height * width, 3, device=self.device)
+        for z in plane_depths:
+            points = origin + directions * ((z - o_z) / d_z)[:, None]
+            colours, inside = self._sample(index, points)
+            w = weights[:, None] * inside.float() + 1e-6
+            w = w / w.sum(0, keepdim=True)
+            mean = (w[..., None] * colours).sum(0)
+            if mode == "plane":
+                return mean.reshape(height, width, 3).cpu().numpy()
+            variance = (w[..., None] * (colours - mean) ** 2).sum(0).sum(-1)
+            cost = F.avg_pool2d(variance.reshape(1, 1, height, width), window, stride=1, padding=window // 2,
+                                count_include_pad=False).reshape(-1)
+            better = cost < best_cost
+            best_cost = torch.where(better, cost, best_cost)
+            best_colour = torch.where(better[:, None], mean, best_colour)
+        return best_colour.reshape(height, width, 3).cpu().numpy()

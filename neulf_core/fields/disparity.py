@@ -1,0 +1,114 @@
+"""A disparity-sheared light field: per-ray depth plus one shared texture.
+
+For a Lambertian point at depth z, a ray leaving the uv plane at (u, v) and crossing the
+st plane at (s, t) sees the same point as the ray from the slab origin that crosses the
+st plane at
+
+    s' = s + u * delta,   t' = t + v * delta,   delta = z_st / z - 1
+
+(delta is the point's disparity relative to the st plane).  So the field predicts a smooth
+per-ray disparity with a small factorised-planes network, shears (s, t) by it, and reads
+the colour from one high-resolution texture over (s', t') that *every* camera observes --
+the angular axes, which only as many cameras sample, carry only the smooth disparity.  The
+depth output comes for free: z = z_st / (1 + delta).  A small (u, v) input to the colour
+decoder leaves room for view-dependent effects.  With delta = 0 at the start the field is
+exactly classic single-focal-plane light field rendering.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from . import register
+from .planes import PlanesConfig, PlanesField
+
+
+@dataclass
+class DisparityConfig:
+    texture_res: list[int] = field(default_factory=lambda: [64, 128, 256, 512])
+    texture_channels: int = 8
+    texture_margin: float = 0.25       # the sheared (s', t') leave [-1, 1] a little
+    geometry_angular_res: int = 8
+    geometry_spatial_res: list[int] = field(default_factory=lambda: [32, 64, 128])
+    geometry_channels: int = 8
+    hidden: int = 64
+    view_dependence: bool = True
+    tv_weight: float = 1e-3
+    # Slab geometry in normalised units, set by the trainer from the slab (see slab_geometry()).
+    uv_half: list[float] = field(default_factory=lambda: [1.0, 1.0])
+    uv_centre: list[float] = field(default_factory=lambda: [0.0, 0.0])
+    st_half: list[float] = field(default_factory=lambda: [1.0, 1.0])
+    st_centre: list[float] = field(default_factory=lambda: [0.0, 0.0])
+    z_st: float = 1.0
+    z_near: float = 0.5
+    z_far: float = 2.0
+
+
+def slab_geometry(slab) -> dict:
+    """The slab quantities the shear needs (what DisparityConfig's geometry fields hold)."""
+    centre, half = (slab.lo + slab.hi) / 2, (slab.hi - slab.lo) / 2
+    return {"uv_half": half[:2].tolist(), "uv_centre": centre[:2].tolist(), "st_half": half[2:].tolist(),
+            "st_centre": centre[2:].tolist(), "z_st": float(slab.z_st), "z_near": float(slab.z_near), "z_far": float(slab.z_far)}
+
+
+class DisparityField(nn.Module):
+    def __init__(self, config: DisparityConfig):
+        super().__init__()
+        self.config = config
+        self.geometry = PlanesField(PlanesConfig(angular_res=config.geometry_angular_res, spatial_res=config.geometry_spatial_res,
+                                                 channels=config.geometry_channels, hidden=32, hidden_layers=1,
+                                                 tv_weight=config.tv_weight))
+        with torch.no_grad():  # start at zero disparity: the texture sits on the st plane
+            last = self.geometry.decoder[-1]
+            last.weight.mul_(0.01)
+            last.bias.zero_()
+            last.bias[3] = self._unit_of_st()
+        self.textures = nn.ParameterList(
+            nn.Parameter(torch.randn(1, config.texture_channels, res, res) * 0.01) for res in config.texture_res)
+        decoder_in = config.texture_channels * len(config.texture_res) + (2 if config.view_dependence else 0)
+        self.decoder = nn.Sequential(nn.Linear(decoder_in, config.hidden), nn.ReLU(), nn.Linear(config.hidden, 3))
+        for name in ("uv_half", "uv_centre", "st_half", "st_centre"):
+            self.register_buffer(name, torch.tensor(getattr(config, name), dtype=torch.float32), persistent=False)
+
+    def _unit_of_st(self) -> float:
+        c = self.config
+        unit = (1.0 / c.z_st - 1.0 / c.z_far) / (1.0 / c.z_near - 1.0 / c.z_far)
+        unit = min(max(unit, 1e-3), 1 - 1e-3)
+        return float(torch.logit(torch.tensor(unit)))
+
+    def disparity(self, unit: torch.Tensor) -> torch.Tensor:
+        c = self.config
+        inverse_depth = 1.0 / c.z_far + unit * (1.0 / c.z_near - 1.0 / c.z_far)
+        return c.z_st * inverse_depth - 1.0
+
+    def forward(self, uvst: torch.Tensor):
+        geometry = self.geometry.decoder(self.geometry.features(uvst))
+        unit = torch.sigmoid(geometry[:, 3:4])
+        delta = self.disparity(unit)
+        uv = uvst[:, :2] * self.uv_half + self.uv_centre          # slab units
+        st = uvst[:, 2:] * self.st_half + self.st_centre
+        sheared = (st + uv * delta - self.st_centre) / self.st_half  # back to normalised st
+        grid = (sheared / (1.0 + self.config.texture_margin)).view(1, -1, 1, 2)
+        features = [F.grid_sample(texture, grid, mode="bilinear", padding_mode="border", align_corners=True)
+                    .view(texture.shape[1], -1) for texture in self.textures]
+        decoder_in = torch.cat(features, 0).t()
+        if self.config.view_dependence:
+            decoder_in = torch.cat([decoder_in, uvst[:, :2]], 1)
+        return torch.sigmoid(self.decoder(decoder_in)), unit
+
+    def regularisation(self) -> torch.Tensor:
+        return self.geometry.regularisation()
+
+    def param_groups(self, lr: float):
+        return [
+            {"params": list(self.textures.parameters()), "lr": lr * 10.0, "name": "texture"},
+            {"params": list(self.geometry.scales.parameters()), "lr": lr * 10.0, "name": "geometry planes"},
+            {"params": list(self.geometry.decoder.parameters()) + list(self.decoder.parameters()), "lr": lr, "name": "decoders"},
+        ]
+
+
+register("disparity", DisparityConfig, DisparityField, "per-ray disparity (small planes) shearing one shared st texture")

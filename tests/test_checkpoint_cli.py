@@ -1,0 +1,516 @@
+"""Metrics, checkpoints (save, load, resume, cancel, damage) and the command line, on the
+tiny synthetic scene from conftest.py (no reference data needed)."""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from PIL import Image
+from skimage.metrics import peak_signal_noise_ratio, structural_similarity
+
+from neulf_core.checkpoint import CHECKPOINT_NAME, METADATA_NAME, atomic_write_bytes, load_checkpoint
+from neulf_core.cli import main
+from neulf_core.errors import NeulfError
+from neulf_core.metrics import psnr, ssim
+from neulf_core.render import LightField
+from neulf_core.scene import load_scene
+from neulf_core.train import TrainConfig, train
+
+REPO = Path(__file__).resolve().parents[1]
+SMALL_PLANES = {"spatial_res": [16, 32], "channels": 4, "hidden": 16}
+SMALL_MLP = {"depth": 3, "width": 24, "head_width": 16}
+
+
+def small_config(steps: int, **overrides) -> TrainConfig:
+    """A few-second run: tiny planes, small batches, no timed validation or checkpoints."""
+    options = dict(steps=steps, batch_size=256, field_overrides=dict(SMALL_PLANES),
+                   validate_seconds=1e9, checkpoint_seconds=1e9)
+    options.update(overrides)
+    return TrainConfig(**options)
+
+
+# ----------------------------------------------------------------------------- metrics
+
+
+def structured_pair(rng):
+    y, x = np.mgrid[0:48, 0:64] / 64.0
+    image = np.stack([0.5 + 0.4 * np.sin(9 * x + 3 * y), x * y, 0.5 + 0.5 * np.cos(20 * x) * np.sin(13 * y)], axis=2)
+    noisy = np.clip(image + rng.normal(0, 0.05, image.shape), 0, 1)
+    return image, noisy
+
+
+@pytest.mark.parametrize("kind", ["random", "structured", "uint8"])
+def test_metrics_match_scikit_image(kind):
+    rng = np.random.default_rng({"random": 0, "structured": 1, "uint8": 2}[kind])
+    if kind == "random":
+        a, b = rng.uniform(size=(37, 41, 3)), rng.uniform(size=(37, 41, 3))
+    else:
+        a, b = structured_pair(rng)
+    if kind == "uint8":
+        a8, b8 = (np.round(a * 255).astype(np.uint8), np.round(b * 255).astype(np.uint8))
+        ours_p, ours_s = psnr(a8, b8), ssim(a8, b8)
+        a, b = a8 / 255.0, b8 / 255.0
+    else:
+        ours_p, ours_s = psnr(a, b), ssim(a, b)
+    reference_p = peak_signal_noise_ratio(b, a, data_range=1)
+    reference_s = structural_similarity(a, b, gaussian_weights=True, sigma=1.5, use_sample_covariance=False,
+                                        data_range=1, channel_axis=2)
+    assert ours_p == pytest.approx(reference_p, abs=1e-6)
+    assert ours_s == pytest.approx(reference_s, abs=1e-6)
+    assert psnr(a, a) == float("inf") and ssim(a, a) == pytest.approx(1.0, abs=1e-12)
+    assert ssim(a, b) < 1.0
+
+
+def test_ssim_grayscale_and_float32():
+    rng = np.random.default_rng(4)
+    a, b = structured_pair(rng)
+    reference = structural_similarity(a[..., 0], b[..., 0], gaussian_weights=True, sigma=1.5,
+                                      use_sample_covariance=False, data_range=1)
+    assert ssim(a[..., 0], b[..., 0]) == pytest.approx(reference, abs=1e-6)
+    assert ssim(a.astype(np.float32), b.astype(np.float32)) == pytest.approx(ssim(a, b), abs=1e-6)
+
+
+# ----------------------------------------------------------------------------- training and checkpoints
+
+
+@pytest.fixture(scope="module")
+def trained(tiny_scene, tmp_path_factory):
+    """A small model trained for 8 steps (the scene and its result)."""
+    model_dir = tmp_path_factory.mktemp("trained") / "model"
+    result = train(tiny_scene, model_dir, small_config(8))
+    return tiny_scene, model_dir, result
+
+
+def copy_model(model_dir: Path, destination: Path) -> Path:
+    shutil.copytree(model_dir, destination)
+    return destination
+
+
+def test_train_writes_checkpoint_and_metadata(trained):
+    scene_dir, model_dir, result = trained
+    assert result.status == "finished" and result.step == 8
+    assert (model_dir / CHECKPOINT_NAME).is_file() and (model_dir / METADATA_NAME).is_file()
+    assert not [p for p in model_dir.iterdir() if p.name.endswith(".tmp")]
+    meta = json.loads((model_dir / METADATA_NAME).read_text())
+    assert "state_dict" not in meta and "optimizer" not in meta
+    assert meta["progress"]["step"] == 8 and meta["progress"]["status"] == "finished"
+    assert meta["scene"]["held_out"] == ["view_00.png", "view_08.png"]
+    assert meta["scene"]["fingerprint"] == load_scene(scene_dir).fingerprint()
+    assert meta["field"] == "planes" and meta["field_config"]["spatial_res"] == [16, 32]
+    assert meta["rig"]["width"] == 48 and len(meta["rig"]["centres"]) == 7
+    assert set(meta["slab"]) >= {"rotation", "origin", "z_uv", "z_st", "lo", "hi", "uv_corners_world"}
+    assert result.history[-1]["step"] == 8 and result.val_psnr == result.history[-1]["val_psnr"]
+
+
+def test_loaded_model_reproduces_the_trained_one(trained):
+    """The validation PSNR the trainer measured with its in-memory field equals the PSNR of
+    the reloaded model's renders of the same held-out views."""
+    scene_dir, model_dir, result = trained
+    light_field = LightField.load(model_dir, "cpu")
+    scene = load_scene(scene_dir)
+    light_field.check_scene(scene)
+    squared, count = 0.0, 0
+    renders = []
+    for name in light_field.meta["scene"]["held_out"]:
+        view = scene.view(name)
+        rendering = light_field.render_view(view)
+        assert rendering.valid.all() and np.isfinite(rendering.depth).all()
+        target = view.load_image().astype(np.float64) / 255.0
+        squared += float(((rendering.rgb.astype(np.float64) - target) ** 2).sum())
+        count += target.size
+        renders.append(rendering)
+    assert -10 * np.log10(squared / count) == pytest.approx(result.val_psnr, abs=1e-4)
+
+    again = LightField.load(model_dir, "cpu")
+    for name, first in zip(light_field.meta["scene"]["held_out"], renders):
+        second = again.render_view(scene.view(name))
+        np.testing.assert_array_equal(first.rgb, second.rgb)
+        np.testing.assert_array_equal(first.depth, second.depth)
+        # The pinhole renderer (render) agrees with the camera-model one for a PINHOLE view.
+        view = scene.view(name)
+        pinhole = again.render(view.camera.calibration_matrix(), *view.size, view.R, view.t)
+        np.testing.assert_allclose(pinhole.rgb, first.rgb, atol=1e-5)
+        np.testing.assert_allclose(pinhole.depth, first.depth, rtol=1e-5)
+
+
+def test_resume_continues_step_and_history(trained, tmp_path):
+    scene_dir, model_dir, first = trained
+    model = copy_model(model_dir, tmp_path / "model")
+    events = []
+    result = train(scene_dir, model, small_config(12), resume=True, progress=events.append)
+    assert result.status == "finished" and result.step == 12
+    assert result.history[: len(first.history)] == first.history
+    assert result.history[-1]["step"] == 12
+    steps = [e["step"] for e in events if e.get("event") in ("step", "validate")]
+    assert steps == list(range(9, 13))
+    meta = json.loads((model / METADATA_NAME).read_text())
+    assert meta["progress"]["step"] == 12 and meta["train_config"]["steps"] == 12
+    assert meta["progress"]["elapsed"] >= first.elapsed
+    # Resuming a finished budget does no more steps.
+    again = train(scene_dir, model, small_config(12), resume=True)
+    assert again.step == 12
+
+
+def weights(model_dir: Path) -> dict:
+    return torch.load(Path(model_dir) / CHECKPOINT_NAME, map_location="cpu", weights_only=False)
+
+
+def assert_same_weights(a: Path, b: Path):
+    sa, sb = weights(a), weights(b)
+    assert sa["progress"]["step"] == sb["progress"]["step"]
+    assert sa["state_dict"].keys() == sb["state_dict"].keys()
+    for key in sa["state_dict"]:
+        assert torch.equal(sa["state_dict"][key], sb["state_dict"][key]), f"{key} differs"
+    for group_a, group_b in zip(sa["optimizer"]["state"].values(), sb["optimizer"]["state"].values()):
+        for key in group_a:
+            assert torch.equal(torch.as_tensor(group_a[key]), torch.as_tensor(group_b[key])), f"optimizer {key} differs"
+
+
+def test_split_training_equals_straight_training_with_a_step_schedule(tiny_scene, tmp_path):
+    """`authors` decays the learning rate per epoch (a function of the step alone), so N
+    steps + resume to 2N must give bit-identical weights to 2N steps straight."""
+    config = dict(preset="authors", field_overrides=dict(SMALL_MLP))
+    train(tiny_scene, tmp_path / "straight", small_config(10, **config))
+    train(tiny_scene, tmp_path / "split", small_config(5, **config))
+    train(tiny_scene, tmp_path / "split", small_config(10, **config), resume=True)
+    assert_same_weights(tmp_path / "straight", tmp_path / "split")
+
+
+def test_cancel_then_resume_equals_straight_training(tiny_scene, tmp_path):
+    """`fast` decays the learning rate over the budget; with the same total budget, a run
+    cancelled after k steps and resumed matches an uninterrupted one bit for bit."""
+    calls = {"n": 0}
+
+    def stop_after_four():
+        calls["n"] += 1
+        return calls["n"] > 4
+
+    cancelled = train(tiny_scene, tmp_path / "split", small_config(9), should_stop=stop_after_four)
+    assert cancelled.status == "cancelled" and cancelled.step == 4
+    saved = load_checkpoint(tmp_path / "split")
+    assert saved["progress"]["step"] == 4 and saved["progress"]["status"] == "cancelled"
+    resumed = train(tiny_scene, tmp_path / "split", small_config(9), resume=True)
+    assert resumed.status == "finished" and resumed.step == 9
+    train(tiny_scene, tmp_path / "straight", small_config(9))
+    assert_same_weights(tmp_path / "straight", tmp_path / "split")
+
+
+def test_cancel_before_the_first_step(tiny_scene, tmp_path):
+    result = train(tiny_scene, tmp_path / "m", small_config(5), should_stop=lambda: True)
+    assert result.status == "cancelled" and result.step == 0
+    assert load_checkpoint(tmp_path / "m")["progress"]["step"] == 0
+    LightField.load(tmp_path / "m", "cpu")  # an untrained but complete model
+
+
+def test_train_refuses_to_overwrite_and_needs_a_budget(trained, tmp_path):
+    scene_dir, model_dir, _ = trained
+    with pytest.raises(NeulfError, match="already holds a trained model"):
+        train(scene_dir, model_dir, small_config(9))
+    with pytest.raises(NeulfError, match="training budget"):
+        train(scene_dir, tmp_path / "m", TrainConfig())
+    with pytest.raises(NeulfError, match="scale"):
+        train(scene_dir, tmp_path / "m", small_config(3, scale=0.0))
+
+
+def test_leftover_temp_file(trained, tmp_path):
+    _, model_dir, _ = trained
+    # A crash during the very first save leaves only the temporary file: no model yet.
+    crashed = tmp_path / "crashed"
+    crashed.mkdir()
+    data = (model_dir / CHECKPOINT_NAME).read_bytes()
+    (crashed / f".{CHECKPOINT_NAME}.k2j4h1.tmp").write_bytes(data[: len(data) // 3])
+    with pytest.raises(NeulfError, match="holds no trained model"):
+        LightField.load(crashed, "cpu")
+    # A crash during a later save leaves the previous checkpoint intact beside the temp file.
+    model = copy_model(model_dir, tmp_path / "model")
+    (model / f".{CHECKPOINT_NAME}.x8f0q.tmp").write_bytes(data[:100])
+    LightField.load(model, "cpu")
+
+
+def test_truncated_checkpoint(trained, tmp_path):
+    _, model_dir, _ = trained
+    model = copy_model(model_dir, tmp_path / "model")
+    path = model / CHECKPOINT_NAME
+    size = path.stat().st_size
+    with open(path, "r+b") as handle:
+        handle.truncate(size // 2)
+    with pytest.raises(NeulfError, match="truncated or corrupted"):
+        LightField.load(model, "cpu")
+    path.write_bytes(b"")
+    with pytest.raises(NeulfError, match="truncated or corrupted"):
+        LightField.load(model, "cpu")
+
+
+def test_atomic_write_failure_keeps_the_old_file(tmp_path):
+    target = tmp_path / "file.bin"
+    atomic_write_bytes(target, b"old contents")
+
+    class Unwritable:  # not bytes: the write into the temporary file fails
+        pass
+
+    with pytest.raises(TypeError):
+        atomic_write_bytes(target, Unwritable())
+    assert target.read_bytes() == b"old contents"
+    assert [p.name for p in tmp_path.iterdir()] == ["file.bin"]
+    atomic_write_bytes(target, b"new")
+    assert target.read_bytes() == b"new" and [p.name for p in tmp_path.iterdir()] == ["file.bin"]
+
+
+def rewrite_checkpoint(model: Path, change) -> None:
+    payload = weights(model)
+    change(payload)
+    torch.save(payload, model / CHECKPOINT_NAME)
+
+
+def test_other_version_format_and_damage(trained, tmp_path):
+    scene_dir, model_dir, _ = trained
+    model = copy_model(model_dir, tmp_path / "version")
+    rewrite_checkpoint(model, lambda p: p.update(version=99))
+    with pytest.raises(NeulfError, match="another version"):
+        LightField.load(model, "cpu")
+    with pytest.raises(NeulfError, match="another version"):
+        train(scene_dir, model, small_config(12), resume=True)
+
+    other = tmp_path / "other"
+    other.mkdir()
+    torch.save({"weights": [1, 2, 3]}, other / CHECKPOINT_NAME)
+    with pytest.raises(NeulfError, match="not a NeuLF checkpoint"):
+        LightField.load(other, "cpu")
+
+    damaged = copy_model(model_dir, tmp_path / "damaged")
+    rewrite_checkpoint(damaged, lambda p: p["state_dict"].pop(next(iter(p["state_dict"]))))
+    with pytest.raises(NeulfError, match="damaged or incomplete"):
+        LightField.load(damaged, "cpu")
+
+
+def test_resume_with_another_scene(trained, tmp_path, tiny_scene_factory):
+    _, model_dir, _ = trained
+    other_scene = tiny_scene_factory(tmp_path / "other_scene", shift=(0.05, 0.0, 0.0))
+    model = copy_model(model_dir, tmp_path / "model")
+    with pytest.raises(NeulfError, match="another scene"):
+        train(other_scene, model, small_config(12), resume=True)
+    light_field = LightField.load(model, "cpu")
+    with pytest.raises(NeulfError, match="another reconstruction"):
+        light_field.check_scene(load_scene(other_scene))
+
+
+# ----------------------------------------------------------------------------- command line: errors
+
+
+def cameras_json(path: Path, **changes) -> str:
+    R = np.eye(3)
+    camera = {"name": "novel", "K": [[40.0, 0, 16.0], [0, 40.0, 12.0], [0, 0, 1]], "width": 32, "height": 24,
+              "R": R.tolist(), "t": [0.0, 0.0, 0.0]}
+    camera.update(changes)
+    for key, value in list(camera.items()):
+        if value is None:
+            del camera[key]
+    path.write_text(json.dumps({"cameras": [camera]}))
+    return str(path)
+
+
+@pytest.fixture(scope="module")
+def cli_model(tiny_scene, tmp_path_factory):
+    """A model trained through the CLI (default preset, a few small steps)."""
+    model = tmp_path_factory.mktemp("cli") / "model"
+    code = main(["train", str(tiny_scene), "--out", str(model), "--steps", "3", "--batch-size", "256",
+                 "--progress", "json", "--seed", "1"])
+    assert code == 0
+    return model
+
+
+def broken_scene(tiny_scene: Path, tmp: Path, how: str) -> str:
+    scene = tmp / f"scene_{how}"
+    shutil.copytree(tiny_scene, scene)
+    model = scene / "sparse" / "0"
+    if how == "random_cameras":
+        (model / "cameras.bin").write_bytes(np.random.default_rng(0).bytes(300))
+    elif how == "truncated_images":
+        data = (model / "images.bin").read_bytes()
+        (model / "images.bin").write_bytes(data[: len(data) // 2])
+    elif how == "missing_images":
+        for name in ("view_03.png", "view_05.png"):
+            (scene / "images" / name).unlink()
+    elif how == "no_model":
+        shutil.rmtree(scene / "sparse")
+    elif how == "corrupt_image":
+        (scene / "images" / "view_04.png").write_bytes(b"garbage")
+    return str(scene)
+
+
+ERROR_CASES = {
+    # name: (argv builder(ctx), text expected in the message)
+    "missing scene folder": (lambda c: ["train", str(c["tmp"] / "nope"), "--out", c["new"], "--steps", "1"], "does not exist"),
+    "folder without a model": (lambda c: ["train", broken_scene(c["scene"], c["tmp"], "no_model"), "--out", c["new"], "--steps", "1"],
+                               "no camera model"),
+    "random cameras.bin": (lambda c: ["train", broken_scene(c["scene"], c["tmp"], "random_cameras"), "--out", c["new"], "--steps", "1"],
+                           "cannot read the COLMAP model"),
+    "truncated images.bin": (lambda c: ["train", broken_scene(c["scene"], c["tmp"], "truncated_images"), "--out", c["new"], "--steps", "1"],
+                             "cannot read the COLMAP model"),
+    "missing images": (lambda c: ["train", broken_scene(c["scene"], c["tmp"], "missing_images"), "--out", c["new"], "--steps", "1"],
+                       "2 of 9 images"),
+    "unreadable image": (lambda c: ["train", broken_scene(c["scene"], c["tmp"], "corrupt_image"), "--out", c["new"], "--steps", "1"],
+                         "cannot read image"),
+    "render: missing model folder": (lambda c: ["render", str(c["tmp"] / "nomodel"), "--scene", str(c["scene"]), "--views", "all",
+                                                "--out", c["out"]], "does not exist"),
+    "eval: missing model folder": (lambda c: ["eval", str(c["tmp"] / "nomodel"), "--scene", str(c["scene"])], "does not exist"),
+    "model folder without checkpoint": (lambda c: ["render", c["empty"], "--cameras", cameras_json(c["tmp"] / "c.json"),
+                                                   "--out", c["out"]], "holds no trained model"),
+    "cameras: invalid JSON": (lambda c: ["render", c["model"], "--cameras", write(c["tmp"] / "bad.json", "{not json"),
+                                         "--out", c["out"]], "not valid JSON"),
+    "cameras: missing key": (lambda c: ["render", c["model"], "--cameras", cameras_json(c["tmp"] / "c.json", K=None),
+                                        "--out", c["out"]], "needs K"),
+    "cameras: not a rotation": (lambda c: ["render", c["model"], "--cameras",
+                                           cameras_json(c["tmp"] / "c.json", R=[[1, 0, 0], [0, 2, 0], [0, 0, 1]]),
+                                           "--out", c["out"]], "not a rotation"),
+    "cameras: a reflection": (lambda c: ["render", c["model"], "--cameras",
+                                         cameras_json(c["tmp"] / "c.json", R=[[1, 0, 0], [0, 1, 0], [0, 0, -1]]),
+                                         "--out", c["out"]], "not a rotation"),
+    "cameras: empty list": (lambda c: ["render", c["model"], "--cameras", write(c["tmp"] / "e.json", "[]"), "--out", c["out"]],
+                            "list of cameras"),
+    "cameras: missing file": (lambda c: ["render", c["model"], "--cameras", str(c["tmp"] / "none.json"), "--out", c["out"]],
+                              "does not exist"),
+    "zero-size camera": (lambda c: ["render", c["model"], "--cameras", cameras_json(c["tmp"] / "c.json", width=0),
+                                    "--out", c["out"]], "at least 1 pixel"),
+    "render: neither scene nor cameras": (lambda c: ["render", c["model"], "--out", c["out"]], "either --scene"),
+    "render: unknown view": (lambda c: ["render", c["model"], "--scene", str(c["scene"]), "--views", "view_99",
+                                        "--out", c["out"]], "no view named"),
+    "render: another scene": (lambda c: ["render", c["model"], "--scene", c["other_scene"], "--views", "all",
+                                         "--out", c["out"]], "another reconstruction"),
+    "unknown preset": (lambda c: ["train", str(c["scene"]), "--out", c["new"], "--steps", "1", "--preset", "huge"],
+                       "unknown preset 'huge'"),
+    "no budget": (lambda c: ["train", str(c["scene"]), "--out", c["new"]], "training budget"),
+    "minutes and steps": (lambda c: ["train", str(c["scene"]), "--out", c["new"], "--steps", "1", "--minutes", "1"],
+                          "not allowed with argument"),
+    "negative steps": (lambda c: ["train", str(c["scene"]), "--out", c["new"], "--steps", "-3"], "must be positive"),
+    "unknown option": (lambda c: ["train", str(c["scene"]), "--out", c["new"], "--steps", "1", "--bogus"],
+                       "unrecognized arguments: --bogus"),
+    "unknown command": (lambda c: ["fly"], "invalid choice"),
+    "existing model without --resume": (lambda c: ["train", str(c["scene"]), "--out", c["model"], "--steps", "1"],
+                                        "already holds a trained model"),
+    "resume with another scene": (lambda c: ["train", c["other_scene"], "--out", c["model"], "--steps", "9", "--resume"],
+                                  "another scene"),
+}
+
+
+def write(path: Path, text: str) -> str:
+    path.write_text(text)
+    return str(path)
+
+
+@pytest.fixture(scope="module")
+def other_scene(tmp_path_factory, tiny_scene_factory):
+    return tiny_scene_factory(tmp_path_factory.mktemp("other"), shift=(0.05, 0.0, 0.0))
+
+
+@pytest.mark.parametrize("case", list(ERROR_CASES))
+def test_cli_errors_are_one_line(case, tiny_scene, cli_model, other_scene, tmp_path, capfd):
+    (tmp_path / "empty").mkdir()
+    context = {"tmp": tmp_path, "scene": tiny_scene, "model": str(cli_model), "new": str(tmp_path / "new_model"),
+               "out": str(tmp_path / "out"), "empty": str(tmp_path / "empty"), "other_scene": str(other_scene)}
+    build, expected = ERROR_CASES[case]
+    argv = build(context)
+    capfd.readouterr()
+    code = main(argv)
+    captured = capfd.readouterr()
+    lines = captured.err.splitlines()
+    assert code == 2, captured.err
+    assert len(lines) == 1, f"stderr should be one line, got: {captured.err!r}"
+    assert lines[0].startswith("error: "), lines[0]
+    assert expected in lines[0]
+    assert "Traceback" not in captured.err + captured.out
+    if argv[0] == "train" and "--resume" not in argv and argv[argv.index("--out") + 1] != context["model"]:
+        assert not (tmp_path / "new_model" / CHECKPOINT_NAME).exists()
+
+
+def test_cli_subprocess_exit_status(tmp_path):
+    env = dict(os.environ, PYTHONPATH=str(REPO) + os.pathsep + os.environ.get("PYTHONPATH", ""))
+    completed = subprocess.run([sys.executable, "-m", "neulf_core", "train", "/nonexistent", "--out", str(tmp_path / "x"),
+                                "--steps", "1"], cwd=tmp_path, env=env, capture_output=True, text=True, timeout=120)
+    assert completed.returncode == 2
+    lines = completed.stderr.splitlines()
+    assert len(lines) == 1 and lines[0].startswith("error: ") and "/nonexistent" in lines[0], completed.stderr
+    assert not (tmp_path / "x").exists()
+
+
+# ----------------------------------------------------------------------------- command line: happy path
+
+
+def test_cli_train_render_eval(cli_model, tiny_scene, tmp_path, capfd):
+    meta = json.loads((cli_model / METADATA_NAME).read_text())
+    assert meta["progress"]["step"] == 3 and meta["train_config"]["preset"] == "fast"
+    assert meta["train_config"]["seed"] == 1 and meta["train_config"]["batch_size"] == 256
+
+    # Held-out views with depth.
+    out = tmp_path / "held"
+    assert main(["render", str(cli_model), "--scene", str(tiny_scene), "--views", "held-out", "--depth", "--out", str(out)]) == 0
+    for stem in ("view_00", "view_08"):
+        image = Image.open(out / f"{stem}.png")
+        assert image.size == (48, 36) and image.mode == "RGB"
+        depth = np.load(out / f"{stem}_depth.npy")
+        assert depth.shape == (36, 48) and depth.dtype == np.float32
+        assert np.isfinite(depth).all() and (depth > 0).all()
+        # Slab-axis depths lie in [z_near, z_far]; these cameras are within 3 degrees of the axis.
+        slab = meta["slab"]
+        assert depth.min() > 0.95 * slab["z_near"] and depth.max() < 1.05 * slab["z_far"]
+        assert 2.0 < float(np.median(depth)) < 4.5  # the plane is at depth 2.76 .. 3.24
+        assert Image.open(out / f"{stem}_depth.png").size == (48, 36)
+    assert "rendered 2 image(s)" in capfd.readouterr().out
+
+    # Arbitrary pinhole cameras from JSON, at another size.
+    cams = tmp_path / "cams.json"
+    R = np.eye(3)
+    cams.write_text(json.dumps([
+        {"name": "wide", "K": [[30.0, 0, 20.0], [0, 30.0, 15.0], [0, 0, 1]], "width": 40, "height": 30, "R": R.tolist(), "t": [0, 0, 0]},
+        {"K": [[60.0, 0, 8.0], [0, 60.0, 11.0], [0, 0, 1]], "width": 16, "height": 22, "R": R.tolist(), "t": [0.02, 0, 0]},
+    ]))
+    out = tmp_path / "novel"
+    assert main(["render", str(cli_model), "--cameras", str(cams), "--out", str(out)]) == 0
+    assert Image.open(out / "wide.png").size == (40, 30)
+    assert Image.open(out / "camera_001.png").size == (16, 22)
+    assert not (out / "wide_depth.npy").exists()
+
+    # All views, at half scale.
+    out = tmp_path / "all"
+    assert main(["render", str(cli_model), "--scene", str(tiny_scene), "--views", "all", "--scale", "0.5", "--out", str(out)]) == 0
+    assert len(list(out.glob("view_*.png"))) == 9 and Image.open(out / "view_04.png").size == (24, 18)
+
+    # Evaluation.
+    capfd.readouterr()
+    assert main(["eval", str(cli_model), "--scene", str(tiny_scene)]) == 0
+    printed = capfd.readouterr().out
+    report = json.loads((cli_model / "eval" / "eval.json").read_text())
+    assert [row["view"] for row in report["views"]] == ["view_00.png", "view_08.png"]
+    for row in report["views"]:
+        assert row["view"] in printed and f"{row['psnr']:9.3f}" in printed
+        assert 5 < row["psnr"] < 60 and -1 <= row["ssim"] <= 1
+        assert (row["width"], row["height"]) == (48, 36)
+    assert report["mean_psnr"] == pytest.approx(np.mean([r["psnr"] for r in report["views"]]))
+    assert (cli_model / "eval" / "eval.csv").is_file() and (cli_model / "eval" / "view_00.png").is_file()
+    # The PSNR eval reports is the PSNR of the image it wrote against the photo (up to 8-bit rounding).
+    written = np.asarray(Image.open(cli_model / "eval" / "view_00.png"), dtype=np.float64) / 255
+    photo = np.asarray(Image.open(tiny_scene / "images" / "view_00.png"), dtype=np.float64) / 255
+    assert psnr(written, photo) == pytest.approx(report["views"][0]["psnr"], abs=0.05)
+
+    # Evaluating named views into another folder.
+    out = tmp_path / "eval_named"
+    assert main(["eval", str(cli_model), "--scene", str(tiny_scene), "--views", "view_04", "--out", str(out)]) == 0
+    assert [r["view"] for r in json.loads((out / "eval.json").read_text())["views"]] == ["view_04.png"]
+
+
+def test_cli_resume_and_cancel_exit_status(tiny_scene, tmp_path, capfd):
+    model = tmp_path / "model"
+    assert main(["train", str(tiny_scene), "--out", str(model), "--steps", "2", "--batch-size", "128", "--progress", "json"]) == 0
+    assert main(["train", str(tiny_scene), "--out", str(model), "--steps", "4", "--batch-size", "128", "--resume",
+                 "--progress", "json"]) == 0
+    lines = [json.loads(line) for line in capfd.readouterr().out.splitlines()]
+    assert lines[-1]["event"] == "finished" and lines[-1]["step"] == 4
+    assert [e["step"] for e in lines if e["event"] in ("step", "validate")][-2:] == [3, 4]

@@ -1,0 +1,482 @@
+"""Loading scenes: COLMAP 4.x binary, legacy text/binary, LLFF poses; finding and rescaling
+images; decoding odd photo formats; held-out splits."""
+
+from __future__ import annotations
+
+import os
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pycolmap
+import pytest
+from PIL import Image
+
+from conftest import look_at_rotation, scene_or_skip, write_colmap_model
+from neulf_core.errors import NeulfError
+from neulf_core.images import image_size, load_rgb, resolve_image_paths
+from neulf_core.scene import Scene, View, find_model_dir, load_scene, split_views
+
+
+def model_views(model_dir: Path) -> dict[str, pycolmap.Image]:
+    recon = pycolmap.Reconstruction(str(model_dir))
+    return recon, {image.name: image for image in recon.images.values()}
+
+
+def assert_views_match_model(scene: Scene, model_dir: Path):
+    recon, images = model_views(model_dir)
+    assert [v.name for v in scene.views] == sorted(images)
+    for view in scene.views:
+        matrix = np.asarray(images[view.name].cam_from_world().matrix())
+        np.testing.assert_allclose(view.R, matrix[:, :3], atol=1e-12)
+        np.testing.assert_allclose(view.t, matrix[:, 3], atol=1e-12)
+        np.testing.assert_allclose(view.center, images[view.name].projection_center(), atol=1e-9)
+        np.testing.assert_allclose(view.forward, images[view.name].viewing_direction(), atol=1e-9)
+    assert len(scene.points) == recon.num_points3D()
+
+
+# ----------------------------------------------------------------------------- the reference scenes
+
+
+def test_canclip_colmap4_binary(shared_data):
+    root = scene_or_skip(shared_data, "canclip")
+    scene = load_scene(root)
+    assert scene.kind == "colmap" and scene.notes == [] and scene.depth_bounds is None
+    assert len(scene.views) == 30
+    assert_views_match_model(scene, root / "sparse" / "0")
+    for view in scene.views:
+        assert view.size == (960, 540)
+        assert view.camera.model_name == "SIMPLE_RADIAL"
+        assert view.camera.params[3] == pytest.approx(-0.18, abs=0.01)
+        assert view.image_path == root / "images" / view.name
+    assert scene.views[0].load_image().shape == (540, 960, 3)
+    assert scene.views[0].load_image(0.25).shape == (135, 240, 3)
+    assert scene.views[0].scaled_camera(0.25).width == 240
+    fingerprint = scene.fingerprint()
+    assert len(fingerprint) == 16 and fingerprint == load_scene(root).fingerprint()
+    assert scene.view("img003").name == "img003.png" and scene.view("img003.png") is scene.view("img003")
+    with pytest.raises(NeulfError, match="no view named 'nope'"):
+        scene.view("nope")
+
+
+def test_hci_text_model_81_views(shared_data):
+    root = scene_or_skip(shared_data, "hci_antinous")
+    scene = load_scene(root)
+    assert len(scene.views) == 81
+    assert_views_match_model(scene, root / "sparse" / "0")
+    centres = np.stack([v.center for v in scene.views])
+    for index, view in enumerate(scene.views):
+        row, col = divmod(index, 9)
+        assert view.name == f"input_Cam{index:03d}.png"
+        assert view.camera.model_name == "PINHOLE" and view.size == (512, 512)
+        fx, fy, cx, cy = view.camera.params
+        assert fx == pytest.approx(1462.86) and fy == pytest.approx(1462.86)
+        assert (cx, cy) == pytest.approx((256 + 8 * (col - 4), 256 + 8 * (row - 4)))
+        np.testing.assert_allclose(view.R, np.eye(3), atol=1e-12)  # parallel optical axes
+        np.testing.assert_allclose(centres[index], [0.01 * (col - 4), 0.01 * (row - 4), 0.0], atol=1e-12)
+
+
+def test_statue_portrait(shared_data):
+    root = scene_or_skip(shared_data, "statue")
+    scene = load_scene(root)
+    assert len(scene.views) == 27
+    assert {v.size for v in scene.views} == {(540, 960)}
+    assert scene.views[0].load_image().shape == (960, 540, 3)
+    assert_views_match_model(scene, root / "sparse" / "0")
+
+
+def test_fern_images_8_sorted_order_and_rescaled_intrinsics(shared_data):
+    root = scene_or_skip(shared_data, "fern")
+    recon, _ = model_views(root / "sparse" / "0")
+    original = next(iter(recon.cameras.values()))
+    assert (original.width, original.height) == (4032, 3024)
+    scene = load_scene(root)  # images_8 is the default (images/ is absent)
+    assert len(scene.views) == 20
+    assert any("4032x3024" in note and "504x378" in note for note in scene.notes)
+    files = sorted((root / "images_8").glob("*.png"))
+    assert [v.image_path for v in scene.views] == files  # IMG_4026.JPG -> image000.png, ...
+    assert scene.views[0].name == "IMG_4026.JPG" and scene.views[0].image_path.name == "image000.png"
+    f, cx, cy, k = original.params
+    for view in scene.views:
+        assert view.size == (504, 378)
+        params = view.camera.params
+        assert params[0] == pytest.approx(f / 8, rel=1e-12)
+        assert (params[1], params[2]) == pytest.approx((cx / 8, cy / 8), rel=1e-12)
+        assert (params[1], params[2]) == pytest.approx((252.0, 189.0))
+        assert params[3] == pytest.approx(k)  # the distortion is in normalised coordinates: unchanged
+    # The model's own camera is left untouched (views got copies).
+    assert recon.cameras[original.camera_id].width == 4032
+    assert_views_match_model(scene, root / "sparse" / "0")
+    assert scene.views[0].load_image().shape == (378, 504, 3)
+
+
+def test_fern_images_16_by_stem(shared_data):
+    root = scene_or_skip(shared_data, "fern")
+    scene = load_scene(root, images_dir=root / "images_16")
+    f = next(iter(pycolmap.Reconstruction(str(root / "sparse" / "0")).cameras.values())).params[0]
+    for view in scene.views:
+        assert view.image_path == root / "images_16" / (view.stem + ".png")
+        assert view.size == (252, 189)
+        assert view.camera.params[0] == pytest.approx(f / 16, rel=1e-12)
+        assert tuple(view.camera.params[1:3]) == pytest.approx((126.0, 94.5))
+
+
+def umeyama(source: np.ndarray, target: np.ndarray):
+    """Similarity (s, Q, T) minimising |s Q source + T - target|."""
+    mu_s, mu_t = source.mean(0), target.mean(0)
+    xs, xt = source - mu_s, target - mu_t
+    U, S, Vt = np.linalg.svd(xt.T @ xs / len(source))
+    D = np.eye(3)
+    D[2, 2] = np.sign(np.linalg.det(U @ Vt))
+    Q = U @ D @ Vt
+    s = np.trace(np.diag(S) @ D) / ((xs ** 2).sum() / len(source))
+    return s, Q, mu_t - s * Q @ mu_s
+
+
+def test_llff_poses_bounds_agree_with_colmap(shared_data, tmp_path):
+    root = scene_or_skip(shared_data, "canclip")
+    llff = tmp_path / "canclip_llff"
+    (llff / "images").mkdir(parents=True)
+    shutil.copy(root / "poses_bounds.npy", llff)
+    for path in sorted((root / "images").iterdir()):
+        os.symlink(path, llff / "images" / path.name)
+    scene = load_scene(llff)
+    reference = load_scene(root)
+    assert scene.kind == "llff" and len(scene.views) == 30 and len(scene.points) == 0
+    assert scene.depth_bounds.shape == (30, 2) and np.all(scene.depth_bounds[:, 0] < scene.depth_bounds[:, 1])
+    assert [v.name for v in scene.views] == [v.name for v in reference.views]
+    for view in scene.views:
+        assert view.camera.model_name == "PINHOLE" and view.size == (960, 540)
+        assert tuple(view.camera.params[2:]) == pytest.approx((480.0, 270.0))
+        np.testing.assert_allclose(view.R @ view.R.T, np.eye(3), atol=1e-6)
+        assert np.linalg.det(view.R) == pytest.approx(1.0, abs=1e-6)
+    # Same capture: the camera centres agree up to a similarity transform ...
+    llff_centres = np.stack([v.center for v in scene.views])
+    colmap_centres = np.stack([v.center for v in reference.views])
+    s, Q, T = umeyama(colmap_centres, llff_centres)
+    residual = np.linalg.norm(s * colmap_centres @ Q.T + T - llff_centres, axis=1)
+    baseline = np.linalg.norm(llff_centres - llff_centres.mean(0), axis=1).mean()
+    assert residual.max() < 0.05 * baseline, (residual.max(), baseline)
+    # ... and so do the orientations (the LLFF axis convention was converted correctly).
+    for a, b in zip(scene.views, reference.views):
+        relative = a.R.T @ (b.R @ Q.T)
+        angle = np.degrees(np.arccos(np.clip((np.trace(relative) - 1) / 2, -1, 1)))
+        assert angle < 2.0, f"{a.name}: orientation differs by {angle:.2f} degrees"
+    # The focal length agrees with COLMAP's within a few percent.
+    assert scene.views[0].camera.params[0] == pytest.approx(reference.views[0].camera.params[0], rel=0.05)
+
+
+def test_llff_image_count_mismatch(shared_data, tmp_path):
+    root = scene_or_skip(shared_data, "canclip")
+    llff = tmp_path / "llff"
+    (llff / "images").mkdir(parents=True)
+    shutil.copy(root / "poses_bounds.npy", llff)
+    for path in sorted((root / "images").iterdir())[:5]:
+        os.symlink(path, llff / "images" / path.name)
+    with pytest.raises(NeulfError, match="5 images but poses_bounds.npy has 30 poses"):
+        load_scene(llff)
+
+
+@pytest.mark.parametrize("fmt", ["legacy_text", "legacy_binary", "text"])
+def test_models_written_by_pycolmap_load_identically(shared_data, tmp_path, fmt):
+    root = scene_or_skip(shared_data, "canclip")
+    recon = pycolmap.Reconstruction(str(root / "sparse" / "0"))
+    scene_dir = tmp_path / fmt
+    model_dir = scene_dir / "sparse" / "0"
+    model_dir.mkdir(parents=True)
+    if fmt.endswith("text"):
+        recon.write_text(str(model_dir))
+    else:
+        recon.write_binary(str(model_dir))
+    if fmt.startswith("legacy"):
+        for name in ("rigs", "frames"):
+            for ext in ("bin", "txt"):
+                (model_dir / f"{name}.{ext}").unlink(missing_ok=True)
+        assert sorted(p.stem for p in model_dir.iterdir()) == ["cameras", "images", "points3D"]
+    os.symlink(root / "images", scene_dir / "images")
+    loaded = load_scene(scene_dir)
+    reference = load_scene(root)
+    assert [v.name for v in loaded.views] == [v.name for v in reference.views]
+    for a, b in zip(loaded.views, reference.views):
+        assert a.camera.model_name == b.camera.model_name and a.size == b.size
+        np.testing.assert_allclose(a.camera.params, b.camera.params, rtol=1e-12)
+        np.testing.assert_allclose(a.R, b.R, atol=1e-12)
+        np.testing.assert_allclose(a.t, b.t, atol=1e-9)
+    np.testing.assert_allclose(np.sort(loaded.points, axis=0), np.sort(reference.points, axis=0), atol=1e-9)
+    assert loaded.fingerprint() == reference.fingerprint()
+
+
+# ----------------------------------------------------------------------------- finding the model
+
+
+def test_model_folder_locations(tmp_path, tiny_scene):
+    for layout in ("sparse", "flat", "sparse/1"):
+        scene_dir = tmp_path / layout.replace("/", "_")
+        target = {"sparse": scene_dir / "sparse", "flat": scene_dir, "sparse/1": scene_dir / "sparse" / "1"}[layout]
+        shutil.copytree(tiny_scene / "sparse" / "0", target, dirs_exist_ok=True)
+        shutil.copytree(tiny_scene / "images", scene_dir / "images")
+        assert find_model_dir(scene_dir) == target
+        assert len(load_scene(scene_dir).views) == 9
+
+
+def test_scene_folder_errors(tmp_path, tiny_scene):
+    with pytest.raises(NeulfError, match="does not exist"):
+        load_scene(tmp_path / "missing")
+    (tmp_path / "file.txt").write_text("x")
+    with pytest.raises(NeulfError, match="not a folder"):
+        load_scene(tmp_path / "file.txt")
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(NeulfError, match="no camera model"):
+        load_scene(tmp_path / "empty")
+    with pytest.raises(NeulfError, match="images folder .* does not exist"):
+        load_scene(tiny_scene, images_dir=tmp_path / "nowhere")
+    no_images = tmp_path / "no_images"
+    shutil.copytree(tiny_scene / "sparse", no_images / "sparse")
+    with pytest.raises(NeulfError, match="no images folder"):
+        load_scene(no_images)
+    incomplete = tmp_path / "incomplete"
+    shutil.copytree(tiny_scene, incomplete)
+    (incomplete / "sparse" / "0" / "images.bin").unlink()
+    with pytest.raises(NeulfError, match="images file missing"):
+        load_scene(incomplete)
+
+
+# ----------------------------------------------------------------------------- image lookup and rescaling
+
+
+NAMES = ["b_view.jpg", "a_view.jpg", "c_view.jpg"]
+
+
+def lookup_scene(folder: Path, camera=None) -> Path:
+    """A three-view model naming NAMES, with an empty images/ folder to fill."""
+    camera = camera or pycolmap.Camera(model="SIMPLE_RADIAL", width=48, height=36, params=[40.0, 24.0, 18.0, -0.05])
+    poses = []
+    for i in range(len(NAMES)):
+        centre = np.array([0.1 * i, 0.0, 0.0])
+        R = look_at_rotation(centre, np.array([0.0, 0.0, 3.0]))
+        poses.append((R, -R @ centre))
+    points = np.column_stack([np.random.default_rng(0).uniform(-1, 1, (20, 2)), np.full(20, 3.0)])
+    write_colmap_model(folder / "sparse" / "0", camera, poses, NAMES, points)
+    (folder / "images").mkdir(parents=True, exist_ok=True)
+    return folder
+
+
+def write_image(path: Path, size, value=0):
+    path.parent.mkdir(parents=True, exist_ok=True)
+    rgb = np.full((size[1], size[0], 3), value, np.uint8)
+    rgb[..., 0] = np.arange(size[0], dtype=np.uint8)[None, :] * 3
+    Image.fromarray(rgb).save(path)
+
+
+def test_exact_names(tmp_path):
+    folder = lookup_scene(tmp_path)
+    for i, name in enumerate(NAMES):
+        write_image(folder / "images" / name, (48, 36), value=10 * i)
+    scene = load_scene(folder)
+    assert [v.name for v in scene.views] == sorted(NAMES)
+    assert all(v.image_path == folder / "images" / v.name for v in scene.views)
+    assert scene.notes == []
+    assert scene.view("b_view").load_image()[0, 0, 1] == 0
+
+
+def test_same_stem_other_extension(tmp_path):
+    folder = lookup_scene(tmp_path)
+    for name in NAMES:
+        write_image(folder / "images" / (Path(name).stem + ".PNG"), (48, 36))
+    write_image(folder / "images" / "unrelated.png", (48, 36))
+    scene = load_scene(folder)
+    assert [v.image_path.name for v in scene.views] == ["a_view.PNG", "b_view.PNG", "c_view.PNG"]
+
+
+def test_sorted_order_pairing(tmp_path):
+    folder = lookup_scene(tmp_path)
+    for i in range(3):  # LLFF-style copies: numbered in the sorted order of the originals
+        write_image(folder / "images" / f"image{i:03d}.png", (48, 36), value=50 * i)
+    scene = load_scene(folder)
+    assert [(v.name, v.image_path.name) for v in scene.views] == [
+        ("a_view.jpg", "image000.png"), ("b_view.jpg", "image001.png"), ("c_view.jpg", "image002.png")]
+    assert scene.view("c_view").load_image()[0, 0, 1] == 100
+
+
+def test_missing_images_are_counted(tmp_path):
+    folder = lookup_scene(tmp_path)
+    write_image(folder / "images" / "a_view.jpg", (48, 36))
+    with pytest.raises(NeulfError) as info:
+        load_scene(folder)
+    message = str(info.value)
+    assert "2 of 3 images" in message and "b_view.jpg" in message and "c_view.jpg" in message
+    # Too many unrelated images for sorted pairing: all three are missing.
+    for i in range(4):
+        write_image(tmp_path / "other" / f"x{i}.png", (48, 36))
+    with pytest.raises(NeulfError, match="3 of 3 images"):
+        load_scene(folder, images_dir=tmp_path / "other")
+    found = resolve_image_paths(tmp_path / "other", NAMES)
+    assert found == {name: None for name in NAMES}
+
+
+def test_another_aspect_ratio_is_rejected(tmp_path):
+    folder = lookup_scene(tmp_path)
+    for name in NAMES:
+        write_image(folder / "images" / name, (36, 48))  # rotated
+    with pytest.raises(NeulfError, match="aspect ratio"):
+        load_scene(folder)
+
+
+def test_smaller_copies_rescale_the_intrinsics(tmp_path):
+    folder = lookup_scene(tmp_path)
+    for name in NAMES:
+        write_image(folder / "images" / name, (24, 18))
+    scene = load_scene(folder)
+    assert any("48x36" in note and "24x18" in note for note in scene.notes)
+    recon = pycolmap.Reconstruction(str(folder / "sparse" / "0"))
+    original = next(iter(recon.cameras.values()))
+    rng = np.random.default_rng(1)
+    points = np.column_stack([rng.uniform(-0.3, 0.3, (50, 2)), rng.uniform(1, 4, 50)])
+    for view in scene.views:
+        assert view.size == (24, 18)
+        # The same 3D point lands on the same place in the picture: pixel coordinates halve.
+        full = np.asarray(original.img_from_cam(points))
+        small = np.asarray(view.camera.img_from_cam(points))
+        np.testing.assert_allclose(small, full * 0.5, atol=1e-9)
+        assert view.load_image().shape == (18, 24, 3)
+        # Loading at a scale rescales again, consistently.
+        half = view.scaled_camera(0.5)
+        assert (half.width, half.height) == (12, 9)
+        np.testing.assert_allclose(np.asarray(half.img_from_cam(points)), full * 0.25, atol=1e-9)
+
+
+def test_model_cameras_at_a_shared_camera_are_rescaled_per_view(tmp_path):
+    """Two views share one camera but their files differ in size: each view gets its own."""
+    folder = lookup_scene(tmp_path)
+    write_image(folder / "images" / NAMES[0], (24, 18))
+    write_image(folder / "images" / NAMES[1], (48, 36))
+    write_image(folder / "images" / NAMES[2], (96, 72))
+    scene = load_scene(folder)
+    assert {v.name: v.size for v in scene.views} == {"b_view.jpg": (24, 18), "a_view.jpg": (48, 36), "c_view.jpg": (96, 72)}
+    assert scene.view("c_view").camera.params[0] == pytest.approx(80.0)
+    assert scene.view("b_view").camera.params[0] == pytest.approx(20.0)
+
+
+# ----------------------------------------------------------------------------- decoding photos
+
+
+def test_load_rgb_grayscale(tmp_path):
+    gray = np.arange(20 * 10, dtype=np.uint8).reshape(10, 20)
+    Image.fromarray(gray, mode="L").save(tmp_path / "g.png")
+    rgb = load_rgb(tmp_path / "g.png")
+    assert rgb.shape == (10, 20, 3) and rgb.dtype == np.uint8
+    for c in range(3):
+        np.testing.assert_array_equal(rgb[..., c], gray)
+
+
+def test_load_rgb_rgba_composites_on_black(tmp_path):
+    rgba = np.zeros((4, 5, 4), np.uint8)
+    rgba[..., 0] = 200
+    rgba[..., 1] = 100
+    rgba[..., 3] = 255
+    rgba[0, 0, 3] = 0
+    rgba[1, 1, 3] = 128
+    Image.fromarray(rgba, mode="RGBA").save(tmp_path / "a.png")
+    rgb = load_rgb(tmp_path / "a.png")
+    assert rgb.shape == (4, 5, 3)
+    np.testing.assert_array_equal(rgb[0, 0], [0, 0, 0])
+    np.testing.assert_array_equal(rgb[2, 2], [200, 100, 0])
+    np.testing.assert_allclose(rgb[1, 1].astype(int), [100, 50, 0], atol=1)
+
+
+def test_load_rgb_palette(tmp_path):
+    rgb = np.zeros((6, 8, 3), np.uint8)
+    rgb[:, :4] = [255, 0, 0]
+    rgb[:, 4:] = [0, 0, 255]
+    image = Image.fromarray(rgb).convert("P", palette=Image.ADAPTIVE, colors=4)
+    image.save(tmp_path / "p.png")
+    assert Image.open(tmp_path / "p.png").mode == "P"
+    np.testing.assert_array_equal(load_rgb(tmp_path / "p.png"), rgb)
+    # A palette with a transparent entry: that colour becomes black.
+    image.info["transparency"] = image.getpixel((0, 0))
+    image.save(tmp_path / "pt.png", transparency=image.getpixel((0, 0)))
+    loaded = load_rgb(tmp_path / "pt.png")
+    np.testing.assert_array_equal(loaded[:, :4], 0)
+    np.testing.assert_array_equal(loaded[:, 4:], np.broadcast_to([0, 0, 255], (6, 4, 3)))
+
+
+def test_load_rgb_16_bit_is_scaled_not_clipped(tmp_path):
+    values = np.array([[0, 257, 1000, 32768, 65535]], dtype=np.uint16)
+    Image.fromarray(values).save(tmp_path / "sixteen.png")
+    assert Image.open(tmp_path / "sixteen.png").mode.startswith("I")
+    rgb = load_rgb(tmp_path / "sixteen.png")
+    assert rgb.shape == (1, 5, 3)
+    np.testing.assert_array_equal(rgb[0, :, 0], np.round(values[0] / 65535 * 255).astype(np.uint8))
+    np.testing.assert_array_equal(rgb[0, :, 0], [0, 1, 4, 128, 255])
+    # A dark 16-bit photo (all values below 256) is still 16-bit: not brightened 257-fold.
+    dark = np.array([[0, 100, 200, 255]], dtype=np.uint16)
+    Image.fromarray(dark).save(tmp_path / "dark16.png")
+    np.testing.assert_array_equal(load_rgb(tmp_path / "dark16.png")[0, :, 0], [0, 0, 1, 1])
+
+
+def test_exif_rotated_jpeg(tmp_path):
+    stored = np.full((20, 40, 3), 255, np.uint8)  # stored landscape 40x20 ...
+    stored[:6, :6] = [255, 0, 0]                   # red block at the stored top-left
+    image = Image.fromarray(stored)
+    exif = image.getexif()
+    exif[0x0112] = 6                               # ... displayed rotated 90 degrees clockwise
+    image.save(tmp_path / "rotated.jpg", exif=exif.tobytes(), quality=95)
+    assert image_size(tmp_path / "rotated.jpg") == (20, 40)
+    rgb = load_rgb(tmp_path / "rotated.jpg")
+    assert rgb.shape == (40, 20, 3)
+    assert rgb[2, 17, 0] > 200 and rgb[2, 17, 1] < 60   # top-left goes to the top-right corner
+    assert rgb[2, 2].min() > 200                         # the displayed top-left is white
+    resized = load_rgb(tmp_path / "rotated.jpg", (10, 20))
+    assert resized.shape == (20, 10, 3)
+
+
+def test_unreadable_image(tmp_path):
+    bad = tmp_path / "broken.png"
+    bad.write_bytes(b"\x89PNG\r\n\x1a\n" + os.urandom(64))
+    with pytest.raises(NeulfError, match="cannot read image"):
+        load_rgb(bad)
+    with pytest.raises(NeulfError, match="cannot read image"):
+        image_size(bad)
+    (tmp_path / "text.jpg").write_text("not a photo")
+    with pytest.raises(NeulfError, match="cannot read image"):
+        load_rgb(tmp_path / "text.jpg")
+
+
+def test_load_rgb_resizes_with_box_filter(tmp_path):
+    rgb = np.zeros((4, 4, 3), np.uint8)
+    rgb[::2, ::2] = 200  # one bright pixel per 2x2 block
+    Image.fromarray(rgb).save(tmp_path / "c.png")
+    small = load_rgb(tmp_path / "c.png", (2, 2))
+    np.testing.assert_array_equal(small, np.full((2, 2, 3), 50, np.uint8))
+
+
+# ----------------------------------------------------------------------------- held-out split
+
+
+def named_scene(count: int) -> Scene:
+    camera = pycolmap.Camera(model="PINHOLE", width=8, height=6, params=[8.0, 8.0, 4.0, 3.0])
+    views = [View(f"v{i:02d}.png", camera, np.eye(3), np.array([-0.1 * i, 0.0, 0.0])) for i in range(count)]
+    return Scene(Path("x"), views, np.zeros((0, 3)), "colmap")
+
+
+def test_split_every_eighth_from_the_first():
+    scene = named_scene(20)
+    train, held = split_views(scene)
+    assert [v.name for v in held] == ["v00.png", "v08.png", "v16.png"]
+    assert len(train) == 17 and not set(v.name for v in train) & set(v.name for v in held)
+    train, held = split_views(scene, holdout_every=5)
+    assert [v.name for v in held] == ["v00.png", "v05.png", "v10.png", "v15.png"]
+
+
+def test_split_exclude_and_none():
+    scene = named_scene(10)
+    train, held = split_views(scene, exclude=["v03", "v07.png"])
+    assert [v.name for v in held] == ["v03.png", "v07.png"] and len(train) == 8
+    train, held = split_views(scene, holdout_every=0)
+    assert held == [] and len(train) == 10
+    with pytest.raises(NeulfError, match="no view named 'v99'"):
+        split_views(scene, exclude=["v99"])
+    with pytest.raises(NeulfError, match="training views remain"):
+        split_views(named_scene(3), exclude=["v00", "v01"])
+    with pytest.raises(NeulfError, match="training views remain"):
+        split_views(named_scene(2), holdout_every=1)
