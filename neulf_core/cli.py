@@ -53,10 +53,13 @@ def cmd_train(args) -> int:
 
     if args.minutes is not None and args.minutes <= 0 or args.steps is not None and args.steps <= 0:
         raise NeulfError("--minutes and --steps must be positive.")
+    if args.batch_size is not None and args.batch_size <= 0:
+        raise NeulfError(f"--batch-size must be positive, not {args.batch_size}.")
     get_preset(args.preset)  # fail before loading the scene and drawing progress, not after
     config = TrainConfig(
         preset=args.preset, steps=args.steps, minutes=args.minutes, scale=args.scale, holdout_every=args.holdout_every,
         exclude=_names(args.exclude), seed=args.seed, checkpoint_seconds=args.checkpoint_seconds,
+        validate_seconds=args.validate_seconds,
         st_depth=args.st_depth, near=args.near, far=args.far, device=args.device, batch_size=args.batch_size,
     )
     stop = {"signal": None}
@@ -64,7 +67,9 @@ def cmd_train(args) -> int:
     def on_signal(signum, _frame):
         stop["signal"] = signum
 
-    previous = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
+    # SIGBREAK: what Ctrl+Break (and the Blender worker's Cancel) sends on Windows.
+    signals = [signal.SIGINT, signal.SIGTERM] + ([signal.SIGBREAK] if hasattr(signal, "SIGBREAK") else [])
+    previous = {s: signal.signal(s, on_signal) for s in signals}
     try:
         result = train(args.scene_dir, args.out, config, images_dir=args.images, resume=args.resume,
                        progress=make_reporter(args.progress), should_stop=lambda: stop["signal"] is not None)
@@ -102,6 +107,8 @@ def _load_cameras_json(path: Path) -> list[dict]:
             raise NeulfError(f"camera {i} in {path} needs K (3x3), R (3x3), t (3), width and height: {exc!r} is wrong.") from None
         if not np.allclose(R @ R.T, np.eye(3), atol=1e-4) or np.linalg.det(R) < 0:
             raise NeulfError(f"camera {i} in {path}: R is not a rotation matrix.")
+        if not (np.isfinite(K).all() and np.isfinite(t).all() and K[0, 0] > 0 and K[1, 1] > 0):
+            raise NeulfError(f"camera {i} in {path}: K needs positive focal lengths K[0][0], K[1][1], and K and t finite values.")
         name = Path(str(cam.get("name", f"camera_{i:03d}"))).stem
         parsed.append({"name": name, "K": K, "R": R, "t": t, "width": width, "height": height})
     return parsed
@@ -136,6 +143,8 @@ def cmd_render(args) -> int:
 
     if (args.scene is None) == (args.cameras is None):
         raise NeulfError("render needs either --scene SCENE_DIR --views NAME,... or --cameras CAMERAS.json.")
+    if args.scale is not None and args.scale <= 0:
+        raise NeulfError(f"--scale must be positive, not {args.scale}.")
     light_field = LightField.load(args.model_dir, args.device)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -244,6 +253,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--progress", choices=("bar", "json"), default="bar", help="bar on stderr, or JSON lines on stdout")
     p.add_argument("--checkpoint-seconds", type=float, default=60.0)
+    p.add_argument("--validate-seconds", type=float, default=10.0, help="how often to log held-out PSNR")
     p.add_argument("--batch-size", type=int)
     p.add_argument("--st-depth", type=float, help="st plane depth along the slab axis (scene units)")
     p.add_argument("--near", type=float)
@@ -293,6 +303,9 @@ def main(argv: list[str] | None = None) -> int:
         args = build_parser().parse_args(argv)
         return args.run(args)
     except NeulfError as exc:
+        from .progress import end_line
+
+        end_line()
         print(f"error: {exc}", file=sys.stderr)
         return EXIT_USAGE
     except KeyboardInterrupt:

@@ -28,10 +28,10 @@ PRESETS: dict[str, Preset] = {
                     description="the paper's network: 20 x 256 ReLU layers, raw-input skips every 4 layers"),
     "authors": Preset("mlp", {"depth": 8, "width": 256, "skip": "embedding"}, lr=5e-4, lr_decay_per_epoch=0.995,
                       description="the authors' code default: 8 x 256, embedding skips"),
-    "fast": Preset("planes", {}, lr=2e-3, lr_final_ratio=0.1, batch_size=8192,
-                   description="six factorised feature planes + tiny MLP; trains in minutes on a CPU"),
-    "disparity": Preset("disparity", {}, lr=2e-3, lr_final_ratio=0.1, batch_size=8192,
-                        description="per-ray disparity shearing one shared st texture (experimental)"),
+    "fast": Preset("disparity", {}, lr=2e-3, lr_final_ratio=0.1, batch_size=8192,
+                   description="per-ray disparity shearing one shared st texture; trains in minutes on a CPU"),
+    "planes": Preset("planes", {}, lr=2e-3, lr_final_ratio=0.1, batch_size=8192,
+                     description="six factorised (u,v,s,t) feature planes + tiny MLP (K-Planes style)"),
 }
 DEFAULT_PRESET = "fast"
 

@@ -25,19 +25,44 @@ class JsonLines:
         self.stream.flush()
 
 
+_open_bar = None  # the Bar whose line is unfinished, so an error message starts a new line
+
+
+def end_line() -> None:
+    """Finish a half-drawn progress line (before printing an error)."""
+    global _open_bar
+    if _open_bar is not None:
+        _open_bar.stream.write("\n")
+        _open_bar.stream.flush()
+        _open_bar = None
+
+
 class Bar:
-    """A one-line progress bar redrawn in place, plus plain lines for notable events."""
+    """A one-line progress bar redrawn in place on a terminal, plus plain lines for notable
+    events; when stderr is not a terminal (logs, CI) the bar becomes a line every 10%."""
 
     def __init__(self, stream=None, width: int = 30):
         self.stream = stream or sys.stderr
         self.width = width
         self.val = None
         self._last = 0.0
+        self._last_decile = -1
+        self.interactive = bool(getattr(self.stream, "isatty", lambda: False)())
 
     def _bar(self, fraction: float, text: str) -> None:
-        filled = int(round(self.width * min(1.0, max(0.0, fraction))))
+        global _open_bar
+        fraction = min(1.0, max(0.0, fraction))
+        if not self.interactive:
+            decile = int(fraction * 10)
+            if decile != self._last_decile:
+                self._last_decile = decile
+                self.stream.write(f"{fraction:6.1%} {text}\n")
+                self.stream.flush()
+            return
+        filled = int(round(self.width * fraction))
         self.stream.write(f"\r[{'#' * filled}{'.' * (self.width - filled)}] {fraction:6.1%} {text}\033[K")
         self.stream.flush()
+        _open_bar = self
 
     def __call__(self, event: dict) -> None:
         kind = event.get("event")
@@ -47,7 +72,8 @@ class Bar:
             for note in event.get("notes", []):
                 self._line(f"note: {note}")
         elif kind == "loading" and "done" in event:
-            self._bar(event["done"] / event["total"], f"loading {event['message']}")
+            if self.interactive:
+                self._bar(event["done"] / event["total"], f"loading {event['message']}")
         elif kind in ("step", "validate"):
             if kind == "validate" and event.get("val_psnr") is not None:
                 self.val = event["val_psnr"]
@@ -66,8 +92,10 @@ class Bar:
             self._line(event.get("message", ""))
 
     def _line(self, text: str) -> None:
-        self.stream.write("\r\033[K" + text + "\n")
+        global _open_bar
+        self.stream.write(("\r\033[K" if self.interactive else "") + text + "\n")
         self.stream.flush()
+        _open_bar = None
 
 
 def make_reporter(mode: str):

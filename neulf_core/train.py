@@ -22,9 +22,9 @@ from .dataset import RaySet, build_rayset, mean_colour
 from .device import describe_device, pick_device
 from .errors import NeulfError
 from .fields import build_field, count_parameters, make_config
-from .fields.disparity import slab_geometry
+from .fields.disparity import slab_geometry, texture_size_for
 from .presets import DEFAULT_PRESET, get_preset
-from .scene import Scene, load_scene, split_views
+from .scene import Scene, load_scene, scaled_size, split_views
 from .slab import Slab, fit_slab
 
 VALIDATION_RAYS = 1 << 16
@@ -87,13 +87,18 @@ def _angular_resolution(n_views: int) -> int:
     return int(min(16, max(4, round(2 * math.sqrt(n_views)))))
 
 
-def _build_field(preset_name: str, overrides: dict, n_train_views: int, slab: Slab):
+def _build_field(preset_name: str, overrides: dict, train_views, slab: Slab, scale: float):
+    n_train_views = len(train_views)
     preset = get_preset(preset_name)
     options = dict(preset.field_config)
     if preset.field == "planes" and "angular_res" not in overrides:
         options["angular_res"] = _angular_resolution(n_train_views)
     if preset.field == "disparity":
+        if abs(slab.z_uv) > 1e-9:
+            raise NeulfError("the fast field's shear assumes the uv plane through the camera rig (uv depth 0).")
         options.update(slab_geometry(slab))
+        if "texture_size" not in overrides:
+            options["texture_size"] = texture_size_for(scaled_size(max(v.size for v in train_views), scale))
     options.update(overrides)
     config = make_config(preset.field, options)
     return build_field(preset.field, config), preset
@@ -161,7 +166,7 @@ def train(scene: Scene | str | Path, model_dir: str | Path, config: TrainConfig,
     train_rays = train_rays.to(device)
     val_rays = build_rayset(held_views, slab, config.scale).subset(VALIDATION_RAYS, generator).to(device) if held_views else None
 
-    field_module, preset = _build_field(config.preset, config.field_overrides, len(train_views), slab)
+    field_module, preset = _build_field(config.preset, config.field_overrides, train_views, slab, config.scale)
     if resumed:
         field_module.load_state_dict(resumed["state_dict"])
     field_module.to(device).train()

@@ -14,13 +14,12 @@ import bpy
 from mathutils import Vector
 
 from . import layout
-from .materials import create_materials
+from .materials import ShaderGraph, build_environment, create_materials
 
 SUN_STRENGTH = 2.2  # W/m^2
 SUN_ANGLE = math.radians(3.0)  # slightly soft shadows
 # Sun from behind the cameras, above and to the left, so the objects are lit from the front.
 SUN_ROTATION = (math.radians(50.0), math.radians(-20.0), math.radians(-25.0))
-WORLD_COLOR = (0.75, 0.8, 0.9, 1.0)
 WORLD_STRENGTH = 0.6
 
 GROUND_TRUTH_OUTPUT_NODE = "GroundTruthOutput"
@@ -29,7 +28,9 @@ GROUND_TRUTH_PASSES = {"Depth": "Depth", "Object Index": "ObjectIndex"}
 
 
 def reset_to_empty_scene() -> bpy.types.Scene:
-    bpy.ops.wm.read_homefile(use_empty=True)
+    # Factory startup data, so a user's startup.blend cannot leak settings into the scene;
+    # unlike read_factory_settings this keeps enabled add-ons (e.g. the NeuLF add-on) alive.
+    bpy.ops.wm.read_homefile(use_empty=True, use_factory_startup=True)
     return bpy.context.scene
 
 
@@ -40,6 +41,8 @@ def configure_render(scene, size: tuple[int, int], samples: int, seed: int, vari
     render.resolution_percentage = 100
     render.pixel_aspect_x = render.pixel_aspect_y = 1.0
     render.film_transparent = False
+    render.use_motion_blur = False
+    render.use_border = False
     render.dither_intensity = 0.0  # dithering would add noise to the 8-bit images
     # Re-rendering the same scene from another camera then skips rebuilding the BVH.
     render.use_persistent_data = True
@@ -58,6 +61,7 @@ def _disable_metadata(render) -> None:
 
 def _configure_cycles(cycles, samples: int, seed: int, variant: str) -> None:
     cycles.device = "CPU"
+    cycles.film_exposure = 1.0  # per-view exposure goes through view_settings.exposure
     cycles.samples = samples
     cycles.seed = seed
     cycles.use_animated_seed = False
@@ -66,7 +70,10 @@ def _configure_cycles(cycles, samples: int, seed: int, variant: str) -> None:
     cycles.use_adaptive_sampling = True
     cycles.adaptive_threshold = 0.02
     cycles.adaptive_min_samples = min(8, samples)
-    cycles.use_denoising = False  # OIDN changes with library versions and smooths textures
+    # OpenImageDenoise runs headless here, but on CPU its output differed between two
+    # processes rendering the same view (measured with bpy 5.0.1) and it added ~65% render
+    # time; it would also smooth the fine textures. So: no denoising.
+    cycles.use_denoising = False
     cycles.use_light_tree = False  # one sun and the world: nothing for the tree to gain
     cycles.caustics_reflective = False
     cycles.caustics_refractive = False
@@ -109,10 +116,9 @@ def add_world(scene) -> None:
     world = bpy.data.worlds.new("SynthWorld")
     if world.node_tree is None:  # Blender < 5.0 creates node trees only on request
         world.use_nodes = True
-    background = world.node_tree.nodes["Background"]
-    background.inputs["Color"].default_value = WORLD_COLOR
-    background.inputs["Strength"].default_value = WORLD_STRENGTH
-    scene.world = world  # first: Cycles' world property callbacks expect scene.world set
+    build_environment(ShaderGraph(world.node_tree, "Generated", "ShaderNodeOutputWorld"),
+                      WORLD_STRENGTH)
+    scene.world = world  # before the Cycles settings below: their callbacks use scene.world
     # The sky shows up only in mirror reflections and through glass. Diffuse surfaces get
     # their sky-like fill from their materials instead, without sampling noise.
     world.cycles_visibility.diffuse = False

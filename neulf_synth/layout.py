@@ -4,10 +4,10 @@ Blender world coordinates, Z up, scene units (metres). The cameras stand near th
 origin and look along +Y at a small table-top arrangement in front of a back wall:
 
     y = 0      camera rig (a roughly planar grid, slight toe-in)
-    y ~ 2.8    near object (sphere)           nearest surface ~2.5 units away
-    y ~ 4.0    mid-depth object (Suzanne)
-    y ~ 5.6    far objects (cylinder, cube)
-    y = 7.2    textured back wall filling the background
+    y ~ 2.6    near object (sphere)           nearest surface ~2.3 units away
+    y ~ 3.8    mid-depth object (Suzanne)
+    y ~ 5.2    far objects (cylinder, cube)
+    y = 6.2    textured back wall filling the background  (depth range ~1:2.8)
 
 Keeping the layout here, separate from the Blender code, lets the tests and the
 documentation reason about it without bpy.
@@ -25,14 +25,15 @@ LENS_MM = 50.0
 SENSOR_WIDTH_MM = 36.0
 
 RIG_CENTER = np.array([0.0, 0.0, 0.95])
-LOOK_AT = np.array([0.0, 4.6, 0.55])
-# Total extent of the camera grid (width, height): about 20% of the nearest object's distance,
-# the kind of baseline a careful handheld forward-facing capture has.
-RIG_EXTENT = (0.5, 0.375)
+LOOK_AT = np.array([0.0, 4.2, 0.55])
+# Total extent of the camera grid (width, height): about 25% of the nearest object's distance,
+# the kind of baseline a careful handheld forward-facing capture has, and enough parallax for
+# COLMAP's default initial-pair test (median triangulation angle) to pass.
+RIG_EXTENT = (0.6, 0.45)
 # Position jitter, as a fraction of the grid spacing, so the rig is not a perfect grid.
 POSITION_JITTER = 0.12
 
-WALL_Y = 7.2
+WALL_Y = 6.2
 FLOOR_Z = 0.0
 
 VARIANTS = ("lambertian", "shiny", "fine")
@@ -60,16 +61,17 @@ def scene_objects() -> list[ObjectSpec]:
         ObjectSpec("BackWall", "quad", (0.0, WALL_Y, 3.0), "wall",
                    rotation=(math.pi / 2, 0.0, 0.0), size={"width": 24.0, "height": 12.0},
                    pass_index=1),
-        ObjectSpec("Floor", "quad", (0.0, 2.5, FLOOR_Z), "floor",
-                   size={"width": 24.0, "height": 9.6}, pass_index=2),
-        ObjectSpec("NearSphere", "sphere", (0.5, 2.8, 0.33), "sphere",
+        # The floor runs from behind the cameras to just behind the wall.
+        ObjectSpec("Floor", "quad", (0.0, 2.0, FLOOR_Z), "floor",
+                   size={"width": 24.0, "height": 8.6}, pass_index=2),
+        ObjectSpec("NearSphere", "sphere", (0.45, 2.6, 0.33), "sphere",
                    size={"radius": 0.33}, pass_index=3),
-        ObjectSpec("MidMonkey", "monkey", (-0.55, 4.0, 0.45), "monkey",
+        ObjectSpec("MidMonkey", "monkey", (-0.5, 3.8, 0.45), "monkey",
                    rotation=(0.0, 0.0, math.radians(-20.0)), size={"scale": 0.42},
                    pass_index=4),
-        ObjectSpec("FarCylinder", "cylinder", (1.2, 5.4, 0.55), "cylinder",
+        ObjectSpec("FarCylinder", "cylinder", (1.1, 5.0, 0.55), "cylinder",
                    size={"radius": 0.32, "depth": 1.1}, pass_index=5),
-        ObjectSpec("FarCube", "cube", (-1.55, 5.8, 0.35), "cube",
+        ObjectSpec("FarCube", "cube", (-1.4, 5.35, 0.35), "cube",
                    rotation=(0.0, 0.0, math.radians(35.0)), size={"size": 0.7},
                    pass_index=6),
     ]

@@ -21,6 +21,7 @@ CUBE_A = (0.7, 0.12, 0.08, 1.0)
 CUBE_B = (0.75, 0.6, 0.08, 1.0)
 METAL_TINT = (0.9, 0.85, 0.78, 1.0)
 GLASS_TINT = (0.95, 0.98, 1.0, 1.0)
+SKY_COLOR = (0.75, 0.8, 0.9, 1.0)
 
 # Fill light: emitted radiance per unit albedo (see ShaderGraph.diffuse).
 FILL_LIGHT = 0.18
@@ -36,13 +37,13 @@ class ShaderGraph:
     unique even on nodes such as Mix that repeat display names per data type.
     """
 
-    def __init__(self, material: bpy.types.Material):
-        self.nodes = material.node_tree.nodes
-        self.links = material.node_tree.links
+    def __init__(self, node_tree: bpy.types.ShaderNodeTree, coordinates: str = "Object",
+                 output_type: str = "ShaderNodeOutputMaterial"):
+        self.nodes = node_tree.nodes
+        self.links = node_tree.links
         self.nodes.clear()
-        coords = self.nodes.new("ShaderNodeTexCoord")
-        self.coords = coords.outputs["Object"]
-        self.output = self.nodes.new("ShaderNodeOutputMaterial")
+        self.coords = self.nodes.new("ShaderNodeTexCoord").outputs[coordinates]
+        self.output = self.nodes.new(output_type)
 
     def add(self, node_type: str, properties: dict | None = None, **inputs) -> bpy.types.Node:
         """New node: `properties` are node attributes (set first), `inputs` socket values/links."""
@@ -142,6 +143,18 @@ def build_cube(graph: ShaderGraph, f: float) -> None:
     graph.diffuse(_detail(graph, color, 20.0 * f))
 
 
+def build_environment(graph: ShaderGraph, strength: float) -> None:
+    """World shader: a patchwork of sky colours around the scene.
+
+    Only mirror reflections and glass show it (see blender_scene.add_world); patches make
+    those reflections change with the viewpoint, as a real surrounding would.
+    """
+    patches = graph.texture("ShaderNodeTexVoronoi", 5.0)
+    color = graph.mix(SKY_COLOR, patches.outputs["Color"], 0.35)
+    background = graph.add("ShaderNodeBackground", Color=color, Strength=strength)
+    graph.surface(background.outputs["Background"])
+
+
 def build_mirror(graph: ShaderGraph, f: float) -> None:
     graph.surface(graph.add("ShaderNodeBsdfPrincipled", Base_Color=METAL_TINT, Metallic=1.0,
                             Roughness=MIRROR_ROUGHNESS).outputs["BSDF"])
@@ -165,6 +178,13 @@ LAMBERTIAN_BUILDERS = {
 SHINY_OVERRIDES = {"sphere": build_mirror, "monkey": build_glass}
 
 
+def appearance(variant: str, slot: str) -> str:
+    """'mirror', 'glass' or 'diffuse': how the material in `slot` reflects light."""
+    if variant == "shiny" and slot in SHINY_OVERRIDES:
+        return SHINY_OVERRIDES[slot].__name__.removeprefix("build_")
+    return "diffuse"
+
+
 def material_builders(variant: str) -> dict:
     builders = dict(LAMBERTIAN_BUILDERS)
     if variant == "shiny":
@@ -179,6 +199,6 @@ def create_materials(variant: str, texture_factor: float) -> dict[str, bpy.types
         material = bpy.data.materials.new(name)
         if material.node_tree is None:  # Blender < 5.0 creates node trees only on request
             material.use_nodes = True
-        build(ShaderGraph(material), texture_factor)
+        build(ShaderGraph(material.node_tree), texture_factor)
         materials[name] = material
     return materials

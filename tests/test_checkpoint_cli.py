@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 import os
 import shutil
+import signal
 import subprocess
 import sys
 from pathlib import Path
@@ -378,6 +379,15 @@ ERROR_CASES = {
                             "list of cameras"),
     "cameras: missing file": (lambda c: ["render", c["model"], "--cameras", str(c["tmp"] / "none.json"), "--out", c["out"]],
                               "does not exist"),
+    "cameras: zero focal length": (lambda c: ["render", c["model"], "--cameras",
+                                              cameras_json(c["tmp"] / "c.json", K=[[0, 0, 16], [0, 0, 12], [0, 0, 1]]),
+                                              "--out", c["out"]], "positive focal lengths"),
+    "render: zero scale": (lambda c: ["render", c["model"], "--scene", str(c["scene"]), "--views", "all", "--scale", "0",
+                                      "--out", c["out"]], "--scale must be positive"),
+    "negative batch size": (lambda c: ["train", str(c["scene"]), "--out", c["new"], "--steps", "1", "--batch-size", "-5"],
+                            "--batch-size must be positive"),
+    "zero batch size": (lambda c: ["train", str(c["scene"]), "--out", c["new"], "--steps", "1", "--batch-size", "0"],
+                        "--batch-size must be positive"),
     "zero-size camera": (lambda c: ["render", c["model"], "--cameras", cameras_json(c["tmp"] / "c.json", width=0),
                                     "--out", c["out"]], "at least 1 pixel"),
     "render: neither scene nor cameras": (lambda c: ["render", c["model"], "--out", c["out"]], "either --scene"),
@@ -506,7 +516,7 @@ def test_cli_train_render_eval(cli_model, tiny_scene, tmp_path, capfd):
     assert [r["view"] for r in json.loads((out / "eval.json").read_text())["views"]] == ["view_04.png"]
 
 
-def test_cli_resume_and_cancel_exit_status(tiny_scene, tmp_path, capfd):
+def test_cli_resume(tiny_scene, tmp_path, capfd):
     model = tmp_path / "model"
     assert main(["train", str(tiny_scene), "--out", str(model), "--steps", "2", "--batch-size", "128", "--progress", "json"]) == 0
     assert main(["train", str(tiny_scene), "--out", str(model), "--steps", "4", "--batch-size", "128", "--resume",
@@ -514,3 +524,27 @@ def test_cli_resume_and_cancel_exit_status(tiny_scene, tmp_path, capfd):
     lines = [json.loads(line) for line in capfd.readouterr().out.splitlines()]
     assert lines[-1]["event"] == "finished" and lines[-1]["step"] == 4
     assert [e["step"] for e in lines if e["event"] in ("step", "validate")][-2:] == [3, 4]
+
+
+def test_cli_sigint_cancels_and_saves(tiny_scene, tmp_path):
+    """Ctrl+C during training: the step in progress finishes, the checkpoint is saved, exit 130."""
+    model = tmp_path / "model"
+    env = dict(os.environ, PYTHONPATH=str(REPO) + os.pathsep + os.environ.get("PYTHONPATH", ""))
+    process = subprocess.Popen([sys.executable, "-m", "neulf_core", "train", str(tiny_scene), "--out", str(model),
+                                "--steps", "100000", "--batch-size", "64", "--progress", "json"],
+                               cwd=tmp_path, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        for line in process.stdout:
+            if json.loads(line)["event"] == "step":
+                break
+        process.send_signal(signal.SIGINT)
+        out, err = process.communicate(timeout=120)
+    finally:
+        if process.poll() is None:
+            process.kill()
+    assert process.returncode == 130, err
+    events = [json.loads(line) for line in out.splitlines()]
+    assert events[-1]["event"] == "cancelled"
+    assert "cancelled at step" in err and "Traceback" not in err
+    saved = load_checkpoint(model)
+    assert saved["progress"]["status"] == "cancelled" and saved["progress"]["step"] == events[-1]["step"] >= 1

@@ -141,7 +141,7 @@ def test_depth_is_finite_and_within_the_scene_depth_range(lambertian):
     for view in _cameras(lambertian):
         depth = _truth(lambertian, "depth", view)
         assert np.isfinite(depth).all(), "the back wall should leave no background pixels"
-        # Nearest object ~2.5 units away, back wall ~7.2: roughly 1:3.
+        # Nearest object ~2.3 units away, back wall ~6.2: roughly 1:3.
         assert 1.8 < depth.min() < 3.0
         assert layout.WALL_Y - 0.5 < depth.max() < layout.WALL_Y + 1.0
         assert depth.max() / depth.min() > 2.4
@@ -230,10 +230,12 @@ def test_poses_are_rotations_with_slight_toe_in(lambertian):
     forwards = np.array([np.array(v["R"])[2] for v in views])  # optical axes in world
     centres = np.array([-np.array(v["R"]).T @ v["t"] for v in views])
     angles = np.degrees(np.arccos(np.clip(forwards @ forwards.T, -1, 1)))
-    assert 0.5 < angles.max() < 10, "cameras should look the same way with slight toe-in"
-    assert np.all(forwards[:, 1] > 0.99), "the rig looks along +Y"
+    # Axes converge on the look-at point ~4 units away: a few degrees apart, ~10 at most.
+    assert 0.5 < angles.max() < 12, "cameras should look the same way with slight toe-in"
+    assert np.all(forwards[:, 1] > 0.97), "the rig looks along +Y (slightly down)"
     baseline = np.ptp(centres[:, 0])
-    assert 0.1 < baseline / 2.5 < 0.3, "baseline ~15-25% of the nearest object's distance"
+    nearest = min(_truth(lambertian, "depth", view).min() for view in views)
+    assert 0.15 < baseline / nearest < 0.3, "baseline ~15-25% of the nearest object's distance"
 
 
 def test_gt_model_reads_back_with_identical_poses_and_camera(lambertian):
@@ -313,3 +315,12 @@ def test_cli_renders_and_reports_progress(tmp_path):
     assert len(progress) == 2 and "view_00_01.png" in progress[1]
     assert (tmp_path / "cli" / "images" / "view_00_01.png").exists()
     assert not (tmp_path / "cli" / "sparse_gt").exists()
+
+
+def test_rerun_into_the_same_folder_leaves_no_stale_views(tmp_path):
+    generate_scene(tmp_path, grid=(1, 2), size=(32, 24), samples=1)
+    generate_scene(tmp_path, grid=(1, 1), size=(32, 24), samples=1, write_gt_model=False)
+    assert [p.name for p in (tmp_path / "images").iterdir()] == ["view_00_00.png"]
+    assert not list((tmp_path / "sparse_gt" / "0").glob("*.bin"))
+    views = json.loads((tmp_path / "ground_truth" / "cameras.json").read_text())["views"]
+    assert [v["name"] for v in views] == ["view_00_00.png"]

@@ -29,7 +29,8 @@ from .planes import PlanesConfig, PlanesField
 
 @dataclass
 class DisparityConfig:
-    texture_res: list[int] = field(default_factory=lambda: [64, 128, 256, 512])
+    texture_size: list[int] = field(default_factory=lambda: [512, 512])  # finest level (rows, columns)
+    texture_levels: int = 4            # each coarser level halves the size (coarse levels widen the basin)
     texture_channels: int = 8
     texture_margin: float = 0.25       # the sheared (s', t') leave [-1, 1] a little
     geometry_angular_res: int = 8
@@ -46,6 +47,13 @@ class DisparityConfig:
     z_st: float = 1.0
     z_near: float = 0.5
     z_far: float = 2.0
+
+
+def texture_size_for(image_size: tuple[int, int], margin: float = 0.25) -> list[int]:
+    """Finest texture (rows, columns): about one texel per training pixel over the sheared
+    range -- finer only memorises noise, coarser blurs (docs/BENCHMARKS.md)."""
+    width, height = image_size
+    return [int(round(height * (1 + margin))), int(round(width * (1 + margin)))]
 
 
 def slab_geometry(slab) -> dict:
@@ -67,9 +75,11 @@ class DisparityField(nn.Module):
             last.weight.mul_(0.01)
             last.bias.zero_()
             last.bias[3] = self._unit_of_st()
+        rows, cols = config.texture_size
         self.textures = nn.ParameterList(
-            nn.Parameter(torch.randn(1, config.texture_channels, res, res) * 0.01) for res in config.texture_res)
-        decoder_in = config.texture_channels * len(config.texture_res) + (2 if config.view_dependence else 0)
+            nn.Parameter(torch.randn(1, config.texture_channels, max(2, rows >> level), max(2, cols >> level)) * 0.01)
+            for level in range(config.texture_levels))
+        decoder_in = config.texture_channels * config.texture_levels + (2 if config.view_dependence else 0)
         self.decoder = nn.Sequential(nn.Linear(decoder_in, config.hidden), nn.ReLU(), nn.Linear(config.hidden, 3))
         for name in ("uv_half", "uv_centre", "st_half", "st_centre"):
             self.register_buffer(name, torch.tensor(getattr(config, name), dtype=torch.float32), persistent=False)
