@@ -44,6 +44,7 @@ def reconstruct(
     *,
     progress: ProgressCallback | None = None,
     camera_model: str = "SIMPLE_RADIAL",
+    seed: int = 0,
     single_camera: bool = True,
     max_image_size: int = 1600,
     matcher: str = "auto",
@@ -76,6 +77,8 @@ def reconstruct(
             photos that do not overlap, too few photos registered, COLMAP failing).
     """
     _check_options(camera_model, matcher, max_image_size)
+    # COLMAP's RANSAC and mapper are randomised: a fixed seed makes reruns reproducible.
+    pycolmap.set_random_seed(seed)
     photos = find_photos(Path(images_dir))
     out_dir = Path(out_dir)
     try:

@@ -1,0 +1,176 @@
+"""Speed against accuracy: several methods on one scene, same wall-clock budget, one run.
+
+    python benchmarks/speed_accuracy.py --scene ../shared/data/canclip --scale 0.5 --minutes 5 \
+        [--methods fast,authors,paper,classic-plane,classic-sweep] [--threads 2] [--device cpu]
+
+Learned methods train for the same budget; held-out PSNR is logged every `--every` seconds on
+a fixed sample of 65,536 held-out rays (pooled MSE), and at the end every held-out view is
+rendered in full and scored (PSNR, SSIM per view, averaged).  The classic light field
+renderings use the training photos directly (no training).  Writes
+docs/bench_<scene>.csv (one row per method and time), docs/bench_<scene>.png (PSNR against
+training time, render time per frame, and model size) and prints a markdown table.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import os
+import platform
+import sys
+import tempfile
+import time
+from datetime import date
+from pathlib import Path
+
+import numpy as np
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from neulf_core.classic import ClassicLightField  # noqa: E402
+from neulf_core.device import describe_device, pick_device  # noqa: E402
+from neulf_core.fields import count_parameters  # noqa: E402
+from neulf_core.metrics import psnr, ssim  # noqa: E402
+from neulf_core.render import LightField  # noqa: E402
+from neulf_core.scene import load_scene, split_views  # noqa: E402
+from neulf_core.slab import fit_slab  # noqa: E402
+from neulf_core.train import TrainConfig, train  # noqa: E402
+
+DOCS = Path(__file__).resolve().parents[1] / "docs"
+
+
+def hardware(device) -> str:
+    cpu = platform.processor() or platform.machine()
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                cpu = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    return f"{cpu}, {os.cpu_count()} cores, torch {torch.__version__}, {describe_device(device)}"
+
+
+def score(render_fn, views, scale) -> dict:
+    psnrs, ssims, seconds = [], [], []
+    for view in views:
+        target = view.load_image(scale).astype(np.float32) / 255.0
+        started = time.perf_counter()
+        image = render_fn(view)
+        seconds.append(time.perf_counter() - started)
+        psnrs.append(psnr(image, target))
+        ssims.append(ssim(image, target))
+    return {"psnr": float(np.mean(psnrs)), "ssim": float(np.mean(ssims)), "render_s": float(np.median(seconds)),
+            "per_view": [round(p, 2) for p in psnrs]}
+
+
+def run_learned(preset, scene, views, args, common) -> list[dict]:
+    rows = []
+    with tempfile.TemporaryDirectory() as model_dir:
+        result = train(scene, model_dir, TrainConfig(preset=preset, minutes=args.minutes, scale=args.scale,
+                                                     validate_seconds=args.every, seed=args.seed, device=args.device))
+        for record in result.history:
+            rows.append({**common, "method": preset, "train_s": record["elapsed"], "psnr": record["val_psnr"],
+                         "ssim": "", "render_s": "", "model_bytes": "", "steps": record["step"], "kind": "ray sample"})
+        field = LightField.load(model_dir, args.device)
+        size = sum(t.numel() * t.element_size() for t in field.field.state_dict().values())
+        final = score(lambda v: field.render_view(v, args.scale, depth=False).rgb, views, args.scale)
+        rows.append({**common, "method": preset, "train_s": round(result.elapsed, 1), "psnr": final["psnr"], "ssim": final["ssim"],
+                     "render_s": final["render_s"], "model_bytes": size, "steps": result.step, "kind": "full views",
+                     "per_view": final["per_view"], "parameters": count_parameters(field.field)})
+    return rows
+
+
+def run_classic(mode, scene, train_views, views, args, common) -> list[dict]:
+    started = time.perf_counter()
+    slab = fit_slab(scene, train_views, scale=args.scale)
+    classic = ClassicLightField(train_views, slab, args.scale, device=pick_device(args.device))
+    setup = time.perf_counter() - started
+    final = score(lambda v: classic.render_view(v, args.scale, mode=mode), views, args.scale)
+    photos = classic.images.numel()  # uint8 bytes: the "model" is the photos themselves
+    return [{**common, "method": f"classic-{mode}", "train_s": round(setup, 1), "psnr": final["psnr"], "ssim": final["ssim"],
+             "render_s": final["render_s"], "model_bytes": photos, "steps": 0, "kind": "full views", "per_view": final["per_view"]}]
+
+
+def chart(rows, path: Path, title: str) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 3, figsize=(16, 4.8))
+    methods = sorted({r["method"] for r in rows})
+    for i, method in enumerate(methods):
+        colour = f"C{i}"
+        curve = [r for r in rows if r["method"] == method and r["kind"] == "ray sample" and r["psnr"] not in ("", None)]
+        final = [r for r in rows if r["method"] == method and r["kind"] == "full views"]
+        if curve:
+            axes[0].plot([max(r["train_s"], 1) for r in curve], [r["psnr"] for r in curve], "-", color=colour, label=method)
+        for r in final:
+            if method.startswith("classic"):
+                axes[0].axhline(r["psnr"], color=colour, linestyle="--", label=f"{method} (no training)")
+            else:
+                axes[0].plot([r["train_s"]], [r["psnr"]], "o", color=colour)
+            axes[1].plot([r["render_s"] * 1000], [r["psnr"]], "o", color=colour, label=method)
+            axes[2].plot([r["model_bytes"] / 1e6], [r["psnr"]], "o", color=colour, label=method)
+    axes[0].set(xscale="log", xlabel="training time (s, log)", ylabel="held-out PSNR (dB)", title="quality vs training time")
+    axes[1].set(xscale="log", xlabel="render time per frame (ms, log)", title="quality vs render time")
+    axes[2].set(xscale="log", xlabel="model size (MB; classic: the photos)", title="quality vs model size")
+    for ax in axes:
+        ax.grid(True, which="both", alpha=0.3)
+        ax.legend(fontsize=8)
+    fig.suptitle(title, fontsize=9)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser()
+    parser.add_argument("--scene", required=True)
+    parser.add_argument("--images")
+    parser.add_argument("--scale", type=float, default=0.5)
+    parser.add_argument("--minutes", type=float, default=5.0)
+    parser.add_argument("--every", type=float, default=15.0)
+    parser.add_argument("--methods", default="fast,authors,paper,classic-plane,classic-sweep")
+    parser.add_argument("--threads", type=int, default=0, help="torch CPU threads (0: torch's default)")
+    parser.add_argument("--device")
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--name", help="name used in the output files (default: the scene folder's name)")
+    args = parser.parse_args()
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    device = pick_device(args.device)
+    scene = load_scene(args.scene, args.images)
+    train_views, held_out = split_views(scene)
+    name = args.name or Path(args.scene).name
+    width, height = held_out[0].scaled_camera(args.scale).width, held_out[0].scaled_camera(args.scale).height
+    common = {"scene": name, "resolution": f"{width}x{height}", "train_views": len(train_views), "held_out": len(held_out),
+              "seed": args.seed, "budget_min": args.minutes, "hardware": hardware(device), "date": date.today().isoformat()}
+    rows = []
+    for method in args.methods.split(","):
+        print(f"== {method}", file=sys.stderr, flush=True)
+        if method.startswith("classic-"):
+            rows += run_classic(method.split("-", 1)[1], scene, train_views, held_out, args, common)
+        else:
+            rows += run_learned(method, scene, held_out, args, common)
+        final = rows[-1]
+        print(f"   {method}: {final['psnr']:.2f} dB, SSIM {final['ssim']:.3f}, render {final['render_s'] * 1000:.0f} ms/frame", file=sys.stderr)
+    DOCS.mkdir(exist_ok=True)
+    fields = list(dict.fromkeys(k for r in rows for k in r))
+    with open(DOCS / f"bench_{name}.csv", "w", newline="") as handle:
+        writer = csv.DictWriter(handle, fieldnames=fields)
+        writer.writeheader()
+        writer.writerows(rows)
+    chart(rows, DOCS / f"bench_{name}.png", f"{name} {common['resolution']}, {len(train_views)} train / {len(held_out)} held-out views, "
+          f"{args.minutes:g} min budget; {common['hardware']}; {common['date']}")
+    print(f"\n{name} at {common['resolution']}, {common['hardware']}, {common['date']}\n")
+    print("| method | training (s) | steps | held-out PSNR | SSIM | render (ms/frame) | model (MB) |\n|---|---|---|---|---|---|---|")
+    for r in rows:
+        if r["kind"] == "full views":
+            print(f"| {r['method']} | {r['train_s']} | {r['steps']} | {r['psnr']:.2f} | {r['ssim']:.3f} | "
+                  f"{r['render_s'] * 1000:.0f} | {r['model_bytes'] / 1e6:.2f} |")
+
+
+if __name__ == "__main__":
+    main()
