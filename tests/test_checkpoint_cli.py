@@ -32,7 +32,7 @@ SMALL_MLP = {"depth": 3, "width": 24, "head_width": 16}
 
 def small_config(steps: int, **overrides) -> TrainConfig:
     """A few-second run: tiny planes, small batches, no timed validation or checkpoints."""
-    options = dict(steps=steps, batch_size=256, field_overrides=dict(SMALL_PLANES),
+    options = dict(preset="planes", steps=steps, batch_size=256, field_overrides=dict(SMALL_PLANES),
                    validate_seconds=1e9, checkpoint_seconds=1e9)
     options.update(overrides)
     return TrainConfig(**options)

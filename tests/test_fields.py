@@ -1,0 +1,64 @@
+"""Field representations: the published networks' shapes, and the fast field's shear geometry."""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from neulf_core.fields import build_field, count_parameters, make_config
+from neulf_core.fields.disparity import slab_geometry
+from neulf_core.slab import Slab
+
+
+def _linear_inputs(module) -> list[int]:
+    return [layer.in_features for layer in module.layers]
+
+
+def test_paper_network_is_as_published():
+    field = build_field("mlp", make_config("mlp", {"depth": 20, "width": 256, "skip": "input"}))
+    # 20 ReLU layers of 256; the raw 4D input re-enters before layers 5, 9, 13, 17.
+    assert len(field.layers) == 20 and all(layer.out_features == 256 for layer in field.layers)
+    assert _linear_inputs(field) == [4, 256, 256, 256, 260, 256, 256, 256, 260, 256, 256, 256, 260, 256, 256, 256, 260, 256, 256, 256]
+    assert field.feature.out_features == 256
+    assert [m.out_features for m in field.colour_head if hasattr(m, "out_features")] == [128, 3]
+    assert [m.out_features for m in field.depth_head if hasattr(m, "out_features")] == [128, 1]
+    rgb, depth = field(torch.rand(7, 4) * 2 - 1)
+    assert rgb.shape == (7, 3) and depth.shape == (7, 1)
+    assert float(rgb.min()) >= 0 and float(rgb.max()) <= 1 and float(depth.min()) >= 0 and float(depth.max()) <= 1
+
+
+def test_authors_network_skips_the_embedding():
+    field = build_field("mlp", make_config("mlp", {"depth": 8, "width": 256, "skip": "embedding"}))
+    assert _linear_inputs(field) == [4, 256, 256, 256, 512, 256, 256, 256]
+    assert count_parameters(field) < count_parameters(build_field("mlp", make_config("mlp", {"depth": 20})))
+
+
+def test_disparity_shear_maps_rays_through_one_point_to_one_texel():
+    """Rays from different uv points through the same 3D point read the same texture point
+    when delta = z_st / z - 1 (the identity the fast field is built on)."""
+    slab = Slab(np.eye(3), np.zeros(3), 0.0, 4.0, 2.0, 8.0, np.array([-0.5, -0.4, -3.0, -2.0]), np.array([0.7, 0.4, 3.0, 2.5]))
+    field = build_field("disparity", make_config("disparity", {**slab_geometry(slab), "texture_size": [16, 16], "texture_levels": 1}))
+    point = torch.tensor([0.8, -0.3, 3.0], dtype=torch.float64)   # depth 3 in front of the st plane (4)
+    uv_points = torch.tensor([[-0.4, -0.3, 0.0], [0.0, 0.0, 0.0], [0.6, 0.35, 0.0]], dtype=torch.float64)
+    directions = point - uv_points
+    uvst, valid = slab.rays_to_uvst(uv_points, directions / directions.norm(dim=1, keepdim=True))
+    assert bool(valid.all())
+    delta = slab.z_st / 3.0 - 1.0
+    uv = uvst[:, :2].float() * field.uv_half + field.uv_centre
+    st = uvst[:, 2:].float() * field.st_half + field.st_centre
+    sheared = st + uv * delta
+    assert torch.allclose(sheared, sheared[0].expand_as(sheared), atol=1e-5)
+    # And the depth the field reports for that delta is the point's depth.
+    unit = torch.tensor([(1 / 3.0 - 1 / slab.z_far) / (1 / slab.z_near - 1 / slab.z_far)], dtype=torch.float64)
+    assert abs(float(field.disparity(unit)) - delta) < 1e-6
+    assert abs(float(slab.depth_from_unit(unit)) - 3.0) < 1e-9
+
+
+def test_fast_field_starts_on_the_st_plane():
+    """Before training, the fast field's depth output is the st plane: classic single-plane
+    light field rendering is the starting point."""
+    slab = Slab(np.eye(3), np.zeros(3), 0.0, 4.0, 2.0, 8.0, -np.ones(4), np.ones(4))
+    field = build_field("disparity", make_config("disparity", {**slab_geometry(slab), "texture_size": [16, 16]}))
+    _, unit = field(torch.rand(50, 4) * 2 - 1)
+    depth = slab.depth_from_unit(unit.double())
+    assert torch.allclose(depth, torch.full_like(depth, 4.0), rtol=0.02)
