@@ -28,8 +28,8 @@ from typing import Callable, Iterator, Sequence
 import pycolmap
 
 from .errors import NeulfError
+from .images import IMAGE_EXTENSIONS, list_images
 
-IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp", ".webp")
 MIN_PHOTOS = 3
 # Exhaustive matching compares every pair: best for small captures, quadratic cost beyond.
 EXHAUSTIVE_MATCHING_MAX_PHOTOS = 100
@@ -127,12 +127,8 @@ def find_photos(images_dir: Path) -> list[Path]:
         )
     if not images_dir.is_dir():
         raise NeulfError(f"{images_dir} is a file, not a folder; pass the folder that holds your photos.")
-    photos = sorted(
-        path
-        for path in images_dir.iterdir()
-        # Hidden files are skipped: macOS "._IMG_0001.jpg" resource forks look like photos.
-        if path.is_file() and not path.name.startswith(".") and path.suffix.lower() in IMAGE_EXTENSIONS
-    )
+    # Hidden files are skipped: macOS "._IMG_0001.jpg" resource forks look like photos.
+    photos = list_images(images_dir)
     if not photos:
         raise NeulfError(
             f"No photos found in {images_dir}; accepted extensions are {', '.join(IMAGE_EXTENSIONS)} "
