@@ -137,6 +137,33 @@ def _select_views(scene, light_field, names: list[str]):
     return [scene.view(n) for n in names]
 
 
+def _focus_options(args):
+    """(focus_distance, aperture, focus_pixel) from the render options, checked."""
+    if args.aperture < 0:
+        raise NeulfError("--aperture is a lens radius in scene units and cannot be negative.")
+    pixel = None
+    if args.focus_pixel:
+        try:
+            pixel = tuple(float(v) for v in args.focus_pixel.split(","))
+            assert len(pixel) == 2
+        except (ValueError, AssertionError):
+            raise NeulfError(f"--focus-pixel wants X,Y in pixels (top-left origin), not '{args.focus_pixel}'.") from None
+    if args.aperture > 0 and args.focus_distance is None and pixel is None:
+        raise NeulfError("--aperture needs --focus-distance D or --focus-pixel X,Y.")
+    if args.focus_distance is not None and args.focus_distance <= 0:
+        raise NeulfError("--focus-distance must be positive (depth along the optical axis, scene units).")
+    return args.focus_distance, args.aperture, pixel
+
+
+def _render_pinhole(light_field, cam: dict, args, focus_options):
+    focus, aperture, pixel = focus_options
+    if pixel is not None:
+        focus = light_field.depth_at(cam["K"], cam["R"], cam["t"], *pixel)
+        print(f"{cam['name']}: focus at pixel {pixel} -> depth {focus:.4g}", file=sys.stderr)
+    return light_field.render(cam["K"], cam["width"], cam["height"], cam["R"], cam["t"], depth=args.depth,
+                              focus_distance=focus, aperture=aperture)
+
+
 def cmd_render(args) -> int:
     from .render import LightField
     from .scene import load_scene
@@ -145,14 +172,15 @@ def cmd_render(args) -> int:
         raise NeulfError("render needs either --scene SCENE_DIR --views NAME,... or --cameras CAMERAS.json.")
     if args.scale is not None and args.scale <= 0:
         raise NeulfError(f"--scale must be positive, not {args.scale}.")
+    focus_options = _focus_options(args)
+    refocus = focus_options[1] > 0 or focus_options[2] is not None
     light_field = LightField.load(args.model_dir, args.device)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     count, started = 0, time.perf_counter()
     if args.cameras:
         for cam in _load_cameras_json(args.cameras):
-            rendering = light_field.render(cam["K"], cam["width"], cam["height"], cam["R"], cam["t"], depth=args.depth)
-            _save_rendering(out, cam["name"], rendering, args.depth)
+            _save_rendering(out, cam["name"], _render_pinhole(light_field, cam, args, focus_options), args.depth)
             count += 1
     else:
         names = _names(args.views)
@@ -160,8 +188,15 @@ def cmd_render(args) -> int:
             raise NeulfError("--views needs view names (comma-separated), 'held-out' or 'all'.")
         scene = load_scene(args.scene, args.images)
         light_field.check_scene(scene)
+        scale = light_field.trained_scale if args.scale is None else args.scale
         for view in _select_views(scene, light_field, names):
-            rendering = light_field.render_view(view, args.scale, depth=args.depth)
+            if refocus:  # through the view's undistorted pinhole: the lens model is a pinhole's
+                camera = view.scaled_camera(scale)
+                cam = {"name": view.stem, "K": camera.calibration_matrix(), "width": camera.width,
+                       "height": camera.height, "R": view.R, "t": view.t}
+                rendering = _render_pinhole(light_field, cam, args, focus_options)
+            else:
+                rendering = light_field.render_view(view, scale, depth=args.depth)
             _save_rendering(out, view.stem, rendering, args.depth)
             count += 1
     print(f"rendered {count} image(s) into {out} in {time.perf_counter() - started:.1f} s")
@@ -270,6 +305,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", required=True)
     p.add_argument("--depth", action="store_true", help="also write <stem>_depth.npy and a colour map")
     p.add_argument("--scale", type=float, help="image scale (default: the trained scale)")
+    p.add_argument("--focus-distance", type=float, help="refocus: focal depth along the optical axis (scene units)")
+    p.add_argument("--aperture", type=float, default=0.0, help="refocus: lens radius in scene units (0: pinhole)")
+    p.add_argument("--focus-pixel", help="refocus: X,Y pixel whose depth becomes the focus distance")
     p.add_argument("--device")
     p.set_defaults(run=cmd_render)
 

@@ -21,6 +21,7 @@ from .device import pick_device
 from .errors import NeulfError
 from .fields import build_field, make_config
 from .rays import pinhole_rays, view_rays
+from .refocus import MAX_SAMPLES, lens_rays, lens_samples, max_blur_radius_px, sample_count
 from .scene import View
 from .slab import Slab
 
@@ -97,12 +98,18 @@ class LightField:
         return ray_length * (directions.to(dtype) @ forward.to(dtype))
 
     def render(self, K, width: int, height: int, R, t, *, depth: bool = True, chunk: int = DEFAULT_CHUNK,
-               on_chunk=None) -> Rendering:
-        """Render a pinhole camera (K, world-to-camera R, t in the scene's COLMAP frame)."""
+               on_chunk=None, focus_distance: float | None = None, aperture: float = 0.0,
+               max_samples: int = MAX_SAMPLES) -> Rendering:
+        """Render a pinhole camera (K, world-to-camera R, t in the scene's COLMAP frame).
+
+        With `aperture` > 0 (lens radius, scene units) and `focus_distance` (depth along the
+        optical axis), the image is refocused by synthetic aperture (see refocus.py); depth
+        stays the pinhole ray's."""
         width, height = int(width), int(height)
         if width <= 0 or height <= 0:
             raise NeulfError(f"cannot render a {width}x{height} image: width and height must be at least 1 pixel.")
         K, R, t = (np.asarray(a, dtype=np.float64) for a in (K, R, t))
+        lens = self._lens_plan(K, focus_distance, aperture, max_samples)
         rows_per_chunk = max(1, chunk // width)
         forward = torch.as_tensor(R[2], device=self.device, dtype=self.geometry_dtype)
         rgb_out = np.empty((height, width, 3), np.float32)
@@ -113,6 +120,8 @@ class LightField:
             rows = slice(top, min(height, top + rows_per_chunk))
             origin, directions = pinhole_rays(K, R, t, width, height, self.device, self.geometry_dtype, rows)
             rgb, slab_depth, valid, uvst = self.query(origin, directions, depth)
+            if lens is not None:
+                rgb = self._refocused_colour(origin, directions, R, focus_distance, aperture, lens)
             band = rows.stop - rows.start
             rgb_out[rows] = rgb.reshape(band, width, 3).cpu().numpy()
             valid_out[rows] = valid.reshape(band, width).cpu().numpy()
@@ -124,6 +133,35 @@ class LightField:
             if on_chunk is not None and on_chunk(rows.stop, height) is False:
                 break
         return Rendering(rgb_out, depth_out, valid_out, self._camera_warnings(R, t, valid_out, outside))
+
+    def _lens_plan(self, K, focus_distance, aperture: float, max_samples: int):
+        """Lens sample points for a refocused render, or None for a pinhole one."""
+        if not aperture or aperture <= 0:
+            return None
+        if focus_distance is None or not focus_distance > 0:
+            raise NeulfError("refocusing needs a positive focus distance (or a focus pixel) together with the aperture.")
+        blur = max_blur_radius_px(float(K[0, 0]), aperture, focus_distance, self.slab.z_near, self.slab.z_far)
+        count = sample_count(blur, max_samples)
+        return None if count == 1 else lens_samples(count)
+
+    def _refocused_colour(self, origin, directions, R, focus, aperture, lens) -> torch.Tensor:
+        total = None
+        for point in lens:
+            origins, dirs = lens_rays(origin, directions, R, focus, aperture, point)
+            rgb = self.query(origins, dirs, want_depth=False)[0]
+            total = rgb if total is None else total + rgb
+        return total / len(lens)
+
+    def depth_at(self, K, R, t, x: float, y: float) -> float:
+        """Depth along the optical axis of the ray through pixel (x, y) (top-left origin, in
+        pixels: x = 10.5 is the centre of column 10) -- what auto-refocus focuses on."""
+        K1 = np.array(K, dtype=np.float64)
+        K1[0, 2] -= x - 0.5  # a 1x1 image whose only pixel centre is (x, y)
+        K1[1, 2] -= y - 0.5
+        value = float(self.render(K1, 1, 1, R, t, depth=True).depth[0, 0])
+        if not np.isfinite(value) or value <= 0:
+            raise NeulfError(f"the light field has no depth at pixel ({x:g}, {y:g}): the ray misses the light slab.")
+        return value
 
     def _camera_warnings(self, R, t, valid: np.ndarray, outside: int) -> list[str]:
         notes = []

@@ -68,9 +68,15 @@ def test_reconstruction_registers_every_view_at_the_true_poses(rendered, tmp_pat
     assert _similarity_residual(ours, theirs) < 0.05  # COLMAP is randomised: 0.010-0.029 seen
 
 
-def test_train_render_eval_beats_mean_colour(gt_scene, rendered, tmp_path, capsys):
-    model = tmp_path / "model"
+@pytest.fixture(scope="module")
+def trained(gt_scene, tmp_path_factory) -> Path:
+    model = tmp_path_factory.mktemp("trained") / "model"
     assert cli_main(["train", str(gt_scene), "--out", str(model), "--steps", "600", "--validate-seconds", "1000"]) == 0
+    return model
+
+
+def test_train_render_eval_beats_mean_colour(trained, gt_scene, rendered, tmp_path):
+    model = trained
     assert cli_main(["eval", str(model), "--scene", str(gt_scene)]) == 0
     report = json.loads((model / "eval" / "eval.json").read_text())
     assert [row["view"] for row in report["views"]] == ["view_00_00.png", "view_02_00.png"]  # every 8th, from the first
@@ -88,3 +94,44 @@ def test_train_render_eval_beats_mean_colour(gt_scene, rendered, tmp_path, capsy
 
     with av.open(str(tmp_path / "path.mp4")) as container:
         assert sum(1 for _ in container.decode(video=0)) == 6
+
+
+def _sharpness(image: np.ndarray, mask: np.ndarray) -> float:
+    """Variance of the Laplacian of the grey image inside `mask`."""
+    grey = image.astype(np.float64).mean(axis=2)
+    lap = -4 * grey[1:-1, 1:-1] + grey[:-2, 1:-1] + grey[2:, 1:-1] + grey[1:-1, :-2] + grey[1:-1, 2:]
+    return float(lap[mask[1:-1, 1:-1]].var())
+
+
+def _eroded(mask: np.ndarray, steps: int = 3) -> np.ndarray:
+    for _ in range(steps):
+        mask = mask & np.roll(mask, 1, 0) & np.roll(mask, -1, 0) & np.roll(mask, 1, 1) & np.roll(mask, -1, 1)
+    return mask
+
+
+def test_refocus_at_a_clicked_pixel_sharpens_that_object(trained, rendered, tmp_path):
+    """Focus on the near sphere, then on the far wall (auto-refocus from a pixel): each object
+    is sharper when focused on than when the other one is (the variance of the Laplacian)."""
+    from PIL import Image
+
+    truth = rendered / "ground_truth"
+    view = next(v for v in json.loads((truth / "cameras.json").read_text())["views"] if v["name"] == "view_00_00.png")
+    cameras = tmp_path / "one.json"
+    cameras.write_text(json.dumps({"cameras": [view]}))
+    objects = np.load(truth / "object_index_view_00_00.npy")
+    scene = json.loads((truth / "scene.json").read_text())
+    index = {o["name"]: o["pass_index"] for o in scene["objects"]}
+    regions = {"sphere": _eroded(objects == index["NearSphere"]), "wall": _eroded(objects == index["BackWall"])}
+    images = {}
+    for name, region in regions.items():
+        ys, xs = np.nonzero(region)
+        pick = len(ys) // 2
+        out = tmp_path / name
+        assert cli_main(["render", str(trained), "--cameras", str(cameras), "--out", str(out), "--aperture", "0.08",
+                         "--focus-pixel", f"{xs[pick] + 0.5},{ys[pick] + 0.5}"]) == 0
+        images[name] = np.asarray(Image.open(out / "view_00_00.png"))
+    for name, region in regions.items():
+        other = "wall" if name == "sphere" else "sphere"
+        ratio = _sharpness(images[name], region) / _sharpness(images[other], region)
+        print(f"refocus sharpness ratio, {name}: {ratio:.2f}")
+        assert ratio > 2.0, (name, ratio)

@@ -1,0 +1,50 @@
+"""Synthetic-aperture refocus: lens sampling, ray geometry, and the pinhole limit."""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from neulf_core.rays import pinhole_rays
+from neulf_core.refocus import lens_rays, lens_samples, max_blur_radius_px, sample_count
+
+
+def test_lens_samples_cover_the_unit_disk():
+    assert np.array_equal(lens_samples(1), np.zeros((1, 2)))
+    points = lens_samples(64)
+    assert points.shape == (64, 2)
+    radius = np.linalg.norm(points, axis=1)
+    assert radius.max() <= 1.0 and radius.min() < 0.2 and radius.max() > 0.9
+    assert np.abs(points.mean(0)).max() < 0.05
+
+
+def test_sample_count_follows_the_blur():
+    assert sample_count(0.3) == 1                    # a pinhole costs one ray
+    assert 4 <= sample_count(1.5) < sample_count(3.0) <= 96
+    assert sample_count(100.0) == 96
+    # Blur radius: f * A * |1/Z - 1/focus|, worst over the depth range.
+    assert abs(max_blur_radius_px(500.0, 0.1, 2.0, 1.0, 4.0) - 500 * 0.1 * 0.5) < 1e-12
+
+
+def test_every_lens_ray_of_a_pixel_meets_its_focal_point():
+
+    angle = 0.3
+    R = np.array([[np.cos(angle), 0, -np.sin(angle)], [0, 1, 0], [np.sin(angle), 0, np.cos(angle)]])
+    t = np.array([0.2, -0.1, 0.5])
+    K = np.array([[80.0, 0, 31.0], [0, 82.0, 22.0], [0, 0, 1]])
+    origin, directions = pinhole_rays(K, R, t, 64, 48)
+    focus = 3.7
+    focal = []
+    for point in lens_samples(12):
+        lens_origin, d = lens_rays(origin, directions, R, focus, 0.25, point)
+        # The lens point lies in the camera's x-y plane within the aperture.
+        offset = (lens_origin[0] - origin).numpy()
+        assert abs(offset @ R[2]) < 1e-12 and np.linalg.norm(offset) <= 0.25 + 1e-12
+        # Where this ray reaches depth `focus` along the optical axis:
+        length = (focus - (lens_origin - origin) @ torch.as_tensor(R[2])) / (d @ torch.as_tensor(R[2]))
+        focal.append((lens_origin + d * length[:, None]).numpy())
+    focal = np.stack(focal)
+    assert np.abs(focal - focal[0]).max() < 1e-9
+    # ... which is the pinhole ray's point at that depth.
+    pinhole_point = (origin + directions * (focus / (directions @ torch.as_tensor(R[2])))[:, None]).numpy()
+    assert np.abs(focal[0] - pinhole_point).max() < 1e-9
