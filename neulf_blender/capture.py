@@ -198,6 +198,21 @@ def camera_request(scene, camera_obj, matrix_world=None, root_matrix=None) -> di
             "scale": convert.uniform_scale(np.array(root_matrix))}
 
 
+def lens_request(camera_obj, scale: float) -> dict:
+    """The camera's depth of field in model units: {} for a pinhole, else the focus distance
+    (depth along the view axis) and the thin-lens aperture radius lens / (2 f-stop)."""
+    dof = camera_obj.data.dof
+    if not dof.use_dof or dof.aperture_fstop <= 0:
+        return {}
+    distance = dof.focus_distance
+    if dof.focus_object is not None:  # Blender focuses on the object's origin, along the view axis
+        forward = -np.array(camera_obj.matrix_world.to_3x3().col[2])
+        offset = np.array(dof.focus_object.matrix_world.translation - camera_obj.matrix_world.translation)
+        distance = float(offset @ forward / np.linalg.norm(forward))
+    radius = camera_obj.data.lens * 1e-3 / (2.0 * dof.aperture_fstop)
+    return {"focus_distance": max(distance, 1e-6) / scale, "aperture": radius / scale}
+
+
 def matrix_for_pose(root_matrix, R, t) -> Matrix:
     """A camera's world matrix for a model-frame pose, through the root."""
     return root_matrix @ _matrix(convert.matrix_from_pose(R, t))

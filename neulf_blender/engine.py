@@ -1,6 +1,6 @@
 """The NeuLF render engine: F12 renders the active camera through the light field,
-Ctrl+F12 the frame range (Blender writes the video).  Pinhole only: synthetic-aperture
-refocus is not in neulf_core yet, so camera depth of field is not rendered."""
+Ctrl+F12 the frame range (Blender writes the video).  The camera's depth of field (focus
+distance or focus object, f-stop) is rendered by synthetic-aperture refocus in neulf_core."""
 
 import bpy
 
@@ -26,9 +26,8 @@ class NeulfRenderEngine(bpy.types.RenderEngine):
             root_matrix = root.evaluated_get(depsgraph).matrix_world if root is not None else None
             request = capture.camera_request(scene, camera.evaluated_get(depsgraph) if camera else None,
                                              root_matrix=root_matrix)
-            request.pop("scale")
-            if camera.data.dof.use_dof:
-                self.report({"INFO"}, "NeuLF renders a pinhole image: depth of field is not rendered yet")
+            scale = request.pop("scale")
+            request.update(capture.lens_request(camera.evaluated_get(depsgraph), scale))
             self.update_stats("", "NeuLF: rendering")
             result = get_core().call("render", model_dir=model_dir(original), depth=False, chunk=scene.neulf.chunk,
                                      on_progress=self.update_progress, should_stop=self.test_break, **request)

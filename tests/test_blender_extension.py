@@ -176,6 +176,7 @@ def test_blender_story(story, step):
     outcome = story.get(step)
     assert outcome is not None, f"step {step} did not run; log:\n{story['_log']}"
     assert outcome["ok"], f"{step}: {outcome['detail']}"
+    print(f"{step}: {outcome['detail']}")
 
 
 # ----------------------------------------------------------------------------- the script (inside bpy)
@@ -453,7 +454,18 @@ def run_story(zip_path: Path, work: Path, results: Path) -> None:  # noqa: C901 
         diff = np.abs(still - ctx["render"]).max()
         assert diff <= 2 / 255 + 1e-6, diff
         assert "NEULF" in bpy.types.DATA_PT_camera_dof.COMPAT_ENGINES
-        return f"F12 matches render_camera within {diff * 255:.1f}/255"
+        # Depth of field: a wide aperture focused far behind the scene blurs the image
+        # (synthetic aperture through the model) without changing its overall colour.
+        dof = scene.camera.data.dof
+        dof.use_dof, dof.focus_object, dof.focus_distance, dof.aperture_fstop = True, None, 1000.0, 0.05
+        out_dof = work / "f12_dof.png"
+        scene.render.filepath = str(out_dof)
+        bpy.ops.render.render(write_still=True)
+        dof.use_dof = False
+        blurred = np.asarray(Image.open(out_dof).convert("RGB"), np.float32) / 255
+        change = np.abs(blurred - still).mean()
+        assert change > 2 / 255 and abs(blurred.mean() - still.mean()) < 0.03, (change, blurred.mean(), still.mean())
+        return f"F12 matches render_camera within {diff * 255:.1f}/255; DOF changes it by {change * 255:.1f}/255 on average"
 
     @story.step("spiral_video", "render_camera")
     def _():
