@@ -278,7 +278,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", required=True, help="model folder")
     p.add_argument("--images", help="images folder (default: SCENE/images, else SCENE/images_N)")
     p.add_argument("--scale", type=float, default=1.0, help="train at this image scale (e.g. 0.5)")
-    p.add_argument("--preset", default="fast", help="fast (default), authors (8x256 MLP), paper (20x256 MLP)")
+    p.add_argument("--preset", default="fast", help="fast (default), planes, authors (8x256 MLP), paper (20x256 MLP)")
     budget = p.add_mutually_exclusive_group()
     budget.add_argument("--minutes", type=float, help="training time budget (total, including resumed time)")
     budget.add_argument("--steps", type=int, help="training steps (total, including resumed steps)")
