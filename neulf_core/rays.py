@@ -53,6 +53,15 @@ def pinhole_rays(K, R, t, width: int, height: int, device="cpu", dtype=torch.flo
     return -R.T @ t, directions
 
 
+def single_pixel_K(K, x: float, y: float) -> np.ndarray:
+    """K of a 1x1 image whose only pixel centre is image point (x, y) of the camera `K`
+    (top-left origin: x = 10.5 is the centre of column 10) -- a one-ray render of any pixel."""
+    K1 = np.array(K, dtype=np.float64).reshape(3, 3)
+    K1[0, 2] -= float(x) - 0.5
+    K1[1, 2] -= float(y) - 0.5
+    return K1
+
+
 def pinhole_K(camera: pycolmap.Camera) -> np.ndarray:
     """3x3 K of a camera (its distortion ignored)."""
     return np.asarray(camera.calibration_matrix(), dtype=np.float64)

@@ -20,7 +20,7 @@ from .checkpoint import load_checkpoint
 from .device import pick_device
 from .errors import NeulfError
 from .fields import build_field, make_config
-from .rays import pinhole_rays, view_rays
+from .rays import pinhole_rays, single_pixel_K, view_rays
 from .refocus import MAX_SAMPLES, lens_rays, lens_samples, max_blur_radius_px, sample_count
 from .scene import View
 from .slab import Slab
@@ -155,10 +155,7 @@ class LightField:
     def depth_at(self, K, R, t, x: float, y: float) -> float:
         """Depth along the optical axis of the ray through pixel (x, y) (top-left origin, in
         pixels: x = 10.5 is the centre of column 10) -- what auto-refocus focuses on."""
-        K1 = np.array(K, dtype=np.float64)
-        K1[0, 2] -= x - 0.5  # a 1x1 image whose only pixel centre is (x, y)
-        K1[1, 2] -= y - 0.5
-        value = float(self.render(K1, 1, 1, R, t, depth=True).depth[0, 0])
+        value = float(self.render(single_pixel_K(K, x, y), 1, 1, R, t, depth=True).depth[0, 0])
         if not np.isfinite(value) or value <= 0:
             raise NeulfError(f"the light field has no depth at pixel ({x:g}, {y:g}): the ray misses the light slab.")
         return value

@@ -27,6 +27,7 @@ from pathlib import Path
 import numpy as np
 
 from .errors import NeulfError
+from .rays import single_pixel_K  # noqa: F401  (re-exported: the extension and its tests use it here)
 
 PROTOCOL_VERSION = 1
 
@@ -152,14 +153,6 @@ class Service:
         poses = spiral_path(Slab.from_dict(info["slab"]), np.asarray(rig["centres"]), frames=int(frames))
         return {"R": [p[0].tolist() for p in poses], "t": [p[1].tolist() for p in poses], "K": rig["K"],
                 "width": rig["width"], "height": rig["height"]}
-
-
-def single_pixel_K(K, x: float, y: float) -> np.ndarray:
-    """K of a 1x1 image whose only pixel centre is image point (x, y) of the camera `K`."""
-    K1 = np.array(K, dtype=np.float64).reshape(3, 3)
-    K1[0, 2] -= float(x) - 0.5
-    K1[1, 2] -= float(y) - 0.5
-    return K1
 
 
 def _has_model(model_dir: str) -> bool:
