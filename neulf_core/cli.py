@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import signal
 import sys
 import time
@@ -61,26 +62,64 @@ def cmd_train(args) -> int:
         exclude=_names(args.exclude), seed=args.seed, checkpoint_seconds=args.checkpoint_seconds,
         validate_seconds=args.validate_seconds,
         st_depth=args.st_depth, near=args.near, far=args.far, device=args.device, batch_size=args.batch_size,
+        consistency=args.consistency, appearance=args.appearance,
     )
-    stop = {"signal": None}
+    stop = {"signal": None, "reader_gone": False}
 
     def on_signal(signum, _frame):
         stop["signal"] = signum
+
+    def on_reader_gone():
+        stop["reader_gone"] = True
 
     # SIGBREAK: what Ctrl+Break (and the Blender worker's Cancel) sends on Windows.
     signals = [signal.SIGINT, signal.SIGTERM] + ([signal.SIGBREAK] if hasattr(signal, "SIGBREAK") else [])
     previous = {s: signal.signal(s, on_signal) for s in signals}
     try:
         result = train(args.scene_dir, args.out, config, images_dir=args.images, resume=args.resume,
-                       progress=make_reporter(args.progress), should_stop=lambda: stop["signal"] is not None)
+                       progress=_Reporter(make_reporter(args.progress), on_reader_gone),
+                       should_stop=lambda: stop["signal"] is not None or stop["reader_gone"])
     finally:
         for s, handler in previous.items():
             signal.signal(s, handler)
+    if stop["reader_gone"]:  # nobody is left to read a message; the checkpoint is what matters
+        return 128 + int(getattr(signal, "SIGPIPE", 13))
     if result.status == "cancelled":
         print(f"cancelled at step {result.step}; checkpoint saved. Continue with: python -m neulf_core train "
               f"{args.scene_dir} --out {args.out} --resume --minutes/--steps ...", file=sys.stderr)
         return 128 + int(stop["signal"] or signal.SIGINT)
     return 0
+
+
+class _Reporter:
+    """Progress that survives its reader: when stdout/stderr is a pipe whose reader went away
+    (Blender quit or crashed while training), the write fails; training is then asked to stop,
+    which saves a checkpoint at once, instead of dying on the next write and losing up to a
+    whole checkpoint interval.  Reopening Blender resumes from there."""
+
+    def __init__(self, report, on_gone):
+        self.report, self.on_gone, self.gone = report, on_gone, False
+
+    def __call__(self, event: dict) -> None:
+        if self.gone:
+            return
+        try:
+            self.report(event)
+        except OSError:  # BrokenPipeError; on Windows a closed pipe can also raise EINVAL
+            self.gone = True
+            _detach_output()
+            self.on_gone()
+
+
+def _detach_output() -> None:
+    """Point stdout and stderr at the null device, so later writes and the exit flush succeed."""
+    devnull = os.open(os.devnull, os.O_WRONLY)
+    for stream in (sys.stdout, sys.stderr):
+        try:
+            os.dup2(devnull, stream.fileno())
+        except (OSError, ValueError, AttributeError):  # no real file descriptor (embedded or captured)
+            pass
+    os.close(devnull)
 
 
 # ----------------------------------------------------------------------------- render
@@ -141,6 +180,15 @@ def _focus_options(args):
     """(focus_distance, aperture, focus_pixel) from the render options, checked."""
     if args.aperture < 0:
         raise NeulfError("--aperture is a lens radius in scene units and cannot be negative.")
+    if args.f_stop is not None:
+        if args.aperture:
+            raise NeulfError("give either --aperture or --f-stop, not both.")
+        if args.f_stop <= 0 or not args.focal_length or args.focal_length <= 0:
+            raise NeulfError("--f-stop N needs a positive N and --focal-length F (the lens's focal length in scene units, "
+                             "e.g. 0.05 for a 50 mm lens in a scene measured in metres).")
+        from .refocus import aperture_from_f_stop
+
+        args.aperture = aperture_from_f_stop(args.focal_length, args.f_stop)
     pixel = None
     if args.focus_pixel:
         try:
@@ -164,6 +212,15 @@ def _render_pinhole(light_field, cam: dict, args, focus_options):
                               focus_distance=focus, aperture=aperture)
 
 
+def _looking_away(names: list[str], light_field, rendered: int, out: Path) -> str:
+    """The message for cameras none of whose rays cross the light slab."""
+    axis = ", ".join(f"{v:.2f}" for v in light_field.slab.rotation[2])
+    shown = ", ".join(names[:3]) + (" ..." if len(names) > 3 else "")
+    return (f"{len(names)} camera(s) ({shown}) look away from the captured scene: none of their rays cross the light "
+            f"slab. Turn them the way the capture looked (direction ({axis}) in the scene's frame); "
+            f"the other {rendered} image(s) are in {out}.")
+
+
 def cmd_render(args) -> int:
     from .render import LightField
     from .scene import load_scene
@@ -179,9 +236,16 @@ def cmd_render(args) -> int:
     out.mkdir(parents=True, exist_ok=True)
     count, started = 0, time.perf_counter()
     if args.cameras:
+        blind = []
         for cam in _load_cameras_json(args.cameras):
-            _save_rendering(out, cam["name"], _render_pinhole(light_field, cam, args, focus_options), args.depth)
+            rendering = _render_pinhole(light_field, cam, args, focus_options)
+            if not rendering.valid.any():  # a picture of the background colour only: say so, render the rest
+                blind.append(cam["name"])
+                continue
+            _save_rendering(out, cam["name"], rendering, args.depth)
             count += 1
+        if blind:
+            raise NeulfError(_looking_away(blind, light_field, count, out))
     else:
         names = _names(args.views)
         if not names:
@@ -293,6 +357,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--st-depth", type=float, help="st plane depth along the slab axis (scene units)")
     p.add_argument("--near", type=float)
     p.add_argument("--far", type=float)
+    p.add_argument("--consistency", action=argparse.BooleanOptionalAction, default=None,
+                   help="the paper's multi-view photometric and depth losses (default: the preset's choice)")
+    p.add_argument("--appearance", action="store_true",
+                   help="learn a colour transform per photo (captures with changing exposure or white balance)")
     p.add_argument("--device", help="cpu, cuda, mps (default: the fastest available)")
     p.set_defaults(run=cmd_train)
 
@@ -308,6 +376,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--focus-distance", type=float, help="refocus: focal depth along the optical axis (scene units)")
     p.add_argument("--aperture", type=float, default=0.0, help="refocus: lens radius in scene units (0: pinhole)")
     p.add_argument("--focus-pixel", help="refocus: X,Y pixel whose depth becomes the focus distance")
+    p.add_argument("--f-stop", type=float, help="refocus: aperture as an f-number (with --focal-length) instead of --aperture")
+    p.add_argument("--focal-length", type=float, help="refocus: the lens's focal length in scene units, for --f-stop")
     p.add_argument("--device")
     p.set_defaults(run=cmd_render)
 

@@ -48,3 +48,18 @@ def ssim(prediction, target, window: int = 11, sigma: float = 1.5) -> float:
     cov = filt(x * y) - mu_x * mu_y
     s = ((2 * mu_x * mu_y + c1) * (2 * cov + c2)) / ((mu_x ** 2 + mu_y ** 2 + c1) * (var_x + var_y + c2))
     return float(s.mean())
+
+
+def laplacian_variance(image: np.ndarray, mask: np.ndarray) -> float:
+    """Sharpness of an image region: the variance of the Laplacian of the grey image inside
+    `mask` (a focus measure; in-focus texture has strong second derivatives)."""
+    grey = np.asarray(image, dtype=np.float64).mean(axis=2)
+    lap = -4 * grey[1:-1, 1:-1] + grey[:-2, 1:-1] + grey[2:, 1:-1] + grey[1:-1, :-2] + grey[1:-1, 2:]
+    return float(lap[mask[1:-1, 1:-1]].var())
+
+
+def eroded(mask: np.ndarray, steps: int = 3) -> np.ndarray:
+    """`mask` shrunk by `steps` pixels, so a region's measure ignores its blurred border."""
+    for _ in range(steps):
+        mask = mask & np.roll(mask, 1, 0) & np.roll(mask, -1, 0) & np.roll(mask, 1, 1) & np.roll(mask, -1, 1)
+    return mask

@@ -20,6 +20,7 @@ class Preset:
     lr_decay_per_epoch: float | None = None   # the paper's schedule; None: decay over the budget
     lr_final_ratio: float = 0.1               # learning rate at the end of the budget / at start
     batch_size: int = 8192
+    consistency: bool = False                 # the paper's multi-view losses on by default (docs/DEPTH.md)
     description: str = ""
 
 

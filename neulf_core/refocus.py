@@ -18,6 +18,11 @@ import torch
 MAX_SAMPLES = 96
 
 
+def aperture_from_f_stop(focal_length: float, f_stop: float) -> float:
+    """Thin-lens aperture radius: focal length / (2 N), in the focal length's units."""
+    return focal_length / (2.0 * f_stop)
+
+
 def lens_samples(count: int) -> np.ndarray:
     """(count, 2) points spread evenly over the unit disk (Vogel's sunflower spiral)."""
     if count <= 1:

@@ -17,7 +17,9 @@ import numpy as np
 import torch
 
 from . import __version__
+from .appearance import ViewAppearance
 from .checkpoint import checkpoint_path, load_checkpoint, save_checkpoint
+from .consistency import SlabGeometry, camera_neighbours, multiview_losses
 from .dataset import RaySet, build_rayset, mean_colour
 from .device import describe_device, pick_device
 from .errors import NeulfError
@@ -28,6 +30,8 @@ from .scene import Scene, load_scene, scaled_size, split_views
 from .slab import Slab, fit_slab
 
 VALIDATION_RAYS = 1 << 16
+# The paper's loss weights: L = L_p + 0.5 L_mp + 0.1 L_d.
+MULTIVIEW_WEIGHT, DEPTH_WEIGHT = 0.5, 0.1
 
 
 @dataclass
@@ -48,6 +52,10 @@ class TrainConfig:
     far: float | None = None
     field_overrides: dict = field(default_factory=dict)
     device: str | None = None
+    consistency: bool | None = None     # the paper's multi-view losses L_mp, L_d (None: the preset's default)
+    consistency_rays: int = 2048        # rays per step that get them (each costs K more field queries)
+    neighbours: int = 5                 # K nearest training cameras
+    appearance: bool = False            # learn a per-photo colour transform (exposure, white balance)
 
     def budget_fraction(self, step: int, elapsed: float) -> float:
         fractions = []
@@ -104,8 +112,10 @@ def _build_field(preset_name: str, overrides: dict, train_views, slab: Slab, sca
     return build_field(preset.field, config), preset
 
 
-def _optimizer(field_module, lr: float) -> torch.optim.Optimizer:
+def _optimizer(field_module, lr: float, appearance: ViewAppearance | None = None) -> torch.optim.Optimizer:
     groups = field_module.param_groups(lr) if hasattr(field_module, "param_groups") else [{"params": field_module.parameters(), "lr": lr}]
+    if appearance is not None:
+        groups.append({"params": list(appearance.parameters()), "lr": lr, "name": "appearance"})
     for group in groups:
         group["initial_lr"] = group["lr"]
     return torch.optim.Adam(groups, betas=(0.9, 0.999), eps=1e-15 if len(groups) > 1 else 1e-8)
@@ -170,7 +180,12 @@ def train(scene: Scene | str | Path, model_dir: str | Path, config: TrainConfig,
     if resumed:
         field_module.load_state_dict(resumed["state_dict"])
     field_module.to(device).train()
-    optimizer = _optimizer(field_module, preset.lr)
+    appearance = ViewAppearance(len(train_views)).to(device) if config.appearance else None
+    if appearance is not None and resumed and resumed.get("appearance"):
+        appearance.load_state_dict(resumed["appearance"])
+    use_consistency = preset.consistency if config.consistency is None else config.consistency
+    consistency = _consistency_inputs(train_views, slab, config, device) if use_consistency else None
+    optimizer = _optimizer(field_module, preset.lr, appearance)
     batch = config.batch_size or preset.batch_size
     step, elapsed_before, history = 0, 0.0, []
     if resumed:
@@ -197,6 +212,7 @@ def train(scene: Scene | str | Path, model_dir: str | Path, config: TrainConfig,
 
     def save(status: str, val: float | None):
         payload = {**meta, "state_dict": field_module.state_dict(), "optimizer": optimizer.state_dict(),
+                   "appearance": appearance.state_dict() if appearance is not None else None,
                    "rng": {"torch": torch.get_rng_state(), "generator": generator.get_state()},
                    "progress": {"step": step, "elapsed": elapsed, "status": status, "val_psnr": val, "history": history}}
         path = save_checkpoint(model_dir, payload)
@@ -218,9 +234,8 @@ def train(scene: Scene | str | Path, model_dir: str | Path, config: TrainConfig,
         lr = _set_learning_rate(optimizer, preset, step, n_rays, batch, fraction, lr_scale)
         index = torch.randint(n_rays, (batch,), generator=generator).to(device)
         uvst, target = train_rays.batch(index)
-        rgb, _ = field_module(uvst)
-        loss = torch.mean((rgb - target) ** 2)
-        objective = loss + field_module.regularisation() if hasattr(field_module, "regularisation") else loss
+        view_index = train_rays.view_index[index].long()
+        loss, objective = _objective(field_module, uvst, target, view_index, appearance, consistency, config)
         optimizer.zero_grad(set_to_none=True)
         if not torch.isfinite(objective):
             # A NaN/inf step is skipped; repeated ones halve the learning rate (reported).
@@ -259,6 +274,32 @@ def train(scene: Scene | str | Path, model_dir: str | Path, config: TrainConfig,
     save(status, val)
     _emit(progress, event=status, step=step, elapsed=elapsed, val_psnr=val, model_dir=str(model_dir))
     return TrainResult(model_dir, status, step, elapsed, val, history)
+
+
+def _consistency_inputs(train_views, slab: Slab, config: TrainConfig, device):
+    if len(train_views) < 2:
+        raise NeulfError("the multi-view losses need at least two training views; train with consistency off.")
+    neighbours = camera_neighbours(np.stack([v.center for v in train_views]), slab, config.neighbours)
+    return SlabGeometry(slab, device), neighbours.to(device)
+
+
+def _objective(field_module, uvst, target, view_index, appearance, consistency, config: TrainConfig):
+    """(photometric loss L_p, everything minimised): L_p + regularisers + 0.5 L_mp + 0.1 L_d."""
+    rgb, unit = field_module(uvst)
+    seen = appearance(rgb, view_index) if appearance is not None else rgb
+    loss = torch.mean((seen - target) ** 2)
+    objective = loss + field_module.regularisation() if hasattr(field_module, "regularisation") else loss
+    if appearance is not None:
+        objective = objective + appearance.regularisation()
+    if consistency is not None:
+        geometry, neighbours = consistency
+        m = config.consistency_rays
+        # The photo's colour is compared with the neighbours' colours as photo k would see them.
+        as_seen = (lambda colours, views: appearance(colours, views)) if appearance is not None else None
+        loss_mp, loss_d = multiview_losses(field_module, geometry, neighbours, uvst[:m], target[:m], unit[:m],
+                                           view_index[:m], as_seen)
+        objective = objective + MULTIVIEW_WEIGHT * loss_mp + DEPTH_WEIGHT * loss_d
+    return loss, objective
 
 
 def _rig(views, scale: float) -> dict:

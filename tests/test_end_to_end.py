@@ -18,6 +18,7 @@ import pytest
 pytest.importorskip("bpy")
 
 from neulf_core.cli import main as cli_main  # noqa: E402
+from neulf_core.metrics import eroded, laplacian_variance  # noqa: E402
 from neulf_core.reconstruct import reconstruct  # noqa: E402
 from neulf_core.scene import load_scene  # noqa: E402
 
@@ -96,19 +97,6 @@ def test_train_render_eval_beats_mean_colour(trained, gt_scene, rendered, tmp_pa
         assert sum(1 for _ in container.decode(video=0)) == 6
 
 
-def _sharpness(image: np.ndarray, mask: np.ndarray) -> float:
-    """Variance of the Laplacian of the grey image inside `mask`."""
-    grey = image.astype(np.float64).mean(axis=2)
-    lap = -4 * grey[1:-1, 1:-1] + grey[:-2, 1:-1] + grey[2:, 1:-1] + grey[1:-1, :-2] + grey[1:-1, 2:]
-    return float(lap[mask[1:-1, 1:-1]].var())
-
-
-def _eroded(mask: np.ndarray, steps: int = 3) -> np.ndarray:
-    for _ in range(steps):
-        mask = mask & np.roll(mask, 1, 0) & np.roll(mask, -1, 0) & np.roll(mask, 1, 1) & np.roll(mask, -1, 1)
-    return mask
-
-
 def test_refocus_at_a_clicked_pixel_sharpens_that_object(trained, rendered, tmp_path):
     """Focus on the near sphere, then on the far wall (auto-refocus from a pixel): each object
     is sharper when focused on than when the other one is (the variance of the Laplacian)."""
@@ -121,7 +109,7 @@ def test_refocus_at_a_clicked_pixel_sharpens_that_object(trained, rendered, tmp_
     objects = np.load(truth / "object_index_view_00_00.npy")
     scene = json.loads((truth / "scene.json").read_text())
     index = {o["name"]: o["pass_index"] for o in scene["objects"]}
-    regions = {"sphere": _eroded(objects == index["NearSphere"]), "wall": _eroded(objects == index["BackWall"])}
+    regions = {"sphere": eroded(objects == index["NearSphere"]), "wall": eroded(objects == index["BackWall"])}
     images = {}
     for name, region in regions.items():
         ys, xs = np.nonzero(region)
@@ -132,6 +120,6 @@ def test_refocus_at_a_clicked_pixel_sharpens_that_object(trained, rendered, tmp_
         images[name] = np.asarray(Image.open(out / "view_00_00.png"))
     for name, region in regions.items():
         other = "wall" if name == "sphere" else "sphere"
-        ratio = _sharpness(images[name], region) / _sharpness(images[other], region)
+        ratio = laplacian_variance(images[name], region) / laplacian_variance(images[other], region)
         print(f"refocus sharpness ratio, {name}: {ratio:.2f}")
         assert ratio > 2.0, (name, ratio)

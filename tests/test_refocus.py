@@ -48,3 +48,9 @@ def test_every_lens_ray_of_a_pixel_meets_its_focal_point():
     # ... which is the pinhole ray's point at that depth.
     pinhole_point = (origin + directions * (focus / (directions @ torch.as_tensor(R[2])))[:, None]).numpy()
     assert np.abs(focal[0] - pinhole_point).max() < 1e-9
+
+
+def test_f_stop_gives_the_thin_lens_aperture_radius():
+    from neulf_core.refocus import aperture_from_f_stop
+
+    assert abs(aperture_from_f_stop(0.05, 2.0) - 0.0125) < 1e-15  # a 50 mm f/2 lens: 25 mm wide

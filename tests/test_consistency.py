@@ -1,0 +1,136 @@
+"""The paper's multi-view losses: geometry of the re-parameterised rays, the losses' meaning on
+an exactly Lambertian light field, and training with them (and with per-photo appearance)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from neulf_core.consistency import SlabGeometry, camera_neighbours, multiview_losses
+from neulf_core.slab import Slab
+
+Z_PLANE = 2.0  # depth of the textured wall the exact light field shows
+
+
+def _slab() -> Slab:
+    return Slab(rotation=np.eye(3), origin=np.zeros(3), z_uv=0.0, z_st=1.5, z_near=1.0, z_far=4.0,
+                lo=np.array([-0.6, -0.5, -1.2, -1.0]), hi=np.array([0.6, 0.5, 1.2, 1.0]))
+
+
+def _rig() -> np.ndarray:
+    xs, ys = np.meshgrid(np.linspace(-0.5, 0.5, 4), np.linspace(-0.4, 0.4, 3))
+    return np.stack([xs.ravel(), ys.ravel(), np.zeros(xs.size)], 1)
+
+
+class ExactWall(torch.nn.Module):
+    """The light field of a textured wall at depth Z_PLANE: colour from where the ray meets
+    the wall, depth output `unit` (a parameter, to check what the losses do to it)."""
+
+    def __init__(self, geometry: SlabGeometry, unit: float):
+        super().__init__()
+        self.geometry = geometry
+        self.unit = torch.nn.Parameter(torch.tensor(unit))
+
+    def forward(self, uvst):
+        raw = uvst * self.geometry.half + self.geometry.centre
+        uv, st = raw[:, :2], raw[:, 2:]
+        x = uv + (st - uv) * (Z_PLANE / self.geometry.z_st)
+        rgb = torch.stack([0.5 + 0.4 * torch.sin(7 * x[:, 0]) * torch.cos(5 * x[:, 1]),
+                           0.5 + 0.4 * torch.cos(6 * x[:, 0] + 1), 0.5 + 0.4 * torch.sin(4 * x[:, 1])], 1)
+        return rgb, self.unit.expand(len(uvst), 1)
+
+
+def _wall_rays(geometry, slab, rig, view, count=256, seed=0):
+    """Rays of training camera `view` that hit the wall inside the slab, as normalised uvst."""
+    generator = torch.Generator().manual_seed(seed)
+    centre = torch.tensor(rig[view], dtype=torch.float32)
+    points = torch.cat([torch.rand(count, 2, generator=generator) * 1.0 - 0.5, torch.full((count, 1), Z_PLANE)], 1)
+    uvst, inside = geometry.rays_through(centre.expand(count, 3), points)
+    assert bool(inside.all())
+    return uvst
+
+
+def test_surface_point_and_rays_through_it_are_consistent():
+    slab = _slab()
+    geometry = SlabGeometry(slab, "cpu")
+    centre = torch.tensor([[0.3, -0.2, 0.05]])
+    point = torch.tensor([[0.1, 0.25, 2.5]])
+    uvst, inside = geometry.rays_through(centre, point)
+    assert bool(inside.all())
+    # The re-parameterised ray, followed to the point's depth, lands on the point ...
+    unit = slab.unit_from_depth(torch.tensor([2.5]))
+    assert torch.allclose(geometry.surface_points(uvst, unit), point, atol=1e-5)
+    # ... and passes through the camera centre (slab.uvst_to_rays is the independent reference).
+    origin, direction = slab.uvst_to_rays(uvst.double())
+    to_centre = centre.double() - origin
+    assert torch.allclose(torch.linalg.cross(direction, to_centre), torch.zeros(1, 3, dtype=torch.float64), atol=1e-6)
+
+
+def test_neighbours_are_the_nearest_cameras_with_inverse_square_weights():
+    rig = _rig()
+    neighbours = camera_neighbours(rig, _slab(), k=5)
+    distance = np.linalg.norm(rig[:, None] - rig[None], axis=-1)
+    for view in range(len(rig)):
+        expected = np.argsort(np.where(np.arange(len(rig)) == view, np.inf, distance[view]))[:5]
+        assert set(neighbours.index[view].tolist()) == set(expected.tolist())
+        d = distance[view, neighbours.index[view].numpy()]
+        np.testing.assert_allclose(neighbours.weights[view].numpy(), (1 / d ** 2) / (1 / d ** 2).sum(), rtol=1e-5)
+
+
+def test_losses_vanish_at_the_true_depth_and_pull_a_wrong_depth_towards_it():
+    slab, rig = _slab(), _rig()
+    geometry = SlabGeometry(slab, "cpu")
+    neighbours = camera_neighbours(rig, slab, k=5)
+    true_unit = float(slab.unit_from_depth(torch.tensor(Z_PLANE)))
+    view = 5
+    uvst = _wall_rays(geometry, slab, rig, view)
+    views = torch.full((len(uvst),), view, dtype=torch.long)
+
+    exact = ExactWall(geometry, true_unit)
+    colours, unit = exact(uvst)
+    loss_mp, loss_d = multiview_losses(exact, geometry, neighbours, uvst, colours.detach(), unit, views)
+    assert float(loss_mp.detach()) < 1e-8 and float(loss_d.detach()) < 1e-10
+
+    # A ray that believes the wall is nearer: the neighbours see other parts of the texture.
+    wrong = torch.full((len(uvst), 1), true_unit + 0.15, requires_grad=True)
+    loss_mp, _ = multiview_losses(exact, geometry, neighbours, uvst, colours.detach(), wrong, views)
+    assert float(loss_mp.detach()) > 1e-4
+    loss_mp.backward()
+    assert float(wrong.grad.sum()) > 0  # gradient descent lowers the unit, back towards the truth
+
+
+def test_training_with_the_losses_and_appearance_runs_resumes_and_renders(tiny_scene, tmp_path):
+    from neulf_core.render import LightField
+    from neulf_core.train import TrainConfig, train
+
+    config = TrainConfig(preset="fast", steps=6, consistency=True, appearance=True, consistency_rays=64,
+                         batch_size=256, validate_seconds=1e9, field_overrides={"texture_size": [32, 32]})
+    first = train(tiny_scene, tmp_path / "m", config)
+    assert first.status == "finished" and first.step == 6
+    config.steps = 10
+    resumed = train(tiny_scene, tmp_path / "m", config, resume=True)
+    assert resumed.step == 10 and np.isfinite(resumed.val_psnr)
+    payload = torch.load(tmp_path / "m" / "checkpoint.pt", weights_only=False)
+    assert payload["appearance"]["matrix"].shape[1:] == (3, 3)
+    light_field = LightField.load(tmp_path / "m")
+    assert light_field.meta["train_config"]["consistency"] is True
+
+
+def test_every_registered_field_trains_with_the_losses(tiny_scene, tmp_path):
+    from neulf_core.fields import REGISTRY
+    from neulf_core.presets import PRESETS
+    from neulf_core.train import TrainConfig, train
+
+    small = {"mlp": {"depth": 2, "width": 32}, "planes": {"spatial_res": [8, 16], "channels": 4},
+             "disparity": {"texture_size": [16, 16]}}
+    tried = set()
+    for name, preset in PRESETS.items():
+        if preset.field in tried or preset.field not in small:
+            continue
+        tried.add(preset.field)
+        result = train(tiny_scene, tmp_path / name, TrainConfig(preset=name, steps=3, consistency=True, batch_size=128,
+                                                                consistency_rays=32, validate_seconds=1e9,
+                                                                field_overrides=small[preset.field]))
+        assert result.step == 3 and np.isfinite(result.val_psnr), name
+    assert tried == set(REGISTRY)
