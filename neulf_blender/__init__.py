@@ -1,23 +1,23 @@
 """NeuLF for Blender: import captures, train and render neural light fields.
 
 Modules: convert (camera maths, numpy only), jobs (processes, no bpy), core (where
-neulf_core runs), capture (Blender objects), properties, operators, panel, engine,
-preferences, tasks (job polling).  Nothing here imports bpy at import time, so the
+neulf_core runs), capture (Blender objects), properties, operators, focus (focus_at and
+the click-to-focus eyedropper), panel, engine, preferences, tasks (job polling).  Nothing here imports bpy at import time, so the
 Blender-free parts can be tested without Blender.
 """
 
 
 def _modules():
-    from . import engine, operators, panel, preferences, properties
+    from . import engine, focus, operators, panel, preferences, properties
 
-    return properties, preferences, operators, panel, engine
+    return properties, preferences, operators, focus, panel, engine
 
 
 def register():
     import bpy
 
-    properties, preferences, operators, panel, engine = _modules()
-    for module in (properties, preferences, operators, panel, engine):
+    properties, preferences, operators, focus, panel, engine = _modules()
+    for module in (properties, preferences, operators, focus, panel, engine):
         for cls in module.CLASSES:
             bpy.utils.register_class(cls)
     properties.register()
@@ -30,12 +30,12 @@ def unregister():
 
     from . import core, tasks
 
-    properties, preferences, operators, panel, engine = _modules()
+    properties, preferences, operators, focus, panel, engine = _modules()
     tasks.cancel_all()
     core.shutdown()
     bpy.types.TOPBAR_MT_file_import.remove(operators.menu_import)
     engine.unregister()
     properties.unregister()
-    for module in (engine, panel, operators, preferences, properties):
+    for module in (engine, panel, focus, operators, preferences, properties):
         for cls in reversed(module.CLASSES):
             bpy.utils.unregister_class(cls)

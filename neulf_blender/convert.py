@@ -9,6 +9,8 @@ Blender camera comes back to within float rounding.
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 FLIP = np.diag([1.0, -1.0, -1.0, 1.0])  # COLMAP camera axes <-> Blender camera axes
@@ -51,6 +53,52 @@ def K_from_blender(*, lens: float, sensor_width: float, sensor_height: float, se
     cx = width / 2.0 - shift_x * viewfac
     cy = height / 2.0 + shift_y * viewfac * ax / ay
     return np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
+
+
+def _viewplane(winx: float, winy: float, aspx: float, aspy: float, *, sensor_fit: str, zoom: float = 1.0,
+               shift_x: float = 0.0, shift_y: float = 0.0, offset_x: float = 0.0, offset_y: float = 0.0):
+    """Blender's view plane (BKE_camera_params_compute_viewplane) up to the factor
+    sensor * clip_start / lens (or ortho_scale), which both planes of a camera view share."""
+    ycor = aspy / aspx
+    fit = sensor_fit
+    if fit == "AUTO":
+        fit = "HORIZONTAL" if aspx * winx >= aspy * winy else "VERTICAL"
+    viewfac = winx if fit == "HORIZONTAL" else ycor * winy
+    pixsize = zoom / viewfac
+    dx = shift_x * viewfac + winx * offset_x
+    dy = shift_y * viewfac + winy * offset_y
+    return ((-0.5 * winx + dx) * pixsize, (-0.5 * ycor * winy + dy) * pixsize,
+            (0.5 * winx + dx) * pixsize, (0.5 * ycor * winy + dy) * pixsize)
+
+
+def camera_view_border(region_width: int, region_height: int, *, view_camera_zoom: float,
+                       view_camera_offset: tuple[float, float], sensor_fit: str, shift_x: float, shift_y: float,
+                       resolution_x: int, resolution_y: int, pixel_aspect_x: float = 1.0,
+                       pixel_aspect_y: float = 1.0) -> tuple[float, float, float, float]:
+    """(xmin, ymin, xmax, ymax) of the camera frame in a viewport looking through the camera,
+    in region pixels (origin bottom-left), as Blender draws it (ED_view3d_calc_camera_border).
+
+    The viewport's plane is the camera's own, scaled by the view zoom and moved by the view
+    offset; the frame is the render's plane (resolution and pixel aspect) inside it."""
+    fac = (math.sqrt(2.0) + view_camera_zoom / 50.0) ** 2 / 4.0   # BKE_screen_view3d_zoom_to_fac
+    view = _viewplane(region_width, region_height, 1.0, 1.0, sensor_fit=sensor_fit, zoom=1.0 / fac,
+                      shift_x=shift_x * fac, shift_y=shift_y * fac, offset_x=2.0 * view_camera_offset[0] * fac,
+                      offset_y=2.0 * view_camera_offset[1] * fac)
+    frame = _viewplane(resolution_x, resolution_y, pixel_aspect_x, pixel_aspect_y, sensor_fit=sensor_fit,
+                       shift_x=shift_x, shift_y=shift_y)
+    width, height = view[2] - view[0], view[3] - view[1]
+    return ((frame[0] - view[0]) / width * region_width, (frame[1] - view[1]) / height * region_height,
+            (frame[2] - view[0]) / width * region_width, (frame[3] - view[1]) / height * region_height)
+
+
+def border_to_pixel(border, x: float, y: float, width: int, height: int) -> tuple[float, float] | None:
+    """Image point (pixels from the top-left corner) under region point (x, y) (from the
+    bottom-left), or None outside the camera frame `border`."""
+    xmin, ymin, xmax, ymax = border
+    u, v = (x - xmin) / (xmax - xmin), (ymax - y) / (ymax - ymin)
+    if not (0.0 <= u <= 1.0 and 0.0 <= v <= 1.0):
+        return None
+    return u * width, v * height
 
 
 def matrix_from_pose(R, t) -> np.ndarray:

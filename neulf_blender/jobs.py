@@ -55,7 +55,7 @@ def explain_failure(stderr_lines) -> str:
     """One line for the user from a failed process's stderr."""
     lines = [line.strip() for line in stderr_lines if line.strip()]
     for line in reversed(lines):
-        if line.startswith("error:"):
+        if line.lower().startswith("error:"):  # neulf_core's "error: ...", pip's "ERROR: ..."
             return line[len("error:"):].strip()
     for line in reversed(lines):
         if "No module named" in line:
@@ -274,8 +274,6 @@ class WorkerClient:
         return self.process is not None and self.process.poll() is None
 
     def call(self, op: str, *, on_progress=None, should_stop=None, timeout: float | None = None, **args):
-        from ..neulf_core.worker import decode
-
         if not self.alive:
             self._start()
         self._next_id += 1
@@ -339,6 +337,26 @@ class WorkerClient:
                 self.process.kill()
                 self.process.wait(timeout=5)
         self.process = None
+
+
+def decode(value):
+    """A worker result with its arrays loaded: ``{"__npy__": PATH}`` -> the array (file removed).
+
+    The inverse of neulf_core.worker's encoding, kept here because this side runs in Blender's
+    Python: importing neulf_core.worker there would pull in what it imports (pycolmap, torch),
+    which a stock Blender does not have."""
+    import numpy as np
+
+    if isinstance(value, dict):
+        if set(value) == {"__npy__"}:
+            path = Path(value["__npy__"])
+            array = np.load(path)
+            path.unlink(missing_ok=True)
+            return array
+        return {k: decode(v) for k, v in value.items()}
+    if isinstance(value, list):
+        return [decode(v) for v in value]
+    return value
 
 
 def python_check_job(python: str, env: dict | None = None) -> CommandJob:

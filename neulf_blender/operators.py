@@ -316,109 +316,6 @@ class NEULF_OT_render_camera(_Reporting, bpy.types.Operator):
         return {"FINISHED"}
 
 
-def focus_at(context, x: float, y: float) -> float:
-    """Set the active camera's focus distance to the light field's depth at image point (x, y)."""
-    scene = context.scene
-    camera = scene.camera
-    request = capture.camera_request(scene, camera)
-    width, height = request["width"], request["height"]
-    if not (0 <= x <= width and 0 <= y <= height):
-        raise NeulfError(f"point ({x:.0f}, {y:.0f}) is outside the {width}x{height} camera image.")
-    result = get_core(context).call("depth_at", model_dir=model_dir(scene), K=request["K"], R=request["R"],
-                                    t=request["t"], x=float(x), y=float(y))
-    distance = result["depth"] * request["scale"]
-    dof = camera.data.dof
-    dof.use_dof = True
-    dof.focus_object = None
-    dof.focus_distance = distance
-    return distance
-
-
-class NEULF_OT_focus_at(_Reporting, bpy.types.Operator):
-    """Focus the active camera on the light field's depth at an image point (pixels, top-left origin)"""
-
-    bl_idname = "neulf.focus_at"
-    bl_label = "Focus At Point"
-    bl_options = {"REGISTER", "UNDO"}
-
-    x: FloatProperty(name="X", description="Pixels from the left edge (pixel i's centre is i + 0.5)")
-    y: FloatProperty(name="Y", description="Pixels from the top edge (pixel j's centre is j + 0.5)")
-
-    def run(self, context):
-        distance = focus_at(context, self.x, self.y)
-        self.report({"INFO"}, f"focus distance {distance:.4g}")
-        return {"FINISHED"}
-
-
-def _window_region_under(context, event):
-    area = context.area
-    areas = [area] if area is not None and area.type == "VIEW_3D" else []
-    areas += [a for a in context.screen.areas if a.type == "VIEW_3D" and a not in areas]
-    for candidate in areas:
-        for region in candidate.regions:
-            if region.type == "WINDOW" and region.x <= event.mouse_x < region.x + region.width and \
-                    region.y <= event.mouse_y < region.y + region.height:
-                return candidate, region
-    return None, None
-
-
-class NEULF_OT_pick_focus(bpy.types.Operator):
-    """Click on what should be sharp in the camera view; its light-field depth becomes the focus distance"""
-
-    bl_idname = "neulf.pick_focus"
-    bl_label = "Pick Focus"
-    bl_options = {"REGISTER", "UNDO"}
-
-    def invoke(self, context, event):
-        if context.scene.camera is None:
-            self.report({"ERROR"}, "the scene has no active camera.")
-            return {"CANCELLED"}
-        context.window.cursor_modal_set("EYEDROPPER")
-        context.window_manager.modal_handler_add(self)
-        context.workspace.status_text_set("Click on what should be sharp (camera view); Esc / right click cancels")
-        return {"RUNNING_MODAL"}
-
-    def _end(self, context):
-        context.window.cursor_modal_restore()
-        context.workspace.status_text_set(None)
-
-    def modal(self, context, event):
-        if event.type in {"ESC", "RIGHTMOUSE"}:
-            self._end(context)
-            return {"CANCELLED"}
-        if event.type != "LEFTMOUSE" or event.value != "PRESS":
-            return {"RUNNING_MODAL"}
-        self._end(context)
-        area, region = _window_region_under(context, event)
-        if region is None:
-            self.report({"ERROR"}, "click inside a 3D viewport that looks through the camera.")
-            return {"CANCELLED"}
-        space = area.spaces.active
-        if space.region_3d.view_perspective != "CAMERA":
-            self.report({"ERROR"}, "look through the camera first (Numpad 0), then pick the focus.")
-            return {"CANCELLED"}
-        from bpy_extras.view3d_utils import location_3d_to_region_2d
-
-        scene, camera = context.scene, context.scene.camera
-        frame = [camera.matrix_world @ corner for corner in camera.data.view_frame(scene=scene)]
-        corners = [location_3d_to_region_2d(region, space.region_3d, c) for c in frame]
-        if any(c is None for c in corners):
-            self.report({"ERROR"}, "the camera frame is not visible in this viewport.")
-            return {"CANCELLED"}
-        xs, ys = [c.x for c in corners], [c.y for c in corners]
-        mx, my = event.mouse_x - region.x, event.mouse_y - region.y
-        request = capture.camera_request(scene, camera)
-        x = (mx - min(xs)) / max(max(xs) - min(xs), 1e-9) * request["width"]
-        y = (max(ys) - my) / max(max(ys) - min(ys), 1e-9) * request["height"]
-        try:
-            distance = focus_at(context, x, y)
-        except NeulfError as exc:
-            self.report({"ERROR"}, str(exc))
-            return {"CANCELLED"}
-        self.report({"INFO"}, f"focus distance {distance:.4g}")
-        return {"FINISHED"}
-
-
 # ----------------------------------------------------------------------------- camera paths and video
 
 
@@ -532,5 +429,5 @@ def menu_import(self, context):
 
 
 CLASSES = (NEULF_OT_import_colmap, NEULF_OT_reconstruct, NEULF_OT_load_model, NEULF_OT_train, NEULF_OT_cancel_train,
-           NEULF_OT_render_camera, NEULF_OT_focus_at, NEULF_OT_pick_focus, NEULF_OT_spiral_path,
+           NEULF_OT_render_camera, NEULF_OT_spiral_path,
            NEULF_OT_render_video, NEULF_OT_use_capture_camera)

@@ -80,7 +80,6 @@ class NEULF_PT_main(bpy.types.Panel):
         row.prop(props, "spiral_frames")
         row.operator("neulf.spiral_path", text="Spiral Path", icon="CURVE_BEZCIRCLE")
         col.operator("neulf.render_video", icon="RENDER_ANIMATION")
-        layout.label(text="Depth of field: focus only (refocus blur not yet)", icon="INFO")
 
 
 CLASSES = (NEULF_PT_main,)

@@ -169,6 +169,9 @@ class NEULF_OT_install_dependencies(bpy.types.Operator):
         if bpy.app.background:
             job.wait()
             tasks.poll_all()
+            if job.state["status"] != "finished":
+                self.report({"ERROR"}, f"install failed: {job.state['error']}")
+                return {"CANCELLED"}
         else:
             self.report({"INFO"}, f"installing torch and pycolmap into {target} (several minutes)")
         return {"FINISHED"}

@@ -4,12 +4,12 @@ import bpy
 from bpy.props import BoolProperty, EnumProperty, FloatProperty, IntProperty, StringProperty
 
 def _relative_path_options() -> set:
-    """Blender 4.5+ warns about '//' paths unless the property says it supports them."""
-    try:
-        bpy.props.StringProperty(options={"PATH_SUPPORTS_BLEND_RELATIVE"})
-    except (TypeError, ValueError):
-        return set()
-    return {"PATH_SUPPORTS_BLEND_RELATIVE"}
+    """Blender 4.5+ warns about '//' paths unless the property says it supports them; 4.2
+    rejects the option, and only when the class registers (bpy.props defers the check), so
+    ask RNA whether properties know the flag."""
+    if "is_path_supports_blend_relative" in bpy.types.Property.bl_rna.properties:
+        return {"PATH_SUPPORTS_BLEND_RELATIVE"}
+    return set()
 
 
 PATH_OPTIONS = _relative_path_options()

@@ -27,7 +27,6 @@ from pathlib import Path
 import numpy as np
 
 from .errors import NeulfError
-from .rays import single_pixel_K  # noqa: F401  (re-exported: the extension and its tests use it here)
 
 PROTOCOL_VERSION = 1
 
@@ -132,6 +131,8 @@ class Service:
     def depth_at(self, model_dir: str, K, R, t, x: float, y: float) -> dict:
         """Depth along the optical axis of the ray through image point (x, y) (pixel units,
         top-left origin; pixel (i, j) has its centre at (i + 0.5, j + 0.5)): a 1-ray render."""
+        from .rays import single_pixel_K  # imported here: Blender's Python imports this module and has no pycolmap
+
         K1 = single_pixel_K(K, x, y)
         field = self.light_field(model_dir)
         rendering = field.render(K1, 1, 1, np.asarray(R), np.asarray(t), depth=True)

@@ -10,6 +10,9 @@ from __future__ import annotations
 import importlib
 import io
 import json
+import math
+import os
+import subprocess
 import sys
 from pathlib import Path
 
@@ -105,7 +108,7 @@ def test_image_rows_and_colour(ext):
 def test_single_pixel_K_is_that_pixels_ray():
     torch = pytest.importorskip("torch")
     from neulf_core.rays import pinhole_rays
-    from neulf_core.worker import single_pixel_K
+    from neulf_core.rays import single_pixel_K
 
     K = np.array([[58.0, 0, 33.3], [0, 61.0, 22.6], [0, 0, 1]])
     R, t = np.eye(3), np.zeros(3)
@@ -177,3 +180,67 @@ def test_explain_failure(ext):
     assert ext.jobs.explain_failure(["x", "error: the scene is bad."]) == "the scene is bad."
     assert "no 'torch'" in ext.jobs.explain_failure(["ModuleNotFoundError: No module named 'torch'"])
     assert ext.jobs.explain_failure([]) == "the process ended without a message."
+
+
+def test_camera_view_border(ext):
+    border = ext.convert.camera_view_border
+    common = dict(sensor_fit="AUTO", shift_x=0.0, shift_y=0.0, resolution_x=800, resolution_y=500)
+    fit_zoom = 50 * (2 - math.sqrt(2))  # Blender's zoom factor 1: the frame fills a region of its aspect
+    assert border(800, 500, view_camera_zoom=fit_zoom, view_camera_offset=(0, 0), **common) == pytest.approx(
+        (0, 0, 800, 500))
+    # A region twice as big shows the same frame twice as big, centred.
+    assert border(1600, 1000, view_camera_zoom=fit_zoom, view_camera_offset=(0, 0), **common) == pytest.approx(
+        (0, 0, 1600, 1000))
+    # Panning the view by 0.1 (of the frame's width) moves the frame the other way.
+    assert border(800, 500, view_camera_zoom=fit_zoom, view_camera_offset=(0.1, 0), **common) == pytest.approx(
+        (-160, 0, 640, 500))
+    # A region of another aspect: the frame keeps its own, fitted to the region's width, centred.
+    assert border(1000, 500, view_camera_zoom=fit_zoom, view_camera_offset=(0, 0), **common) == pytest.approx(
+        (0, -62.5, 1000, 562.5))
+    # Wide pixels (aspect 2:1) make the frame twice as wide for its pixel count.
+    tall = dict(common, resolution_x=400, pixel_aspect_x=2.0)
+    assert border(800, 500, view_camera_zoom=fit_zoom, view_camera_offset=(0, 0), **tall) == pytest.approx(
+        (0, 0, 800, 500))
+
+
+def test_border_to_pixel(ext):
+    to_pixel = ext.convert.border_to_pixel
+    frame = (100.0, 50.0, 740.0, 530.0)  # 640 x 480 region pixels for a 64 x 48 image
+    assert to_pixel(frame, 100.0, 530.0, 64, 48) == pytest.approx((0, 0))        # top-left corner
+    assert to_pixel(frame, 740.0, 50.0, 64, 48) == pytest.approx((64, 48))       # bottom-right corner
+    assert to_pixel(frame, 405.0, 325.0, 64, 48) == pytest.approx((30.5, 20.5))  # a pixel centre
+    assert to_pixel(frame, 99.0, 300.0, 64, 48) is None and to_pixel(frame, 300.0, 531.0, 64, 48) is None
+
+
+BLOCK_TORCH = """
+import importlib.abc, json, sys
+class Block(importlib.abc.MetaPathFinder):
+    def find_spec(self, name, path=None, target=None):
+        if name.split(".")[0] in ("torch", "pycolmap", "bpy"):
+            raise ImportError(f"No module named {name!r} (blocked: Blender's Python has none)")
+sys.meta_path.insert(0, Block())
+sys.path.insert(0, sys.argv[1])
+from neulf_ext.neulf_blender import jobs
+client = jobs.WorkerClient(sys.argv[2], sys.argv[3], jobs.core_environment())
+try:
+    description = client.call("describe_scene", scene_dir=sys.argv[4], timeout=120)
+finally:
+    client.close()
+print(json.dumps({"points": list(description["points"].shape), "views": len(description["views"]),
+                  "loaded": sorted(m for m in ("torch", "pycolmap") if m in sys.modules)}))
+"""
+
+
+def test_worker_route_needs_no_torch_in_blender(ext, tmp_path):
+    """Blender's Python has no torch or pycolmap: the client side of the worker must not import them."""
+    pytest.importorskip("torch")
+    from test_blender_extension import make_scene
+
+    scene = make_scene(tmp_path / "capture")
+    parent = Path(sys.modules["neulf_ext"].__path__[0]).parent
+    run = subprocess.run([sys.executable, "-c", BLOCK_TORCH, str(parent), sys.executable, str(tmp_path / "scratch"),
+                          str(scene)], capture_output=True, text=True, timeout=300, cwd=tmp_path,
+                         env=dict(os.environ, PYTHONPATH=""))
+    assert run.returncode == 0, run.stderr[-3000:]
+    answer = json.loads(run.stdout.strip().splitlines()[-1])
+    assert answer == {"points": [270, 3], "views": 9, "loaded": []}

@@ -1,0 +1,647 @@
+"""The artist's story, told inside a bpy process: `python blender_story.py SETUP.json`.
+
+Run by tests/test_blender_extension.py (not collected by pytest itself).  Needs only bpy and
+numpy in the Blender process, as a stock Blender has: the capture, the reference values from
+pycolmap and neulf_core, and the folder of photos are written beforehand by the pytest side
+into SETUP.json.  With "worker_python" set (the bpy 4.2 run), neulf_core runs in that
+interpreter, as it does for a user whose Blender has no torch.
+
+Each step's outcome goes to the results file, checked by its own test.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import sys
+import time
+import traceback
+from pathlib import Path
+
+import numpy as np
+
+PACKAGE = "bl_ext.user_default.neulf"
+
+# ----------------------------------------------------------------------------- the synthetic capture (numpy only)
+
+WIDTH, HEIGHT = 64, 48
+FX, FY, CX, CY = 58.0, 61.0, 33.3, 22.6          # non-square pixels, off-centre principal point
+PLANE_POINT = np.array([0.0, 0.0, 4.0])
+PLANE_NORMAL = np.array([0.25, -0.15, -1.0]) / np.linalg.norm([0.25, -0.15, -1.0])
+GRID = [(x, y) for y in (-0.3, 0.0, 0.3) for x in (-0.3, 0.0, 0.3)]
+
+STEPS = ["install", "import", "cameras_match_pycolmap", "slab_planes", "reimport_no_duplicates", "train_blocking",
+         "train_timer_resume", "train_cancel", "render_camera", "render_worker_process", "focus_at",
+         "pick_focus_frame", "pick_focus_click", "root_scale", "engine_f12", "spiral_video", "save_reload",
+         "reconstruct_photos", "user_errors", "dependencies_status", "install_dependencies"]
+
+
+def _look_rotation(centre, target):
+    z = target - centre
+    z = z / np.linalg.norm(z)
+    x = np.cross([0.0, 1.0, 0.0], z)
+    x /= np.linalg.norm(x)
+    return np.stack([x, np.cross(z, x), z])
+
+
+def scene_views():
+    views = []
+    for i, (x, y) in enumerate(GRID):
+        centre = np.array([x, y, 0.1 * (i % 2)])
+        R = _look_rotation(centre, np.array([0.05 * x, 0.05 * y, 4.0]))
+        views.append({"name": f"view_{i:02d}.png", "R": R, "t": -R @ centre})
+    return views
+
+
+def K_matrix():
+    return np.array([[FX, 0, CX], [0, FY, CY], [0, 0, 1.0]])
+
+
+def trace(R, t, K=None, width=WIDTH, height=HEIGHT):
+    """Colour (H, W, 3) and depth along the optical axis (H, W) of the textured tilted plane."""
+    K = K_matrix() if K is None else K
+    xs, ys = np.meshgrid(np.arange(width) + 0.5, np.arange(height) + 0.5)
+    bearings = np.stack([(xs - K[0, 2]) / K[0, 0], (ys - K[1, 2]) / K[1, 1], np.ones_like(xs)], -1)
+    directions = bearings @ R
+    origin = -R.T @ t
+    s = ((PLANE_POINT - origin) @ PLANE_NORMAL) / (directions @ PLANE_NORMAL)
+    hit = origin + directions * s[..., None]
+    e1 = np.cross(PLANE_NORMAL, [0, 1, 0])
+    e1 /= np.linalg.norm(e1)
+    e2 = np.cross(PLANE_NORMAL, e1)
+    a, b = hit @ e1, hit @ e2
+    rgb = np.stack([0.5 + 0.35 * np.sin(2.1 * a + 0.5) * np.cos(1.3 * b),
+                    0.5 + 0.35 * np.cos(1.7 * b - 0.3),
+                    0.5 + 0.3 * np.sin(1.1 * (a + b))], -1)
+    return np.clip(rgb, 0, 1), s * bearings[..., 2]  # bearing z = 1: s is the axis depth
+
+
+def photo_bytes(rgb):
+    """The 8-bit values make_scene writes to the PNG files."""
+    return (rgb * 255 + 0.5).astype(np.uint8)
+
+
+# ----------------------------------------------------------------------------- the story
+
+
+class Story:
+    def __init__(self, results: Path):
+        self.results_path = results
+        self.results: dict = {}
+
+    def step(self, name, *needs):
+        def wrap(fn):
+            missing = [n for n in needs if not self.results.get(n, {}).get("ok")]
+            started = time.monotonic()
+            if missing:
+                self.results[name] = {"ok": False, "detail": f"skipped: needs {', '.join(missing)}", "seconds": 0}
+            else:
+                try:
+                    detail = fn()
+                    self.results[name] = {"ok": True, "detail": detail or "", "seconds": time.monotonic() - started}
+                except BaseException:  # noqa: BLE001 - every failure is reported, the story goes on
+                    self.results[name] = {"ok": False, "detail": traceback.format_exc(), "seconds": time.monotonic() - started}
+            print(f"[{name}] {'ok' if self.results[name]['ok'] else 'FAILED'} {self.results[name]['seconds']:.1f}s "
+                  f"{str(self.results[name]['detail'])[-2000:]}", flush=True)
+            self.results_path.write_text(json.dumps(self.results, indent=1, default=str))
+            return fn
+        return wrap
+
+
+def error_of(call) -> str:
+    """The message of an operator's ERROR report (background mode raises it as RuntimeError)."""
+    try:
+        call()
+    except RuntimeError as exc:
+        return str(exc)
+    raise AssertionError("expected an error report")
+
+
+def run_story(setup: dict) -> None:  # noqa: C901 - one story, told in order
+    import bpy
+    from mathutils import Matrix
+
+    zip_path, work = Path(setup["zip"]), Path(setup["work"])
+    scene_dir, reference = Path(setup["scene_dir"]), setup["reference"]
+    worker_python = setup.get("worker_python")
+    story = Story(Path(setup["results"]))
+    ctx = {}
+    flip = np.diag([1.0, -1.0, -1.0, 1.0])
+
+    def mod(name):
+        return sys.modules[f"{PACKAGE}.neulf_blender.{name}"]
+
+    def prefs():
+        return bpy.context.preferences.addons[PACKAGE].preferences
+
+    def cameras():
+        coll = bpy.data.collections[bpy.context.scene.neulf.collection_name]
+        return sorted((o for o in coll.objects if o.type == "CAMERA"), key=lambda o: o["neulf_view"])
+
+    def root():
+        return bpy.data.objects[bpy.context.scene.neulf.root_name]
+
+    def image_array(name):
+        image = bpy.data.images[name]
+        width, height = image.size
+        pixels = np.empty(width * height * 4, np.float32)
+        image.pixels.foreach_get(pixels)
+        return pixels.reshape(height, width, 4)[::-1, :, :3]
+
+    def load_png(path):
+        """A PNG's 8-bit values / 255 (a byte image's pixels are the file's values)."""
+        image = bpy.data.images.load(str(path), check_existing=False)
+        try:
+            image.name = "_story_png"
+            return image_array(image.name).copy()
+        finally:
+            bpy.data.images.remove(image)
+
+    def psnr(a, b):
+        return -10 * math.log10(max(float(np.mean((a - b) ** 2)), 1e-12))
+
+    @story.step("install")
+    def _():
+        bpy.ops.extensions.package_install_files(filepath=str(zip_path), repo="user_default", enable_on_install=True)
+        assert PACKAGE in bpy.context.preferences.addons, list(bpy.context.preferences.addons.keys())
+        assert hasattr(bpy.types.Scene, "neulf") and hasattr(bpy.ops.neulf, "import_colmap")
+        assert hasattr(bpy.ops.neulf, "pick_focus") and hasattr(bpy.types, "NEULF_PT_main")
+        installed = Path(sys.modules[PACKAGE].__file__).parent
+        assert (installed / "neulf_core" / "worker.py").is_file()
+        ext_user = bpy.utils.extension_path_user(PACKAGE, create=True)
+        assert str(work) in ext_user, ext_user
+        if worker_python:  # as a user of a Blender without torch does, in the preferences
+            prefs().python_path = worker_python
+            assert not mod("preferences").get_core().in_process
+        return f"Blender {bpy.app.version_string}, installed in {installed}" + (
+            f", worker {worker_python}" if worker_python else "")
+
+    @story.step("import", "install")
+    def _():
+        bpy.ops.wm.read_homefile(use_empty=True)
+        result = bpy.ops.neulf.import_colmap(directory=str(scene_dir))
+        assert result == {"FINISHED"}, result
+        cams = cameras()
+        assert [c["neulf_view"] for c in cams] == [v["name"] for v in scene_views()]
+        assert [c.name for c in cams] == [Path(v["name"]).stem for v in scene_views()]
+        scene = bpy.context.scene
+        assert (scene.render.resolution_x, scene.render.resolution_y) == (WIDTH, HEIGHT)
+        assert scene.camera in cams
+        assert any(o.get("neulf_role") == "points" and len(o.data.vertices) == 270 for o in bpy.data.objects)
+
+    @story.step("cameras_match_pycolmap", "import")
+    def _():
+        scene = bpy.context.scene
+        points = np.array(reference["points"])
+        root_inv = np.array(root().matrix_world.inverted())
+        worst_px = worst_pose = 0.0
+        for cam_obj, view, colmap_px in zip(cameras(), scene_views(), reference["colmap_px"]):
+            bpy.context.view_layer.update()
+            mod("capture").apply_capture_camera(scene, cam_obj)
+            depsgraph = bpy.context.evaluated_depsgraph_get()
+            r = scene.render
+            P = np.array(cam_obj.calc_matrix_camera(depsgraph, x=r.resolution_x, y=r.resolution_y,
+                                                    scale_x=r.pixel_aspect_x, scale_y=r.pixel_aspect_y))
+            K_blender = np.array([[P[0, 0] * WIDTH / 2, 0, WIDTH / 2 * (1 - P[0, 2])],
+                                  [0, P[1, 1] * HEIGHT / 2, HEIGHT / 2 * (1 + P[1, 2])], [0, 0, 1]])
+            assert np.allclose(K_blender, K_matrix(), atol=1e-3), K_blender
+            C = root_inv @ np.array(cam_obj.matrix_world) @ flip
+            expected = np.eye(4)
+            expected[:3, :3], expected[:3, 3] = view["R"].T, -view["R"].T @ view["t"]
+            worst_pose = max(worst_pose, float(np.abs(C - expected).max()))
+            # Project the sparse points with Blender's matrices (through the root, in world space)
+            # and compare with pycolmap's projection (computed beforehand by the pytest side).
+            world = (np.array(root().matrix_world) @ np.c_[points, np.ones(len(points))].T)
+            clip = P @ np.array(cam_obj.matrix_world.inverted()) @ world
+            ndc = clip[:2] / clip[3]
+            blender_px = np.stack([(ndc[0] + 1) / 2 * WIDTH, (1 - ndc[1]) / 2 * HEIGHT], 1)
+            worst_px = max(worst_px, float(np.abs(blender_px - np.array(colmap_px)).max()))
+        assert worst_pose < 1e-5, worst_pose
+        assert worst_px < 1e-3, worst_px
+        return f"max projection error {worst_px:.2e} px, pose error {worst_pose:.1e}"
+
+    @story.step("slab_planes", "import")
+    def _():
+        worst = 0.0
+        root_inv = root().matrix_world.inverted()
+        for plane in ("uv", "st"):
+            obj = next(o for o in bpy.data.objects if o.get("neulf_role") == f"{plane}_plane")
+            corners = np.array([list(root_inv @ obj.matrix_world @ v.co) for v in obj.data.vertices])
+            worst = max(worst, float(np.abs(corners - np.array(reference["slab_corners"][plane])).max()))
+        assert worst < 1e-5, worst
+        return f"max corner error {worst:.1e}"
+
+    @story.step("reimport_no_duplicates", "import")
+    def _():
+        before = len(bpy.data.objects), len(bpy.data.collections), len(bpy.data.cameras)
+        root().matrix_world = Matrix.Rotation(0.3, 4, "Z") @ root().matrix_world  # the user's orientation ...
+        kept = root().matrix_world.copy()
+        assert bpy.ops.neulf.import_colmap(directory=str(scene_dir)) == {"FINISHED"}
+        after = len(bpy.data.objects), len(bpy.data.collections), len(bpy.data.cameras)
+        assert before == after, (before, after)
+        assert np.allclose(np.array(root().matrix_world), np.array(kept))  # ... survives a re-import
+
+    model = work / "model"
+
+    @story.step("train_blocking", "import")
+    def _():
+        props = bpy.context.scene.neulf
+        props.model_dir = str(model)
+        started = time.monotonic()
+        assert bpy.ops.neulf.train(steps=40) == {"FINISHED"}
+        assert (model / "checkpoint.pt").is_file()
+        meta = json.loads((model / "model.json").read_text())
+        assert meta["progress"]["step"] == 40 and props.last_status.startswith("finished"), props.last_status
+        return f"40 steps in {time.monotonic() - started:.1f} s, val {props.last_psnr:.2f} dB"
+
+    @story.step("train_timer_resume", "train_blocking")
+    def _():
+        # The UI path: start returns at once; the timer's poll (called here) drains the job.
+        job, resumed = mod("operators").start_training(bpy.context, steps=20)
+        assert resumed and mod("tasks").running("train")
+        fractions = []
+        while mod("tasks").poll_all():
+            fractions.append(job.state["fraction"])
+            time.sleep(0.1)
+        assert job.state["status"] == "finished", job.state
+        meta = json.loads((model / "model.json").read_text())
+        assert meta["progress"]["step"] == 60, meta["progress"]
+        assert bpy.context.scene.neulf.last_status.startswith("finished")
+        return f"polled {len(fractions)} times, val {job.state['val_psnr']}"
+
+    @story.step("train_cancel", "train_timer_resume")
+    def _():
+        cancel_model = work / "model_cancel"
+        props = bpy.context.scene.neulf
+        saved = props.model_dir
+        props.model_dir = str(cancel_model)
+        try:
+            job, _ = mod("operators").start_training(bpy.context, minutes=5)
+            deadline = time.monotonic() + 120
+            while job.state.get("step", 0) < 5 and time.monotonic() < deadline:
+                mod("tasks").poll_all()
+                time.sleep(0.1)
+            assert bpy.ops.neulf.cancel_train() == {"FINISHED"}
+            job.wait(timeout=60)
+            mod("tasks").poll_all()
+            assert job.state["status"] == "cancelled", job.state
+            assert (cancel_model / "checkpoint.pt").is_file()
+        finally:
+            props.model_dir = saved
+        return f"cancelled at step {job.state['step']}"
+
+    @story.step("render_camera", "train_blocking")
+    def _():
+        scene = bpy.context.scene
+        cam = cameras()[1]                       # a training view (view 0 is held out)
+        scene.camera = cam
+        mod("capture").apply_capture_camera(scene, cam)
+        assert bpy.ops.neulf.render_camera() == {"FINISHED"}
+        rendered = image_array("NeuLF Render")
+        assert rendered.shape == (HEIGHT, WIDTH, 3)
+        rgb, true_depth = trace(scene_views()[1]["R"], scene_views()[1]["t"])
+        photo = photo_bytes(rgb).astype(np.float32) / 255
+        model_psnr = psnr(rendered, photo)
+        mean_psnr = psnr(photo.mean((0, 1), keepdims=True) + 0 * photo, photo)
+        assert model_psnr > mean_psnr + 3, (model_psnr, mean_psnr)
+        depth = image_array("NeuLF Depth")[..., 0]
+        ctx["render"] = rendered
+        return f"PSNR {model_psnr:.2f} dB vs mean colour {mean_psnr:.2f} dB; depth median {np.median(depth):.3f} " \
+               f"(true {np.median(true_depth):.3f})"
+
+    @story.step("render_worker_process", "render_camera")
+    def _():
+        prefs().render_mode = "WORKER"
+        try:
+            core = mod("preferences").get_core()
+            assert not core.in_process
+            assert bpy.ops.neulf.render_camera() == {"FINISHED"}
+            worker_image = image_array("NeuLF Render")
+            assert np.abs(worker_image - ctx["render"]).max() <= 1 / 255 + 1e-6
+            assert mod("core")._worker is not None and mod("core")._worker.alive
+        finally:
+            prefs().render_mode = "AUTO"
+            mod("core").shutdown()
+        return "the worker process's render matches the first render"
+
+    @story.step("focus_at", "render_camera")
+    def _():
+        scene = bpy.context.scene
+        result, _request = mod("operators").render_active_camera(bpy.context)
+        i, j = 40, 20
+        assert bpy.ops.neulf.focus_at(x=i + 0.5, y=j + 0.5) == {"FINISHED"}
+        dof = scene.camera.data.dof
+        expected = float(result["depth"][j, i])
+        assert dof.use_dof and dof.focus_object is None
+        assert abs(dof.focus_distance - expected) < 1e-4 * expected, (dof.focus_distance, expected)
+        ctx["focus"] = dof.focus_distance
+        return f"focus {dof.focus_distance:.4f} = model depth {expected:.4f}"
+
+    # The eyedropper.  Headless Blender sends no mouse events and never draws, so the
+    # viewport's matrices are never computed; but view3d.render_border maps a region box to
+    # the camera frame with Blender's own ED_view3d_calc_camera_border, which is the oracle
+    # for the add-on's frame maths here.
+    def viewport():
+        window = bpy.context.window
+        area = next(a for a in window.screen.areas if a.type == "VIEW_3D")
+        region = next(r for r in area.regions if r.type == "WINDOW")
+        return window, area, region, area.spaces.active
+
+    def blender_frame_point(x, y):
+        """(u, v) of region point (x, y) in the camera frame (0..1 from the bottom-left), by Blender."""
+        window, area, region, _space = viewport()
+        with bpy.context.temp_override(window=window, area=area, region=region):
+            bpy.ops.view3d.render_border(xmin=x, xmax=x + 1, ymin=y, ymax=y + 1, wait_for_input=False)
+        render = bpy.context.scene.render
+        return render.border_min_x, render.border_min_y
+
+    def set_view(perspective, zoom=0.0, offset=(0.0, 0.0)):
+        rv3d = viewport()[3].region_3d
+        rv3d.view_perspective, rv3d.view_camera_zoom, rv3d.view_camera_offset = perspective, zoom, offset
+
+    @story.step("pick_focus_frame", "import")
+    def _():
+        _window, _area, region, space = viewport()
+        scene = bpy.context.scene
+        capture_camera = scene.camera
+        other = bpy.data.objects.new("Probe Camera", bpy.data.cameras.new("Probe Camera"))
+        scene.collection.objects.link(other)
+        other.data.sensor_fit, other.data.shift_x, other.data.shift_y, other.data.lens = "AUTO", 0.2, -0.1, 35.0
+        cases = [("capture camera", capture_camera, None, 0.0, (0.0, 0.0)),
+                 ("capture camera, zoomed and panned", capture_camera, None, 17.5, (0.13, -0.07)),
+                 ("portrait, AUTO fit, shift, wide pixels", other, (48, 64, 1.2, 1.0), -8.0, (-0.2, 0.15))]
+        worst, inside_points = 0.0, 0
+        try:
+            for _label, camera, size, zoom, offset in cases:
+                scene.camera = camera
+                if size is not None:
+                    r = scene.render
+                    r.resolution_x, r.resolution_y, r.pixel_aspect_x, r.pixel_aspect_y = size
+                width, height = scene.render.resolution_x, scene.render.resolution_y
+                set_view("CAMERA", zoom, offset)
+                for x in np.linspace(0.08, 0.92, 9) * region.width:
+                    for y in np.linspace(0.05, 0.85, 7) * region.height:
+                        x, y = int(x), int(y)
+                        u, v = blender_frame_point(x, y)
+                        inside = 0.0 < u < 1.0 and 0.0 < v < 1.0
+                        try:
+                            px, py = mod("focus").click_pixel(scene, space, region, x, y)
+                        except Exception as exc:  # noqa: BLE001 - outside the frame: a clear refusal
+                            assert not inside and "inside the camera frame" in str(exc), (x, y, u, v, exc)
+                            continue
+                        assert inside, (x, y, u, v, px, py)
+                        worst = max(worst, abs(px - u * width), abs(py - (1 - v) * height))
+                        inside_points += 1
+        finally:
+            scene.camera = capture_camera
+            mod("capture").apply_capture_camera(scene, capture_camera)
+            bpy.data.objects.remove(other)
+            scene.render.use_border = False
+            set_view("PERSP")
+        assert inside_points >= 30, inside_points
+        assert worst < 2e-3, worst
+        return f"{inside_points} clicks in 3 views agree with Blender's camera border within {worst:.1e} px"
+
+    @story.step("pick_focus_click", "focus_at", "pick_focus_frame")
+    def _():
+        focus = mod("focus")
+        window, _area, region, _space = viewport()
+        scene = bpy.context.scene
+        dof = scene.camera.data.dof
+        width, height = scene.render.resolution_x, scene.render.resolution_y
+        try:
+            set_view("CAMERA", 17.5, (0.13, -0.07))
+            # Aim at image point (40.5, 20.5) with Blender's own frame mapping (linear in x and y).
+            (u0, v0), (u1, v1) = blender_frame_point(700, 400), blender_frame_point(800, 500)
+            mx = round(700 + (40.5 / width - u0) * 100 / (u1 - u0))
+            my = round(400 + (1 - 20.5 / height - v0) * 100 / (v1 - v0))
+            u, v = blender_frame_point(mx, my)
+            target = (u * width, (1 - v) * height)
+            assert abs(target[0] - 40.5) < 0.1 and abs(target[1] - 20.5) < 0.1, target
+            wx, wy = region.x + mx, region.y + my  # an event's mouse_x, mouse_y are window coordinates
+
+            dof.use_dof, dof.focus_distance = False, 123.0
+            for event in (("MOUSEMOVE", "NOTHING"), ("LEFTMOUSE", "RELEASE")):
+                assert focus.pick_event(bpy.context, *event, wx, wy) == ("RUNNING_MODAL", None), event
+            for event in (("ESC", "PRESS"), ("RIGHTMOUSE", "PRESS")):
+                assert focus.pick_event(bpy.context, *event, wx, wy) == ("CANCELLED", None), event
+            assert not dof.use_dof and dof.focus_distance == 123.0
+
+            status, report = focus.pick_event(bpy.context, "LEFTMOUSE", "PRESS", wx, wy)
+            assert status == "FINISHED" and report[0] == "INFO", (status, report)
+            picked = dof.focus_distance
+            assert dof.use_dof and dof.focus_object is None
+            assert bpy.ops.neulf.focus_at(x=target[0], y=target[1]) == {"FINISHED"}
+            assert abs(picked - dof.focus_distance) < 1e-4 * dof.focus_distance, (picked, dof.focus_distance)
+
+            # Clicks that cannot focus: a one-line error, the focus left as it was.
+            properties = next(a for a in window.screen.areas if a.type == "PROPERTIES")
+            panel = next(r for r in properties.regions if r.type == "WINDOW")
+            misses = {"another editor": (panel.x + panel.width // 2, panel.y + panel.height // 2)}
+            set_view("CAMERA", -30.0)  # a small frame in the middle: the region's bottom edge is outside it
+            misses["outside the frame"] = (region.x + region.width // 2, region.y + 20)
+            messages = {}
+            for label, (x, y) in misses.items():
+                status, report = focus.pick_event(bpy.context, "LEFTMOUSE", "PRESS", x, y)
+                assert status == "CANCELLED" and report[0] == "ERROR", (label, status, report)
+                messages[label] = report[1]
+            set_view("PERSP")
+            status, report = focus.pick_event(bpy.context, "LEFTMOUSE", "PRESS", wx, wy)
+            assert status == "CANCELLED" and report[0] == "ERROR", (status, report)
+            messages["not through the camera"] = report[1]
+            assert "3D viewport" in messages["another editor"], messages
+            assert "camera frame" in messages["outside the frame"], messages
+            assert "Numpad 0" in messages["not through the camera"], messages
+            assert all("\n" not in m for m in messages.values())
+            assert dof.focus_distance == picked
+        finally:
+            set_view("PERSP")
+            scene.render.use_border = False
+        return f"click at region ({mx}, {my}) -> pixel ({target[0]:.2f}, {target[1]:.2f}) -> focus {picked:.4f}; " + \
+            " | ".join(messages.values())
+
+    @story.step("root_scale", "focus_at")
+    def _():
+        scene = bpy.context.scene
+        r = root()
+        original = r.matrix_world.copy()
+        try:
+            r.matrix_world = Matrix.Translation((1.0, -2.0, 0.5)) @ original @ Matrix.Scale(2.5, 4)
+            bpy.context.view_layer.update()
+            assert bpy.ops.neulf.focus_at(x=40.5, y=20.5) == {"FINISHED"}
+            assert abs(scene.camera.data.dof.focus_distance - 2.5 * ctx["focus"]) < 1e-3 * ctx["focus"]
+            assert bpy.ops.neulf.render_camera() == {"FINISHED"}  # the same view, the scene only moved
+            assert np.abs(image_array("NeuLF Render") - ctx["render"]).max() <= 1 / 255 + 1e-6
+        finally:
+            r.matrix_world = original
+            bpy.context.view_layer.update()
+
+    @story.step("engine_f12", "render_camera")
+    def _():
+        scene = bpy.context.scene
+        scene.camera.data.dof.use_dof = False  # first the pinhole, as render_camera rendered it
+        scene.render.engine = "NEULF"
+        scene.render.dither_intensity = 0.0  # Blender's noise when it writes 8 bits (4.2: up to 1/255 more)
+        settings = scene.render.image_settings
+        if hasattr(settings, "media_type"):
+            settings.media_type = "IMAGE"
+        settings.file_format = "PNG"
+        out = work / "f12.png"
+        scene.render.filepath = str(out)
+        bpy.ops.render.render(write_still=True)
+        still = load_png(out)
+        diff = np.abs(still - ctx["render"]).max()
+        assert diff <= 2 / 255 + 1e-6, diff
+        assert "NEULF" in bpy.types.DATA_PT_camera_dof.COMPAT_ENGINES
+        # Depth of field: a wide aperture focused far behind the scene blurs the image
+        # (synthetic aperture through the model) without changing its overall colour.
+        dof = scene.camera.data.dof
+        dof.use_dof, dof.focus_object, dof.focus_distance, dof.aperture_fstop = True, None, 1000.0, 0.05
+        out_dof = work / "f12_dof.png"
+        scene.render.filepath = str(out_dof)
+        bpy.ops.render.render(write_still=True)
+        dof.use_dof = False
+        blurred = load_png(out_dof)
+        change = np.abs(blurred - still).mean()
+        assert change > 2 / 255 and abs(blurred.mean() - still.mean()) < 0.03, (change, blurred.mean(), still.mean())
+        return f"F12 matches render_camera within {diff * 255:.1f}/255; DOF changes it by {change * 255:.1f}/255 on average"
+
+    @story.step("spiral_video", "render_camera")
+    def _():
+        scene = bpy.context.scene
+        scene.frame_start = 1
+        assert bpy.ops.neulf.spiral_path(frames=3) == {"FINISHED"}
+        assert scene.frame_end == 3
+        poses = []
+        for frame in (1, 2, 3):
+            scene.frame_set(frame)
+            poses.append(np.array(scene.camera.matrix_world))
+        assert not np.allclose(poses[0], poses[1])
+        video = work / "spiral.mp4"
+        assert bpy.ops.neulf.render_video(filepath=str(video)) == {"FINISHED"}
+        written = video if video.is_file() else next(work.glob("spiral*.mp4"))
+        clip = bpy.data.movieclips.load(str(written))  # Blender's own FFmpeg reader
+        count = clip.frame_duration
+        bpy.data.movieclips.remove(clip)
+        assert count == 3, count
+        ctx["video"] = str(written)
+        return f"{written.name}: {count} frames"
+
+    @story.step("save_reload", "render_camera")
+    def _():
+        blend = work / "scenes" / "capture.blend"
+        blend.parent.mkdir(exist_ok=True)
+        props = bpy.context.scene.neulf
+        bpy.ops.wm.save_as_mainfile(filepath=str(blend))
+        assert bpy.ops.neulf.load_model(directory=str(model)) == {"FINISHED"}   # stored relative once saved
+        assert props.model_dir.startswith("//"), props.model_dir
+        bpy.ops.wm.save_mainfile()
+        bpy.ops.wm.open_mainfile(filepath=str(blend))
+        props = bpy.context.scene.neulf
+        assert Path(bpy.path.abspath(props.model_dir)).resolve() == model.resolve(), props.model_dir
+        assert bpy.ops.neulf.render_camera() == {"FINISHED"}
+        return props.model_dir
+
+    @story.step("reconstruct_photos", "install")
+    def _():
+        bpy.ops.wm.read_homefile(use_empty=True)
+        photos = Path(setup["photos"])
+        names = sorted(p.name for p in photos.iterdir())
+        out = work / "reconstructed"
+        started = time.monotonic()
+        assert bpy.ops.neulf.reconstruct(directory=str(photos), scene_dir=str(out)) == {"FINISHED"}
+        seconds = time.monotonic() - started
+        job = mod("tasks").get("reconstruct")
+        assert job.state["status"] == "finished" and job.state["fraction"] == 1.0, job.state
+        assert {"cameras.bin", "images.bin", "points3D.bin"} <= {p.name for p in (out / "sparse" / "0").iterdir()}
+        # ... and imported, through the same callback the UI's timer runs.
+        props = bpy.context.scene.neulf
+        assert Path(bpy.path.abspath(props.scene_dir)).resolve() == out.resolve(), props.scene_dir
+        cams = cameras()
+        assert [c["neulf_view"] for c in cams] == names, [c["neulf_view"] for c in cams]
+        focal = cams[0]["neulf_K"][0]
+        assert abs(focal - setup["photos_focal"]) < 0.05 * setup["photos_focal"], focal
+        assert any(o.get("neulf_role") == "uv_plane" for o in bpy.data.objects)
+        # Too few photos: one clear line, no traceback, nothing imported.
+        few = work / "two_photos"
+        few.mkdir(exist_ok=True)
+        for name in names[:2]:
+            (few / name).write_bytes((photos / name).read_bytes())
+        message = error_of(lambda: bpy.ops.neulf.reconstruct(directory=str(few), scene_dir=str(work / "few_scene")))
+        assert "reconstruction failed" in message and "Only 2 photo" in message, message
+        assert "Traceback" not in message and message.count("\n") <= 1, message
+        assert Path(bpy.path.abspath(bpy.context.scene.neulf.scene_dir)).resolve() == out.resolve()
+        return f"{len(cams)} cameras, focal {focal:.1f} px, {seconds:.1f} s; {message.strip()}"
+
+    @story.step("user_errors", "install")
+    def _():
+        props = bpy.context.scene.neulf
+        props.model_dir = str(work / "no_such_model")
+        messages = [error_of(call) for call in (
+            lambda: bpy.ops.neulf.render_camera(), lambda: bpy.ops.neulf.import_colmap(directory=str(work)),
+            lambda: bpy.ops.neulf.focus_at(x=1, y=1))]
+        assert all("Traceback" not in m and m.startswith("Error:") for m in messages), messages
+        return " | ".join(m.strip() for m in messages)
+
+    @story.step("dependencies_status", "install")
+    def _():
+        p = prefs()
+        chosen = p.python_path
+        assert bpy.ops.neulf.check_dependencies() == {"FINISHED"}
+        assert p.status.startswith("torch ") and "pycolmap " in p.status and "device: cpu" in p.status, p.status
+        usable = p.status
+        # A Python without torch: the status says so and what to do, in one line.
+        bare = work / "bare_python"
+        import subprocess
+
+        subprocess.run([worker_python or sys.executable, "-m", "venv", "--without-pip", str(bare)], check=True)
+        p.python_path = str(bare / ("Scripts/python.exe" if os.name == "nt" else "bin/python"))
+        try:
+            assert bpy.ops.neulf.check_dependencies() == {"FINISHED"}
+            assert p.status.startswith("not usable:") and "has no '" in p.status, p.status
+            assert "Install dependencies" in p.status, p.status
+            missing = p.status
+        finally:
+            p.python_path = chosen
+        return f"{usable} | {missing}"
+
+    @story.step("install_dependencies", "install")
+    def _():
+        p = prefs()
+        system = bpy.context.preferences.system
+        deps = Path(mod("preferences").deps_dir(create=True))
+        assert str(work / "blender_user") in str(deps) and deps.is_dir()
+        # Online access off (Blender's default without a UI): refused before anything runs.
+        system.use_online_access = False
+        assert not bpy.app.online_access
+        refused = error_of(lambda: bpy.ops.neulf.install_dependencies())
+        assert "Online access is disabled" in refused and mod("tasks").get("install") is None, refused
+        # Online access on, but pip kept offline (no index, no config, no find-links): the
+        # command runs for real and its failure comes back as one line in the status.
+        os.environ.update(PIP_CONFIG_FILE=os.devnull, PIP_NO_INDEX="1")
+        for name in ("PIP_FIND_LINKS", "PIP_INDEX_URL", "PIP_EXTRA_INDEX_URL"):
+            os.environ.pop(name, None)
+        system.use_online_access = True
+        p.torch_variant = "CPU"
+        try:
+            assert bpy.app.online_access
+            failed = error_of(lambda: bpy.ops.neulf.install_dependencies())
+        finally:
+            system.use_online_access = False
+        job = mod("tasks").get("install")
+        assert job.argv[job.argv.index("--target") + 1] == str(deps), job.argv
+        assert {"torch", "pycolmap==4.2.1"} <= set(job.argv), job.argv
+        assert "https://download.pytorch.org/whl/cpu" in job.argv, job.argv
+        assert failed.startswith("Error: install failed:") and "torch" in failed, failed
+        assert "Traceback" not in failed and failed.strip().count("\n") == 0, failed
+        assert p.status.startswith("install failed:"), p.status
+        return f"{refused.strip()} | {failed.strip()}"
+
+    story.results_path.write_text(json.dumps(story.results, indent=1, default=str))
+
+
+if __name__ == "__main__":
+    # A fresh Python with BLENDER_USER_RESOURCES set (see test_blender_extension.py).
+    run_story(json.loads(Path(sys.argv[1]).read_text()))
+    os._exit(0)  # skip bpy's slow teardown
