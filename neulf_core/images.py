@@ -82,10 +82,23 @@ def load_rgb(path: Path, size: tuple[int, int] | None = None) -> np.ndarray:
     return rgb
 
 
+SAVE_BAND_ROWS = 256  # rows converted at a time: float64 temporaries stay small for any frame size
+
+
+def to_uint8(rgb: np.ndarray) -> np.ndarray:
+    """Float [0, 1] (H, W, C) -> uint8, rounded.  Converted in row bands: a whole-frame
+    float64 copy of a 4000x3000 render would be 288 MB, twice, on top of the render itself."""
+    out = np.empty(rgb.shape, np.uint8)
+    for top in range(0, rgb.shape[0], SAVE_BAND_ROWS):
+        band = np.asarray(rgb[top:top + SAVE_BAND_ROWS], dtype=np.float64) * 255.0
+        out[top:top + SAVE_BAND_ROWS] = np.clip(np.round(band), 0, 255)
+    return out
+
+
 def save_rgb(path: Path, rgb: np.ndarray) -> None:
     """Save float [0,1] or uint8 (H, W, 3) as an 8-bit PNG."""
     if rgb.dtype != np.uint8:
-        rgb = np.clip(np.round(np.asarray(rgb, dtype=np.float64) * 255.0), 0, 255).astype(np.uint8)
+        rgb = to_uint8(rgb)
     Path(path).parent.mkdir(parents=True, exist_ok=True)
     Image.fromarray(rgb).save(path)
 

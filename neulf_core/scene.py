@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import copy
 import hashlib
+import struct
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -149,6 +150,7 @@ def _read_reconstruction(model_dir: Path) -> pycolmap.Reconstruction:
     missing = [n for n in ("cameras", "images") if not any((model_dir / f"{n}.{e}").is_file() for e in ("bin", "txt"))]
     if missing:
         raise NeulfError(f"COLMAP model in {model_dir} is incomplete: {' and '.join(missing)} file missing.")
+    _check_binary_files(model_dir)
     try:
         return pycolmap.Reconstruction(str(model_dir))
     except Exception as exc:  # pycolmap raises plain RuntimeError/ValueError with C++ messages
@@ -157,6 +159,91 @@ def _read_reconstruction(model_dir: Path) -> pycolmap.Reconstruction:
             f"cannot read the COLMAP model in {model_dir} ({detail}): the files may be truncated or corrupted; "
             "export the model again from COLMAP or rerun reconstruct."
         ) from None
+
+
+# ----------------------------------------------------------------------------- truncated COLMAP files
+# COLMAP's binary reader trusts every count it reads and goes on past the end of a short
+# file: a truncated cameras.bin loads with zero focal lengths, a truncated images.bin can
+# loop for ever, a truncated points3D.bin allocates until memory runs out (16 GB and four
+# minutes on a 3 kB file).  So the record layout is walked first -- counts and lengths
+# only, nothing is decoded -- and a file whose records do not fill it exactly is refused.
+
+
+class _Truncated(Exception):
+    pass
+
+
+class _Records:
+    def __init__(self, data: bytes):
+        self.data, self.at = data, 0
+
+    def skip(self, size: int) -> None:
+        self.at += size
+        if self.at > len(self.data):
+            raise _Truncated
+
+    def u64(self) -> int:
+        self.skip(8)
+        return struct.unpack_from("<Q", self.data, self.at - 8)[0]
+
+    def i32(self) -> int:
+        self.skip(4)
+        return struct.unpack_from("<i", self.data, self.at - 4)[0]
+
+    def string(self) -> None:
+        end = self.data.find(b"\0", self.at)
+        if end < 0:
+            raise _Truncated
+        self.at = end + 1
+
+
+def _param_count(model_id: int) -> int:
+    try:
+        return len(pycolmap.Camera.create_from_model_id(0, pycolmap.CameraModelId(model_id), 1.0, 1, 1).params)
+    except (ValueError, TypeError):  # not a camera model: the bytes are not what COLMAP wrote
+        raise _Truncated from None
+
+
+def _walk_cameras(records: _Records) -> None:
+    for _ in range(records.u64()):
+        records.skip(4)                       # camera_id
+        model_id = records.i32()
+        records.skip(16 + 8 * _param_count(model_id))  # width, height, params
+
+
+def _walk_images(records: _Records) -> None:
+    for _ in range(records.u64()):
+        records.skip(4 + 32 + 24 + 4)         # image_id, qvec, tvec, camera_id
+        records.string()                      # name
+        records.skip(24 * records.u64())      # points2D: x, y, point3D_id
+
+
+def _walk_points(records: _Records) -> None:
+    for _ in range(records.u64()):
+        records.skip(8 + 24 + 3 + 8)          # point3D_id, xyz, rgb, error
+        records.skip(8 * records.u64())       # track: image_id, point2D_idx
+
+
+BINARY_LAYOUTS = {"cameras.bin": _walk_cameras, "images.bin": _walk_images, "points3D.bin": _walk_points}
+
+
+def _check_binary_files(model_dir: Path) -> None:
+    for name, walk in BINARY_LAYOUTS.items():
+        path = model_dir / name
+        if not path.is_file():
+            continue
+        records = _Records(path.read_bytes())
+        try:
+            walk(records)
+            complete = records.at == len(records.data)
+        except _Truncated:
+            complete = False
+        if not complete:
+            raise NeulfError(
+                f"cannot read the COLMAP model in {model_dir}: {name} is truncated or corrupted (its records do not "
+                "fill the file); "
+                "export the model again from COLMAP or rerun reconstruct."
+            )
 
 
 def _load_colmap(scene_dir: Path, model_dir: Path, images_dir: Path | None) -> Scene:
@@ -256,6 +343,11 @@ def _load_llff(scene_dir: Path, images_dir: Path | None) -> Scene:
 def split_views(scene: Scene, holdout_every: int = 8, exclude: list[str] | None = None) -> tuple[list[View], list[View]]:
     """(train, held_out).  Held out: the named views, or every `holdout_every`-th view in
     name order starting with the first (the NeRF/LLFF convention); 0 holds out none."""
+    if len(scene.views) < 2:  # "hold out fewer views" would not help: there is nothing to hold out
+        raise NeulfError(
+            f"the scene has only {len(scene.views)} registered photo; a light field is learnt from many photos taken "
+            "from slightly different positions: add more and run reconstruct again."
+        )
     if exclude:
         held = {scene.view(name).name for name in exclude}
     elif holdout_every and holdout_every > 0:
@@ -265,5 +357,5 @@ def split_views(scene: Scene, holdout_every: int = 8, exclude: list[str] | None 
     train = [v for v in scene.views if v.name not in held]
     test = [v for v in scene.views if v.name in held]
     if len(train) < 2:
-        raise NeulfError(f"only {len(train)} training views remain after holding out {len(test)}; hold out fewer views.")
+        raise NeulfError(f"only {len(train)} training views remain after holding out {len(test)}; hold out fewer views (--holdout-every 0 holds out none).")
     return train, test

@@ -1,0 +1,654 @@
+"""Reliability (issue #4): bad input and faults end in one clear line that says what to do,
+never a traceback, and never lost work.
+
+Each test drives the real command line (`neulf_core.cli.main` in-process, or
+`python -m neulf_core` in a subprocess where a process must die or be measured) on the tiny
+synthetic scene from conftest.py, and records what the user saw with
+`record_property("message", ...)` -- measured numbers go in other properties.
+scripts/reliability_report.py runs these tests (and the older ones that cover the same
+cases) and writes docs/RELIABILITY.md from the junit XML.
+"""
+
+from __future__ import annotations
+
+import ast
+import json
+import os
+import shutil
+import signal
+import socket
+import struct
+import subprocess
+import sys
+import time
+import zipfile
+import zlib
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from PIL import Image
+
+from conftest import look_at_rotation, tiny_camera, tiny_poses, write_colmap_model
+from neulf_core.checkpoint import CHECKPOINT_NAME, METADATA_NAME, load_checkpoint
+from neulf_core.cli import main
+
+REPO = Path(__file__).resolve().parents[1]
+VIEW_NAMES = [f"view_{i:02d}.png" for i in range(9)]
+TRAIN_VIEWS = VIEW_NAMES[1:8]  # --holdout-every 8 holds out view_00 and view_08
+QUICK_TRAIN = ["--steps", "2", "--batch-size", "256", "--validate-seconds", "1e9"]
+
+
+# ----------------------------------------------------------------------------- running the CLI
+
+
+def run_cli(argv, capfd) -> tuple[int, str, str]:
+    capfd.readouterr()
+    code = main([str(a) for a in argv])
+    captured = capfd.readouterr()
+    return code, captured.out, captured.err
+
+
+def expect_error(argv, capfd, record_property, *expected) -> str:
+    """Run the CLI, record what it printed, and check it is one `error:` line naming `expected`."""
+    code, out, err = run_cli(argv, capfd)
+    record_property("message", err.strip() or f"(nothing on stderr; exit {code})")
+    assert "Traceback" not in out + err
+    lines = err.splitlines()
+    assert code == 2, err
+    assert len(lines) == 1 and lines[0].startswith("error: "), f"stderr should be one error line: {err!r}"
+    for text in expected:
+        assert text in lines[0]
+    return lines[0]
+
+
+def subprocess_env() -> dict:
+    # One thread: the test machines are shared, and timings should not depend on the core count.
+    return dict(os.environ, PYTHONPATH=str(REPO) + os.pathsep + os.environ.get("PYTHONPATH", ""), OMP_NUM_THREADS="1")
+
+
+def cli_process(argv, cwd: Path, **kwargs) -> subprocess.Popen:
+    return subprocess.Popen([sys.executable, "-m", "neulf_core", *[str(a) for a in argv]], cwd=cwd,
+                            env=subprocess_env(), text=True, **kwargs)
+
+
+# ----------------------------------------------------------------------------- scenes to break
+
+
+def copy_scene(tiny_scene: Path, destination: Path) -> Path:
+    shutil.copytree(tiny_scene, destination)
+    return destination
+
+
+def plane_points(count: int = 60) -> np.ndarray:
+    """3D points on the tiny scene's plane (z = 3 + 0.3 x), as conftest writes them."""
+    xy = np.random.default_rng(7).uniform(-0.8, 0.8, size=(count, 2))
+    return np.column_stack([xy, 3.0 + 0.3 * xy[:, 0]])
+
+
+def rewrite_model(scene: Path, names: list[str], poses, points) -> None:
+    shutil.rmtree(scene / "sparse")
+    write_colmap_model(scene / "sparse" / "0", tiny_camera(), poses, names, points)
+
+
+def ring_scene(folder: Path) -> Path:
+    """Twelve cameras on a circle around an object, all looking at its centre."""
+    names, poses = [], []
+    for i, angle in enumerate(np.radians(np.arange(0, 360, 30))):
+        centre = 3.0 * np.array([np.sin(angle), 0.0, -np.cos(angle)])
+        R = look_at_rotation(centre, np.zeros(3))
+        names.append(f"ring_{i:02d}.png")
+        poses.append((R, -R @ centre))
+    (folder / "images").mkdir(parents=True)
+    for name in names:
+        Image.fromarray(np.full((36, 48, 3), 120, np.uint8)).save(folder / "images" / name)
+    points = np.random.default_rng(0).uniform(-0.5, 0.5, (50, 3))
+    write_colmap_model(folder / "sparse" / "0", tiny_camera(), poses, names, points)
+    return folder
+
+
+def break_scene(scene: Path, how: str) -> None:
+    model = scene / "sparse" / "0"
+    if how == "no model":
+        shutil.rmtree(scene / "sparse")
+    elif how == "random cameras.bin":
+        (model / "cameras.bin").write_bytes(np.random.default_rng(0).bytes(300))
+    elif how.startswith("truncated"):
+        path = model / how.split()[1]
+        path.write_bytes(path.read_bytes()[: path.stat().st_size // 2])
+    elif how == "all images missing":
+        for path in (scene / "images").iterdir():
+            path.unlink()
+    elif how == "some images missing":
+        for name in ("view_03.png", "view_05.png"):
+            (scene / "images" / name).unlink()
+    elif how == "unreadable image":
+        (scene / "images" / "view_04.png").write_bytes(b"\x89PNG\r\n\x1a\n" + b"not really")
+
+
+SCENE_PROBLEMS = {
+    # how the folder is broken: text the one-line message must contain
+    "no model": ("no camera model", "reconstruct"),
+    "random cameras.bin": ("cannot read the COLMAP model", "export the model again"),
+    # A truncated cameras.bin used to load with zero focal lengths, images.bin to hang, and
+    # points3D.bin to allocate 16 GB for four minutes before failing (pycolmap reads past the end).
+    "truncated cameras.bin": ("cameras.bin is truncated or corrupted", "export the model again"),
+    "truncated images.bin": ("images.bin is truncated or corrupted", "export the model again"),
+    "truncated points3D.bin": ("points3D.bin is truncated or corrupted", "export the model again"),
+    "all images missing": ("9 of 9 images", "--images"),
+    "some images missing": ("2 of 9 images", "view_03.png", "--images"),
+    "unreadable image": ("cannot read image", "view_04.png", "Replace or remove"),
+}
+
+
+@pytest.mark.parametrize("how", list(SCENE_PROBLEMS))
+def test_broken_scene_folder(how, tiny_scene, tmp_path, capfd, record_property):
+    scene = copy_scene(tiny_scene, tmp_path / "scene")
+    break_scene(scene, how)
+    expect_error(["train", scene, "--out", tmp_path / "model", *QUICK_TRAIN], capfd, record_property, *SCENE_PROBLEMS[how])
+    assert not (tmp_path / "model" / CHECKPOINT_NAME).exists()
+
+
+# ----------------------------------------------------------------------------- photos in odd formats
+
+
+def write_png16(path: Path, rgb16: np.ndarray) -> None:
+    """A 16-bit RGB PNG (Pillow cannot write one), as raw PNG chunks."""
+    height, width, _ = rgb16.shape
+
+    def chunk(kind: bytes, data: bytes) -> bytes:
+        return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data) & 0xFFFFFFFF)
+
+    rows = b"".join(b"\x00" + row.astype(">u2").tobytes() for row in rgb16)
+    header = struct.pack(">IIBBBBB", width, height, 16, 2, 0, 0, 0)
+    path.write_bytes(b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", header) + chunk(b"IDAT", zlib.compress(rows)) + chunk(b"IEND", b""))
+
+
+def as_grayscale(path: Path, rgb: np.ndarray) -> np.ndarray:
+    Image.fromarray(rgb).convert("L").save(path)
+    gray = np.asarray(Image.open(path))
+    return np.repeat(gray[..., None], 3, axis=2)
+
+
+def as_rgba(path: Path, rgb: np.ndarray) -> np.ndarray:
+    alpha = np.full(rgb.shape[:2], 255, np.uint8)
+    alpha[:6, :6] = 0  # a transparent corner: no colour the camera saw, composited on black
+    Image.fromarray(np.dstack([rgb, alpha])).save(path)
+    expected = rgb.copy()
+    expected[:6, :6] = 0
+    return expected
+
+
+def as_16_bit_rgb(path: Path, rgb: np.ndarray) -> np.ndarray:
+    write_png16(path, rgb.astype(np.uint16) * 257)
+    return rgb
+
+
+def as_16_bit_gray(path: Path, rgb: np.ndarray) -> np.ndarray:
+    gray = np.asarray(Image.fromarray(rgb).convert("L"))
+    Image.fromarray(gray.astype(np.uint16) * 257).save(path)
+    return np.repeat(gray[..., None], 3, axis=2)
+
+
+def as_exif_rotated_jpeg(path: Path, rgb: np.ndarray) -> np.ndarray:
+    """Stored portrait-for-landscape like a phone: turned a quarter, with EXIF orientation 6
+    ("rotate 90 degrees clockwise to display"), so it displays as the camera saw it."""
+    image = Image.fromarray(np.ascontiguousarray(np.rot90(rgb)))
+    exif = image.getexif()
+    exif[0x0112] = 6
+    path.unlink()
+    image.save(path.with_suffix(".jpg"), exif=exif.tobytes(), quality=98)
+    return rgb
+
+
+def as_half_size(path: Path, rgb: np.ndarray) -> np.ndarray:
+    Image.fromarray(rgb).resize((24, 18), Image.BOX).save(path)
+    return np.asarray(Image.open(path).convert("RGB"))
+
+
+PHOTO_FORMATS = {
+    # writer, expected trained size, tolerance of the mean colour (JPEG is lossy)
+    "grayscale": (as_grayscale, (48, 36), 1e-4),
+    "RGBA": (as_rgba, (48, 36), 1e-4),
+    "16-bit RGB": (as_16_bit_rgb, (48, 36), 1e-4),
+    "16-bit grayscale": (as_16_bit_gray, (48, 36), 1e-4),
+    "EXIF-rotated JPEG": (as_exif_rotated_jpeg, (48, 36), 3e-3),
+    "other size than the model": (as_half_size, (24, 18), 1e-4),
+}
+
+
+@pytest.mark.parametrize("kind", list(PHOTO_FORMATS))
+def test_photos_in_other_formats_train(kind, tiny_scene, tmp_path, capfd, record_property):
+    """The photos are rewritten in another format; training reads them as the camera saw
+    them: the model's mean colour is the mean of the expected decoded pixels."""
+    write, size, tolerance = PHOTO_FORMATS[kind]
+    scene = copy_scene(tiny_scene, tmp_path / "scene")
+    expected = {}
+    for name in VIEW_NAMES:
+        path = scene / "images" / name
+        expected[name] = write(path, np.asarray(Image.open(path).convert("RGB")))
+    code, out, err = run_cli(["train", scene, "--out", tmp_path / "model", "--preset", "planes", *QUICK_TRAIN], capfd)
+    notes = [line for line in err.splitlines() if line.startswith(("note:", "warning:", "error:"))]
+    record_property("message", " / ".join(notes) or f"trained (exit {code}); no message needed")
+    assert code == 0 and "Traceback" not in err, err
+    meta = json.loads((tmp_path / "model" / METADATA_NAME).read_text())
+    assert (meta["rig"]["width"], meta["rig"]["height"]) == size
+    pixels = np.concatenate([expected[name].reshape(-1, 3) for name in TRAIN_VIEWS]).astype(np.float64) / 255.0
+    np.testing.assert_allclose(meta["scene"]["mean_colour"], pixels.mean(axis=0), atol=tolerance)
+    if kind == "other size than the model":
+        assert any("48x36" in note and "24x18" in note for note in notes), err
+
+
+def test_photos_of_another_aspect_ratio(tiny_scene, tmp_path, capfd, record_property):
+    scene = copy_scene(tiny_scene, tmp_path / "scene")
+    for name in VIEW_NAMES:  # cropped square: not a resized copy of what the model calibrated
+        path = scene / "images" / name
+        Image.open(path).crop((6, 0, 42, 36)).save(path)
+    expect_error(["train", scene, "--out", tmp_path / "model", *QUICK_TRAIN], capfd, record_property,
+                 "36x36", "48x36", "aspect ratio")
+
+
+# ----------------------------------------------------------------------------- captures a light field cannot use
+
+
+def test_empty_point_cloud(tiny_scene, tmp_path, capfd, record_property):
+    """No 3D points: the depth range is unknown.  The message names the options that supply
+    it, and with them training works."""
+    scene = copy_scene(tiny_scene, tmp_path / "scene")
+    rewrite_model(scene, VIEW_NAMES, tiny_poses(), points=None)
+    expect_error(["train", scene, "--out", tmp_path / "model", *QUICK_TRAIN], capfd, record_property,
+                 "no usable 3D points", "--st-depth", "--near", "--far")
+    assert not (tmp_path / "model").exists()
+    code, _, err = run_cli(["train", scene, "--out", tmp_path / "model", "--st-depth", "3", "--near", "2.5", "--far", "3.5",
+                            *QUICK_TRAIN], capfd)
+    assert code == 0, err
+
+
+def test_single_image(tiny_scene, tmp_path, capfd, record_property):
+    scene = copy_scene(tiny_scene, tmp_path / "scene")
+    rewrite_model(scene, ["view_04.png"], [tiny_poses()[4]], plane_points())
+    message = expect_error(["train", scene, "--out", tmp_path / "model", *QUICK_TRAIN], capfd, record_property,
+                           "only 1 registered photo", "add more")
+    assert "hold out fewer" not in message  # holding out fewer cannot help with one photo
+    code, _, err = run_cli(["train", scene, "--out", tmp_path / "model", "--holdout-every", "0", *QUICK_TRAIN], capfd)
+    assert code == 2 and "only 1 registered photo" in err
+
+
+def test_ring_capture_is_not_forward_facing(tmp_path, capfd, record_property):
+    scene = ring_scene(tmp_path / "ring")
+    expect_error(["train", scene, "--out", tmp_path / "model", *QUICK_TRAIN], capfd, record_property,
+                 "not forward-facing", "360-degree")
+    assert not (tmp_path / "model").exists()
+
+
+# ----------------------------------------------------------------------------- a trained model to render and damage
+
+
+@pytest.fixture(scope="module")
+def model(tiny_scene, tmp_path_factory) -> Path:
+    """The default preset trained for 3 small steps through the CLI (read-only: copy it)."""
+    out = tmp_path_factory.mktemp("reliability") / "model"
+    assert main(["train", str(tiny_scene), "--out", str(out), "--steps", "3", "--batch-size", "256",
+                 "--progress", "json", "--validate-seconds", "1e9"]) == 0
+    return out
+
+
+def camera_json(path: Path, cameras: list[dict]) -> Path:
+    path.write_text(json.dumps({"cameras": cameras}))
+    return path
+
+
+def pinhole(name: str, centre, target, width: int = 32, height: int = 24) -> dict:
+    R = look_at_rotation(np.asarray(centre, float), np.asarray(target, float))
+    return {"name": name, "K": [[40.0, 0, width / 2], [0, 40.0, height / 2], [0, 0, 1]], "width": width,
+            "height": height, "R": R.tolist(), "t": (-R @ np.asarray(centre, float)).tolist()}
+
+
+def test_render_camera_behind_the_uv_plane(model, tmp_path, capfd, record_property):
+    """1.5 units behind the camera rig (the uv plane), looking at the scene: the rays still
+    cross the slab, so it renders, and says how to get reliable results."""
+    cams = camera_json(tmp_path / "c.json", [pinhole("behind", [0, 0, -1.5], [0, 0, 3])])
+    code, out, err = run_cli(["render", model, "--cameras", cams, "--out", tmp_path / "out"], capfd)
+    record_property("message", err.strip())
+    assert code == 0 and "Traceback" not in err, err
+    assert Image.open(tmp_path / "out" / "behind.png").size == (32, 24)
+    lines = err.splitlines()
+    assert lines and all(line.startswith("warning (behind): ") for line in lines), err
+    assert any("move the camera closer to the capture positions" in line for line in lines)
+
+
+def test_render_camera_looking_away(model, tmp_path, capfd, record_property):
+    """A camera facing away from the scene sees only the background colour: it is reported,
+    and the other cameras of the same file are still rendered."""
+    cams = camera_json(tmp_path / "c.json", [pinhole("away", [0, 0, 0], [0, 0, -3])])
+    expect_error(["render", model, "--cameras", cams, "--out", tmp_path / "out"], capfd, record_property,
+                 "away", "look away from the captured scene", "Turn them")
+    assert not (tmp_path / "out" / "away.png").exists()
+    both = camera_json(tmp_path / "both.json", [pinhole("away", [0, 0, 0], [0, 0, -3]), pinhole("ok", [0, 0, 0], [0, 0, 3])])
+    code, _, err = run_cli(["render", model, "--cameras", both, "--out", tmp_path / "out2"], capfd)
+    assert code == 2 and "1 image(s) are in" in err.splitlines()[-1]
+    assert (tmp_path / "out2" / "ok.png").is_file()
+
+
+@pytest.mark.parametrize("size", [(0, 24), (32, 0)], ids=["zero width", "zero height"])
+def test_render_camera_with_zero_size_image(size, model, tmp_path, capfd, record_property):
+    cams = camera_json(tmp_path / "c.json", [pinhole("empty", [0, 0, 0], [0, 0, 3], *size)])
+    expect_error(["render", model, "--cameras", cams, "--out", tmp_path / "out"], capfd, record_property,
+                 f"{size[0]}x{size[1]}", "at least 1 pixel")
+
+
+# ----------------------------------------------------------------------------- damaged checkpoints
+
+
+def model_files(model_dir: Path) -> list[Path]:
+    """Every weights file (checkpoint.pt, and model.pt where the trainer writes one)."""
+    return sorted(model_dir.glob("*.pt"))
+
+
+def flip_bytes_in_largest_tensor(path: Path) -> None:
+    """Overwrite 64 bytes inside the largest tensor's data: the archive still opens."""
+    with zipfile.ZipFile(path) as archive:
+        member = max(archive.infolist(), key=lambda info: info.file_size)
+        offset = member.header_offset + 30 + len(member.filename.encode()) + len(member.extra)
+    data = bytearray(path.read_bytes())
+    start = offset + member.file_size // 2
+    data[start:start + 64] = bytes(255 - b for b in data[start:start + 64])
+    path.write_bytes(bytes(data))
+
+
+def damage(path: Path, how: str) -> None:
+    if how == "truncated":
+        path.write_bytes(path.read_bytes()[: path.stat().st_size // 2])
+    elif how == "empty":
+        path.write_bytes(b"")
+    elif how == "random bytes":
+        path.write_bytes(np.random.default_rng(0).bytes(path.stat().st_size))
+    elif how == "bytes flipped inside":
+        flip_bytes_in_largest_tensor(path)
+    elif how == "another version":
+        payload = torch.load(path, map_location="cpu", weights_only=False)
+        torch.save({**payload, "version": 99}, path)
+    elif how == "not a NeuLF checkpoint":
+        torch.save({"weights": [1, 2, 3]}, path)
+
+
+CHECKPOINT_DAMAGE = {
+    "truncated": "truncated or corrupted",
+    "empty": "truncated or corrupted",
+    "random bytes": "truncated or corrupted",
+    "bytes flipped inside": "truncated or corrupted",
+    "another version": "another version",
+    "not a NeuLF checkpoint": "not a NeuLF checkpoint",
+}
+SILENT_CORRUPTION = pytest.mark.xfail(strict=True, reason=(
+    "torch.load does not check the zip CRCs: damaged weights load silently. Fix in checkpoint.py: "
+    "zipfile.ZipFile(path).testzip() before torch.load"))
+
+
+@pytest.mark.parametrize("how", [pytest.param(h, marks=SILENT_CORRUPTION) if h == "bytes flipped inside" else h
+                                 for h in CHECKPOINT_DAMAGE])
+def test_damaged_checkpoint(how, model, tiny_scene, tmp_path, capfd, record_property):
+    """Rendering and resuming both refuse a damaged model in one line, and leave the files as
+    they were (the user may still restore or inspect them)."""
+    damaged = shutil.copytree(model, tmp_path / "model")
+    for path in model_files(damaged):
+        damage(path, how)
+    before = {path.name: path.read_bytes() for path in model_files(damaged)}
+    cams = camera_json(tmp_path / "c.json", [pinhole("novel", [0, 0, 0], [0, 0, 3])])
+    expect_error(["render", damaged, "--cameras", cams, "--out", tmp_path / "out"], capfd, record_property,
+                 CHECKPOINT_DAMAGE[how])
+    expect_error(["train", tiny_scene, "--out", damaged, "--resume", "--steps", "6"], capfd, record_property,
+                 CHECKPOINT_DAMAGE[how])
+    assert {path.name: path.read_bytes() for path in model_files(damaged)} == before
+
+
+@pytest.mark.xfail(strict=True, reason=(
+    "checkpoint.py says 'train again', but `train` into the same --out answers 'pass --resume' and --resume "
+    "answers 'train again': a loop. Fix: name the way out in load_checkpoint's message (delete the file or "
+    "train into another --out)"))
+def test_damaged_checkpoint_message_names_a_way_out(model, tiny_scene, tmp_path, capfd, record_property):
+    damaged = shutil.copytree(model, tmp_path / "model")
+    for path in model_files(damaged):
+        damage(path, "truncated")
+    resume = expect_error(["train", tiny_scene, "--out", damaged, "--resume", "--steps", "6"], capfd, record_property)
+    again = expect_error(["train", tiny_scene, "--out", damaged, "--steps", "6"], capfd, record_property)
+    assert "--resume" in again  # plain `train` sends the user to --resume ...
+    assert "--out" in resume or "delete" in resume  # ... so --resume must say how to start afresh
+
+
+def test_checkpoint_of_another_scene(model, tiny_scene_factory, tmp_path, capfd, record_property):
+    other = tiny_scene_factory(tmp_path / "other", shift=(0.05, 0.0, 0.0))
+    expect_error(["render", model, "--scene", other, "--views", "all", "--out", tmp_path / "out"], capfd, record_property,
+                 "another reconstruction")
+    resumed = shutil.copytree(model, tmp_path / "model")
+    expect_error(["train", other, "--out", resumed, "--resume", "--steps", "6"], capfd, record_property,
+                 "another scene", "another --out")
+
+
+# ----------------------------------------------------------------------------- processes that die
+
+
+KILL_INTERVAL_S = 0.5  # --checkpoint-seconds for the killed run
+
+
+def read_events(process: subprocess.Popen, until) -> list[dict]:
+    """JSON progress events from the process's stdout until `until(events)` is true."""
+    events = []
+    for line in process.stdout:
+        events.append(json.loads(line))
+        if until(events):
+            return events
+    raise AssertionError(f"training ended before the test could act: {events[-3:]}")
+
+
+def checkpoints_then_a_step(count: int):
+    def until(events):
+        saved = [i for i, e in enumerate(events) if e["event"] == "checkpoint"]
+        return len(saved) >= count and any(e["event"] == "step" for e in events[saved[count - 1] + 1:])
+    return until
+
+
+def test_sigkill_during_training_loses_at_most_one_checkpoint_interval(tiny_scene, tmp_path, capfd, record_property):
+    model = tmp_path / "model"
+    process = cli_process(["train", tiny_scene, "--out", model, "--steps", "1000000", "--batch-size", "256",
+                           "--checkpoint-seconds", KILL_INTERVAL_S, "--validate-seconds", "1e9", "--progress", "json"],
+                          tmp_path, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL)
+    try:
+        events = read_events(process, checkpoints_then_a_step(2))
+        last = next(e for e in reversed(events) if e["event"] == "step")
+        read_at = time.monotonic()
+        process.send_signal(signal.SIGKILL)
+        # Training time at the kill: the last reported step, plus what ran after it was read.
+        elapsed_at_kill = last["elapsed"] + (time.monotonic() - read_at)
+        process.wait(timeout=60)
+    finally:
+        if process.poll() is None:
+            process.kill()
+    assert process.returncode == -signal.SIGKILL
+    saved = load_checkpoint(model)["progress"]  # loads: no half-written file
+    reported = max(e["step"] for e in events if e["event"] == "checkpoint")
+    assert saved["step"] >= reported
+    lost_seconds = elapsed_at_kill - saved["elapsed"]
+    record_property("sigkill_checkpoint_interval_s", KILL_INTERVAL_S)
+    record_property("sigkill_lost_training_s", round(lost_seconds, 3))
+    record_property("sigkill_lost_steps_at_least", last["step"] - saved["step"])
+    # One interval, plus the step in flight and the checkpoint write (slow on a loaded machine).
+    assert lost_seconds <= KILL_INTERVAL_S + 1.0, (elapsed_at_kill, saved)
+
+    code, out, err = run_cli(["train", tiny_scene, "--out", model, "--resume", "--steps", saved["step"] + 5,
+                              "--progress", "json"], capfd)
+    assert code == 0, err
+    resumed = [json.loads(line) for line in out.splitlines()]
+    steps = [e["step"] for e in resumed if e["event"] in ("step", "validate")]
+    assert steps[0] == saved["step"] + 1 and resumed[-1]["event"] == "finished"
+    assert resumed[-1]["step"] == saved["step"] + 5
+    record_property("message", f"killed at step >= {last['step']}; `train --resume` continued from the checkpoint "
+                               f"at step {saved['step']} ({lost_seconds:.2f} s of training lost, interval "
+                               f"{KILL_INTERVAL_S} s)")
+
+
+def test_reader_of_progress_goes_away(tiny_scene, tmp_path, capfd, record_property):
+    """Blender runs training as `train --progress json` with its stdout on a pipe; when
+    Blender quits or crashes, the pipe closes.  Training must save at once (not at the next
+    timed checkpoint, which may be a minute away, and not die on the next write), so that
+    reopening finds the model and its progress."""
+    model = tmp_path / "model"
+    process = cli_process(["train", tiny_scene, "--out", model, "--steps", "1000000", "--batch-size", "256",
+                           "--checkpoint-seconds", "1e9", "--validate-seconds", "1e9", "--progress", "json"],
+                          tmp_path, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    try:
+        events = read_events(process, lambda events: sum(e["event"] == "step" for e in events) >= 3)
+        process.stdout.close()  # the reader (Blender) is gone
+        process.stderr.close()
+        process.wait(timeout=120)
+    finally:
+        if process.poll() is None:
+            process.kill()
+    assert (model / CHECKPOINT_NAME).is_file(), "training died without saving: the run was lost"
+    saved = load_checkpoint(model)["progress"]
+    last_seen = max(e["step"] for e in events if e["event"] == "step")
+    assert saved["step"] >= last_seen and saved["status"] == "cancelled"
+    code, out, err = run_cli(["train", tiny_scene, "--out", model, "--resume", "--steps", saved["step"] + 3,
+                              "--progress", "json"], capfd)
+    assert code == 0, err
+    assert [json.loads(line) for line in out.splitlines()][-1]["step"] == saved["step"] + 3
+    record_property("message", f"reader gone after step {last_seen}: checkpoint saved at step {saved['step']} "
+                               f"(exit {process.returncode}); `train --resume` continued from it")
+
+
+# ----------------------------------------------------------------------------- bounded memory
+
+
+MEMORY_PROBE = """
+import json, os, resource, sys
+from neulf_core.cli import main
+from neulf_core.render import LightField
+import numpy as np
+
+def status_kib(field):
+    with open("/proc/self/status") as status:
+        return next(int(line.split()[1]) for line in status if line.startswith(field + ":"))
+
+def peak_bytes():
+    # VmHWM: this process's own peak (ru_maxrss on Linux carries the parent's peak across exec).
+    if os.path.exists("/proc/self/status"):
+        return status_kib("VmHWM") * 1024
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * (1 if sys.platform == "darwin" else 1024)
+
+mode, model, width, height, out = sys.argv[1], sys.argv[2], int(sys.argv[3]), int(sys.argv[4]), sys.argv[5]
+K = [[0.9 * width, 0, width / 2], [0, 0.9 * width, height / 2], [0, 0, 1]]
+LightField.load(model, "cpu")  # imports and one model load: the baseline
+if os.path.exists("/proc/self/clear_refs"):
+    with open("/proc/self/clear_refs", "w") as handle:
+        handle.write("5")  # reset the peak to the current size
+base = peak_bytes()
+if mode == "cli":  # the user's path: render and write the PNG
+    cam = {"name": "frame", "K": K, "width": width, "height": height, "R": np.eye(3).tolist(), "t": [0, 0, 0]}
+    open(out + ".json", "w").write(json.dumps([cam]))
+    assert main(["render", model, "--cameras", out + ".json", "--out", out]) == 0
+else:  # one chunk holding every ray: what rendering would cost without chunking
+    LightField.load(model, "cpu").render(np.array(K), width, height, np.eye(3), np.zeros(3), depth=False,
+                                         chunk=width * height)
+print(json.dumps({"base": base, "peak": peak_bytes()}))
+"""
+SMALL_FRAME, LARGE_FRAME, UNCHUNKED_FRAME = (400, 300), (4000, 3000), (800, 600)
+# What a frame must hold whatever the chunking: the float32 RGB render (12 B) and its
+# validity mask (1 B), the 8-bit copy written to PNG (3 B) and Pillow's 4-byte RGBX copy.
+FRAME_BYTES_PER_PIXEL = 20
+ALLOCATOR_SLACK = 1.3  # heap fragmentation and page granularity; missing chunking costs 50x more
+MIB = 1 << 20
+
+
+def memory_probe(mode: str, model: Path, size, out: Path) -> dict:
+    run = subprocess.run([sys.executable, "-c", MEMORY_PROBE, mode, str(model), str(size[0]), str(size[1]), str(out)],
+                         cwd=out.parent, env=subprocess_env(), capture_output=True, text=True, timeout=300)
+    assert run.returncode == 0, run.stderr[-3000:]
+    return json.loads(run.stdout.splitlines()[-1])
+
+
+@pytest.mark.slow  # two renders of 12 Mpx on one thread: 15-60 s on a shared machine
+def test_large_render_has_bounded_peak_memory(model, tmp_path, record_property):
+    """A 4000x3000 frame (12 Mpx) from the CLI: beyond the frame's own buffers, peak memory
+    grows no more than for a 400x300 one.  Without chunking, every ray's intermediate values
+    would be held at once."""
+    started = time.monotonic()
+    small = memory_probe("cli", model, SMALL_FRAME, tmp_path / "small")
+    large = memory_probe("cli", model, LARGE_FRAME, tmp_path / "large")
+    large_seconds = time.monotonic() - started
+    unchunked = memory_probe("unchunked", model, UNCHUNKED_FRAME, tmp_path / "unchunked")
+    pixels = lambda size: size[0] * size[1]  # noqa: E731
+    per_pixel = (large["peak"] - small["peak"]) / (pixels(LARGE_FRAME) - pixels(SMALL_FRAME))
+    unchunked_per_pixel = (unchunked["peak"] - unchunked["base"]) / pixels(UNCHUNKED_FRAME)
+    measured = {
+        "render_4000x3000_peak_MiB": round(large["peak"] / MIB, 1),
+        "render_400x300_peak_MiB": round(small["peak"] / MIB, 1),
+        "process_baseline_MiB": round(large["base"] / MIB, 1),
+        "growth_bytes_per_pixel": round(per_pixel, 1),
+        "frame_buffer_bytes_per_pixel": FRAME_BYTES_PER_PIXEL,
+        "growth_limit_bytes_per_pixel": round(FRAME_BYTES_PER_PIXEL * ALLOCATOR_SLACK, 1),
+        "unchunked_bytes_per_pixel": round(unchunked_per_pixel, 1),
+        "unchunked_4000x3000_estimate_MiB": round(unchunked_per_pixel * pixels(LARGE_FRAME) / MIB),
+        "seconds_both_cli_renders": round(large_seconds, 1),
+    }
+    for name, value in measured.items():
+        record_property(name, value)
+    record_property("message", f"4000x3000 rendered with a peak of {measured['render_4000x3000_peak_MiB']} MiB "
+                               f"(400x300: {measured['render_400x300_peak_MiB']} MiB); unchunked it would need about "
+                               f"{measured['unchunked_4000x3000_estimate_MiB']} MiB")
+    assert Image.open(tmp_path / "large" / "frame.png").size == LARGE_FRAME
+    assert per_pixel <= FRAME_BYTES_PER_PIXEL * ALLOCATOR_SLACK, measured
+    assert unchunked_per_pixel > 2 * FRAME_BYTES_PER_PIXEL, measured  # the test can see a missing chunking
+
+
+# ----------------------------------------------------------------------------- network
+
+
+NETWORK_MODULES = {"socket", "ssl", "http", "urllib", "urllib3", "requests", "ftplib", "smtplib", "httpx", "aiohttp"}
+
+
+def imported_modules(path: Path) -> set[str]:
+    tree = ast.parse(path.read_text())
+    names = set()
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            names.update(alias.name.split(".")[0] for alias in node.names)
+        elif isinstance(node, ast.ImportFrom) and node.module and not node.level:
+            names.add(node.module.split(".")[0])
+    return names
+
+
+def install_operator(path: Path) -> ast.FunctionDef:
+    tree = ast.parse(path.read_text())
+    cls = next(n for n in tree.body if isinstance(n, ast.ClassDef) and n.name == "NEULF_OT_install_dependencies")
+    return next(n for n in cls.body if isinstance(n, ast.FunctionDef) and n.name == "execute")
+
+
+def test_no_network_unless_the_user_installs(tiny_scene, tmp_path, capfd, monkeypatch, record_property):
+    """Training and rendering open no connection; the only download (pip) is the install
+    operator's, which first checks Blender's online access; the manifest declares it."""
+    attempts = []
+
+    def refuse(*args, **kwargs):
+        attempts.append(args)
+        raise OSError("network access attempted during a test that forbids it")
+
+    monkeypatch.setattr(socket.socket, "connect", refuse)
+    monkeypatch.setattr(socket, "getaddrinfo", refuse)
+    model = tmp_path / "model"
+    assert run_cli(["train", tiny_scene, "--out", model, *QUICK_TRAIN], capfd)[0] == 0
+    assert run_cli(["render", model, "--scene", tiny_scene, "--views", "held-out", "--out", tmp_path / "out"], capfd)[0] == 0
+    assert attempts == []
+
+    sources = sorted((REPO / "neulf_core").rglob("*.py")) + sorted((REPO / "neulf_blender").glob("*.py"))
+    offenders = {str(p.relative_to(REPO)): sorted(imported_modules(p) & NETWORK_MODULES) for p in sources}
+    assert not {k: v for k, v in offenders.items() if v}, offenders
+    callers = [p.name for p in sources if "pip_install_job(" in p.read_text() and p.name != "jobs.py"]
+    assert callers == ["preferences.py"], callers
+    execute = install_operator(REPO / "neulf_blender" / "preferences.py")
+    guard = execute.body[0]
+    assert isinstance(guard, ast.If) and "online_access" in ast.unparse(guard.test), ast.unparse(execute)[:300]
+    assert any(isinstance(n, ast.Return) for n in guard.body)
+    assert "network" in (REPO / "blender_manifest.toml").read_text().split("[permissions]", 1)[1]
+    record_property("message", "no connection attempted by train/render; pip runs only from "
+                               "NEULF_OT_install_dependencies after bpy.app.online_access is checked")
