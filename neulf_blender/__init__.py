@@ -2,8 +2,9 @@
 
 Modules: convert (camera maths, numpy only), jobs (processes, no bpy), core (where
 neulf_core runs), capture (Blender objects), properties, operators, focus (focus_at and
-the click-to-focus eyedropper), panel, engine, preferences, tasks (job polling).  Nothing here imports bpy at import time, so the
-Blender-free parts can be tested without Blender.
+the click-to-focus eyedropper), panel, engine, preferences, tasks (job polling), handlers
+(on file load, the training status is read again from the model folder).  Nothing here
+imports bpy at import time, so the Blender-free parts can be tested without Blender.
 """
 
 
@@ -16,21 +17,25 @@ def _modules():
 def register():
     import bpy
 
+    from . import handlers
+
     properties, preferences, operators, focus, panel, engine = _modules()
     for module in (properties, preferences, operators, focus, panel, engine):
         for cls in module.CLASSES:
             bpy.utils.register_class(cls)
     properties.register()
     engine.register()
+    handlers.register()
     bpy.types.TOPBAR_MT_file_import.append(operators.menu_import)
 
 
 def unregister():
     import bpy
 
-    from . import core, tasks
+    from . import core, handlers, tasks
 
     properties, preferences, operators, focus, panel, engine = _modules()
+    handlers.unregister()
     tasks.cancel_all()
     core.shutdown()
     bpy.types.TOPBAR_MT_file_import.remove(operators.menu_import)

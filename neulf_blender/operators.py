@@ -26,6 +26,9 @@ def model_dir(scene) -> str:
     path = abspath(scene.neulf.model_dir)
     if not path:
         raise NeulfError("no NeuLF model: train one (Train NeuLF) or load a model folder (Load Model).")
+    if not Path(path).is_dir():
+        raise NeulfError(f"the model folder {path} does not exist: move a .blend together with its model folder, "
+                         "or point Load Model at the model.")
     if not (Path(path) / "checkpoint.pt").is_file():
         raise NeulfError(f"{path} holds no trained model (checkpoint.pt missing); train it or load another folder.")
     return path
@@ -46,6 +49,43 @@ def read_model_json(path: str) -> dict:
         return json.loads((Path(path) / "model.json").read_text())
     except (OSError, json.JSONDecodeError):
         return {}
+
+
+def progress_text(progress: dict) -> str:
+    """One line for the panel from model.json's progress: where the model is and what Train does next."""
+    status, step = progress.get("status", "?"), progress.get("step", "?")
+    if status == "finished":
+        return f"finished at step {step}"
+    if status == "cancelled":
+        return f"stopped at step {step} (checkpoint saved); Train continues it"
+    if status == "training":  # the last periodic checkpoint: its process ended without the final save
+        return f"interrupted at step {step} (last checkpoint); Train continues it"
+    return f"{status} at step {step}"
+
+
+def refresh_model_status(scene) -> str:
+    """The scene's `last_status` (shown in the panel) from its model folder, e.g. when a .blend
+    is opened after Blender quit during training: the folder, not the .blend, knows how far
+    training got.  Returns the status line."""
+    props = scene.neulf
+    if not props.model_dir:
+        return props.last_status
+    path = abspath(props.model_dir)
+    training = tasks.get("train")
+    if training is not None and training.running and os.path.normpath(training.model_dir) == path:
+        return props.last_status  # this session's own job reports its progress
+    if not Path(path).is_dir():
+        props.last_status = f"model folder not found: {path}; move it back or use Load Model"
+        return props.last_status
+    meta = read_model_json(path)
+    if not meta or not (Path(path) / "checkpoint.pt").is_file():
+        props.last_status = f"no checkpoint in {path} yet; Train starts the model"
+        return props.last_status
+    progress = meta.get("progress", {})
+    props.last_status = progress_text(progress)
+    if progress.get("val_psnr") is not None:
+        props.last_psnr = float(progress["val_psnr"])
+    return props.last_status
 
 
 class _Reporting:
@@ -158,7 +198,7 @@ def attach_model(context, path: str) -> dict:
     progress = meta.get("progress", {})
     if progress.get("val_psnr") is not None:
         props.last_psnr = float(progress["val_psnr"])
-    props.last_status = f"{progress.get('status', '?')} at step {progress.get('step', '?')}"
+    props.last_status = progress_text(progress)
     collection, root = capture.find_capture(context.scene)
     fingerprint = meta.get("scene", {}).get("fingerprint")
     if collection is not None and meta.get("slab") and fingerprint in (None, props.fingerprint):
@@ -205,8 +245,10 @@ def start_training(context, *, minutes=None, steps=None):
         raise NeulfError("import a capture first (NeuLF > Import), then train.")
     out = abspath(props.model_dir) or str(Path(scene_dir) / "neulf_model")
     resume = (Path(out) / "checkpoint.pt").is_file()
+    resumed_from = None
     if resume:  # budgets count from the start of training: add to what is done
         progress = read_model_json(out).get("progress", {})
+        resumed_from = int(progress.get("step", 0))
         if steps:
             steps = int(progress.get("step", 0)) + int(steps)
         else:
@@ -217,7 +259,9 @@ def start_training(context, *, minutes=None, steps=None):
     job = jobs.TrainJob(python, scene_dir, out, minutes=minutes, steps=steps, resume=resume, preset=props.preset,
                         scale=props.train_scale, images_dir=abspath(props.images_dir) or None, device=device,
                         env=jobs.core_environment(extra))
+    job.state["resumed_from"] = resumed_from
     props.model_dir = store_path(out)
+    props.last_status = (f"training from step {resumed_from}" if resume else "training")
     scene_name = context.scene.name
 
     def done(job):
@@ -225,7 +269,7 @@ def start_training(context, *, minutes=None, steps=None):
         if scene is None:
             return
         state = job.state
-        scene.neulf.last_status = (f"{state['status']} at step {state.get('step', 0)}" if state["status"] != "failed"
+        scene.neulf.last_status = (job_status_text(state) if state["status"] != "failed"
                                    else f"failed: {state['error']}")
         if state.get("val_psnr") is not None:
             scene.neulf.last_psnr = float(state["val_psnr"])
@@ -235,9 +279,21 @@ def start_training(context, *, minutes=None, steps=None):
                     attach_model(bpy.context, out)
                 except NeulfError:
                     pass
+                scene.neulf.last_status = (job_status_text(state) if state["status"] != "failed"
+                                           else f"failed: {state['error']}")
 
     tasks.start("train", job, done)
     return job, resume
+
+
+def job_status_text(state: dict) -> str:
+    """'cancelled at step 57', 'finished at step 67 (continued from step 57)'."""
+    text = f"{state['status']} at step {state.get('step', 0)}"
+    if state.get("resumed_from") is not None:
+        text += f" (continued from step {state['resumed_from']})"
+    if state["status"] == "cancelled":
+        text += "; Train continues it"
+    return text
 
 
 class NEULF_OT_train(_Reporting, bpy.types.Operator):
@@ -259,14 +315,15 @@ class NEULF_OT_train(_Reporting, bpy.types.Operator):
         minutes = self.minutes or props.train_minutes
         job, resume = start_training(context, minutes=None if steps else minutes, steps=steps or None)
         if not bpy.app.background:
-            self.report({"INFO"}, ("continuing" if resume else "training") + " in the background")
+            self.report({"INFO"}, (f"continuing from step {job.state['resumed_from']}" if resume else "training")
+                        + " in the background")
             return {"FINISHED"}
         state = job.wait()
         tasks.poll_all()
         if state["status"] == "failed":
             raise NeulfError(f"training failed: {state['error']}")
         psnr = f", validation {state['val_psnr']:.2f} dB" if state.get("val_psnr") is not None else ""
-        self.report({"INFO"}, f"training {state['status']} at step {state['step']}{psnr}")
+        self.report({"INFO"}, f"training {job_status_text(state)}{psnr}")
         return {"FINISHED"}
 
 
@@ -282,6 +339,7 @@ class NEULF_OT_cancel_train(bpy.types.Operator):
 
     def execute(self, context):
         tasks.get("train").cancel()
+        self.report({"INFO"}, "stopping training: the model is saved where it is; Train continues it")
         return {"FINISHED"}
 
 

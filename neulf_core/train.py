@@ -25,6 +25,7 @@ from .device import describe_device, pick_device
 from .errors import NeulfError
 from .fields import build_field, count_parameters, make_config
 from .fields.disparity import slab_geometry, texture_size_for
+from .lock import training_lock
 from .presets import DEFAULT_PRESET, get_preset
 from .scene import Scene, load_scene, scaled_size, split_views
 from .slab import Slab, fit_slab
@@ -147,9 +148,15 @@ def validation_psnr(field_module, rays: RaySet, chunk: int = 1 << 15) -> float:
 
 def train(scene: Scene | str | Path, model_dir: str | Path, config: TrainConfig, *, images_dir=None, resume: bool = False,
           progress: Callable[[dict], None] | None = None, should_stop: Callable[[], bool] | None = None) -> TrainResult:
+    """Train (or with `resume`, continue) the light field of `scene` into `model_dir`."""
     model_dir = Path(model_dir).expanduser()
     if not config.steps and not config.minutes:
         raise NeulfError("give a training budget: --steps N or --minutes M.")
+    with training_lock(model_dir):
+        return _train(scene, model_dir, config, images_dir, resume, progress, should_stop)
+
+
+def _train(scene, model_dir: Path, config: TrainConfig, images_dir, resume: bool, progress, should_stop) -> TrainResult:
     if config.scale <= 0:
         raise NeulfError(f"--scale must be positive, not {config.scale}.")
     existing = checkpoint_path(model_dir).is_file()

@@ -32,9 +32,10 @@ PLANE_NORMAL = np.array([0.25, -0.15, -1.0]) / np.linalg.norm([0.25, -0.15, -1.0
 GRID = [(x, y) for y in (-0.3, 0.0, 0.3) for x in (-0.3, 0.0, 0.3)]
 
 STEPS = ["install", "import", "cameras_match_pycolmap", "slab_planes", "reimport_no_duplicates", "train_blocking",
-         "train_timer_resume", "train_cancel", "render_camera", "render_worker_process", "focus_at",
-         "pick_focus_frame", "pick_focus_click", "root_scale", "engine_f12", "spiral_video", "save_reload",
-         "reconstruct_photos", "user_errors", "dependencies_status", "install_dependencies"]
+         "train_timer_resume", "train_cancel", "train_cancel_resume", "render_camera", "render_worker_process",
+         "focus_at", "pick_focus_frame", "pick_focus_click", "root_scale", "engine_f12", "spiral_video", "save_reload",
+         "blend_moved", "quit_while_training", "reconstruct_photos", "user_errors", "dependencies_status",
+         "install_dependencies"]
 
 
 def _look_rotation(centre, target):
@@ -107,6 +108,26 @@ class Story:
             self.results_path.write_text(json.dumps(self.results, indent=1, default=str))
             return fn
         return wrap
+
+
+def reports_of(call) -> str:
+    """What an operator reports (background Blender prints its reports on stdout: "Info: ...")."""
+    import tempfile
+
+    sys.stdout.flush()
+    saved = os.dup(1)
+    with tempfile.TemporaryFile("w+") as captured:
+        os.dup2(captured.fileno(), 1)
+        try:
+            call()
+        finally:
+            sys.stdout.flush()
+            os.dup2(saved, 1)
+            os.close(saved)
+        captured.seek(0)
+        text = captured.read()
+    print(text, end="")
+    return text
 
 
 def error_of(call) -> str:
@@ -287,9 +308,36 @@ def run_story(setup: dict) -> None:  # noqa: C901 - one story, told in order
             mod("tasks").poll_all()
             assert job.state["status"] == "cancelled", job.state
             assert (cancel_model / "checkpoint.pt").is_file()
+            ctx["cancelled_step"] = job.state["step"]
         finally:
             props.model_dir = saved
         return f"cancelled at step {job.state['step']}"
+
+    @story.step("train_cancel_resume", "train_cancel")
+    def _():
+        # Cancel, then press Train again: training goes on from the cancelled model.
+        cancel_model = work / "model_cancel"
+        props = bpy.context.scene.neulf
+        saved = props.model_dir
+        before = json.loads((cancel_model / "model.json").read_text())["progress"]
+        stopped = before["step"]
+        assert before["status"] == "cancelled" and stopped == ctx["cancelled_step"], (before, ctx["cancelled_step"])
+        shown = props.last_status  # what the panel shows after Cancel
+        assert shown == f"cancelled at step {stopped}; Train continues it", shown
+        props.model_dir = str(cancel_model)
+        try:
+            report = reports_of(lambda: bpy.ops.neulf.train(steps=10))
+            job = mod("tasks").get("train")
+            assert "--resume" in job.argv and job.argv[job.argv.index("--steps") + 1] == str(stopped + 10), job.argv
+            after = json.loads((cancel_model / "model.json").read_text())["progress"]
+            assert after["status"] == "finished" and after["step"] == stopped + 10, after
+            assert after["history"][:len(before["history"])] == before["history"]  # nothing of it lost
+            assert f"finished at step {stopped + 10} (continued from step {stopped})" in report, report
+            assert props.last_status == f"finished at step {stopped + 10} (continued from step {stopped})", \
+                props.last_status
+        finally:
+            props.model_dir = saved
+        return f"Cancel: panel '{shown}'; Train again: {report.strip().splitlines()[-1]}"
 
     @story.step("render_camera", "train_blocking")
     def _():
@@ -543,6 +591,93 @@ def run_story(setup: dict) -> None:  # noqa: C901 - one story, told in order
         assert bpy.ops.neulf.render_camera() == {"FINISHED"}
         return props.model_dir
 
+    def child(session: str, **args) -> dict:
+        """Run a session of this script in a new bpy process (Blender started again), same user folder."""
+        import subprocess
+
+        out = work / f"{session}.result.json"
+        out.unlink(missing_ok=True)
+        config = dict(args, session=session, out=str(out), worker_python=worker_python)
+        (work / f"{session}.json").write_text(json.dumps(config))
+        run = subprocess.run([sys.executable, str(Path(__file__).resolve()), str(work / f"{session}.json")],
+                             capture_output=True, text=True, timeout=600)
+        if not out.is_file():
+            raise AssertionError(f"session {session} wrote nothing (exit {run.returncode}):\n"
+                                 f"{run.stdout[-3000:]}\n{run.stderr[-3000:]}")
+        result = json.loads(out.read_text())
+        assert not result.get("error"), f"session {session}: {result['error']}\n{run.stdout[-2000:]}"
+        result["exit"] = run.returncode
+        return result
+
+    @story.step("blend_moved", "save_reload")
+    def _():
+        # The .blend and its model folder moved together to another folder, opened by another
+        # Blender: the model path is relative to the .blend and resolves there.
+        import shutil
+
+        assert bpy.ops.neulf.render_camera() == {"FINISHED"}
+        here = image_array("NeuLF Render").copy()
+        blend = Path(bpy.data.filepath)
+        elsewhere = work / "elsewhere" / "deeper"
+        shutil.copytree(blend.parent, elsewhere / blend.parent.name)
+        shutil.copytree(model, elsewhere / model.name)
+        moved_blend = elsewhere / blend.parent.name / blend.name
+        hidden = model.with_name("model_away")  # the old absolute path must not be what works
+        model.rename(hidden)
+        try:
+            result = child("moved", blend=str(moved_blend), render=str(work / "moved_render.npy"))
+        finally:
+            hidden.rename(model)
+        assert result["model_dir"].startswith("//"), result["model_dir"]
+        assert Path(result["resolved"]) == (elsewhere / model.name).resolve(), result["resolved"]
+        assert result["status"] == "finished at step 60", result["status"]
+        moved = np.load(work / "moved_render.npy")
+        diff = float(np.abs(moved - here).max())
+        assert moved.shape == here.shape and diff <= 1 / 255 + 1e-6, diff
+        # ... and moved without its model folder: the panel and the error say what is wrong.
+        assert result["missing_status"].startswith("model folder not found:"), result["missing_status"]
+        missing = result["missing_error"]
+        assert missing.startswith("Error:") and "does not exist" in missing and missing.strip().count("\n") == 0, missing
+        return (f"reopened from {elsewhere.relative_to(work)}: model {result['model_dir']}, panel "
+                f"'{result['status']}', render equal within {diff * 255:.1f}/255; without the model folder: "
+                f"{missing.strip()}")
+
+    @story.step("quit_while_training", "install")
+    def _():
+        # Blender started, a capture imported and saved, Train pressed (the UI's timer path), the
+        # .blend saved during training, then Blender gone: quit (Python exits; the add-on is
+        # unregistered, which cancels training) or killed (a crash: only the closed pipe tells the
+        # training process).  A new Blender opens the .blend; the panel shows the model's progress
+        # and Train continues it.
+        saved, gone, opened = set(), [], ""
+        for how in ("quit", "kill"):
+            folder = work / f"quit_{how}"
+            folder.mkdir(exist_ok=True)
+            blend, quit_model = folder / "session.blend", folder / "model"
+            a = child("quit_a", how=how, blend=str(blend), model=str(quit_model), scene_dir=str(scene_dir))
+            assert a["saved_status"] == "training", a
+            assert (a["exit"] == 0) if how == "quit" else (a["exit"] != 0), (how, a["exit"])
+            assert wait_gone(a["worker_pid"], 120), \
+                f"the training process {a['worker_pid']} still runs 120 s after Blender went away"
+            found = json.loads((quit_model / "model.json").read_text())["progress"]
+            assert found["step"] >= a["step"], (found, a["step"])  # no step that Blender saw is lost
+            b = child("reopen_b", blend=str(blend), train=how == "kill")
+            assert b["model_dir"].startswith("//") and Path(b["resolved"]) == quit_model.resolve(), b
+            expected = f"stopped at step {found['step']} (checkpoint saved); Train continues it"
+            assert b["status_on_open"] == expected, (b["status_on_open"], expected)
+            saved.add(a["saved_status"])
+            gone.append(f"{how} at step {a['step']} -> checkpoint at step {found['step']}")
+            opened = b["status_on_open"]
+        # The last one (killed) continued by Train in the reopened Blender.
+        assert "--resume" in b["argv"], b["argv"]
+        assert b["argv"][b["argv"].index("--steps") + 1] == str(found["step"] + 10), b["argv"]
+        assert b["progress"]["status"] == "finished" and b["progress"]["step"] == found["step"] + 10, b
+        assert b["progress"]["history"][:len(found["history"])] == found["history"]
+        resumed = f"finished at step {found['step'] + 10} (continued from step {found['step']})"
+        assert resumed in b["report"] and b["last_status"] == resumed, (b["report"], b["last_status"])
+        return (f"Blender {', '.join(gone)} (the .blend, saved while training, says '{', '.join(saved)}'); reopened, "
+                f"the panel reads the model folder: '{opened}'; Train: {resumed}")
+
     @story.step("reconstruct_photos", "install")
     def _():
         bpy.ops.wm.read_homefile(use_empty=True)
@@ -641,7 +776,108 @@ def run_story(setup: dict) -> None:  # noqa: C901 - one story, told in order
     story.results_path.write_text(json.dumps(story.results, indent=1, default=str))
 
 
+def wait_gone(pid: int, timeout: float) -> bool:
+    """Whether process `pid` ended (or is a zombie) within `timeout` seconds."""
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        try:
+            state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+        except FileNotFoundError:
+            return True
+        except OSError:  # no /proc: ask the process
+            try:
+                os.kill(pid, 0)
+            except ProcessLookupError:
+                return True
+            state = "R"
+        if state in ("Z", "X"):
+            return True
+        time.sleep(0.1)
+    return False
+
+
+# ----------------------------------------------------------------------------- sessions in a new Blender
+
+
+def run_session(setup: dict) -> dict:
+    """One part of a story that needs Blender started again (a new bpy process); what it found
+    goes to setup["out"] and the story's step checks it."""
+    import bpy
+    import addon_utils  # noqa: I001 - importable once bpy is
+
+    out = Path(setup["out"])
+    result: dict = {}
+    addon_utils.extensions_refresh(ensure_wheels=True, addon_modules_pending=[PACKAGE])  # installed by the story
+    addon_utils.enable(PACKAGE, default_set=True, persistent=True)
+
+    def mod(name):
+        return sys.modules[f"{PACKAGE}.neulf_blender.{name}"]
+
+    if setup.get("worker_python"):
+        bpy.context.preferences.addons[PACKAGE].preferences.python_path = setup["worker_python"]
+
+    def resolved(props):
+        return str(Path(bpy.path.abspath(props.model_dir)).resolve())
+
+    try:
+        session = setup["session"]
+        if session == "moved":
+            bpy.ops.wm.open_mainfile(filepath=setup["blend"])
+            props = bpy.context.scene.neulf
+            result.update(model_dir=props.model_dir, resolved=resolved(props), status=props.last_status)
+            assert bpy.ops.neulf.render_camera() == {"FINISHED"}
+            image = bpy.data.images["NeuLF Render"]
+            width, height = image.size
+            pixels = np.empty(width * height * 4, np.float32)
+            image.pixels.foreach_get(pixels)
+            np.save(setup["render"], pixels.reshape(height, width, 4)[::-1, :, :3])
+            model = Path(result["resolved"])
+            model.rename(model.with_name(model.name + "_gone"))
+            bpy.ops.wm.open_mainfile(filepath=setup["blend"])
+            result["missing_status"] = bpy.context.scene.neulf.last_status
+            result["missing_error"] = error_of(lambda: bpy.ops.neulf.render_camera())
+        elif session == "quit_a":
+            bpy.ops.wm.read_homefile(use_empty=True)
+            assert bpy.ops.neulf.import_colmap(directory=setup["scene_dir"]) == {"FINISHED"}
+            bpy.ops.wm.save_as_mainfile(filepath=setup["blend"])
+            props = bpy.context.scene.neulf
+            props.model_dir = setup["model"]
+            job, resumed = mod("operators").start_training(bpy.context, minutes=5)  # what Train does in the UI
+            assert not resumed
+            deadline = time.monotonic() + 180
+            while job.state.get("step", 0) < 10 and time.monotonic() < deadline:
+                assert mod("tasks").poll_all(), job.state  # the UI timer's tick
+                time.sleep(0.05)
+            assert job.state["step"] >= 10, job.state
+            bpy.ops.wm.save_mainfile()  # Ctrl+S while training
+            result.update(worker_pid=job.process.pid, step=job.state["step"], saved_status=props.last_status,
+                          model_dir=props.model_dir)
+            if setup["how"] == "kill":
+                out.write_text(json.dumps(result))
+                os.kill(os.getpid(), 9)  # Blender gone at once, as in a crash
+            result["quit"] = True  # a normal exit, after the result is written (see __main__)
+        elif session == "reopen_b":
+            bpy.ops.wm.open_mainfile(filepath=setup["blend"])
+            props = bpy.context.scene.neulf
+            result.update(model_dir=props.model_dir, resolved=resolved(props), status_on_open=props.last_status)
+            if setup["train"]:
+                result["report"] = reports_of(lambda: bpy.ops.neulf.train(steps=10))  # Train pressed again
+                result.update(argv=mod("tasks").get("train").argv, last_status=props.last_status,
+                              progress=json.loads((Path(result["resolved"]) / "model.json").read_text())["progress"])
+        else:
+            raise ValueError(f"unknown session {session}")
+    except BaseException:  # noqa: BLE001 - reported to the story's step
+        result["error"] = traceback.format_exc()
+    out.write_text(json.dumps(result, default=str))
+    return result
+
+
 if __name__ == "__main__":
     # A fresh Python with BLENDER_USER_RESOURCES set (see test_blender_extension.py).
-    run_story(json.loads(Path(sys.argv[1]).read_text()))
+    config = json.loads(Path(sys.argv[1]).read_text())
+    if "session" in config:
+        if run_session(config).get("quit"):
+            sys.exit(0)  # Blender quits: bpy's exit handlers disable the add-ons (unregister)
+    else:
+        run_story(config)
     os._exit(0)  # skip bpy's slow teardown

@@ -4,10 +4,14 @@ pytest builds the repository into an extension zip with Blender's own builder, v
 it, and then runs tests/blender_story.py in a fresh Python (BLENDER_USER_RESOURCES isolated
 to a temp folder before bpy is imported) that installs the zip as a user extension and
 walks through the artist's story on a tiny synthetic capture: import, check every camera
-against pycolmap, train through the operator (blocking and timer paths, cancel, resume),
-render, focus (by image point and by a click in the camera view), F12, a spiral video, save
-and reload, reconstruct a folder of photos, dependency status and install.  Each step's
-outcome is written to a JSON file and checked by its own test below.
+against pycolmap, train through the operator (blocking and timer paths, cancel, Train again
+after Cancel), render, focus (by image point and by a click in the camera view), F12, a
+spiral video, save and reload, the .blend and its model moved elsewhere and opened by a new
+Blender, Blender quit or killed while training and a new Blender reopening the .blend and
+continuing the model, reconstruct a folder of photos, dependency status and install.  The
+steps that need Blender started again run blender_story.py's sessions in new bpy processes
+(same user folder, so the installed extension).  Each step's outcome is written to a JSON
+file and checked by its own test below.
 
 bpy 5.0.1 (this venv) runs neulf_core in-process.  With NEULF_BPY42_PYTHON set to a Python
 that has bpy 4.2 (and no torch), the same story runs there with neulf_core in a worker

@@ -652,3 +652,29 @@ def test_no_network_unless_the_user_installs(tiny_scene, tmp_path, capfd, monkey
     assert "network" in (REPO / "blender_manifest.toml").read_text().split("[permissions]", 1)[1]
     record_property("message", "no connection attempted by train/render; pip runs only from "
                                "NEULF_OT_install_dependencies after bpy.app.online_access is checked")
+
+
+def test_a_second_training_of_the_same_model_folder_is_refused(tiny_scene, tmp_path):
+    """Two processes must not write one checkpoint: the second is refused and names the first;
+    a lock left by a process that no longer exists is taken over."""
+    from neulf_core.errors import NeulfError
+    from neulf_core.lock import LOCK_NAME, training_lock
+    from neulf_core.train import TrainConfig, train
+
+    model = tmp_path / "m"
+    config = TrainConfig(preset="planes", steps=2, batch_size=64, validate_seconds=1e9,
+                         field_overrides={"spatial_res": [8, 16], "channels": 4})
+    sleeper = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"])
+    try:
+        model.mkdir()
+        (model / LOCK_NAME).write_text(json.dumps({"pid": sleeper.pid, "host": socket.gethostname()}))
+        with pytest.raises(NeulfError, match=f"being trained by process {sleeper.pid}"):
+            train(tiny_scene, model, config)
+    finally:
+        sleeper.kill()
+        sleeper.wait()
+    result = train(tiny_scene, model, config)  # the holder is gone: its lock is taken over
+    assert result.step == 2 and not (model / LOCK_NAME).exists()
+    with training_lock(tmp_path / "held"):
+        assert (tmp_path / "held" / LOCK_NAME).is_file()
+    assert not (tmp_path / "held").exists()  # nothing was written: no empty folder left behind

@@ -1,0 +1,91 @@
+"""One training process per model folder.
+
+Two trainings writing the same checkpoint would overwrite each other's work (for example
+Blender reopened while the training it started before a crash still runs, and Train pressed
+again).  `training_lock` holds MODEL_DIR/training.lock (process id, host) for the duration
+of a training; a second one is refused with a message that names the first.  A lock left by
+a process that no longer exists (SIGKILL, power cut) is taken over.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import socket
+import sys
+import time
+from pathlib import Path
+
+from .errors import NeulfError
+
+LOCK_NAME = "training.lock"
+
+
+def _process_alive(pid: int) -> bool:
+    if sys.platform == "win32":  # os.kill(pid, 0) would terminate the process on Windows
+        import ctypes
+
+        handle = ctypes.windll.kernel32.OpenProcess(0x1000, False, pid)  # PROCESS_QUERY_LIMITED_INFORMATION
+        if not handle:
+            return False
+        code = ctypes.c_ulong()
+        ctypes.windll.kernel32.GetExitCodeProcess(handle, ctypes.byref(code))
+        ctypes.windll.kernel32.CloseHandle(handle)
+        return code.value == 259  # STILL_ACTIVE
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
+def _holder(path: Path) -> dict | None:
+    """The lock's owner, or None when the lock is stale (its process is gone) or unreadable."""
+    try:
+        owner = json.loads(path.read_text())
+        pid, host = int(owner["pid"]), str(owner["host"])
+    except (OSError, ValueError, KeyError, TypeError):
+        return None
+    if host != socket.gethostname():
+        return owner  # cannot check a process on another machine: assume it runs
+    return owner if _process_alive(pid) else None
+
+
+def _try_create(path: Path) -> bool:
+    try:
+        fd = os.open(path, os.O_CREAT | os.O_EXCL | os.O_WRONLY)
+    except FileExistsError:
+        return False
+    with os.fdopen(fd, "w") as handle:
+        json.dump({"pid": os.getpid(), "host": socket.gethostname(), "started": time.time()}, handle)
+    return True
+
+
+@contextlib.contextmanager
+def training_lock(model_dir: Path):
+    model_dir = Path(model_dir)
+    if model_dir.exists() and not model_dir.is_dir():
+        raise NeulfError(f"{model_dir} is a file; a model is a folder: choose another --out.")
+    created = not model_dir.exists()
+    model_dir.mkdir(parents=True, exist_ok=True)
+    path = model_dir / LOCK_NAME
+    try:
+        while not _try_create(path):
+            owner = _holder(path)
+            if owner is not None:
+                raise NeulfError(
+                    f"{model_dir} is being trained by process {owner['pid']} on {owner['host']}; wait for it to finish "
+                    f"or stop it, then resume (if that process is gone, delete {path}).")
+            with contextlib.suppress(FileNotFoundError):
+                path.unlink()  # stale: its process is gone
+        try:
+            yield
+        finally:
+            with contextlib.suppress(FileNotFoundError):
+                path.unlink()
+    finally:
+        if created and model_dir.is_dir() and not any(model_dir.iterdir()):
+            model_dir.rmdir()  # a training that failed before its first checkpoint leaves nothing behind
