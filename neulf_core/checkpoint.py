@@ -1,10 +1,11 @@
 """Model folders and checkpoints: written atomically, checked on load.
 
-MODEL_DIR/checkpoint.pt holds everything to render and to resume (weights, slab,
-optimizer and random state, progress); MODEL_DIR/model.json is the same metadata for
-people and other programs (no weights).  Both are written to a temporary file in the same
-folder and renamed over the old one, so a crash or SIGKILL mid-write leaves the previous
-checkpoint intact.
+MODEL_DIR/checkpoint.pt holds everything to render and to resume (float32 weights, slab,
+optimizer and random state, progress); MODEL_DIR/model.pt is the render-only copy to ship
+(large weights as float16, no optimizer state: 2.66 MB against 15.8 MB for the default
+field at 480x270); MODEL_DIR/model.json is the same metadata for people and other programs
+(no weights).  All are written to a temporary file in the same folder and renamed over the
+old one, so a crash or SIGKILL mid-write leaves the previous files intact.
 """
 
 from __future__ import annotations
@@ -23,6 +24,12 @@ FORMAT = "neulf-checkpoint"
 VERSION = 1
 CHECKPOINT_NAME = "checkpoint.pt"
 METADATA_NAME = "model.json"
+MODEL_FORMAT = "neulf-model"
+MODEL_NAME = "model.pt"
+# Tensors smaller than this stay float32 in model.pt: the decoders are a few kB, and their
+# rounding would be the only fp16 error that reaches the colour without interpolation.
+HALF_MIN_ELEMENTS = 4096
+NOT_FOR_RENDERING = ("state_dict", "optimizer", "rng")
 
 
 def atomic_write_bytes(path: Path, data: bytes) -> None:
@@ -41,14 +48,45 @@ def atomic_write_bytes(path: Path, data: bytes) -> None:
         raise
 
 
-def save_checkpoint(model_dir: Path, payload: dict) -> Path:
-    payload = {"format": FORMAT, "version": VERSION, **payload}
+def _torch_bytes(obj) -> bytes:
     buffer = io.BytesIO()
-    torch.save(payload, buffer)
+    torch.save(obj, buffer)
+    return buffer.getvalue()
+
+
+def save_checkpoint(model_dir: Path, payload: dict) -> Path:
+    """checkpoint.pt, then model.pt, then model.json: a crash in between leaves the
+    checkpoint the newer file, and loading for rendering then takes it (render_path)."""
+    payload = {"format": FORMAT, "version": VERSION, **payload}
     path = Path(model_dir) / CHECKPOINT_NAME
-    atomic_write_bytes(path, buffer.getvalue())
-    metadata = {k: v for k, v in payload.items() if k not in ("state_dict", "optimizer", "rng")}
+    atomic_write_bytes(path, _torch_bytes(payload))
+    save_render_model(model_dir, payload)
+    metadata = {k: v for k, v in payload.items() if k not in NOT_FOR_RENDERING}
     atomic_write_bytes(Path(model_dir) / METADATA_NAME, json.dumps(metadata, indent=2, default=str).encode())
+    return path
+
+
+def half_state_dict(state_dict: dict) -> dict:
+    """Large float tensors as float16 (textures and planes: half the bytes, no measurable
+    PSNR cost, docs/BENCHMARKS.md); small ones, non-float ones, and any that float16 would
+    overflow stay as they are."""
+    out = {}
+    for name, tensor in state_dict.items():
+        tensor = tensor.detach().cpu()
+        if tensor.is_floating_point() and tensor.numel() >= HALF_MIN_ELEMENTS:
+            half = tensor.to(torch.float16)
+            if bool(torch.isfinite(half).all()) or not bool(torch.isfinite(tensor).all()):
+                tensor = half
+        out[name] = tensor
+    return out
+
+
+def save_render_model(model_dir: Path, payload: dict) -> Path:
+    """MODEL_DIR/model.pt: what rendering needs (metadata + float16 weights), no optimizer."""
+    model = {k: v for k, v in payload.items() if k not in NOT_FOR_RENDERING}
+    model.update(format=MODEL_FORMAT, version=VERSION, state_dict=half_state_dict(payload["state_dict"]))
+    path = Path(model_dir) / MODEL_NAME
+    atomic_write_bytes(path, _torch_bytes(model))
     return path
 
 
@@ -59,8 +97,33 @@ def checkpoint_path(model_dir: Path) -> Path:
     return model_dir / CHECKPOINT_NAME
 
 
+def render_path(model_dir: Path) -> Path:
+    """The file to render from: model.pt, unless checkpoint.pt is newer (a crash between
+    the two writes, or a checkpoint replaced by hand) or model.pt is missing."""
+    model_dir = Path(model_dir).expanduser()
+    if model_dir.is_file():
+        return model_dir
+    small, full = model_dir / MODEL_NAME, model_dir / CHECKPOINT_NAME
+    if small.is_file() and (not full.is_file() or small.stat().st_mtime_ns >= full.stat().st_mtime_ns):
+        return small
+    return full
+
+
 def load_checkpoint(model_dir: Path, map_location="cpu") -> dict:
-    path = checkpoint_path(model_dir)
+    """The full checkpoint (for resuming)."""
+    payload = _read(checkpoint_path(model_dir), model_dir, map_location)
+    if payload.get("format") == MODEL_FORMAT:
+        raise NeulfError(f"{model_dir} is a render-only model file (no optimizer state); resuming needs its {CHECKPOINT_NAME}.")
+    return payload
+
+
+def load_for_render(model_dir: Path, map_location="cpu") -> dict:
+    """model.pt or checkpoint.pt (see render_path); either has the metadata and state_dict
+    (float16 tensors in model.pt: load_state_dict converts them to float32 once)."""
+    return _read(render_path(model_dir), model_dir, map_location)
+
+
+def _read(path: Path, model_dir: Path, map_location) -> dict:
     if not Path(model_dir).expanduser().exists():
         raise NeulfError(f"model folder {model_dir} does not exist; train one with: python -m neulf_core train SCENE --out {model_dir}")
     if not path.is_file():
@@ -72,7 +135,7 @@ def load_checkpoint(model_dir: Path, map_location="cpu") -> dict:
             f"the checkpoint {path} is truncated or corrupted ({type(exc).__name__}); "
             "train again, or restore it from a backup."
         ) from None
-    if not isinstance(payload, dict) or payload.get("format") != FORMAT:
+    if not isinstance(payload, dict) or payload.get("format") not in (FORMAT, MODEL_FORMAT):
         raise NeulfError(f"{path} is not a NeuLF checkpoint.")
     if payload.get("version") != VERSION:
         raise NeulfError(

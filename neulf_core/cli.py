@@ -48,6 +48,7 @@ def cmd_reconstruct(args) -> int:
 
 
 def cmd_train(args) -> int:
+    from .autosize import PRESET as AUTO_PRESET, train_auto
     from .presets import get_preset
     from .progress import make_reporter
     from .train import TrainConfig, train
@@ -76,7 +77,8 @@ def cmd_train(args) -> int:
     signals = [signal.SIGINT, signal.SIGTERM] + ([signal.SIGBREAK] if hasattr(signal, "SIGBREAK") else [])
     previous = {s: signal.signal(s, on_signal) for s in signals}
     try:
-        result = train(args.scene_dir, args.out, config, images_dir=args.images, resume=args.resume,
+        run = train_auto if args.preset == AUTO_PRESET else train  # auto: a size search, then train()
+        result = run(args.scene_dir, args.out, config, images_dir=args.images, resume=args.resume,
                        progress=_Reporter(make_reporter(args.progress), on_reader_gone),
                        should_stop=lambda: stop["signal"] is not None or stop["reader_gone"])
     finally:
@@ -342,7 +344,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", required=True, help="model folder")
     p.add_argument("--images", help="images folder (default: SCENE/images, else SCENE/images_N)")
     p.add_argument("--scale", type=float, default=1.0, help="train at this image scale (e.g. 0.5)")
-    p.add_argument("--preset", default="fast", help="fast (default), planes, authors (8x256 MLP), paper (20x256 MLP)")
+    p.add_argument("--preset", default="fast", help="fast (default), auto (fast, texture sized per scene), planes, authors (8x256 MLP), paper (20x256 MLP)")
     budget = p.add_mutually_exclusive_group()
     budget.add_argument("--minutes", type=float, help="training time budget (total, including resumed time)")
     budget.add_argument("--steps", type=int, help="training steps (total, including resumed steps)")

@@ -24,13 +24,19 @@ class Preset:
     description: str = ""
 
 
+# The fast field's texture: 4 channels at ~1 texel per pixel keep the default model.pt under
+# 3 MB at 480x270 (2.66 MB; 8 channels: 4.82 MB, 0.33 dB better on CanClip; docs/BENCHMARKS.md).
+FAST_FIELD = {"texture_channels": 4}
+
 PRESETS: dict[str, Preset] = {
     "paper": Preset("mlp", {"depth": 20, "width": 256, "skip": "input"}, lr=5e-4, lr_decay_per_epoch=0.995,
                     description="the paper's network: 20 x 256 ReLU layers, raw-input skips every 4 layers"),
     "authors": Preset("mlp", {"depth": 8, "width": 256, "skip": "embedding"}, lr=5e-4, lr_decay_per_epoch=0.995,
                       description="the authors' code default: 8 x 256, embedding skips"),
-    "fast": Preset("disparity", {}, lr=2e-3, lr_final_ratio=0.1, batch_size=8192,
+    "fast": Preset("disparity", FAST_FIELD, lr=2e-3, lr_final_ratio=0.1, batch_size=8192,
                    description="per-ray disparity shearing one shared st texture; trains in minutes on a CPU"),
+    "auto": Preset("disparity", FAST_FIELD, lr=2e-3, lr_final_ratio=0.1, batch_size=8192,
+                   description="the fast field with its texture sized per scene on validation views (autosize.py)"),
     "planes": Preset("planes", {}, lr=2e-3, lr_final_ratio=0.1, batch_size=8192,
                      description="six factorised (u,v,s,t) feature planes + tiny MLP (K-Planes style)"),
 }

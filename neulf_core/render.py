@@ -16,7 +16,7 @@ import numpy as np
 import pycolmap
 import torch
 
-from .checkpoint import load_checkpoint
+from .checkpoint import load_for_render
 from .device import pick_device
 from .errors import NeulfError
 from .fields import build_field, make_config
@@ -25,7 +25,12 @@ from .refocus import MAX_SAMPLES, lens_rays, lens_samples, max_blur_radius_px, s
 from .scene import View
 from .slab import Slab
 
-DEFAULT_CHUNK = 1 << 16
+# Rays per chunk.  On a CPU a chunk's intermediates (a few MB) stay in cache and are reused
+# by the allocator: with 1 thread, 16k-32k rays rendered the default field about 10% faster
+# than 8k or 64k (docs/BENCHMARKS.md); more threads want the larger.  A GPU wants large
+# chunks: fewer kernel launches.
+DEFAULT_CHUNK = 1 << 15
+ACCELERATOR_CHUNK = 1 << 18
 # Rays whose (u, v, s, t) lie this far outside the trained range are extrapolation.
 EXTRAPOLATION_MARGIN = 0.1
 
@@ -52,8 +57,9 @@ class LightField:
 
     @classmethod
     def load(cls, model_dir: str | Path, device: str | None = None) -> "LightField":
+        """MODEL_DIR/model.pt (float16 weights) when it is current, else checkpoint.pt."""
         device = pick_device(device)
-        payload = load_checkpoint(model_dir, map_location="cpu")
+        payload = load_for_render(model_dir, map_location="cpu")
         try:
             config = make_config(payload["field"], payload["field_config"])
             module = build_field(payload["field"], config)
@@ -78,7 +84,10 @@ class LightField:
             )
 
     # ------------------------------------------------------------------ core
-    @torch.no_grad()
+    def default_chunk(self) -> int:
+        return DEFAULT_CHUNK if self.device.type == "cpu" else ACCELERATOR_CHUNK
+
+    @torch.inference_mode()
     def query(self, origins: torch.Tensor, directions: torch.Tensor, want_depth: bool = True):
         """Colour (N, 3), camera-independent depth along the slab axis (N,), valid (N,)."""
         uvst, valid = self.slab.rays_to_uvst(origins, directions)
@@ -97,7 +106,7 @@ class LightField:
         ray_length = (slab_depth.to(dtype) - o_z) / d_z
         return ray_length * (directions.to(dtype) @ forward.to(dtype))
 
-    def render(self, K, width: int, height: int, R, t, *, depth: bool = True, chunk: int = DEFAULT_CHUNK,
+    def render(self, K, width: int, height: int, R, t, *, depth: bool = True, chunk: int | None = None,
                on_chunk=None, focus_distance: float | None = None, aperture: float = 0.0,
                max_samples: int = MAX_SAMPLES) -> Rendering:
         """Render a pinhole camera (K, world-to-camera R, t in the scene's COLMAP frame).
@@ -110,7 +119,7 @@ class LightField:
             raise NeulfError(f"cannot render a {width}x{height} image: width and height must be at least 1 pixel.")
         K, R, t = (np.asarray(a, dtype=np.float64) for a in (K, R, t))
         lens = self._lens_plan(K, focus_distance, aperture, max_samples)
-        rows_per_chunk = max(1, chunk // width)
+        rows_per_chunk = max(1, (chunk or self.default_chunk()) // width)
         forward = torch.as_tensor(R[2], device=self.device, dtype=self.geometry_dtype)
         rgb_out = np.empty((height, width, 3), np.float32)
         depth_out = np.empty((height, width), np.float32) if depth else None
@@ -179,10 +188,11 @@ class LightField:
                          "move the camera closer to the capture positions for reliable results")
         return notes
 
-    def render_view(self, view: View, scale: float | None = None, *, depth: bool = True, chunk: int = DEFAULT_CHUNK) -> Rendering:
+    def render_view(self, view: View, scale: float | None = None, *, depth: bool = True, chunk: int | None = None) -> Rendering:
         """Render a registered view through its own camera model (distortion included), so
         the result lines up pixel for pixel with its photo."""
         scale = self.trained_scale if scale is None else scale
+        chunk = chunk or self.default_chunk()
         camera: pycolmap.Camera = view.scaled_camera(scale)
         width, height = int(camera.width), int(camera.height)
         origin, directions = view_rays(camera, view.R, view.t)

@@ -24,7 +24,13 @@ import torch.nn.functional as F
 from torch import nn
 
 from . import register
-from .planes import PlanesConfig, PlanesField
+from .planes import ANGULAR, PAIRS, PlanesConfig, PlanesField
+
+# The geometry planes that mix one angular and one spatial axis (us, ut, vs, vt) share a shape
+# within a scale, so each scale samples them in one batched grid_sample (see _geometry_features).
+MIXED = [i for i, (a, b) in enumerate(PAIRS) if (a in ANGULAR) != (b in ANGULAR)]
+ANGULAR_PAIR = PAIRS.index(ANGULAR)
+SPATIAL_PAIR = PAIRS.index((2, 3))
 
 
 @dataclass
@@ -81,6 +87,9 @@ class DisparityField(nn.Module):
             for level in range(config.texture_levels))
         decoder_in = config.texture_channels * config.texture_levels + (2 if config.view_dependence else 0)
         self.decoder = nn.Sequential(nn.Linear(decoder_in, config.hidden), nn.ReLU(), nn.Linear(config.hidden, 3))
+        for layer in (*self.geometry.decoder, *self.decoder):
+            if isinstance(layer, nn.ReLU):  # in place: one (N, hidden) buffer fewer; its gradient needs only the output
+                layer.inplace = True
         for name in ("uv_half", "uv_centre", "st_half", "st_centre"):
             self.register_buffer(name, torch.tensor(getattr(config, name), dtype=torch.float32), persistent=False)
 
@@ -96,19 +105,37 @@ class DisparityField(nn.Module):
         return c.z_st * inverse_depth - 1.0
 
     def forward(self, uvst: torch.Tensor):
-        geometry = self.geometry.decoder(self.geometry.features(uvst))
+        geometry = self.geometry.decoder(self._geometry_features(uvst))
         unit = torch.sigmoid(geometry[:, 3:4])
-        delta = self.disparity(unit)
-        uv = uvst[:, :2] * self.uv_half + self.uv_centre          # slab units
-        st = uvst[:, 2:] * self.st_half + self.st_centre
-        sheared = (st + uv * delta - self.st_centre) / self.st_half  # back to normalised st
-        grid = (sheared / (1.0 + self.config.texture_margin)).view(1, -1, 1, 2)
-        features = [F.grid_sample(texture, grid, mode="bilinear", padding_mode="border", align_corners=True)
-                    .view(texture.shape[1], -1) for texture in self.textures]
-        decoder_in = torch.cat(features, 0).t()
+        # sheared st = st + uv * delta in slab units, back in normalised st (one fused form).
+        uv = uvst[:, :2] * self.uv_half + self.uv_centre
+        shift = uv * (self.disparity(unit) / self.st_half)
+        grid = ((uvst[:, 2:] + shift) * (1.0 / (1.0 + self.config.texture_margin))).view(1, -1, 1, 2)
+        n = uvst.shape[0]
+        features = [_sample(texture, grid).view(texture.shape[1], n).t() for texture in self.textures]
         if self.config.view_dependence:
-            decoder_in = torch.cat([decoder_in, uvst[:, :2]], 1)
-        return torch.sigmoid(self.decoder(decoder_in)), unit
+            features.append(uvst[:, :2])
+        return torch.sigmoid(self.decoder(_rows(features))), unit
+
+    def _geometry_features(self, uvst: torch.Tensor) -> torch.Tensor:
+        """PlanesField.features with fewer kernel calls: each pair's sample grid is built once
+        for all scales, the three (u, v) planes are sampled as one 24-channel texture, and
+        the four mixed planes of a scale as one batch (same values, a third of the calls)."""
+        n = uvst.shape[0]
+        grids = [torch.stack([uvst[:, b], uvst[:, a]], dim=-1).view(1, n, 1, 2) for a, b in PAIRS]
+        mixed_grid = torch.cat([grids[i] for i in MIXED], 0)
+        scales = self.geometry.scales
+        angular = _sample(torch.cat([planes[ANGULAR_PAIR] for planes in scales], 1), grids[ANGULAR_PAIR])
+        per_scale = []
+        for k, planes in enumerate(scales):
+            mixed = _sample(torch.cat([planes[i] for i in MIXED], 0), mixed_grid).view(len(MIXED), -1, n)
+            spatial = _sample(planes[SPATIAL_PAIR], grids[SPATIAL_PAIR]).view(-1, n)
+            channels = spatial.shape[0]
+            product = angular.view(-1, n)[k * channels:(k + 1) * channels] * spatial
+            for plane in mixed.unbind(0):  # explicit products: prod()'s gradient divides
+                product = product * plane
+            per_scale.append(product.t())
+        return _rows(per_scale)
 
     def regularisation(self) -> torch.Tensor:
         return self.geometry.regularisation()
@@ -119,6 +146,17 @@ class DisparityField(nn.Module):
             {"params": list(self.geometry.scales.parameters()), "lr": lr * 10.0, "name": "geometry planes"},
             {"params": list(self.geometry.decoder.parameters()) + list(self.decoder.parameters()), "lr": lr, "name": "decoders"},
         ]
+
+
+def _sample(texture: torch.Tensor, grid: torch.Tensor) -> torch.Tensor:
+    """Bilinear samples (B, C, N, 1) of texture (B, C, H, W) at grid (B, N, 1, 2) in [-1, 1]."""
+    return F.grid_sample(texture, grid, mode="bilinear", padding_mode="border", align_corners=True)
+
+
+def _rows(columns: list[torch.Tensor]) -> torch.Tensor:
+    """(N, sum C) row-major from (N, C) views (transposed grid_sample outputs): one copy, and
+    the decoder's matrix products then write their outputs without another transpose."""
+    return torch.cat(columns, 1)
 
 
 register("disparity", DisparityConfig, DisparityField, "per-ray disparity (small planes) shearing one shared st texture")

@@ -1,0 +1,92 @@
+"""Render time per frame of trained fast fields: the current code against the code before the
+render speed-up (its DisparityField.forward, kept here as `reference_forward`, with 64k-ray
+chunks and ReLUs not in place), interleaved in one process, median of repeats.
+
+    python benchmarks/render_speed.py --scene ../shared/data/canclip --scale 0.5 \
+        --model c8=MODEL_DIR --model c4=MODEL_DIR [--threads 2] [--repeats 7] [--no-depth]
+
+The camera is the first held-out view's, at the models' training scale.  Timings on a shared
+machine are noisy: compare the ratios (each repeat renders every variant once, in turn).
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from neulf_core.fields.disparity import DisparityField  # noqa: E402
+from neulf_core.render import LightField  # noqa: E402
+from neulf_core.scene import load_scene, split_views  # noqa: E402
+
+CURRENT_FORWARD = DisparityField.forward
+
+
+def reference_forward(self, uvst):
+    """DisparityField.forward before the speed-up (commit d63c3d7)."""
+    geometry = self.geometry.decoder(self.geometry.features(uvst))
+    unit = torch.sigmoid(geometry[:, 3:4])
+    delta = self.disparity(unit)
+    uv = uvst[:, :2] * self.uv_half + self.uv_centre
+    st = uvst[:, 2:] * self.st_half + self.st_centre
+    sheared = (st + uv * delta - self.st_centre) / self.st_half
+    grid = (sheared / (1.0 + self.config.texture_margin)).view(1, -1, 1, 2)
+    features = [F.grid_sample(texture, grid, mode="bilinear", padding_mode="border", align_corners=True)
+                .view(texture.shape[1], -1) for texture in self.textures]
+    decoder_in = torch.cat(features, 0).t()
+    if self.config.view_dependence:
+        decoder_in = torch.cat([decoder_in, uvst[:, :2]], 1)
+    return torch.sigmoid(self.decoder(decoder_in)), unit
+
+
+def use_code(light_fields, current: bool) -> int | None:
+    """Switch every model to the current or the reference code; returns the chunk to use."""
+    DisparityField.forward = CURRENT_FORWARD if current else reference_forward
+    for light_field in light_fields:
+        for layer in (*light_field.field.geometry.decoder, *light_field.field.decoder):
+            if isinstance(layer, torch.nn.ReLU):
+                layer.inplace = current
+    return None if current else 1 << 16
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser()
+    parser.add_argument("--scene", required=True)
+    parser.add_argument("--images")
+    parser.add_argument("--scale", type=float, default=0.5)
+    parser.add_argument("--model", action="append", required=True, help="NAME=MODEL_DIR (a fast-field model)")
+    parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--repeats", type=int, default=7)
+    parser.add_argument("--no-depth", action="store_true")
+    args = parser.parse_args()
+    models = {name: LightField.load(folder, "cpu") for name, folder in (m.split("=", 1) for m in args.model)}
+    view = split_views(load_scene(args.scene, args.images))[1][0]
+    camera = view.scaled_camera(args.scale)
+    K, width, height = camera.calibration_matrix(), int(camera.width), int(camera.height)
+    variants = [(f"{code}, {name}", name, code == "current") for name in models for code in ("reference", "current")]
+    torch.set_num_threads(args.threads)  # for the timing only
+    times = {label: [] for label, _, _ in variants}
+    for _ in range(args.repeats):
+        for label, name, current in variants:
+            chunk = use_code(models.values(), current)
+            started = time.perf_counter()
+            models[name].render(K, width, height, view.R, view.t, depth=not args.no_depth, chunk=chunk)
+            times[label].append(time.perf_counter() - started)
+    use_code(models.values(), True)
+    first = variants[0][0]
+    print(f"{width}x{height}, {args.threads} threads, depth {not args.no_depth}, {args.repeats} repeats")
+    for label in times:
+        ratio = np.median([a / b for a, b in zip(times[label], times[first])])
+        print(f"{label}: median {np.median(times[label]) * 1000:.0f} ms/frame, min {min(times[label]) * 1000:.0f}, "
+              f"median ratio to '{first}' {ratio:.3f}")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,181 @@
+"""The `auto` preset: the smallest fast field a scene needs, chosen on validation views.
+
+Validation views are carved from the training views (every 8th of them; the held-out test
+views are never looked at).  A few texture sizes of the fast field train for the same short
+step budget on the rest, each is scored on the validation views, and the smallest whose PSNR
+is within `tolerance_db` of the largest tried wins; that size then trains on all training
+views for the remaining budget.  Everything goes through `train.train()`: a candidate is a
+TrainConfig with more views excluded and a texture-size override.
+"""
+
+from __future__ import annotations
+
+import tempfile
+import time
+from dataclasses import asdict, dataclass, replace
+from pathlib import Path
+
+import numpy as np
+
+from .checkpoint import MODEL_NAME, checkpoint_path, load_checkpoint, save_checkpoint
+from .errors import NeulfError
+from .fields.disparity import texture_size_for
+from .metrics import psnr
+from .render import LightField
+from .scene import Scene, load_scene, scaled_size, split_views
+from .train import TrainConfig, TrainResult, train
+
+PRESET = "auto"
+FACTORS = (1.0, 0.7, 0.5)    # finest texture size / the default (~1 texel per pixel); area 1, 1/2, 1/4
+TOLERANCE_DB = 0.3
+VALIDATION_EVERY = 8          # every 8th training view validates the candidates
+SEARCH_SHARE = 0.4            # of the budget spent on the candidates together
+
+
+@dataclass
+class Candidate:
+    factor: float
+    overrides: dict
+    steps: int = 0
+    val_psnr: float = float("nan")
+    model_bytes: int = 0      # model.pt, what ships
+
+
+def texture_overrides(train_views, scale: float, factor: float = 1.0, *, channels: int | None = None,
+                      levels: int | None = None) -> dict:
+    """Field overrides for a fast field whose finest texture is `factor` times the default
+    (about one texel per training pixel)."""
+    rows, cols = texture_size_for(scaled_size(max(v.size for v in train_views), scale))
+    overrides = {"texture_size": [max(2, int(round(rows * factor))), max(2, int(round(cols * factor)))]}
+    if channels is not None:
+        overrides["texture_channels"] = channels
+    if levels is not None:
+        overrides["texture_levels"] = levels
+    return overrides
+
+
+def choose(candidates: list[Candidate], tolerance_db: float = TOLERANCE_DB) -> Candidate:
+    """The smallest candidate whose validation PSNR is within tolerance of the largest one's."""
+    by_size = sorted(candidates, key=lambda c: (c.model_bytes, c.factor))  # equal bytes: the smaller texture first
+    reference = by_size[-1].val_psnr
+    return next(c for c in by_size if c.val_psnr >= reference - tolerance_db)
+
+
+def validation_split(scene: Scene, config: TrainConfig):
+    """(views the candidates train on, validation views, held-out test views)."""
+    train_views, held = split_views(scene, config.holdout_every, config.exclude)
+    validation = train_views[::VALIDATION_EVERY]
+    names = {v.name for v in validation}
+    fit = [v for v in train_views if v.name not in names]
+    if len(fit) < 2:
+        raise NeulfError(f"the auto preset needs at least 3 training views (it validates on every {VALIDATION_EVERY}th); "
+                         f"this scene has {len(train_views)}: use --preset fast.")
+    return fit, validation, held
+
+
+def validation_psnr(model_dir: Path, views, scale: float, device: str | None = None) -> float:
+    """Mean PSNR of full renders of `views` by the shipped model file (model.pt)."""
+    light_field = LightField.load(model_dir, device)
+    scores = [psnr(light_field.render_view(v, scale, depth=False).rgb, v.load_image(scale).astype(np.float32) / 255.0)
+              for v in views]
+    return float(np.mean(scores))
+
+
+def _rescaled(progress, offset: float, share: float, label: str | None):
+    """Forward a run's progress events into the whole auto run's [0, 1].  A candidate's own
+    start/checkpoint/finished events are not the model's and are dropped, and so is its
+    held-out PSNR (train() pools the test views with the validation views it excluded)."""
+    def report(event: dict) -> None:
+        if progress is None or (label and event.get("event") in ("start", "checkpoint", "finished", "cancelled")):
+            return
+        if "fraction" in event:
+            event = {**event, "fraction": offset + share * event["fraction"]}
+        if label:
+            event = {**event, "candidate": label, **({"val_psnr": None} if "val_psnr" in event else {})}
+        progress(event)
+    return report
+
+
+def _emit(progress, **event) -> None:
+    if progress is not None:
+        progress(event)
+
+
+def train_auto(scene: Scene | str | Path, model_dir: str | Path, config: TrainConfig, *, images_dir=None,
+               resume: bool = False, progress=None, should_stop=None, factors=FACTORS,
+               tolerance_db: float = TOLERANCE_DB) -> TrainResult:
+    """`train()` for the auto preset: size search on validation views, then the final run."""
+    model_dir = Path(model_dir).expanduser()
+    if not config.steps and not config.minutes:
+        raise NeulfError("give a training budget: --steps N or --minutes M.")
+    if resume and checkpoint_path(model_dir).is_file():  # the size was chosen before: continue it
+        record = load_checkpoint(model_dir).get("autosize")
+        result = train(scene, model_dir, config, images_dir=images_dir, resume=True, progress=progress, should_stop=should_stop)
+        return _record(model_dir, record, result)
+    if not isinstance(scene, Scene):
+        scene = load_scene(scene, images_dir)
+    config = replace(config, preset=PRESET)
+    started = time.monotonic()
+    searched = _search(scene, config, factors, progress, should_stop)
+    if searched is None:  # cancelled; nothing saved yet: the search starts again next time
+        return TrainResult(model_dir, "cancelled", 0, time.monotonic() - started, None, [])
+    candidates, validation = searched
+    chosen = choose(candidates, tolerance_db)
+    record = {"candidates": [asdict(c) for c in candidates], "chosen": asdict(chosen), "tolerance_db": tolerance_db,
+              "validation_views": [v.name for v in validation], "search_seconds": round(time.monotonic() - started, 1)}
+    _emit(progress, event="autosize", stage="chosen", **record)
+    _emit(progress, event="stage", message=f"auto: chose texture x{chosen.factor:g} {chosen.overrides['texture_size']}")
+    final = replace(config, field_overrides=chosen.overrides,
+                    steps=max(1, config.steps - sum(c.steps for c in candidates)) if config.steps else None,
+                    minutes=max(config.minutes * 0.05, config.minutes - (time.monotonic() - started) / 60) if config.minutes else None)
+    result = train(scene, model_dir, final, progress=_rescaled(progress, SEARCH_SHARE, 1 - SEARCH_SHARE, None),
+                   should_stop=should_stop)
+    return _record(model_dir, record, result)
+
+
+def _search(scene: Scene, config: TrainConfig, factors, progress, should_stop):
+    """Train and score every candidate size: (candidates, validation views), None if cancelled."""
+    fit, validation, held = validation_split(scene, config)
+    _emit(progress, event="stage", message=f"auto: {len(factors)} texture sizes, validated on "
+                                             f"{', '.join(v.name for v in validation)}")
+    candidates = [Candidate(f, {**config.field_overrides, **texture_overrides(fit, config.scale, f)})
+                  for f in sorted(factors, reverse=True)]
+    steps, share = _candidate_steps(config, len(candidates)), SEARCH_SHARE / len(candidates)
+    for i, candidate in enumerate(candidates):
+        budget = {"steps": steps, "minutes": None} if steps else {"steps": None, "minutes": config.minutes * share}
+        run = replace(config, **budget, exclude=[v.name for v in held + validation], field_overrides=candidate.overrides,
+                      checkpoint_seconds=1e9, validate_seconds=1e9)
+        report = _rescaled(progress, i * share, share, f"x{candidate.factor:g}")
+        if not _score_candidate(scene, run, candidate, validation, report, should_stop):
+            return None
+        steps = steps or candidate.steps  # a minutes budget: the largest candidate sets the steps for the rest
+        _emit(progress, event="autosize", stage="candidate", **asdict(candidate))
+        _emit(progress, event="stage", message=f"auto: texture x{candidate.factor:g} {candidate.overrides['texture_size']}: "
+                                                 f"{candidate.val_psnr:.2f} dB, {candidate.model_bytes / 1e6:.2f} MB")
+    return candidates, validation
+
+
+def _score_candidate(scene: Scene, run: TrainConfig, candidate: Candidate, validation, progress, should_stop) -> bool:
+    """Train one candidate in a scratch folder and fill in its steps, PSNR and file size."""
+    with tempfile.TemporaryDirectory(prefix="neulf-auto-") as folder:
+        result = train(scene, folder, run, progress=progress, should_stop=should_stop)
+        if result.status == "cancelled":
+            return False
+        candidate.steps = result.step
+        candidate.val_psnr = validation_psnr(Path(folder), validation, run.scale, run.device)
+        candidate.model_bytes = (Path(folder) / MODEL_NAME).stat().st_size
+    return True
+
+
+def _candidate_steps(config: TrainConfig, count: int) -> int | None:
+    """Steps per candidate for a steps budget; None for a minutes budget (set by the first)."""
+    return max(1, int(config.steps * SEARCH_SHARE / count)) if config.steps else None
+
+
+def _record(model_dir: Path, record: dict | None, result: TrainResult) -> TrainResult:
+    """The search's candidates and choice into the saved model's metadata (all three files)."""
+    if record is not None:
+        payload = load_checkpoint(model_dir)
+        payload["autosize"] = record
+        save_checkpoint(model_dir, payload)
+    return result

@@ -1,0 +1,149 @@
+"""Small model files (model.pt, float16), the faster DisparityField forward, and the `auto`
+preset's size search, on the tiny synthetic scene from conftest.py."""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+
+import numpy as np
+import pytest
+import torch
+
+from neulf_core.autosize import Candidate, choose, train_auto, validation_split
+from neulf_core.checkpoint import CHECKPOINT_NAME, METADATA_NAME, MODEL_NAME, load_checkpoint, render_path
+from neulf_core.cli import main
+from neulf_core.errors import NeulfError
+from neulf_core.fields import build_field, make_config
+from neulf_core.render import LightField
+from neulf_core.scene import load_scene
+from neulf_core.train import TrainConfig, train
+
+
+def fast_config(steps: int, **overrides) -> TrainConfig:
+    options = dict(preset="fast", steps=steps, batch_size=256, validate_seconds=1e9, checkpoint_seconds=1e9)
+    options.update(overrides)
+    return TrainConfig(**options)
+
+
+@pytest.fixture(scope="module")
+def fast_model(tiny_scene, tmp_path_factory):
+    model_dir = tmp_path_factory.mktemp("fast") / "model"
+    train(tiny_scene, model_dir, fast_config(30))
+    return tiny_scene, model_dir
+
+
+def test_model_file_is_float16_and_renders_like_the_checkpoint(fast_model):
+    scene_dir, model_dir = fast_model
+    small, full = model_dir / MODEL_NAME, model_dir / CHECKPOINT_NAME
+    assert render_path(model_dir) == small
+    payload = torch.load(small, map_location="cpu", weights_only=False)
+    assert "optimizer" not in payload and "rng" not in payload
+    texture = payload["state_dict"]["textures.0"]
+    assert texture.dtype == torch.float16
+    assert payload["state_dict"]["decoder.0.weight"].dtype == torch.float32  # small tensors stay float32
+    float32_bytes = sum(t.numel() * 4 for t in load_checkpoint(model_dir)["state_dict"].values())
+    assert small.stat().st_size < 0.6 * float32_bytes < full.stat().st_size
+
+    view = load_scene(scene_dir).view("view_00.png")
+    half = LightField.load(model_dir, "cpu").render_view(view)
+    single = LightField.load(full, "cpu").render_view(view)
+    assert np.abs(half.rgb - single.rgb).max() < 2e-3
+    np.testing.assert_allclose(half.depth, single.depth, rtol=1e-3)
+
+
+def test_a_newer_checkpoint_wins_and_resume_needs_it(fast_model, tmp_path):
+    scene_dir, model_dir = fast_model
+    model = tmp_path / "model"
+    shutil.copytree(model_dir, model)
+    full = model / CHECKPOINT_NAME
+    later = (model / MODEL_NAME).stat().st_mtime_ns + 10**9
+    os.utime(full, ns=(later, later))  # as after a crash between the two writes
+    assert render_path(model) == full
+    (model / CHECKPOINT_NAME).unlink()
+    assert render_path(model) == model / MODEL_NAME
+    LightField.load(model, "cpu")  # the small file alone renders
+    with pytest.raises(NeulfError, match="render-only"):
+        load_checkpoint(model / MODEL_NAME)
+
+
+def test_geometry_features_match_the_planes_field():
+    """The batched DisparityField geometry sampling equals PlanesField.features (values and
+    gradients), so rendering and training see the same field as before."""
+    torch.manual_seed(0)
+    field = build_field("disparity", make_config("disparity", {"texture_size": [20, 30]}))
+    with torch.no_grad():
+        for plane in field.geometry.scales.parameters():
+            plane.add_(torch.rand_like(plane) * 0.5)
+    uvst = torch.rand(500, 4) * 2.2 - 1.1
+    fast = field._geometry_features(uvst)
+    reference = field.geometry.features(uvst)
+    torch.testing.assert_close(fast, reference, rtol=1e-5, atol=1e-6)
+    grads = [torch.autograd.grad(f.square().sum(), list(field.geometry.scales.parameters())) for f in (fast, reference)]
+    for a, b in zip(*grads):
+        torch.testing.assert_close(a, b, rtol=1e-4, atol=1e-6)
+
+
+# ----------------------------------------------------------------------------- auto
+
+
+def test_choose_takes_the_smallest_within_tolerance():
+    candidates = [Candidate(1.0, {}, val_psnr=30.0, model_bytes=300), Candidate(0.7, {}, val_psnr=29.8, model_bytes=200),
+                  Candidate(0.5, {}, val_psnr=29.6, model_bytes=100)]
+    assert choose(candidates, 0.3).factor == 0.7
+    assert choose(candidates, 0.5).factor == 0.5
+    assert choose(candidates, 0.0).factor == 1.0
+
+
+def test_validation_views_come_from_the_training_views(tiny_scene):
+    fit, validation, held = validation_split(load_scene(tiny_scene), TrainConfig())
+    names = lambda views: {v.name for v in views}  # noqa: E731
+    assert names(held) == {"view_00.png", "view_08.png"} and names(validation) == {"view_01.png"}
+    assert not names(fit) & (names(held) | names(validation)) and len(fit) == 6
+
+
+@pytest.mark.parametrize("tolerance", [100.0, 0.0])
+def test_auto_picks_the_smallest_candidate_within_tolerance(tiny_scene, tmp_path, tolerance):
+    """Real short trainings: the recorded choice follows the rule for the PSNRs it measured."""
+    events = []
+    result = train_auto(tiny_scene, tmp_path / "auto", fast_config(90, preset="auto"), progress=events.append,
+                        tolerance_db=tolerance)
+    assert result.status == "finished"
+    record = load_checkpoint(tmp_path / "auto")["autosize"]
+    candidates = [Candidate(**c) for c in record["candidates"]]
+    assert [c.factor for c in candidates] == [1.0, 0.7, 0.5] and all(c.steps == 12 for c in candidates)
+    assert [c.model_bytes for c in candidates] == sorted((c.model_bytes for c in candidates), reverse=True)
+    largest = candidates[0].val_psnr
+    within = [c for c in candidates if c.val_psnr >= largest - tolerance]
+    assert record["chosen"]["factor"] == min(within, key=lambda c: c.model_bytes).factor
+    if tolerance == 100.0:
+        assert record["chosen"]["factor"] == 0.5
+    assert record["validation_views"] == ["view_01.png"]
+    meta = json.loads((tmp_path / "auto" / METADATA_NAME).read_text())
+    assert meta["autosize"]["chosen"] == record["chosen"]
+    assert meta["field_config"]["texture_size"] == record["chosen"]["overrides"]["texture_size"]
+    assert meta["progress"]["step"] == 90 - 3 * 12 and meta["scene"]["held_out"] == ["view_00.png", "view_08.png"]
+    assert [e["stage"] for e in events if e["event"] == "autosize"] == ["candidate"] * 3 + ["chosen"]
+    assert [e["event"] for e in events].count("finished") == 1
+    assert all(e.get("val_psnr") is None for e in events if e.get("candidate"))  # no test-view PSNR leaks
+    fractions = [e["fraction"] for e in events if "fraction" in e]
+    assert fractions == sorted(fractions) and fractions[-1] == pytest.approx(1.0)
+
+
+def test_auto_with_a_time_budget_gives_every_candidate_the_same_steps(tiny_scene, tmp_path):
+    train_auto(tiny_scene, tmp_path / "auto", fast_config(None, preset="auto", minutes=0.05))
+    record = load_checkpoint(tmp_path / "auto")["autosize"]
+    steps = [c["steps"] for c in record["candidates"]]
+    assert steps[0] >= 1 and steps == [steps[0]] * 3
+
+
+def test_cli_trains_and_resumes_auto(tiny_scene, tmp_path, capsys):
+    out = tmp_path / "m"
+    base = ["train", str(tiny_scene), "--out", str(out), "--preset", "auto", "--batch-size", "256", "--progress", "json"]
+    assert main(base + ["--steps", "30"]) == 0
+    chosen = load_checkpoint(out)["autosize"]["chosen"]
+    assert main(base + ["--steps", "40", "--resume"]) == 0
+    saved = load_checkpoint(out)
+    assert saved["autosize"]["chosen"] == chosen and saved["progress"]["step"] == 40
+    LightField.load(out, "cpu").render_view(load_scene(tiny_scene).view("view_00.png"))
