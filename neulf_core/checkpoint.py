@@ -14,6 +14,7 @@ import io
 import json
 import os
 import tempfile
+import zipfile
 from pathlib import Path
 
 import torch
@@ -90,6 +91,13 @@ def save_render_model(model_dir: Path, payload: dict) -> Path:
     return path
 
 
+def remove_stale_temporaries(model_dir: Path) -> None:
+    """Delete half-written files a killed training left (atomic_write_bytes's temporaries);
+    called only while holding the folder's training lock, so no writer is active."""
+    for leftover in Path(model_dir).glob(".*.tmp"):
+        leftover.unlink(missing_ok=True)
+
+
 def checkpoint_path(model_dir: Path) -> Path:
     model_dir = Path(model_dir).expanduser()
     if model_dir.is_file():
@@ -123,17 +131,30 @@ def load_for_render(model_dir: Path, map_location="cpu") -> dict:
     return _read(render_path(model_dir), model_dir, map_location)
 
 
+def _damaged_member(path: Path) -> str | None:
+    """The name of a member of the checkpoint's zip whose CRC fails: torch.load does not
+    check them, so flipped bytes inside the weights would otherwise load silently."""
+    try:
+        with zipfile.ZipFile(path) as archive:
+            return archive.testzip()
+    except (zipfile.BadZipFile, OSError, EOFError, ValueError):
+        return None  # not a readable zip at all: torch.load reports it below
+
+
 def _read(path: Path, model_dir: Path, map_location) -> dict:
     if not Path(model_dir).expanduser().exists():
         raise NeulfError(f"model folder {model_dir} does not exist; train one with: python -m neulf_core train SCENE --out {model_dir}")
     if not path.is_file():
         raise NeulfError(f"{model_dir} holds no trained model ({CHECKPOINT_NAME} missing); train one with: python -m neulf_core train SCENE --out {model_dir}")
+    damaged = _damaged_member(path)
     try:
+        if damaged:
+            raise ValueError(f"{damaged} fails its checksum")
         payload = torch.load(path, map_location=map_location, weights_only=False)
     except Exception as exc:
         raise NeulfError(
-            f"the checkpoint {path} is truncated or corrupted ({type(exc).__name__}); "
-            "train again, or restore it from a backup."
+            f"the checkpoint {path} is truncated or corrupted ({type(exc).__name__}{': ' + damaged if damaged else ''}); "
+            f"restore it from a backup, or delete {path.name} (or train into another --out) to start again."
         ) from None
     if not isinstance(payload, dict) or payload.get("format") not in (FORMAT, MODEL_FORMAT):
         raise NeulfError(f"{path} is not a NeuLF checkpoint.")

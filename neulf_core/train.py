@@ -18,7 +18,7 @@ import torch
 
 from . import __version__
 from .appearance import ViewAppearance
-from .checkpoint import checkpoint_path, load_checkpoint, save_checkpoint
+from .checkpoint import checkpoint_path, load_checkpoint, remove_stale_temporaries, save_checkpoint
 from .consistency import SlabGeometry, camera_neighbours, multiview_losses
 from .dataset import RaySet, build_rayset, mean_colour
 from .device import describe_device, pick_device
@@ -153,6 +153,7 @@ def train(scene: Scene | str | Path, model_dir: str | Path, config: TrainConfig,
     if not config.steps and not config.minutes:
         raise NeulfError("give a training budget: --steps N or --minutes M.")
     with training_lock(model_dir):
+        remove_stale_temporaries(model_dir)
         return _train(scene, model_dir, config, images_dir, resume, progress, should_stop)
 
 

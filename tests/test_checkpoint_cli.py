@@ -234,6 +234,9 @@ def test_leftover_temp_file(trained, tmp_path):
     model = copy_model(model_dir, tmp_path / "model")
     (model / f".{CHECKPOINT_NAME}.x8f0q.tmp").write_bytes(data[:100])
     LightField.load(model, "cpu")
+    # Resuming (which holds the folder's training lock) clears the leftover away.
+    train(trained[0], model, small_config(9), resume=True)
+    assert not list(model.glob(".*.tmp"))
 
 
 def test_truncated_checkpoint(trained, tmp_path):

@@ -381,13 +381,7 @@ CHECKPOINT_DAMAGE = {
     "another version": "another version",
     "not a NeuLF checkpoint": "not a NeuLF checkpoint",
 }
-SILENT_CORRUPTION = pytest.mark.xfail(strict=True, reason=(
-    "torch.load does not check the zip CRCs: damaged weights load silently. Fix in checkpoint.py: "
-    "zipfile.ZipFile(path).testzip() before torch.load"))
-
-
-@pytest.mark.parametrize("how", [pytest.param(h, marks=SILENT_CORRUPTION) if h == "bytes flipped inside" else h
-                                 for h in CHECKPOINT_DAMAGE])
+@pytest.mark.parametrize("how", list(CHECKPOINT_DAMAGE))
 def test_damaged_checkpoint(how, model, tiny_scene, tmp_path, capfd, record_property):
     """Rendering and resuming both refuse a damaged model in one line, and leave the files as
     they were (the user may still restore or inspect them)."""
@@ -403,10 +397,6 @@ def test_damaged_checkpoint(how, model, tiny_scene, tmp_path, capfd, record_prop
     assert {path.name: path.read_bytes() for path in model_files(damaged)} == before
 
 
-@pytest.mark.xfail(strict=True, reason=(
-    "checkpoint.py says 'train again', but `train` into the same --out answers 'pass --resume' and --resume "
-    "answers 'train again': a loop. Fix: name the way out in load_checkpoint's message (delete the file or "
-    "train into another --out)"))
 def test_damaged_checkpoint_message_names_a_way_out(model, tiny_scene, tmp_path, capfd, record_property):
     damaged = shutil.copytree(model, tmp_path / "model")
     for path in model_files(damaged):
