@@ -134,3 +134,19 @@ def test_every_registered_field_trains_with_the_losses(tiny_scene, tmp_path):
                                                                 field_overrides=small[preset.field]))
         assert result.step == 3 and np.isfinite(result.val_psnr), name
     assert tried == set(REGISTRY)
+
+
+def test_appearance_transforms_average_to_identity():
+    """The per-photo transforms are centred: a global colour change cannot drift into them."""
+    from neulf_core.appearance import ViewAppearance
+
+    appearance = ViewAppearance(4)
+    with torch.no_grad():
+        appearance.matrix.mul_(torch.tensor([1.5, 0.5, 1.2, 0.9]).view(4, 1, 1))
+        appearance.offset.add_(0.3)
+    matrix, offset = appearance.transforms()
+    assert torch.allclose(matrix.mean(0), torch.eye(3), atol=1e-6) and torch.allclose(offset.mean(0), torch.zeros(3), atol=1e-6)
+    rgb = torch.rand(8, 3)
+    views = torch.arange(8) % 4
+    expected = torch.einsum("nij,nj->ni", matrix[views], rgb) + offset[views]
+    assert torch.allclose(appearance(rgb, views), expected, atol=1e-6)

@@ -1,0 +1,79 @@
+"""The stability study's machinery (benchmarks/stability.py) end to end on the tiny scene:
+scene edits, a few training steps per run, scoring, and the CSV / chart / tables it writes."""
+
+from __future__ import annotations
+
+import csv
+import importlib.util
+import math
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+SCRIPT = Path(__file__).resolve().parents[1] / "benchmarks" / "stability.py"
+
+
+@pytest.fixture(scope="module")
+def stability():
+    spec = importlib.util.spec_from_file_location("stability_benchmark", SCRIPT)
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module  # dataclasses look their module up while the class is built
+    spec.loader.exec_module(module)
+    return module
+
+
+def rotation_angle_degrees(a: np.ndarray, b: np.ndarray) -> float:
+    cosine = (np.trace(a @ b.T) - 1.0) / 2.0
+    return float(np.degrees(np.arccos(np.clip(cosine, -1.0, 1.0))))
+
+
+def test_pose_noise_has_the_requested_size(stability, tiny_scene):
+    scene = stability.load_any(tiny_scene)
+    spacing = stability.rig_spacing(scene.views)
+    noisy = stability.perturb_poses(scene.views, 2.0, spacing)
+    for before, after in zip(scene.views, noisy):
+        assert rotation_angle_degrees(before.R, after.R) == pytest.approx(2.0, abs=1e-6)
+        shift = np.linalg.norm(after.center - before.center)
+        assert shift == pytest.approx(2.0 * stability.SHIFT_PER_DEGREE * spacing, rel=1e-6)
+
+
+def test_prepare_edits_only_training_views(stability, tiny_scene):
+    job = stability.Job("tiny", str(tiny_scene), str(tiny_scene), 1.0, "fast", 2, 0, fraction=0.5, pose_degrees=1.0)
+    scene, train_views, held = stability.prepare(job)
+    original = stability.load_any(tiny_scene)
+    assert [v.name for v in held] == ["view_00.png", "view_08.png"]  # every 8th, as in training
+    assert len(train_views) == 4  # half of the 7 training views, rounded
+    for view in held:
+        assert np.allclose(view.R, original.view(view.name).R) and np.allclose(view.t, original.view(view.name).t)
+    assert len(scene.views) == len(train_views) + len(held)
+
+
+def test_study_runs_end_to_end(stability, tiny_scene, tmp_path):
+    jobs = [stability.Job("tiny", str(tiny_scene), str(tiny_scene), 1.0, "fast", 3, seed, fraction=fraction)
+            for fraction in (1.0, 0.5) for seed in (0, 1)]
+    jobs.append(stability.Job("tiny", str(tiny_scene), str(tiny_scene), 1.0, "fast", 3, 0, pose_degrees=1.0))
+    rows = stability.run_jobs(jobs, workers=1, log=tmp_path / "runs.jsonl")
+
+    assert [r["status"] for r in rows] == ["finished"] * len(jobs), [r.get("error") for r in rows]
+    assert len((tmp_path / "runs.jsonl").read_text().splitlines()) == len(jobs)
+    meta = {"date": "2026-11-21", "machine": "test", "fast_steps": 3, "paper_steps": 0, "seeds": "0,1"}
+    tables = stability.write_outputs(rows, tmp_path / "docs", meta)
+
+    with open(tmp_path / "docs" / "stability.csv") as handle:
+        written = list(csv.DictReader(handle))
+    assert len(written) == len(jobs)
+    for row in written:
+        assert row["steps_done"] == "3" and row["warnings"] == "0"
+        for column in ("psnr", "ssim", "psnr_matched", "train_seconds"):
+            assert math.isfinite(float(row[column])), (column, row)
+    assert (tmp_path / "docs" / "stability.png").stat().st_size > 0
+    markdown = (tmp_path / "docs" / "STABILITY.md").read_text()
+    assert stability.MARKER_BEGIN in markdown and tables in markdown
+
+
+def test_a_crash_is_recorded_not_raised(stability, tmp_path):
+    job = stability.Job("missing", str(tmp_path / "nowhere"), str(tmp_path / "nowhere"), 1.0, "fast", 3, 0)
+    row = stability.run_job(job)
+    assert row["status"] == "crashed" and "nowhere" in row["error"]
