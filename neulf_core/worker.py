@@ -9,7 +9,8 @@ stdin and answers one JSON line per request on stdout::
     <- {"id": 3, "ok": true, "result": {...}}               or
     <- {"id": 3, "ok": false, "error": "one line for the user", "kind": "NeulfError"}
 
-Arrays in a result travel as ``.npy`` files in the scratch folder: ``{"__npy__": PATH}``.
+Arrays in a result travel as ``.npy`` files in the scratch folder: ``{"__npy__": PATH}`` (the
+extension decodes them: neulf_blender/jobs.py `decode`).
 When torch imports inside Blender (or in tests) the extension calls :class:`Service`
 directly and gets the arrays themselves: both routes run the same code.
 """
@@ -173,20 +174,6 @@ def _encode(value, scratch: Path):
         return {k: _encode(v, scratch) for k, v in value.items()}
     if isinstance(value, (list, tuple)):
         return [_encode(v, scratch) for v in value]
-    return value
-
-
-def decode(value):
-    """Inverse of the worker's encoding: ``{"__npy__": PATH}`` -> the array (file removed)."""
-    if isinstance(value, dict):
-        if set(value) == {"__npy__"}:
-            path = Path(value["__npy__"])
-            array = np.load(path)
-            path.unlink(missing_ok=True)
-            return array
-        return {k: decode(v) for k, v in value.items()}
-    if isinstance(value, list):
-        return [decode(v) for v in value]
     return value
 
 
