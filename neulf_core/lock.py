@@ -12,7 +12,7 @@ from __future__ import annotations
 import contextlib
 import json
 import os
-import socket
+import platform
 import sys
 import time
 from pathlib import Path
@@ -49,7 +49,7 @@ def _holder(path: Path) -> dict | None:
         pid, host = int(owner["pid"]), str(owner["host"])
     except (OSError, ValueError, KeyError, TypeError):
         return None
-    if host != socket.gethostname():
+    if host != platform.node():
         return owner  # cannot check a process on another machine: assume it runs
     return owner if _process_alive(pid) else None
 
@@ -60,7 +60,7 @@ def _try_create(path: Path) -> bool:
     except FileExistsError:
         return False
     with os.fdopen(fd, "w") as handle:
-        json.dump({"pid": os.getpid(), "host": socket.gethostname(), "started": time.time()}, handle)
+        json.dump({"pid": os.getpid(), "host": platform.node(), "started": time.time()}, handle)
     return True
 
 

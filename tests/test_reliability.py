@@ -14,6 +14,7 @@ from __future__ import annotations
 import ast
 import json
 import os
+import platform
 import shutil
 import signal
 import socket
@@ -657,7 +658,7 @@ def test_a_second_training_of_the_same_model_folder_is_refused(tiny_scene, tmp_p
     sleeper = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"])
     try:
         model.mkdir()
-        (model / LOCK_NAME).write_text(json.dumps({"pid": sleeper.pid, "host": socket.gethostname()}))
+        (model / LOCK_NAME).write_text(json.dumps({"pid": sleeper.pid, "host": platform.node()}))
         with pytest.raises(NeulfError, match=f"being trained by process {sleeper.pid}"):
             train(tiny_scene, model, config)
     finally:
