@@ -28,6 +28,7 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from neulf_core.checkpoint import MODEL_NAME  # noqa: E402
 from neulf_core.classic import ClassicLightField  # noqa: E402
 from neulf_core.device import describe_device, pick_device  # noqa: E402
 from neulf_core.fields import count_parameters  # noqa: E402
@@ -74,7 +75,7 @@ def run_learned(preset, scene, views, args, common) -> list[dict]:
             rows.append({**common, "method": preset, "train_s": record["elapsed"], "psnr": record["val_psnr"],
                          "ssim": "", "render_s": "", "model_bytes": "", "steps": record["step"], "kind": "ray sample"})
         field = LightField.load(model_dir, args.device)
-        size = sum(t.numel() * t.element_size() for t in field.field.state_dict().values())
+        size = (Path(model_dir) / MODEL_NAME).stat().st_size  # the render-only file a user ships
         final = score(lambda v: field.render_view(v, args.scale, depth=False).rgb, views, args.scale)
         rows.append({**common, "method": preset, "train_s": round(result.elapsed, 1), "psnr": final["psnr"], "ssim": final["ssim"],
                      "render_s": final["render_s"], "model_bytes": size, "steps": result.step, "kind": "full views",
