@@ -87,8 +87,14 @@ def cmd_train(args) -> int:
     if stop["reader_gone"]:  # nobody is left to read a message; the checkpoint is what matters
         return 128 + int(getattr(signal, "SIGPIPE", 13))
     if result.status == "cancelled":
-        print(f"cancelled at step {result.step}; checkpoint saved. Continue with: python -m neulf_core train "
-              f"{args.scene_dir} --out {args.out} --resume --minutes/--steps ...", file=sys.stderr)
+        from .checkpoint import checkpoint_path
+
+        if not checkpoint_path(Path(args.out)).is_file():  # cancelled before a model existed (auto's size search)
+            print("cancelled before the first checkpoint; nothing was saved. Start again with the same command.",
+                  file=sys.stderr)
+        else:
+            print(f"cancelled at step {result.step}; checkpoint saved. Continue with: python -m neulf_core train "
+                  f"{args.scene_dir} --out {args.out} --resume --minutes/--steps ...", file=sys.stderr)
         return 128 + int(stop["signal"] or signal.SIGINT)
     return 0
 

@@ -556,3 +556,24 @@ def test_cli_sigint_cancels_and_saves(tiny_scene, tmp_path):
     assert "cancelled at step" in err and "Traceback" not in err
     saved = load_checkpoint(model)
     assert saved["progress"]["status"] == "cancelled" and saved["progress"]["step"] == events[-1]["step"] >= 1
+
+
+def test_cli_sigint_during_the_auto_size_search_says_nothing_was_saved(tiny_scene, tmp_path):
+    """Ctrl+C while `auto` is still choosing the size: no model exists yet, and the message says so."""
+    model = tmp_path / "model"
+    env = dict(os.environ, PYTHONPATH=str(REPO) + os.pathsep + os.environ.get("PYTHONPATH", ""))
+    process = subprocess.Popen([sys.executable, "-m", "neulf_core", "train", str(tiny_scene), "--out", str(model),
+                                "--preset", "auto", "--steps", "100000", "--batch-size", "64", "--progress", "json"],
+                               cwd=tmp_path, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        for line in process.stdout:
+            if json.loads(line)["event"] == "step":  # a candidate of the size search is training
+                break
+        process.send_signal(signal.SIGINT)
+        out, err = process.communicate(timeout=120)
+    finally:
+        if process.poll() is None:
+            process.kill()
+    assert process.returncode == 130, err
+    assert "nothing was saved" in err and "Traceback" not in err, err
+    assert not (model / CHECKPOINT_NAME).exists()
