@@ -6,6 +6,7 @@ the bpy module) in a separate process, so neulf_core itself never imports bpy.
 
 from __future__ import annotations
 
+import shutil
 import subprocess
 import sys
 import time
@@ -43,11 +44,14 @@ def run_demo(out: Path, minutes: float = 3.0, keep: bool = False) -> dict:
         _say("1/5 rendering a small forward-facing scene with Blender Cycles (16 views, 320x240)")
         render_synthetic_scene(rendered)
     scene_dir = out / "scene"
+    model_dir = out / "model"
     if not (keep and (scene_dir / "sparse" / "0").is_dir()):
         _say("2/5 reconstructing the cameras with pycolmap (features, matching, mapping)")
         reconstruct(rendered / "images", scene_dir,
                     progress=lambda e: print(f"   [{e['stage']}] {e['message']}", file=sys.stderr, flush=True))
-    model_dir = out / "model"
+        if model_dir.exists():  # the demo's own model of the previous reconstruction: it no longer fits
+            _say(f"   removing the previous demo model {model_dir} (trained on the previous reconstruction)")
+            shutil.rmtree(model_dir)
     _say(f"3/5 training the light field for {minutes:g} minutes (every 8th view held out)")
     resume = (model_dir / "checkpoint.pt").is_file()
     code = cli_main(["train", str(scene_dir), "--out", str(model_dir), "--minutes", str(minutes)] + (["--resume"] if resume else []))
