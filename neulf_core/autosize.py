@@ -23,7 +23,7 @@ from .fields.disparity import texture_size_for
 from .metrics import psnr
 from .render import LightField
 from .scene import Scene, load_scene, scaled_size, split_views
-from .train import TrainConfig, TrainResult, train
+from .train import TrainConfig, TrainResult, _emit, train
 
 PRESET = "auto"
 FACTORS = (1.0, 0.7, 0.5)    # finest texture size / the default (~1 texel per pixel); area 1, 1/2, 1/4
@@ -94,11 +94,6 @@ def _rescaled(progress, offset: float, share: float, label: str | None):
             event = {**event, "candidate": label, **({"val_psnr": None} if "val_psnr" in event else {})}
         progress(event)
     return report
-
-
-def _emit(progress, **event) -> None:
-    if progress is not None:
-        progress(event)
 
 
 def train_auto(scene: Scene | str | Path, model_dir: str | Path, config: TrainConfig, *, images_dir=None,

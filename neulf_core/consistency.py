@@ -62,10 +62,7 @@ class SlabGeometry:
         self.centre = torch.tensor(centre, dtype=torch.float32, device=device)
         self.half = torch.tensor(half, dtype=torch.float32, device=device)
         self.z_uv, self.z_st = float(slab.z_uv), float(slab.z_st)
-        self.inv_near, self.inv_far = 1.0 / slab.z_near, 1.0 / slab.z_far
-
-    def depth(self, unit: torch.Tensor) -> torch.Tensor:
-        return 1.0 / (self.inv_far + unit * (self.inv_near - self.inv_far))
+        self.depth = slab.depth_from_unit  # the field's [0, 1] output -> slab-axis depth
 
     def surface_points(self, uvst: torch.Tensor, unit: torch.Tensor) -> torch.Tensor:
         """(N, 3) slab-frame points where the rays `uvst` (normalised) reach depth `unit`."""

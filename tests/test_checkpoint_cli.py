@@ -534,13 +534,12 @@ def test_cli_resume(tiny_scene, tmp_path, capfd):
     assert [e["step"] for e in lines if e["event"] in ("step", "validate")][-2:] == [3, 4]
 
 
-def test_cli_sigint_cancels_and_saves(tiny_scene, tmp_path):
-    """Ctrl+C during training: the step in progress finishes, the checkpoint is saved, exit 130."""
-    model = tmp_path / "model"
+def interrupt_training(scene, model: Path, *options: str):
+    """Run `train` in a subprocess, send SIGINT after its first training step: (exit code, stdout, stderr)."""
     env = dict(os.environ, PYTHONPATH=str(REPO) + os.pathsep + os.environ.get("PYTHONPATH", ""))
-    process = subprocess.Popen([sys.executable, "-m", "neulf_core", "train", str(tiny_scene), "--out", str(model),
+    process = subprocess.Popen([sys.executable, "-m", "neulf_core", "train", str(scene), "--out", str(model), *options,
                                 "--steps", "100000", "--batch-size", "64", "--progress", "json"],
-                               cwd=tmp_path, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+                               cwd=model.parent, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
         for line in process.stdout:
             if json.loads(line)["event"] == "step":
@@ -550,7 +549,14 @@ def test_cli_sigint_cancels_and_saves(tiny_scene, tmp_path):
     finally:
         if process.poll() is None:
             process.kill()
-    assert process.returncode == 130, err
+    return process.returncode, out, err
+
+
+def test_cli_sigint_cancels_and_saves(tiny_scene, tmp_path):
+    """Ctrl+C during training: the step in progress finishes, the checkpoint is saved, exit 130."""
+    model = tmp_path / "model"
+    code, out, err = interrupt_training(tiny_scene, model)
+    assert code == 130, err
     events = [json.loads(line) for line in out.splitlines()]
     assert events[-1]["event"] == "cancelled"
     assert "cancelled at step" in err and "Traceback" not in err
@@ -559,21 +565,10 @@ def test_cli_sigint_cancels_and_saves(tiny_scene, tmp_path):
 
 
 def test_cli_sigint_during_the_auto_size_search_says_nothing_was_saved(tiny_scene, tmp_path):
-    """Ctrl+C while `auto` is still choosing the size: no model exists yet, and the message says so."""
+    """Ctrl+C while `auto` is still choosing the size (a candidate is training): no model exists
+    yet, and the message says so."""
     model = tmp_path / "model"
-    env = dict(os.environ, PYTHONPATH=str(REPO) + os.pathsep + os.environ.get("PYTHONPATH", ""))
-    process = subprocess.Popen([sys.executable, "-m", "neulf_core", "train", str(tiny_scene), "--out", str(model),
-                                "--preset", "auto", "--steps", "100000", "--batch-size", "64", "--progress", "json"],
-                               cwd=tmp_path, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    try:
-        for line in process.stdout:
-            if json.loads(line)["event"] == "step":  # a candidate of the size search is training
-                break
-        process.send_signal(signal.SIGINT)
-        out, err = process.communicate(timeout=120)
-    finally:
-        if process.poll() is None:
-            process.kill()
-    assert process.returncode == 130, err
+    code, out, err = interrupt_training(tiny_scene, model, "--preset", "auto")
+    assert code == 130, err
     assert "nothing was saved" in err and "Traceback" not in err, err
     assert not (model / CHECKPOINT_NAME).exists()
