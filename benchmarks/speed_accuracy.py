@@ -1,12 +1,18 @@
 """Speed against accuracy: several methods on one scene, same wall-clock budget, one run.
 
     python benchmarks/speed_accuracy.py --scene ../shared/data/canclip --scale 0.5 --minutes 5 \
-        [--methods fast,authors,paper,classic-plane,classic-sweep] [--threads 2] [--device cpu]
+        [--methods fast,authors,paper,classic-plane,classic-sweep] [--threads 2] [--device cpu] \
+        [--budget-factor authors=20] [--cache DIR [--retrain fast]]
 
 Learned methods train for the same budget; held-out PSNR is logged every `--every` seconds on
 a fixed sample of 65,536 held-out rays (pooled MSE), and at the end every held-out view is
 rendered in full and scored (PSNR, SSIM per view, averaged).  The classic light field
-renderings use the training photos directly (no training).  Writes
+renderings use the training photos directly (no training).  `--budget-factor authors=20` gives
+a method that many times the budget (the issue's "8 x 256 network given 20 times more training
+time").  With `--cache DIR` each method's rows are kept in DIR and reused by a later run with the
+same scene, resolution, budget, seed and threads (`--retrain M` trains M again), so a long
+MLP run survives a change to the default; every row records the load average when its method
+started, because methods run at different times are then not side by side.  Writes
 docs/bench_<scene>.csv (one row per method and time), docs/bench_<scene>.png (PSNR against
 training time, render time per frame, and model size) and prints a markdown table.
 """
@@ -15,6 +21,7 @@ from __future__ import annotations
 
 import argparse
 import csv
+import json
 import os
 import platform
 import sys
@@ -66,11 +73,21 @@ def score(render_fn, views, scale) -> dict:
             "per_view": [round(p, 2) for p in psnrs]}
 
 
-def run_learned(preset, scene, views, args, common) -> list[dict]:
+def parse_factors(text: str) -> dict[str, float]:
+    factors = {}
+    for part in filter(None, (p.strip() for p in (text or "").split(","))):
+        method, _, value = part.partition("=")
+        factors[method.strip()] = float(value)
+    return factors
+
+
+def run_learned(preset, scene, views, args, common, minutes: float) -> list[dict]:
     rows = []
+    # Long budgets are logged about as often on the log-time axis as short ones.
+    every = max(args.every, 60.0 * minutes / 40)
     with tempfile.TemporaryDirectory() as model_dir:
-        result = train(scene, model_dir, TrainConfig(preset=preset, minutes=args.minutes, scale=args.scale,
-                                                     validate_seconds=args.every, seed=args.seed, device=args.device))
+        result = train(scene, model_dir, TrainConfig(preset=preset, minutes=minutes, scale=args.scale,
+                                                     validate_seconds=every, seed=args.seed, device=args.device))
         for record in result.history:
             rows.append({**common, "method": preset, "train_s": record["elapsed"], "psnr": record["val_psnr"],
                          "ssim": "", "render_s": "", "model_bytes": "", "steps": record["step"], "kind": "ray sample"})
@@ -138,6 +155,9 @@ def main() -> None:
     parser.add_argument("--device")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--name", help="name used in the output files (default: the scene folder's name)")
+    parser.add_argument("--budget-factor", default="", help="e.g. authors=20: that method trains 20 times --minutes")
+    parser.add_argument("--cache", help="folder that keeps each method's rows for reuse by a later run")
+    parser.add_argument("--retrain", default="", help="comma-separated methods to run again even when cached")
     args = parser.parse_args()
     if args.threads:
         torch.set_num_threads(args.threads)
@@ -147,14 +167,30 @@ def main() -> None:
     name = args.name or Path(args.scene).name
     width, height = held_out[0].scaled_camera(args.scale).width, held_out[0].scaled_camera(args.scale).height
     common = {"scene": name, "resolution": f"{width}x{height}", "train_views": len(train_views), "held_out": len(held_out),
-              "seed": args.seed, "budget_min": args.minutes, "hardware": hardware(device), "date": date.today().isoformat()}
+              "seed": args.seed, "threads": torch.get_num_threads(), "hardware": hardware(device)}
+    factors = parse_factors(args.budget_factor)
+    retrain = set(filter(None, args.retrain.split(",")))
     rows = []
     for method in args.methods.split(","):
-        print(f"== {method}", file=sys.stderr, flush=True)
-        if method.startswith("classic-"):
-            rows += run_classic(method.split("-", 1)[1], scene, train_views, held_out, args, common)
+        minutes = args.minutes * factors.get(method, 1.0)
+        method_common = {**common, "budget_min": minutes, "date": date.today().isoformat(),
+                         "load_at_start": round(os.getloadavg()[0], 2)}
+        cache = Path(args.cache) / name / f"{method}.json" if args.cache else None
+        key = {k: method_common[k] for k in ("scene", "resolution", "seed", "threads", "budget_min")}
+        cached = json.loads(cache.read_text()) if cache is not None and cache.is_file() else None
+        if cached is not None and cached["key"] == key and method not in retrain:
+            print(f"== {method}: reused from {cache} ({cached['rows'][-1]['date']})", file=sys.stderr, flush=True)
+            rows += cached["rows"]
         else:
-            rows += run_learned(method, scene, held_out, args, common)
+            print(f"== {method} ({minutes:g} min)", file=sys.stderr, flush=True)
+            if method.startswith("classic-"):
+                method_rows = run_classic(method.split("-", 1)[1], scene, train_views, held_out, args, method_common)
+            else:
+                method_rows = run_learned(method, scene, held_out, args, method_common, minutes)
+            rows += method_rows
+            if cache is not None:
+                cache.parent.mkdir(parents=True, exist_ok=True)
+                cache.write_text(json.dumps({"key": key, "rows": method_rows}))
         final = rows[-1]
         print(f"   {method}: {final['psnr']:.2f} dB, SSIM {final['ssim']:.3f}, render {final['render_s'] * 1000:.0f} ms/frame", file=sys.stderr)
     DOCS.mkdir(exist_ok=True)
@@ -164,13 +200,19 @@ def main() -> None:
         writer.writeheader()
         writer.writerows(rows)
     chart(rows, DOCS / f"bench_{name}.png", f"{name} {common['resolution']}, {len(train_views)} train / {len(held_out)} held-out views, "
-          f"{args.minutes:g} min budget; {common['hardware']}; {common['date']}")
-    print(f"\n{name} at {common['resolution']}, {common['hardware']}, {common['date']}\n")
-    print("| method | training (s) | steps | held-out PSNR | SSIM | render (ms/frame) | model (MB) |\n|---|---|---|---|---|---|---|")
+          f"{args.minutes:g} min budget{budget_note(factors)}; {common['threads']} threads; {common['hardware']}; "
+          f"{date.today().isoformat()}")
+    print(f"\n{name} at {common['resolution']}, {common['threads']} threads, {common['hardware']}\n")
+    print("| method | budget (min) | training (s) | steps | held-out PSNR | SSIM | render (ms/frame) | model (MB) | load at start | date |\n"
+          "|---|---|---|---|---|---|---|---|---|---|")
     for r in rows:
         if r["kind"] == "full views":
-            print(f"| {r['method']} | {r['train_s']} | {r['steps']} | {r['psnr']:.2f} | {r['ssim']:.3f} | "
-                  f"{r['render_s'] * 1000:.0f} | {r['model_bytes'] / 1e6:.2f} |")
+            print(f"| {r['method']} | {r['budget_min']:g} | {r['train_s']} | {r['steps']} | {r['psnr']:.2f} | {r['ssim']:.3f} | "
+                  f"{r['render_s'] * 1000:.0f} | {r['model_bytes'] / 1e6:.2f} | {r['load_at_start']} | {r['date']} |")
+
+
+def budget_note(factors: dict[str, float]) -> str:
+    return "".join(f", {method} x{factor:g}" for method, factor in factors.items())
 
 
 if __name__ == "__main__":

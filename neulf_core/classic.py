@@ -39,7 +39,7 @@ def undistort_to_pinhole(view: View, scale: float) -> tuple[np.ndarray, np.ndarr
     grid = torch.from_numpy(distorted.reshape(1, height, width, 2)).float()
     grid[..., 0] = grid[..., 0] / width * 2 - 1
     grid[..., 1] = grid[..., 1] / height * 2 - 1
-    image = torch.from_numpy(photo).permute(2, 0, 1)[None].float()
+    image = torch.from_numpy(np.array(photo)).permute(2, 0, 1)[None].float()
     resampled = F.grid_sample(image, grid, mode="bilinear", padding_mode="border", align_corners=False)
     return resampled[0].permute(1, 2, 0).round().clamp(0, 255).byte().numpy(), K
 
@@ -49,14 +49,17 @@ class ClassicLightField:
         self.slab = slab
         self.device = torch.device(device)
         images, Ks = zip(*(undistort_to_pinhole(v, scale) for v in views))
-        self.images = torch.stack([torch.from_numpy(i).permute(2, 0, 1) for i in images]).to(self.device)  # (V, 3, H, W) uint8
+        self.images = torch.stack([torch.from_numpy(np.array(i)).permute(2, 0, 1) for i in images]).to(self.device)  # (V, 3, H, W) uint8
         self.K = torch.as_tensor(np.stack(Ks), device=self.device, dtype=torch.float32)
         self.R = torch.as_tensor(np.stack([v.R for v in views]), device=self.device, dtype=torch.float32)
         self.t = torch.as_tensor(np.stack([v.t for v in views]), device=self.device, dtype=torch.float32)
         self.centres = torch.as_tensor(np.stack([v.center for v in views]), device=self.device, dtype=torch.float32)
 
-    def _nearest(self, centre: torch.Tensor, k: int):
+    def _nearest(self, centre: torch.Tensor, k: int, exclude: int | None = None):
         distance = (self.centres - centre).norm(dim=1)
+        if exclude is not None:  # a training view rendered from the others (the depth teacher)
+            distance = distance.clone()
+            distance[exclude] = float("inf")
         order = torch.argsort(distance)[:k]
         weights = 1.0 / (distance[order] ** 2 + 1e-8)
         return order, weights / weights.sum()
@@ -86,8 +89,12 @@ class ClassicLightField:
 
     @torch.no_grad()
     def render_rays(self, origin: torch.Tensor, directions: torch.Tensor, width: int, height: int, *,
-                    mode: str = "sweep", depths: int = 32, k: int = 4, window: int = 5) -> np.ndarray:
-        index, weights = self._nearest(origin, min(k, len(self.centres)))
+                    mode: str = "sweep", depths: int = 32, k: int = 4, window: int = 5, exclude: int | None = None,
+                    with_depth: bool = False):
+        """The (H, W, 3) image; with_depth: also the sweep's per-pixel depth as a unit in [0, 1]
+        (Slab.depth_from_unit) and its photo-consistency cost, both (H * W,) tensors."""
+        available = len(self.centres) - (exclude is not None)
+        index, weights = self._nearest(origin, min(k, available), exclude)
         rotation = torch.as_tensor(self.slab.rotation, device=self.device, dtype=torch.float32)
         slab_origin = torch.as_tensor(self.slab.origin, device=self.device, dtype=torch.float32)
         o_z = float((origin - slab_origin) @ rotation[2])
@@ -99,7 +106,8 @@ class ClassicLightField:
             plane_depths = self.slab.depth_from_unit(unit).float()
         best_cost = torch.full((height * width,), float("inf"), device=self.device)
         best_colour = torch.zeros(height * width, 3, device=self.device)
-        for z in plane_depths:
+        best_unit = torch.zeros(height * width, device=self.device)
+        for i, z in enumerate(plane_depths):
             points = origin + directions * ((z - o_z) / d_z)[:, None]
             colours, inside = self._sample(index, points)
             w = weights[:, None] * inside.float() + 1e-6
@@ -113,4 +121,6 @@ class ClassicLightField:
             better = cost < best_cost
             best_cost = torch.where(better, cost, best_cost)
             best_colour = torch.where(better[:, None], mean, best_colour)
-        return best_colour.reshape(height, width, 3).cpu().numpy()
+            best_unit = torch.where(better, i / max(1, len(plane_depths) - 1), best_unit)
+        image = best_colour.reshape(height, width, 3).cpu().numpy()
+        return (image, best_unit, best_cost) if with_depth else image

@@ -21,6 +21,7 @@ class Preset:
     lr_final_ratio: float = 0.1               # learning rate at the end of the budget / at start
     batch_size: int = 8192
     consistency: bool = False                 # the paper's multi-view losses on by default (docs/DEPTH.md)
+    teacher: bool = False                     # early depth pulled toward the classic plane sweep (teacher.py)
     description: str = ""
 
 

@@ -29,6 +29,7 @@ from .lock import training_lock
 from .presets import DEFAULT_PRESET, get_preset
 from .scene import Scene, load_scene, scaled_size, split_views
 from .slab import Slab, fit_slab
+from .teacher import TEACHER_FADE, sweep_depth_targets, teacher_loss, teacher_weight
 
 VALIDATION_RAYS = 1 << 16
 # The paper's loss weights: L = L_p + 0.5 L_mp + 0.1 L_d.
@@ -57,6 +58,7 @@ class TrainConfig:
     consistency_rays: int = 2048        # rays per step that get them (each costs K more field queries)
     neighbours: int = 5                 # K nearest training cameras
     appearance: bool = False            # learn a per-photo colour transform (exposure, white balance)
+    teacher: bool | None = None         # pull early depth toward the classic plane sweep's (None: the preset's default)
 
     def budget_fraction(self, step: int, elapsed: float) -> float:
         fractions = []
@@ -196,6 +198,8 @@ def _train(scene, model_dir: Path, config: TrainConfig, images_dir, resume: bool
     optimizer = _optimizer(field_module, preset.lr, appearance)
     batch = config.batch_size or preset.batch_size
     step, elapsed_before, history = 0, 0.0, []
+    teacher, teacher_seconds = _teacher_inputs(train_views, slab, config, preset, device, resumed, progress)
+    elapsed_before += teacher_seconds  # the sweep is part of the training time it saves
     if resumed:
         optimizer.load_state_dict(resumed["optimizer"])
         step, elapsed_before = resumed["progress"]["step"], resumed["progress"]["elapsed"]
@@ -243,7 +247,8 @@ def _train(scene, model_dir: Path, config: TrainConfig, images_dir, resume: bool
         index = torch.randint(n_rays, (batch,), generator=generator).to(device)
         uvst, target = train_rays.batch(index)
         view_index = train_rays.view_index[index].long()
-        loss, objective = _objective(field_module, uvst, target, view_index, appearance, consistency, config)
+        depth_teacher = (teacher[0][index], teacher[1][index], teacher_weight(fraction)) if teacher is not None else None
+        loss, objective = _objective(field_module, uvst, target, view_index, appearance, consistency, config, depth_teacher)
         optimizer.zero_grad(set_to_none=True)
         if not torch.isfinite(objective):
             # A NaN/inf step is skipped; repeated ones halve the learning rate (reported).
@@ -291,8 +296,24 @@ def _consistency_inputs(train_views, slab: Slab, config: TrainConfig, device):
     return SlabGeometry(slab, device), neighbours.to(device)
 
 
-def _objective(field_module, uvst, target, view_index, appearance, consistency, config: TrainConfig):
-    """(photometric loss L_p, everything minimised): L_p + regularisers + 0.5 L_mp + 0.1 L_d."""
+def _teacher_inputs(train_views, slab: Slab, config: TrainConfig, preset, device, resumed, progress):
+    """The plane sweep's depth per training ray (teacher.py), and the seconds it took; None
+    when off, or when a resumed run is past the part of the budget the teacher acts in."""
+    wanted = preset.teacher if config.teacher is None else config.teacher
+    if not wanted or len(train_views) < 2:
+        return None, 0.0
+    if resumed and config.budget_fraction(resumed["progress"]["step"], resumed["progress"]["elapsed"]) >= TEACHER_FADE:
+        return None, 0.0
+    started = time.monotonic()
+    targets = sweep_depth_targets(train_views, slab, config.scale, device,
+                                  on_view=lambda i, n, v: _emit(progress, event="loading", message=f"sweep depth of {v.name}",
+                                                                 done=i + 1, total=n))
+    return targets, (0.0 if resumed else time.monotonic() - started)
+
+
+def _objective(field_module, uvst, target, view_index, appearance, consistency, config: TrainConfig, depth_teacher=None):
+    """(photometric loss L_p, everything minimised): L_p + regularisers + 0.5 L_mp + 0.1 L_d
+    (+ the fading pull toward the plane sweep's depth)."""
     rgb, unit = field_module(uvst)
     seen = appearance(rgb, view_index) if appearance is not None else rgb
     loss = torch.mean((seen - target) ** 2)
@@ -307,6 +328,9 @@ def _objective(field_module, uvst, target, view_index, appearance, consistency, 
         loss_mp, loss_d = multiview_losses(field_module, geometry, neighbours, uvst[:m], target[:m], unit[:m],
                                            view_index[:m], as_seen)
         objective = objective + MULTIVIEW_WEIGHT * loss_mp + DEPTH_WEIGHT * loss_d
+    if depth_teacher is not None and depth_teacher[2] > 0:
+        unit_target, confidence, weight = depth_teacher
+        objective = objective + weight * teacher_loss(unit, unit_target, confidence)
     return loss, objective
 
 

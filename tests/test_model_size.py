@@ -147,3 +147,22 @@ def test_cli_trains_and_resumes_auto(tiny_scene, tmp_path, capsys):
     saved = load_checkpoint(out)
     assert saved["autosize"]["chosen"] == chosen and saved["progress"]["step"] == 40
     LightField.load(out, "cpu").render_view(load_scene(tiny_scene).view("view_00.png"))
+
+
+@pytest.mark.parametrize("image_size", [(480, 270), (504, 378), (1008, 567), (1920, 1080), (4032, 3024)])
+def test_default_model_weights_stay_under_3_mb_at_any_training_resolution(image_size):
+    """The default field's texture follows the training images up to a texel budget, so the
+    float16 weights of model.pt stay under the 3 MB target however large the photos."""
+    from neulf_core.checkpoint import half_state_dict
+    from neulf_core.fields.disparity import MAX_TEXELS, texture_size_for
+    from neulf_core.presets import get_preset
+
+    rows, cols = texture_size_for(image_size)
+    assert rows * cols <= MAX_TEXELS * 1.01
+    assert abs(cols / rows - image_size[0] / image_size[1]) < 0.02  # the image's aspect is kept
+    options = {**get_preset("fast").field_config, "texture_size": [rows, cols]}
+    field = build_field("disparity", make_config("disparity", options))
+    weights = half_state_dict(field.state_dict())
+    assert sum(t.numel() * t.element_size() for t in weights.values()) < 2.95e6
+    if image_size == (480, 270):  # small photos keep about one texel per pixel
+        assert [rows, cols] == [338, 600]

@@ -55,11 +55,19 @@ class DisparityConfig:
     z_far: float = 2.0
 
 
-def texture_size_for(image_size: tuple[int, int], margin: float = 0.25) -> list[int]:
+# The finest texture's texel budget: with 4 channels in float16 the default model.pt stays
+# under 3 MB (CanClip at 480x270 needs 202,800 texels: 2.66 MB; docs/BENCHMARKS.md).
+MAX_TEXELS = 220_000
+
+
+def texture_size_for(image_size: tuple[int, int], margin: float = 0.25, max_texels: int = MAX_TEXELS) -> list[int]:
     """Finest texture (rows, columns): about one texel per training pixel over the sheared
-    range -- finer only memorises noise, coarser blurs (docs/BENCHMARKS.md)."""
+    range -- finer only memorises noise, coarser blurs (docs/BENCHMARKS.md) -- shrunk, with
+    the image's aspect, to the texel budget that keeps the model file small."""
     width, height = image_size
-    return [int(round(height * (1 + margin))), int(round(width * (1 + margin)))]
+    rows, cols = height * (1 + margin), width * (1 + margin)
+    shrink = min(1.0, (max_texels / (rows * cols)) ** 0.5)
+    return [int(round(rows * shrink)), int(round(cols * shrink))]
 
 
 def slab_geometry(slab) -> dict:
