@@ -2,8 +2,9 @@
 
     python benchmarks/depth.py --steps 3000 [--parts hci,synthetic,canclip,refocus] [--jobs 2]
 
-Parts (each trains the default `fast` field with the paper's losses off and on, same steps,
-same seed; held-out views are every 8th view and never trained on):
+Parts (each trains the default `fast` field three ways -- plain, with the paper's losses, and
+with the plane-sweep depth teacher (`train --sweep-teacher`) -- same steps, same seed;
+held-out views are every 8th view and never trained on):
 - hci:       ../shared/data/hci_antinous, the centre view (held out): disparity error against
              the benchmark's ground truth -- BadPix(0.07) and MSE x100 as HCI reports them,
              both as rendered and after a least-squares fit d = a/Z + b (only relative depth
@@ -56,7 +57,8 @@ def synthetic_scene(variant: str, size: str = "320x240") -> Path:
 
 
 # ----------------------------------------------------------------------------- training
-def train_model(scene: Path, name: str, consistency: bool, steps: int, scale: float, seed: int = 0) -> dict:
+def train_model(scene: Path, name: str, consistency: bool, steps: int, scale: float, seed: int = 0,
+                teacher: bool = False) -> dict:
     """Train (or reuse) one model; returns its folder, training seconds and held-out PSNR/SSIM."""
     import torch
 
@@ -64,7 +66,7 @@ def train_model(scene: Path, name: str, consistency: bool, steps: int, scale: fl
     from neulf_core.train import TrainConfig, train
 
     torch.set_num_threads(1)  # runs go side by side; one thread each keeps them independent
-    out = CACHE / "models" / f"{name}_{'on' if consistency else 'off'}_{steps}_s{seed}"
+    out = CACHE / "models" / f"{name}_{mode_of(consistency, teacher)}_{steps}_s{seed}"
     record = out / "bench.json"
     if record.is_file():
         return json.loads(record.read_text())
@@ -72,11 +74,11 @@ def train_model(scene: Path, name: str, consistency: bool, steps: int, scale: fl
         import shutil
         shutil.rmtree(out)
     started = time.perf_counter()
-    result = train(scene, out, TrainConfig(steps=steps, scale=scale, seed=seed, consistency=consistency,
+    result = train(scene, out, TrainConfig(steps=steps, scale=scale, seed=seed, consistency=consistency, teacher=teacher,
                                            validate_seconds=1e9, checkpoint_seconds=1e9))
     seconds = time.perf_counter() - started
     report = evaluate_model(out, scene, save_images=False)
-    row = {"model": str(out), "scene": name, "consistency": consistency, "steps": result.step,
+    row = {"model": str(out), "scene": name, "consistency": consistency, "teacher": teacher, "steps": result.step,
            "train_seconds": round(seconds, 1), "psnr": report["mean_psnr"], "ssim": report["mean_ssim"]}
     record.write_text(json.dumps(row))
     return row
@@ -164,24 +166,33 @@ def refocus_study(model_dir: str, scene: Path, out_dir: Path, aperture: float) -
 
 
 # ----------------------------------------------------------------------------- parts
+# (paper's losses, plane-sweep teacher): off, the losses on, the teacher on (teacher.py).
+MODES = ((False, False), (True, False), (False, True))
+
+
+def mode_of(consistency: bool, teacher: bool) -> str:
+    return "teacher" if teacher else ("on" if consistency else "off")
+
+
 def jobs_for(parts: list[str], steps: int) -> list[tuple]:
-    jobs = []
+    scenes = []
     if "hci" in parts:
-        jobs += [(DATA / "hci_antinous", "hci", c, steps, 1.0) for c in (False, True)]
+        scenes.append((DATA / "hci_antinous", "hci", 1.0))
     if "synthetic" in parts or "refocus" in parts:
-        jobs += [(synthetic_scene("lambertian"), "synthetic", c, steps, 1.0) for c in (False, True)]
+        scenes.append((synthetic_scene("lambertian"), "synthetic", 1.0))
     if "synthetic" in parts:
-        jobs += [(synthetic_scene("shiny"), "synthetic_shiny", c, steps, 1.0) for c in (False, True)]
+        scenes.append((synthetic_scene("shiny"), "synthetic_shiny", 1.0))
     if "canclip" in parts:
-        jobs += [(DATA / "canclip", "canclip", c, steps, 0.5) for c in (False, True)]
-    return jobs
+        scenes.append((DATA / "canclip", "canclip", 0.5))
+    return [(path, name, consistency, steps, scale, 0, teacher)
+            for path, name, scale in scenes for consistency, teacher in MODES]
 
 
 def measure(row: dict, out_dir: Path, aperture: float) -> dict:
     from neulf_core.video import depth_to_colour
     from neulf_core.images import save_rgb
 
-    tag = f"{row['scene']}_{'on' if row['consistency'] else 'off'}"
+    tag = f"{row['scene']}_{mode_of(row['consistency'], row.get('teacher', False))}"
     if row["scene"] == "hci":
         scores = hci_depth_errors(row["model"])
         disparity = scores.pop("disparity_map")
@@ -192,7 +203,7 @@ def measure(row: dict, out_dir: Path, aperture: float) -> dict:
         scores = synthetic_depth_error(row["model"], scene)
         depth, truth = next(iter(scores.pop("maps").values()))
         save_rgb(out_dir / f"depth_{tag}.png", depth_to_colour(depth))
-        if not row["consistency"]:
+        if not row["consistency"] and not row.get("teacher"):
             save_rgb(out_dir / f"depth_{row['scene']}_truth.png", depth_to_colour(np.where(np.isfinite(truth), truth, np.nan)))
         row.update(scores)
         if row["scene"] == "synthetic":
@@ -215,9 +226,10 @@ def main(argv=None) -> int:
         rows = list(pool.map(train_model, *zip(*jobs)))
     out_dir = DOCS / "depth"
     out_dir.mkdir(parents=True, exist_ok=True)
-    rows = [measure(row, out_dir, args.aperture) for row in rows]
+    rows = [measure({"teacher": False, **row}, out_dir, args.aperture) for row in rows]
     hardware = _hardware()
-    fields = sorted({k for row in rows for k in row if k != "model"}, key=lambda k: (k not in ("scene", "consistency"), k))
+    fields = sorted({k for row in rows for k in row if k != "model"},
+                    key=lambda k: (k not in ("scene", "consistency", "teacher"), k))
     with open(args.csv, "w", newline="") as handle:
         writer = csv.DictWriter(handle, fieldnames=fields + ["hardware"])
         writer.writeheader()

@@ -258,7 +258,7 @@ def start_training(context, *, minutes=None, steps=None):
     device = None if prefs is None or prefs.device == "AUTO" else prefs.device.lower()
     job = jobs.TrainJob(python, scene_dir, out, minutes=minutes, steps=steps, resume=resume, preset=props.preset,
                         scale=props.train_scale, images_dir=abspath(props.images_dir) or None, device=device,
-                        env=jobs.core_environment(extra))
+                        env=jobs.core_environment(extra), sweep_teacher=props.sweep_teacher)
     job.state["resumed_from"] = resumed_from
     props.model_dir = store_path(out)
     props.last_status = (f"training from step {resumed_from}" if resume else "training")

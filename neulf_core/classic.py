@@ -16,6 +16,8 @@ model), so the renderer only projects with K.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 import torch
 import torch.nn.functional as F
@@ -42,6 +44,22 @@ def undistort_to_pinhole(view: View, scale: float) -> tuple[np.ndarray, np.ndarr
     image = torch.from_numpy(np.array(photo)).permute(2, 0, 1)[None].float()
     resampled = F.grid_sample(image, grid, mode="bilinear", padding_mode="border", align_corners=False)
     return resampled[0].permute(1, 2, 0).round().clamp(0, 255).byte().numpy(), K
+
+
+@dataclass
+class SweepDepth:
+    """The plane sweep's per-pixel depth, (H * W,) tensors: `unit` in [0, 1]
+    (Slab.depth_from_unit), the photo-consistency cost there, the mean cost over the depths
+    that two or more photos see (a flat region matches everywhere: mean close to best), and
+    how many photos see the point at the chosen depth."""
+
+    unit: torch.Tensor
+    cost: torch.Tensor
+    mean_cost: torch.Tensor
+    seen: torch.Tensor
+
+
+UNSEEN_COST = 1e3  # far above any colour variance (colours are in [0, 1])
 
 
 class ClassicLightField:
@@ -91,8 +109,7 @@ class ClassicLightField:
     def render_rays(self, origin: torch.Tensor, directions: torch.Tensor, width: int, height: int, *,
                     mode: str = "sweep", depths: int = 32, k: int = 4, window: int = 5, exclude: int | None = None,
                     with_depth: bool = False):
-        """The (H, W, 3) image; with_depth: also the sweep's per-pixel depth as a unit in [0, 1]
-        (Slab.depth_from_unit) and its photo-consistency cost, both (H * W,) tensors."""
+        """The (H, W, 3) image; with_depth: also the sweep's per-pixel depth (SweepDepth)."""
         available = len(self.centres) - (exclude is not None)
         index, weights = self._nearest(origin, min(k, available), exclude)
         rotation = torch.as_tensor(self.slab.rotation, device=self.device, dtype=torch.float32)
@@ -107,6 +124,9 @@ class ClassicLightField:
         best_cost = torch.full((height * width,), float("inf"), device=self.device)
         best_colour = torch.zeros(height * width, 3, device=self.device)
         best_unit = torch.zeros(height * width, device=self.device)
+        best_seen = torch.zeros(height * width, device=self.device)
+        cost_sum = torch.zeros(height * width, device=self.device)
+        cost_count = torch.zeros(height * width, device=self.device)
         for i, z in enumerate(plane_depths):
             points = origin + directions * ((z - o_z) / d_z)[:, None]
             colours, inside = self._sample(index, points)
@@ -118,9 +138,18 @@ class ClassicLightField:
             variance = (w[..., None] * (colours - mean) ** 2).sum(0).sum(-1)
             cost = F.avg_pool2d(variance.reshape(1, 1, height, width), window, stride=1, padding=window // 2,
                                 count_include_pad=False).reshape(-1)
+            # One photo always agrees with itself: a depth that fewer than two photos see
+            # (past the frame's edge) wins only where no depth is seen by two.
+            unseen = (inside.float().sum(0) < 2).float()
+            cost_sum += cost * (1 - unseen)
+            cost_count += 1 - unseen
+            cost = cost + UNSEEN_COST * unseen
             better = cost < best_cost
             best_cost = torch.where(better, cost, best_cost)
             best_colour = torch.where(better[:, None], mean, best_colour)
             best_unit = torch.where(better, i / max(1, len(plane_depths) - 1), best_unit)
+            best_seen = torch.where(better, inside.float().sum(0), best_seen)
         image = best_colour.reshape(height, width, 3).cpu().numpy()
-        return (image, best_unit, best_cost) if with_depth else image
+        if not with_depth:
+            return image
+        return image, SweepDepth(best_unit, best_cost, cost_sum / cost_count.clamp_min(1), best_seen)

@@ -63,7 +63,7 @@ def cmd_train(args) -> int:
         exclude=_names(args.exclude), seed=args.seed, checkpoint_seconds=args.checkpoint_seconds,
         validate_seconds=args.validate_seconds,
         st_depth=args.st_depth, near=args.near, far=args.far, device=args.device, batch_size=args.batch_size,
-        consistency=args.consistency, appearance=args.appearance,
+        consistency=args.consistency, appearance=args.appearance, teacher=args.sweep_teacher,
     )
     stop = {"signal": None, "reader_gone": False}
 
@@ -369,6 +369,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="the paper's multi-view photometric and depth losses (default: the preset's choice)")
     p.add_argument("--appearance", action="store_true",
                    help="learn a colour transform per photo (captures with changing exposure or white balance)")
+    p.add_argument("--sweep-teacher", action=argparse.BooleanOptionalAction, default=None,
+                   help="pull the early depth toward the classic plane sweep's: better depth for refocus and "
+                        "depth maps, on some scenes better or worse held-out PSNR (docs/DEPTH.md)")
     p.add_argument("--device", help="cpu, cuda, mps (default: the fastest available)")
     p.set_defaults(run=cmd_train)
 

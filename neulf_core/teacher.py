@@ -30,21 +30,24 @@ def sweep_depth_targets(train_views, slab: Slab, scale: float, device="cpu", on_
     units, confidences = [], []
     for i, view in enumerate(train_views):
         camera = view.scaled_camera(scale)
-        _, unit, cost = classic.render_view(view, scale, exclude=i, with_depth=True)
+        _, sweep = classic.render_view(view, scale, exclude=i, with_depth=True)
         _, valid = view_uvst(view, slab, scale)
-        valid = torch.as_tensor(valid, device=unit.device).reshape(-1)
-        units.append(unit[valid])
-        confidences.append(_confidence(cost, int(camera.width), int(camera.height))[valid])
+        valid = torch.as_tensor(valid, device=sweep.unit.device).reshape(-1)
+        units.append(sweep.unit[valid])
+        confidences.append(_confidence(sweep)[valid])
         if on_view is not None:
             on_view(i, len(train_views), view)
     return torch.cat(units).float(), torch.cat(confidences).float()
 
 
-def _confidence(cost: torch.Tensor, width: int, height: int) -> torch.Tensor:
-    """Trust low photo-consistency cost (a match), relative to the view's typical cost:
-    textureless or occluded pixels match badly or everywhere and get little weight."""
-    typical = cost.median().clamp_min(1e-8)
-    return torch.exp(-cost / typical)
+def _confidence(sweep) -> torch.Tensor:
+    """How distinct the best depth's match is: 1 - best cost / mean cost over the depths.  A
+    textured surface matches at one depth only (near 1); a flat or uniformly coloured one
+    matches everywhere (near 0), and an occluded one nowhere (the cost stays near the mean).
+    A pixel that fewer than two of the other photos see at its depth (the frame's edge, where
+    one photo agrees with itself) gets none."""
+    distinct = (1 - sweep.cost / sweep.mean_cost.clamp_min(1e-8)).clamp(0, 1)
+    return distinct * (sweep.seen >= 2).float()
 
 
 def teacher_weight(fraction: float) -> float:

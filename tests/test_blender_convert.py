@@ -176,6 +176,19 @@ def test_train_job_parses_events(ext):
     assert job.state["device"].startswith("cpu") and job.state["warnings"] == ["careful"]
 
 
+def test_train_job_passes_the_sweep_teacher_only_to_a_new_model(ext, tmp_path):
+    """The panel's "Depth from Photos" becomes `train --sweep-teacher`; a resumed model keeps
+    the choice saved with it.  (/bin/true stands in for the NeuLF Python: only argv matters.)"""
+    def argv(**options):
+        job = ext.jobs.TrainJob("/bin/true", str(tmp_path), str(tmp_path / "m"), steps=5, **options)
+        job.process.wait(timeout=30)
+        return job.argv
+
+    assert "--sweep-teacher" in argv(sweep_teacher=True)
+    assert "--sweep-teacher" not in argv()
+    assert "--sweep-teacher" not in argv(sweep_teacher=True, resume=True)
+
+
 def test_explain_failure(ext):
     assert ext.jobs.explain_failure(["x", "error: the scene is bad."]) == "the scene is bad."
     assert "no 'torch'" in ext.jobs.explain_failure(["ModuleNotFoundError: No module named 'torch'"])

@@ -67,3 +67,16 @@ def test_training_with_the_teacher_learns_the_depth_and_resumes(tiny_scene, tmp_
     train(tiny_scene, tmp_path / "m", TrainConfig(steps=150, teacher=True, validate_seconds=1e9), resume=True,
           progress=events.append)
     assert not any("sweep depth of" in e.get("message", "") for e in events)
+
+
+def test_cli_flag_turns_the_teacher_on_and_it_is_remembered(tiny_scene, tmp_path, capsys):
+    from neulf_core.checkpoint import load_checkpoint
+    from neulf_core.cli import main
+
+    out = tmp_path / "m"
+    base = ["train", str(tiny_scene), "--out", str(out), "--batch-size", "256", "--progress", "json"]
+    assert main(base + ["--steps", "10", "--sweep-teacher"]) == 0
+    assert "sweep depth of" in capsys.readouterr().out
+    assert load_checkpoint(out)["train_config"]["teacher"] is True
+    assert main(["train", str(tiny_scene), "--out", str(tmp_path / "plain"), "--steps", "5", "--progress", "json"]) == 0
+    assert "sweep depth of" not in capsys.readouterr().out
