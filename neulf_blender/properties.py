@@ -38,7 +38,7 @@ class NeulfSceneSettings(bpy.types.PropertyGroup):
     train_steps: IntProperty(name="Steps", default=0, min=0,
                              description="Training steps to add instead of minutes (0: use minutes)")
     preset: EnumProperty(name="Preset", items=PRESETS, default="fast")
-    sweep_teacher: BoolProperty(name="Depth from Photos", default=False,
+    sweep_teacher: BoolProperty(name="Depth from Photos", default=True,
                                 description="Guide early training with the depth a plane sweep finds in the photos: "
                                             "better depth for click-to-focus; on some captures a softer image")
     train_scale: FloatProperty(name="Image Scale", default=1.0, min=0.05, max=1.0,

@@ -370,8 +370,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--appearance", action="store_true",
                    help="learn a colour transform per photo (captures with changing exposure or white balance)")
     p.add_argument("--sweep-teacher", action=argparse.BooleanOptionalAction, default=None,
-                   help="pull the early depth toward the classic plane sweep's: better depth for refocus and "
-                        "depth maps, on some scenes better or worse held-out PSNR (docs/DEPTH.md)")
+                   help="pull the early depth toward the classic plane sweep's (default: the preset's choice; on "
+                        "for fast): better depth maps and refocus, docs/DEPTH.md")
     p.add_argument("--device", help="cpu, cuda, mps (default: the fastest available)")
     p.set_defaults(run=cmd_train)
 

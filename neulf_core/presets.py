@@ -21,7 +21,7 @@ class Preset:
     lr_final_ratio: float = 0.1               # learning rate at the end of the budget / at start
     batch_size: int = 8192
     consistency: bool = False                 # the paper's multi-view losses on by default (docs/DEPTH.md)
-    teacher: bool = False                     # early depth pulled toward the classic plane sweep (teacher.py)
+    teacher: bool = False                     # early depth pulled toward the classic plane sweep (teacher.py, docs/DEPTH.md)
     description: str = ""
 
 
@@ -34,7 +34,7 @@ PRESETS: dict[str, Preset] = {
                     description="the paper's network: 20 x 256 ReLU layers, raw-input skips every 4 layers"),
     "authors": Preset("mlp", {"depth": 8, "width": 256, "skip": "embedding"}, lr=5e-4, lr_decay_per_epoch=0.995,
                       description="the authors' code default: 8 x 256, embedding skips"),
-    "fast": Preset("disparity", FAST_FIELD, lr=2e-3, lr_final_ratio=0.1, batch_size=8192,
+    "fast": Preset("disparity", FAST_FIELD, lr=2e-3, lr_final_ratio=0.1, batch_size=8192, teacher=True,
                    description="per-ray disparity shearing one shared st texture; trains in minutes on a CPU"),
     "auto": Preset("disparity", FAST_FIELD, lr=2e-3, lr_final_ratio=0.1, batch_size=8192,
                    description="the fast field with its texture sized per scene on validation views (autosize.py)"),

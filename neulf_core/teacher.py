@@ -13,28 +13,39 @@ confident, and the pull fades out so photometric training has the last word.
 from __future__ import annotations
 
 import torch
+import torch.nn.functional as F
 
 from .classic import ClassicLightField
 from .dataset import view_uvst
 from .slab import Slab
 
-# Pull strength at the start, and the fraction of the budget over which it fades to zero.
-TEACHER_WEIGHT = 0.05
-TEACHER_FADE = 0.5
+# Pull strength at the start, and the fraction of the budget over which it fades to zero:
+# a gentle pull keeps the depth gain without the PSNR cost of a strong one (docs/DEPTH.md).
+TEACHER_WEIGHT = 0.002
+TEACHER_FADE = 0.3
+# The sweep's resolution as a fraction of the training images'.
+SWEEP_SCALE = 0.5
 
 
-def sweep_depth_targets(train_views, slab: Slab, scale: float, device="cpu", on_view=None) -> tuple[torch.Tensor, torch.Tensor]:
+def sweep_depth_targets(train_views, slab: Slab, scale: float, device="cpu", on_view=None,
+                        sweep_scale: float | None = None) -> tuple[torch.Tensor, torch.Tensor]:
     """(unit depth, confidence) per training ray, in build_rayset's order (views in turn,
-    row-major pixels, the rays that cross the slab)."""
-    classic = ClassicLightField(train_views, slab, scale, device=device)
+    row-major pixels, the rays that cross the slab).  The sweep runs at `sweep_scale` of the
+    training resolution (a gentle prior needs no more; a quarter of the pixels is a quarter
+    of the time) and each training pixel takes the value of the sweep pixel it falls in."""
+    small = scale * (SWEEP_SCALE if sweep_scale is None else sweep_scale)
+    classic = ClassicLightField(train_views, slab, small, device=device)
     units, confidences = [], []
     for i, view in enumerate(train_views):
-        camera = view.scaled_camera(scale)
-        _, sweep = classic.render_view(view, scale, exclude=i, with_depth=True)
+        _, sweep = classic.render_view(view, small, exclude=i, with_depth=True)
+        coarse = view.scaled_camera(small)
+        fine = view.scaled_camera(scale)
+        maps = torch.stack([sweep.unit, _confidence(sweep)]).reshape(1, 2, int(coarse.height), int(coarse.width))
+        maps = F.interpolate(maps, size=(int(fine.height), int(fine.width)), mode="nearest").reshape(2, -1)
         _, valid = view_uvst(view, slab, scale)
-        valid = torch.as_tensor(valid, device=sweep.unit.device).reshape(-1)
-        units.append(sweep.unit[valid])
-        confidences.append(_confidence(sweep)[valid])
+        valid = torch.as_tensor(valid, device=maps.device).reshape(-1)
+        units.append(maps[0][valid])
+        confidences.append(maps[1][valid])
         if on_view is not None:
             on_view(i, len(train_views), view)
     return torch.cat(units).float(), torch.cat(confidences).float()

@@ -177,7 +177,7 @@ def test_train_job_parses_events(ext):
 
 
 def test_train_job_passes_the_sweep_teacher_only_to_a_new_model(ext, tmp_path):
-    """The panel's "Depth from Photos" becomes `train --sweep-teacher`; a resumed model keeps
+    """The panel's "Depth from Photos" becomes `train --[no-]sweep-teacher`; a resumed model keeps
     the choice saved with it.  (/bin/true stands in for the NeuLF Python: only argv matters.)"""
     def argv(**options):
         job = ext.jobs.TrainJob("/bin/true", str(tmp_path), str(tmp_path / "m"), steps=5, **options)
@@ -185,8 +185,9 @@ def test_train_job_passes_the_sweep_teacher_only_to_a_new_model(ext, tmp_path):
         return job.argv
 
     assert "--sweep-teacher" in argv(sweep_teacher=True)
-    assert "--sweep-teacher" not in argv()
-    assert "--sweep-teacher" not in argv(sweep_teacher=True, resume=True)
+    assert "--no-sweep-teacher" in argv(sweep_teacher=False)
+    assert not any("sweep-teacher" in a for a in argv())  # the preset decides
+    assert not any("sweep-teacher" in a for a in argv(sweep_teacher=False, resume=True))
 
 
 def test_explain_failure(ext):
