@@ -22,7 +22,8 @@ def test_paper_network_is_as_published():
     assert field.feature.out_features == 256
     assert [m.out_features for m in field.colour_head if hasattr(m, "out_features")] == [128, 3]
     assert [m.out_features for m in field.depth_head if hasattr(m, "out_features")] == [128, 1]
-    rgb, depth = field(torch.rand(7, 4) * 2 - 1)
+    with torch.no_grad():
+        rgb, depth = field(torch.rand(7, 4) * 2 - 1)
     assert rgb.shape == (7, 3) and depth.shape == (7, 1)
     assert float(rgb.min()) >= 0 and float(rgb.max()) <= 1 and float(depth.min()) >= 0 and float(depth.max()) <= 1
 
