@@ -140,7 +140,8 @@ class ClassicLightField:
                                 count_include_pad=False).reshape(-1)
             # One photo always agrees with itself: a depth that fewer than two photos see
             # (past the frame's edge) wins only where no depth is seen by two.
-            unseen = (inside.float().sum(0) < 2).float()
+            seen = inside.float().sum(0)
+            unseen = (seen < 2).float()
             cost_sum += cost * (1 - unseen)
             cost_count += 1 - unseen
             cost = cost + UNSEEN_COST * unseen
@@ -148,7 +149,7 @@ class ClassicLightField:
             best_cost = torch.where(better, cost, best_cost)
             best_colour = torch.where(better[:, None], mean, best_colour)
             best_unit = torch.where(better, i / max(1, len(plane_depths) - 1), best_unit)
-            best_seen = torch.where(better, inside.float().sum(0), best_seen)
+            best_seen = torch.where(better, seen, best_seen)
         image = best_colour.reshape(height, width, 3).cpu().numpy()
         if not with_depth:
             return image

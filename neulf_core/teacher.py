@@ -4,10 +4,11 @@ The fast field's disparity comes from small factorised planes that gradient desc
 only through the texture's local gradient: left alone it settles on a smooth depth with a
 fattened band around depth edges and wrong matches on repeated texture.  The per-pixel
 plane sweep over the nearest training photos (classic.py) finds a sharper depth in a
-fraction of a second per view with no training (measured effect: docs/DEPTH.md).  Each training view is swept from its k nearest *other*
-training views; early in training the field's depth (as a unit in [0, 1], uniform in
-disparity between the slab's near and far) is pulled toward it, where the sweep is
-confident, and the pull fades out so photometric training has the last word.
+fraction of a second per view with no training (measured effect: docs/DEPTH.md).  Each
+training view is swept from its k nearest *other* training views; early in training the
+field's depth (as a unit in [0, 1], uniform in disparity between the slab's near and far)
+is pulled toward it where the sweep is confident, and the pull fades out so photometric
+training has the last word.
 """
 
 from __future__ import annotations

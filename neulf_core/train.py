@@ -247,7 +247,8 @@ def _train(scene, model_dir: Path, config: TrainConfig, images_dir, resume: bool
         index = torch.randint(n_rays, (batch,), generator=generator).to(device)
         uvst, target = train_rays.batch(index)
         view_index = train_rays.view_index[index].long()
-        depth_teacher = (teacher[0][index], teacher[1][index], teacher_weight(fraction)) if teacher is not None else None
+        pull = teacher_weight(fraction) if teacher is not None else 0.0
+        depth_teacher = (teacher[0][index], teacher[1][index], pull) if pull > 0 else None
         loss, objective = _objective(field_module, uvst, target, view_index, appearance, consistency, config, depth_teacher)
         optimizer.zero_grad(set_to_none=True)
         if not torch.isfinite(objective):
@@ -328,7 +329,7 @@ def _objective(field_module, uvst, target, view_index, appearance, consistency, 
         loss_mp, loss_d = multiview_losses(field_module, geometry, neighbours, uvst[:m], target[:m], unit[:m],
                                            view_index[:m], as_seen)
         objective = objective + MULTIVIEW_WEIGHT * loss_mp + DEPTH_WEIGHT * loss_d
-    if depth_teacher is not None and depth_teacher[2] > 0:
+    if depth_teacher is not None:
         unit_target, confidence, weight = depth_teacher
         objective = objective + weight * teacher_loss(unit, unit_target, confidence)
     return loss, objective

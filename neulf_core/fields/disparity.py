@@ -60,13 +60,13 @@ class DisparityConfig:
 MAX_TEXELS = 220_000
 
 
-def texture_size_for(image_size: tuple[int, int], margin: float = 0.25, max_texels: int = MAX_TEXELS) -> list[int]:
+def texture_size_for(image_size: tuple[int, int], margin: float = 0.25) -> list[int]:
     """Finest texture (rows, columns): about one texel per training pixel over the sheared
     range -- finer only memorises noise, coarser blurs (docs/BENCHMARKS.md) -- shrunk, with
     the image's aspect, to the texel budget that keeps the model file small."""
     width, height = image_size
     rows, cols = height * (1 + margin), width * (1 + margin)
-    shrink = min(1.0, (max_texels / (rows * cols)) ** 0.5)
+    shrink = min(1.0, (MAX_TEXELS / (rows * cols)) ** 0.5)
     return [int(round(rows * shrink)), int(round(cols * shrink))]
 
 
