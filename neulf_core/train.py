@@ -285,9 +285,20 @@ def _train(scene, model_dir: Path, config: TrainConfig, images_dir, resume: bool
             last_checkpoint = time.monotonic()
     if skipped:
         _emit(progress, event="warning", message=f"{skipped} training steps had a non-finite loss and were skipped")
+    elapsed += _fill_unseen(field_module, train_rays) if step > 0 else 0.0
     save(status, val)
     _emit(progress, event=status, step=step, elapsed=elapsed, val_psnr=val, model_dir=str(model_dir))
     return TrainResult(model_dir, status, step, elapsed, val, history)
+
+
+def _fill_unseen(field_module, train_rays: RaySet, chunk: int = 1 << 15) -> float:
+    """Texels no training ray reads take their seen neighbours' features (fields that have
+    texels; DisparityField.fill_unseen_texels); the seconds it took, part of the training time."""
+    if not hasattr(field_module, "fill_unseen_texels"):
+        return 0.0
+    started = time.monotonic()
+    field_module.fill_unseen_texels(train_rays.uvst[i:i + chunk].float() for i in range(0, len(train_rays), chunk))
+    return time.monotonic() - started
 
 
 def _consistency_inputs(train_views, slab: Slab, config: TrainConfig, device):

@@ -6,7 +6,7 @@ import numpy as np
 import torch
 
 from neulf_core.fields import build_field, count_parameters, make_config
-from neulf_core.fields.disparity import slab_geometry
+from neulf_core.fields.disparity import mark_bilinear_footprint, push_pull_fill, slab_geometry
 from neulf_core.slab import Slab
 
 
@@ -63,3 +63,42 @@ def test_fast_field_starts_on_the_st_plane():
     _, unit = field(torch.rand(50, 4) * 2 - 1)
     depth = slab.depth_from_unit(unit.double())
     assert torch.allclose(depth, torch.full_like(depth, 4.0), rtol=0.02)
+
+
+def test_push_pull_fill_keeps_seen_texels_and_fills_holes_from_their_neighbours():
+    texture = torch.zeros(1, 2, 8, 8)
+    texture[:, 0, :, :4] = 1.0     # left half seen, channel 0 at 1
+    texture[:, 1, :, :4] = -2.0
+    texture[:, :, :, 4:] = 7.0     # right half unseen: whatever it holds must go
+    mask = torch.zeros(8, 8, dtype=torch.bool)
+    mask[:, :4] = True
+    filled = push_pull_fill(texture, mask)
+    assert torch.equal(filled[..., :4], texture[..., :4])
+    assert torch.allclose(filled[:, 0, :, 4:], torch.ones(8, 4)) and torch.allclose(filled[:, 1, :, 4:], torch.full((8, 4), -2.0))
+
+
+def test_fast_field_fills_texels_no_training_ray_reads():
+    """After training, texels outside every training ray's footprint take the seen texels'
+    features (an extrapolated view continues the edge), and seen texels stay bit-identical."""
+    slab = Slab(np.eye(3), np.zeros(3), 0.0, 4.0, 2.0, 8.0, -np.ones(4), np.ones(4))
+    field = build_field("disparity", make_config("disparity", {**slab_geometry(slab), "texture_size": [16, 16], "texture_levels": 2}))
+    with torch.no_grad():
+        for texture in field.textures:
+            texture.normal_()
+    before = [texture.detach().clone() for texture in field.textures]
+    rays = torch.rand(4000, 4) * 2 - 1
+    rays[:, 2] = rays[:, 2].abs() * 0.5        # training rays read only the right part of s
+    unseen = field.fill_unseen_texels([rays[:2000], rays[2000:]])
+    assert 0.3 < unseen < 0.8
+    grid, _ = field.sheared(rays)
+    for texture, old in zip(field.textures, before):
+        rows, cols = texture.shape[2:]
+        mask = torch.zeros(rows * cols, dtype=torch.bool)
+        mark_bilinear_footprint(mask, grid, rows, cols)
+        mask = mask.view(rows, cols)
+        assert torch.equal(texture.detach()[..., mask], old[..., mask])
+        assert not torch.equal(texture.detach()[..., ~mask], old[..., ~mask])
+        # A hole's features lie within the range of the seen texels' (an average of them).
+        seen = old[..., mask]
+        assert bool((texture.detach()[..., ~mask] <= seen.amax(-1, keepdim=True) + 1e-5).all())
+        assert bool((texture.detach()[..., ~mask] >= seen.amin(-1, keepdim=True) - 1e-5).all())

@@ -44,6 +44,13 @@ class DisparityConfig:
     geometry_channels: int = 8
     hidden: int = 64
     view_dependence: bool = True
+    # Depth layers for the geometry: feature planes at fixed disparities, each read where the
+    # ray crosses its depth (seen from the slab origin), so a depth edge at that depth stays
+    # put as the camera moves (0: none).
+    geometry_layers: int = 0
+    geometry_layer_res: int = 128
+    geometry_layer_channels: int = 4
+    geometry_layer_tv: float = 0.0
     tv_weight: float = 1e-3
     # Slab geometry in normalised units, set by the trainer from the slab (see slab_geometry()).
     uv_half: list[float] = field(default_factory=lambda: [1.0, 1.0])
@@ -89,6 +96,12 @@ class DisparityField(nn.Module):
             last.weight.mul_(0.01)
             last.bias.zero_()
             last.bias[3] = self._unit_of_st()
+        if config.geometry_layers:
+            k, c, res = config.geometry_layers, config.geometry_layer_channels, config.geometry_layer_res
+            self.register_buffer("layer_disparity", self.disparity(torch.linspace(0, 1, k)), persistent=False)
+            self.layers = nn.Parameter(torch.randn(k, c, res, res) * 0.01)
+            first = self.geometry.decoder[0]
+            self.geometry.decoder[0] = nn.Linear(first.in_features + k * c, first.out_features)
         rows, cols = config.texture_size
         self.textures = nn.ParameterList(
             nn.Parameter(torch.randn(1, config.texture_channels, max(2, rows >> level), max(2, cols >> level)) * 0.01)
@@ -113,17 +126,47 @@ class DisparityField(nn.Module):
         return c.z_st * inverse_depth - 1.0
 
     def forward(self, uvst: torch.Tensor):
-        geometry = self.geometry.decoder(self._geometry_features(uvst))
-        unit = torch.sigmoid(geometry[:, 3:4])
-        # sheared st = st + uv * delta in slab units, back in normalised st (one fused form).
-        uv = uvst[:, :2] * self.uv_half + self.uv_centre
-        shift = uv * (self.disparity(unit) / self.st_half)
-        grid = ((uvst[:, 2:] + shift) * (1.0 / (1.0 + self.config.texture_margin))).view(1, -1, 1, 2)
+        grid, unit = self.sheared(uvst)
+        grid = grid.view(1, -1, 1, 2)
         n = uvst.shape[0]
         features = [_sample(texture, grid).view(texture.shape[1], n).t() for texture in self.textures]
         if self.config.view_dependence:
             features.append(uvst[:, :2])
         return torch.sigmoid(self.decoder(_rows(features))), unit
+
+    def sheared(self, uvst: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Where rays (N, 4) read the texture, (N, 2) in [-1, 1], and their depth unit (N, 1)."""
+        features = self._geometry_features(uvst)
+        uv = uvst[:, :2] * self.uv_half + self.uv_centre
+        if self.config.geometry_layers:
+            k, n = self.layers.shape[0], uvst.shape[0]
+            scale = 1.0 / (1.0 + self.config.texture_margin)
+            grids = (uvst[:, 2:] + uv * (self.layer_disparity[:, None, None] / self.st_half)) * scale
+            layered = _sample(self.layers, grids.view(k, n, 1, 2)).view(-1, n).t()
+            features = torch.cat([features, layered], 1)
+        geometry = self.geometry.decoder(features)
+        unit = torch.sigmoid(geometry[:, 3:4])
+        # sheared st = st + uv * delta in slab units, back in normalised st (one fused form).
+        shift = uv * (self.disparity(unit) / self.st_half)
+        return (uvst[:, 2:] + shift) * (1.0 / (1.0 + self.config.texture_margin)), unit
+
+    @torch.no_grad()
+    def fill_unseen_texels(self, uvst_chunks) -> float:
+        """Texels that no training ray reads (past the edge of what the photos saw, or behind
+        something from every camera) keep their random start and decode to a wrong colour
+        where a new viewpoint reads them.  Give each the features of the nearest seen texels
+        (push-pull over a pyramid), so an extrapolated view continues the edge the photos
+        saw.  `uvst_chunks`: iterable of (N, 4) training rays.  Returns the unseen share of
+        the finest texture."""
+        seen = [torch.zeros(t.shape[2] * t.shape[3], dtype=torch.bool, device=t.device) for t in self.textures]
+        for uvst in uvst_chunks:
+            grid, _ = self.sheared(uvst)
+            for texture, mask in zip(self.textures, seen):
+                mark_bilinear_footprint(mask, grid, texture.shape[2], texture.shape[3])
+        for texture, mask in zip(self.textures, seen):
+            mask = mask.view(texture.shape[2:])
+            texture.data.copy_(torch.where(mask, texture.data, push_pull_fill(texture.data, mask)))
+        return float(1.0 - seen[0].float().mean())
 
     def _geometry_features(self, uvst: torch.Tensor) -> torch.Tensor:
         """PlanesField.features with fewer kernel calls: each pair's sample grid is built once
@@ -146,14 +189,45 @@ class DisparityField(nn.Module):
         return _rows(per_scale)
 
     def regularisation(self) -> torch.Tensor:
-        return self.geometry.regularisation()
+        total = self.geometry.regularisation()
+        if self.config.geometry_layers and self.config.geometry_layer_tv:
+            layers = self.layers
+            tv = (layers[:, :, 1:] - layers[:, :, :-1]).pow(2).mean() + (layers[..., 1:] - layers[..., :-1]).pow(2).mean()
+            total = total + self.config.geometry_layer_tv * tv
+        return total
 
     def param_groups(self, lr: float):
         return [
             {"params": list(self.textures.parameters()), "lr": lr * 10.0, "name": "texture"},
-            {"params": list(self.geometry.scales.parameters()), "lr": lr * 10.0, "name": "geometry planes"},
+            {"params": list(self.geometry.scales.parameters()) + ([self.layers] if self.config.geometry_layers else []),
+             "lr": lr * 10.0, "name": "geometry planes"},
             {"params": list(self.geometry.decoder.parameters()) + list(self.decoder.parameters()), "lr": lr, "name": "decoders"},
         ]
+
+
+def mark_bilinear_footprint(mask: torch.Tensor, grid: torch.Tensor, rows: int, cols: int) -> None:
+    """Set mask (rows * cols,) at the four texels each bilinear sample at grid (N, 2) reads
+    (align_corners=True, border padding: coordinates past the edge read the edge)."""
+    x = ((grid[:, 0].clamp(-1, 1) + 1) * 0.5 * (cols - 1))
+    y = ((grid[:, 1].clamp(-1, 1) + 1) * 0.5 * (rows - 1))
+    for xs in (x.floor(), x.ceil()):
+        for ys in (y.floor(), y.ceil()):
+            mask[ys.long() * cols + xs.long()] = True
+
+
+def push_pull_fill(texture: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+    """texture (1, C, H, W) with every texel where mask (H, W) is False replaced by a
+    smooth interpolation of the True ones: averages of seen texels are pushed down a
+    pyramid until every cell has one, then pulled back up into the holes."""
+    values, weights = [texture * mask], [mask[None, None].to(texture.dtype)]
+    while bool((weights[-1] == 0).any()) and min(weights[-1].shape[2:]) > 1:
+        values.append(F.avg_pool2d(values[-1], 2, ceil_mode=True))
+        weights.append(F.avg_pool2d(weights[-1], 2, ceil_mode=True))
+    filled = values[-1] / weights[-1].clamp_min(1e-12)
+    for value, weight in zip(reversed(values[:-1]), reversed(weights[:-1])):
+        coarse = F.interpolate(filled, size=value.shape[2:], mode="bilinear", align_corners=False)
+        filled = torch.where(weight > 0, value / weight.clamp_min(1e-12), coarse)
+    return filled
 
 
 def _sample(texture: torch.Tensor, grid: torch.Tensor) -> torch.Tensor:
