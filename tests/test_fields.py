@@ -102,3 +102,41 @@ def test_fast_field_fills_texels_no_training_ray_reads():
         seen = old[..., mask]
         assert bool((texture.detach()[..., ~mask] <= seen.amax(-1, keepdim=True) + 1e-5).all())
         assert bool((texture.detach()[..., ~mask] >= seen.amin(-1, keepdim=True) - 1e-5).all())
+
+
+def test_depth_layers_shift_with_the_camera_like_a_surface_at_their_depth():
+    """A depth layer's feature at one disparity is read, from every ray through a point at that
+    depth, at one place: rays through one 3D point on layer k get layer k's same feature."""
+    slab = Slab(np.eye(3), np.zeros(3), 0.0, 4.0, 2.0, 8.0, -np.ones(4), np.ones(4))
+    field = build_field("disparity", make_config("disparity", {**slab_geometry(slab), "texture_size": [16, 16], "geometry_layers": 3}))
+    # Layer disparities span near..far; the middle one (unit 0.5) sits at inverse depth halfway.
+    depth = 1.0 / (0.5 / slab.z_near + 0.5 / slab.z_far)
+    point = torch.tensor([0.2, -0.1, depth], dtype=torch.float64)
+    uv_points = torch.tensor([[-0.5, -0.4, 0.0], [0.0, 0.0, 0.0], [0.6, 0.5, 0.0]], dtype=torch.float64)
+    directions = point - uv_points
+    uvst, _ = slab.rays_to_uvst(uv_points, directions / directions.norm(dim=1, keepdim=True))
+    uvst = uvst.float()
+    uv = uvst[:, :2] * field.uv_half + field.uv_centre
+    middle = (uvst[:, 2:] + uv * (field.layer_disparity[1] / field.st_half))
+    assert torch.allclose(middle, middle[0].expand_as(middle), atol=1e-5)
+    rgb, unit = field(uvst)
+    assert rgb.shape == (3, 3) and bool(torch.isfinite(unit).all())
+
+
+def test_train_cli_depth_layers_are_saved_and_render(tiny_scene, tmp_path, capsys):
+    from neulf_core.checkpoint import load_checkpoint
+    from neulf_core.cli import main
+    from neulf_core.render import LightField
+    from neulf_core.scene import load_scene
+
+    out = tmp_path / "m"
+    args = ["train", str(tiny_scene), "--out", str(out), "--steps", "5", "--batch-size", "256", "--progress", "json",
+            "--no-sweep-teacher", "--depth-layers", "2"]
+    assert main(args) == 0
+    assert load_checkpoint(out)["field_config"]["geometry_layers"] == 2
+    rendering = LightField.load(out, "cpu").render_view(load_scene(tiny_scene).views[0], depth=True)
+    assert np.isfinite(rendering.rgb).all()
+    capsys.readouterr()
+    assert main(["train", str(tiny_scene), "--out", str(tmp_path / "mlp"), "--steps", "1", "--preset", "authors",
+                 "--depth-layers", "2"]) != 0
+    assert "--depth-layers" in capsys.readouterr().err
