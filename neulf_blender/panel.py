@@ -53,7 +53,9 @@ class NEULF_PT_main(bpy.types.Panel):
         row = col.row(align=True)
         row.prop(props, "preset", text="")
         row.prop(props, "train_scale")
-        col.prop(props, "sweep_teacher")
+        row = col.row(align=True)
+        row.prop(props, "sweep_teacher")
+        row.prop(props, "depth_layers")
         train = tasks.get("train")
         if train is not None and train.running:
             _job_box(layout, train, "Training", "neulf.cancel_train")

@@ -190,6 +190,19 @@ def test_train_job_passes_the_sweep_teacher_only_to_a_new_model(ext, tmp_path):
     assert not any("sweep-teacher" in a for a in argv(sweep_teacher=False, resume=True))
 
 
+def test_train_job_passes_depth_layers_only_to_a_new_model(ext, tmp_path):
+    """The panel's "Depth Layers" becomes `train --depth-layers N` (0: left out)."""
+    def argv(**options):
+        job = ext.jobs.TrainJob("/bin/true", str(tmp_path), str(tmp_path / "m"), steps=5, **options)
+        job.process.wait(timeout=30)
+        return job.argv
+
+    layered = argv(depth_layers=8)
+    assert layered[layered.index("--depth-layers") + 1] == "8"
+    assert "--depth-layers" not in argv()
+    assert "--depth-layers" not in argv(depth_layers=8, resume=True)
+
+
 def test_explain_failure(ext):
     assert ext.jobs.explain_failure(["x", "error: the scene is bad."]) == "the scene is bad."
     assert "no 'torch'" in ext.jobs.explain_failure(["ModuleNotFoundError: No module named 'torch'"])
