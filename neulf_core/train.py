@@ -247,7 +247,7 @@ def _train(scene, model_dir: Path, config: TrainConfig, images_dir, resume: bool
         index = torch.randint(n_rays, (batch,), generator=generator).to(device)
         uvst, target = train_rays.batch(index)
         view_index = train_rays.view_index[index].long()
-        pull = teacher_weight(fraction) if teacher is not None else 0.0
+        pull = teacher_weight(fraction, len(train_views)) if teacher is not None else 0.0
         depth_teacher = (teacher[0][index], teacher[1][index], pull) if pull > 0 else None
         loss, objective = _objective(field_module, uvst, target, view_index, appearance, consistency, config, depth_teacher)
         optimizer.zero_grad(set_to_none=True)

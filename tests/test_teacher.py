@@ -4,6 +4,7 @@ surface, and training with it counts the sweep in the budget and resumes."""
 from __future__ import annotations
 
 import numpy as np
+import pytest
 import torch
 
 from conftest import plane_hit
@@ -13,7 +14,7 @@ from neulf_core.rays import view_rays
 from neulf_core.scene import load_scene, split_views
 from neulf_core.slab import fit_slab
 from neulf_core import teacher
-from neulf_core.teacher import TEACHER_FADE, sweep_depth_targets, teacher_weight
+from neulf_core.teacher import TEACHER_FADE, TEACHER_FULL_VIEWS, sweep_depth_targets, teacher_weight
 from neulf_core.train import TrainConfig, train
 
 
@@ -48,10 +49,17 @@ def test_the_pull_fades_out_halfway():
     assert teacher_weight(TEACHER_FADE) == 0 and teacher_weight(1.0) == 0
 
 
+def test_the_pull_strengthens_for_sparse_captures_only():
+    assert teacher_weight(0.0, 4) == pytest.approx(teacher_weight(0.0) * TEACHER_FULL_VIEWS / 4)
+    assert teacher_weight(0.0, TEACHER_FULL_VIEWS) == teacher_weight(0.0, 80) == teacher_weight(0.0)
+    assert teacher_weight(TEACHER_FADE, 4) == 0
+
+
 def test_training_with_the_teacher_learns_the_depth_and_resumes(tiny_scene, tmp_path, monkeypatch):
     # A stronger pull than the default's gentle one, so 120 steps show it (the default's
     # effect at full budgets is measured in docs/DEPTH.md).
     monkeypatch.setattr(teacher, "TEACHER_WEIGHT", 0.05)
+    monkeypatch.setattr(teacher, "TEACHER_FULL_VIEWS", 1)  # this weight as it is, whatever the view count
     monkeypatch.setattr(teacher, "SWEEP_SCALE", 1.0)  # the tiny scene's images are tiny already
     events = []
     config = TrainConfig(steps=120, teacher=True, validate_seconds=1e9, checkpoint_seconds=1e9)
