@@ -25,8 +25,8 @@ from .slab import Slab
 TEACHER_WEIGHT = 0.002
 TEACHER_FADE = 0.3
 # Below this many training views the photos constrain the depth less, and the pull
-# strengthens in proportion (1/n): at 1000 steps, 6 of CanClip's views +0.48 dB, 4 of the
-# synthetic scene's +1.2 dB; captures of this many views or more are unchanged
+# strengthens in proportion (1/n): at 1000 steps over 3 seeds, 6 of CanClip's views +0.19 dB,
+# 4 of the synthetic scene's +1.2 dB; captures of this many views or more are unchanged
 # (docs/STABILITY.md).
 TEACHER_FULL_VIEWS = 14
 # The sweep's resolution as a fraction of the training images'.
