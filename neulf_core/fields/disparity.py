@@ -24,7 +24,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from . import register
-from .planes import ANGULAR, PAIRS, PlanesConfig, PlanesField
+from .planes import ANGULAR, PAIRS, PlanesConfig, PlanesField, total_variation
 
 # The geometry planes that mix one angular and one spatial axis (us, ut, vs, vt) share a shape
 # within a scale, so each scale samples them in one batched grid_sample (see _geometry_features).
@@ -141,9 +141,9 @@ class DisparityField(nn.Module):
         """Where rays (N, 4) read the texture, (N, 2) in [-1, 1], and their depth unit (N, 1)."""
         features = self._geometry_features(uvst)
         uv = uvst[:, :2] * self.uv_half + self.uv_centre
+        scale = 1.0 / (1.0 + self.config.texture_margin)  # sheared st leaves [-1, 1] a little
         if self.config.geometry_layers:
             k, n = self.layers.shape[0], uvst.shape[0]
-            scale = 1.0 / (1.0 + self.config.texture_margin)
             grids = (uvst[:, 2:] + uv * (self.layer_disparity[:, None, None] / self.st_half)) * scale
             layered = _sample(self.layers, grids.view(k, n, 1, 2)).view(-1, n).t()
             features = torch.cat([features, layered], 1)
@@ -151,7 +151,7 @@ class DisparityField(nn.Module):
         unit = torch.sigmoid(geometry[:, 3:4])
         # sheared st = st + uv * delta in slab units, back in normalised st (one fused form).
         shift = uv * (self.disparity(unit) / self.st_half)
-        return (uvst[:, 2:] + shift) * (1.0 / (1.0 + self.config.texture_margin)), unit
+        return (uvst[:, 2:] + shift) * scale, unit
 
     @torch.no_grad()
     def fill_unseen_texels(self, uvst_chunks) -> float:
@@ -194,9 +194,7 @@ class DisparityField(nn.Module):
     def regularisation(self) -> torch.Tensor:
         total = self.geometry.regularisation()
         if self.config.geometry_layers and self.config.geometry_layer_tv:
-            layers = self.layers
-            tv = (layers[:, :, 1:] - layers[:, :, :-1]).pow(2).mean() + (layers[..., 1:] - layers[..., :-1]).pow(2).mean()
-            total = total + self.config.geometry_layer_tv * tv
+            total = total + self.config.geometry_layer_tv * total_variation(self.layers)
         return total
 
     def param_groups(self, lr: float):

@@ -90,9 +90,7 @@ class PlanesField(nn.Module):
                 weight = self.config.tv_weight if (a in ANGULAR or b in ANGULAR) else self.config.tv_weight_spatial
                 if weight == 0:
                     continue
-                dh = (plane[:, :, 1:, :] - plane[:, :, :-1, :]).pow(2).mean()
-                dw = (plane[:, :, :, 1:] - plane[:, :, :, :-1]).pow(2).mean()
-                total = total + weight * (dh + dw)
+                total = total + weight * total_variation(plane)
         return total
 
     def param_groups(self, lr: float):
@@ -101,6 +99,13 @@ class PlanesField(nn.Module):
             {"params": list(self.scales.parameters()), "lr": lr * 10.0, "name": "planes"},
             {"params": list(self.decoder.parameters()), "lr": lr, "name": "decoder"},
         ]
+
+
+def total_variation(planes: torch.Tensor) -> torch.Tensor:
+    """Mean squared difference between neighbouring cells of (..., H, W) feature planes."""
+    dh = (planes[..., 1:, :] - planes[..., :-1, :]).pow(2).mean()
+    dw = (planes[..., :, 1:] - planes[..., :, :-1]).pow(2).mean()
+    return dh + dw
 
 
 register("planes", PlanesConfig, PlanesField, "six factorised (u,v,s,t) feature planes + tiny MLP (fast)")
