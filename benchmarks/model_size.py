@@ -1,4 +1,4 @@
-"""Model size against held-out quality: texture variants of the fast field, float32 and float16.
+"""Model size against held-out quality: texture variants of the fast field, float32 and model.pt.
 
     python benchmarks/model_size.py --scene ../shared/data/canclip --scale 0.5 --steps 3000 \
         --variants "c8;c4;c6,x0.8;c8,x0.7" [--threads 1] [--out docs/model_size_canclip.csv]
@@ -7,8 +7,9 @@ A variant is comma-separated: `cN` texture channels, `xF` finest texture size as
 the default (about one texel per training pixel), `lN` texture levels.  Each variant trains
 the fast field for the same number of steps (steps, not minutes: machine load does not bias
 the comparison), then every held-out view is rendered in full from checkpoint.pt (float32)
-and from model.pt (float16 textures and planes) and scored.  `--existing NAME=DIR` scores an
-already trained model folder instead of training one.
+and from model.pt (8-bit feature grids, float16 and float32 weights, written afresh from the
+checkpoint by this version) and scored.  `--existing NAME=DIR` scores an already trained
+model folder instead of training one.
 """
 
 from __future__ import annotations
@@ -26,7 +27,7 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from neulf_core.autosize import texture_overrides  # noqa: E402
-from neulf_core.checkpoint import CHECKPOINT_NAME, MODEL_NAME, load_checkpoint, save_render_model  # noqa: E402
+from neulf_core.checkpoint import CHECKPOINT_NAME, load_checkpoint, save_render_model  # noqa: E402
 from neulf_core.metrics import psnr  # noqa: E402
 from neulf_core.render import LightField  # noqa: E402
 from neulf_core.scene import load_scene, split_views  # noqa: E402
@@ -48,31 +49,31 @@ def parse_variant(text: str, train_views, scale: float) -> dict:
     return texture_overrides(train_views, scale, factor, channels=channels, levels=levels)
 
 
-def held_out_scores(full: LightField, half: LightField, views, scale: float) -> tuple[float, float, float]:
-    """Mean PSNR of the float32 and the float16 renders, and their largest pixel difference."""
+def held_out_scores(full: LightField, small: LightField, views, scale: float) -> tuple[float, float, float]:
+    """Mean PSNR of the float32 and the model.pt renders, and their largest pixel difference."""
     scores, largest = [], 0.0
     for view in views:
         target = view.load_image(scale).astype(np.float32) / 255.0
-        a, b = (lf.render_view(view, scale, depth=False).rgb for lf in (full, half))
+        a, b = (lf.render_view(view, scale, depth=False).rgb for lf in (full, small))
         scores.append((psnr(a, target), psnr(b, target)))
         largest = max(largest, float(np.abs(a - b).max()))
     return float(np.mean([s[0] for s in scores])), float(np.mean([s[1] for s in scores])), largest
 
 
 def score_model(name: str, model_dir: Path, held_out, scale: float, steps) -> dict:
-    if not (model_dir / MODEL_NAME).is_file():  # trained before model.pt existed
-        save_render_model(model_dir, load_checkpoint(model_dir))
     full = LightField.load(model_dir / CHECKPOINT_NAME, "cpu")
-    half = LightField.load(model_dir / MODEL_NAME, "cpu")
+    with tempfile.TemporaryDirectory() as folder:  # model.pt as this version writes it
+        shipped = save_render_model(Path(folder), load_checkpoint(model_dir))
+        small, model_pt_bytes = LightField.load(shipped, "cpu"), shipped.stat().st_size
     config = full.meta["field_config"]
     float32_bytes = sum(t.numel() * 4 for t in full.field.state_dict().values())
-    psnr_float32, psnr_float16, largest = held_out_scores(full, half, held_out, scale)
+    psnr_float32, psnr_model_pt, largest = held_out_scores(full, small, held_out, scale)
     return {"variant": name, "texture_size": "x".join(map(str, config["texture_size"])),
             "channels": config["texture_channels"], "levels": config["texture_levels"], "steps": steps,
-            "psnr_float32": round(psnr_float32, 4), "psnr_float16": round(psnr_float16, 4),
+            "psnr_float32": round(psnr_float32, 4), "psnr_model_pt": round(psnr_model_pt, 4),
             "max_rgb_difference": round(largest, 6),
             "weights_float32_mb": round(float32_bytes / 1e6, 3),
-            "model_pt_mb": round((model_dir / MODEL_NAME).stat().st_size / 1e6, 3),
+            "model_pt_mb": round(model_pt_bytes / 1e6, 3),
             "checkpoint_mb": round((model_dir / CHECKPOINT_NAME).stat().st_size / 1e6, 3)}
 
 
@@ -112,10 +113,10 @@ def main() -> None:
             if new:
                 writer.writeheader()
             writer.writerows(rows)
-    print("| variant | texture | channels | float32 PSNR | float16 PSNR | model.pt (MB) | checkpoint (MB) |\n|---|---|---|---|---|---|---|")
+    print("| variant | texture | channels | float32 PSNR | model.pt PSNR | model.pt (MB) | checkpoint (MB) |\n|---|---|---|---|---|---|---|")
     for r in rows:
-        print(f"| {r['variant']} | {r['texture_size']} x {r['levels']} levels | {r['channels']} | {r['psnr_float32']:.2f} | "
-              f"{r['psnr_float16']:.2f} | {r['model_pt_mb']:.2f} | {r['checkpoint_mb']:.2f} |")
+        print(f"| {r['variant']} | {r['texture_size']} x {r['levels']} levels | {r['channels']} | {r['psnr_float32']:.3f} | "
+              f"{r['psnr_model_pt']:.3f} | {r['model_pt_mb']:.2f} | {r['checkpoint_mb']:.2f} |")
 
 
 if __name__ == "__main__":

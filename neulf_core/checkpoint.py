@@ -2,8 +2,8 @@
 
 MODEL_DIR/checkpoint.pt holds everything to render and to resume (float32 weights, slab,
 optimizer and random state, progress); MODEL_DIR/model.pt is the render-only copy to ship
-(large weights as float16, no optimizer state: 2.66 MB against 15.8 MB for the default
-field at 480x270); MODEL_DIR/model.json is the same metadata for people and other programs
+(feature grids as 8-bit codes, other large weights as float16, no optimizer state: 1.4 MB
+against 15.8 MB for the default field at 480x270); MODEL_DIR/model.json is the same metadata for people and other programs
 (no weights).  All are written to a temporary file in the same folder and renamed over the
 old one, so a crash or SIGKILL mid-write leaves the previous files intact.
 """
@@ -30,6 +30,12 @@ MODEL_NAME = "model.pt"
 # Tensors smaller than this stay float32 in model.pt: the decoders are a few kB, and their
 # rounding would be the only fp16 error that reaches the colour without interpolation.
 HALF_MIN_ELEMENTS = 4096
+# Feature grids (tensors of 3 or more dimensions: textures, planes, layers; any size) go into model.pt as
+# 8-bit codes with a per-channel offset and step: their values are interpolated before a
+# decoder reads them, and 255 levels per channel cost 0.0003-0.009 dB of held-out PSNR
+# (docs/BENCHMARKS.md), for half the bytes of float16.  Matrices (the MLP presets' layers)
+# stay float16: a rounding error there reaches every output.
+GRID_MIN_DIMS = 3
 NOT_FOR_RENDERING = ("state_dict", "optimizer", "rng")
 
 
@@ -68,7 +74,7 @@ def save_checkpoint(model_dir: Path, payload: dict) -> Path:
 
 
 def half_state_dict(state_dict: dict) -> dict:
-    """Large float tensors as float16 (textures and planes: half the bytes, no measurable
+    """Large float tensors as float16 (planes and MLP layers: half the bytes, no measurable
     PSNR cost, docs/BENCHMARKS.md); small ones, non-float ones, and any that float16 would
     overflow stay as they are."""
     out = {}
@@ -82,10 +88,33 @@ def half_state_dict(state_dict: dict) -> dict:
     return out
 
 
+def quantise_grid(tensor: torch.Tensor) -> dict:
+    """8-bit codes of a feature grid (B, C, ...) with one offset and step per (B, C) channel."""
+    tensor = tensor.detach().float().cpu()
+    spatial = tuple(range(2, tensor.dim()))
+    offset, top = tensor.amin(dim=spatial, keepdim=True), tensor.amax(dim=spatial, keepdim=True)
+    step = (top - offset).clamp_min(1e-12) / 255.0
+    codes = torch.round((tensor - offset) / step).clamp(0, 255).to(torch.uint8)
+    return {"codes": codes, "offset": offset, "step": step}
+
+
+def dequantise_grid(entry: dict) -> torch.Tensor:
+    return entry["codes"].float() * entry["step"] + entry["offset"]
+
+
+def compact_state_dict(state_dict: dict) -> tuple[dict, dict]:
+    """What model.pt stores: (state_dict with float16 and float32 tensors, {name: 8-bit grid})."""
+    grids = {name: quantise_grid(tensor) for name, tensor in state_dict.items()
+             if tensor.is_floating_point() and tensor.dim() >= GRID_MIN_DIMS and bool(torch.isfinite(tensor).all())}
+    dense = half_state_dict({name: tensor for name, tensor in state_dict.items() if name not in grids})
+    return dense, grids
+
+
 def save_render_model(model_dir: Path, payload: dict) -> Path:
-    """MODEL_DIR/model.pt: what rendering needs (metadata + float16 weights), no optimizer."""
+    """MODEL_DIR/model.pt: what rendering needs (metadata, 8-bit grids, float16 weights), no optimizer."""
     model = {k: v for k, v in payload.items() if k not in NOT_FOR_RENDERING}
-    model.update(format=MODEL_FORMAT, version=VERSION, state_dict=half_state_dict(payload["state_dict"]))
+    dense, grids = compact_state_dict(payload["state_dict"])
+    model.update(format=MODEL_FORMAT, version=VERSION, state_dict=dense, grids=grids)
     path = Path(model_dir) / MODEL_NAME
     atomic_write_bytes(path, _torch_bytes(model))
     return path
@@ -127,8 +156,16 @@ def load_checkpoint(model_dir: Path, map_location="cpu") -> dict:
 
 def load_for_render(model_dir: Path, map_location="cpu") -> dict:
     """model.pt or checkpoint.pt (see render_path); either has the metadata and state_dict
-    (float16 tensors in model.pt: load_state_dict converts them to float32 once)."""
-    return _read(render_path(model_dir), model_dir, map_location)
+    (model.pt's 8-bit grids are decoded here; its float16 tensors load_state_dict converts
+    to float32 once)."""
+    payload = _read(render_path(model_dir), model_dir, map_location)
+    grids = payload.pop("grids", None) or {}
+    try:
+        payload["state_dict"].update({name: dequantise_grid(entry) for name, entry in grids.items()})
+    except (KeyError, TypeError, AttributeError, RuntimeError) as exc:
+        raise NeulfError(f"the model file in {model_dir} is damaged ({type(exc).__name__}: {exc}); "
+                         f"delete {MODEL_NAME} to render from {CHECKPOINT_NAME}, or train again.") from None
+    return payload
 
 
 def _damaged_member(path: Path) -> str | None:

@@ -1,4 +1,4 @@
-"""Small model files (model.pt, float16), the faster DisparityField forward, and the `auto`
+"""Small model files (model.pt: 8-bit feature grids, float16 and float32 weights), the faster DisparityField forward, and the `auto`
 preset's size search, on the tiny synthetic scene from conftest.py."""
 
 from __future__ import annotations
@@ -34,17 +34,18 @@ def fast_model(tiny_scene, tmp_path_factory):
     return tiny_scene, model_dir
 
 
-def test_model_file_is_float16_and_renders_like_the_checkpoint(fast_model):
+def test_model_file_holds_8_bit_grids_and_renders_like_the_checkpoint(fast_model):
     scene_dir, model_dir = fast_model
     small, full = model_dir / MODEL_NAME, model_dir / CHECKPOINT_NAME
     assert render_path(model_dir) == small
     payload = torch.load(small, map_location="cpu", weights_only=False)
     assert "optimizer" not in payload and "rng" not in payload
-    texture = payload["state_dict"]["textures.0"]
-    assert texture.dtype == torch.float16
+    texture = payload["grids"]["textures.0"]
+    assert texture["codes"].dtype == torch.uint8 and texture["step"].shape == (1, texture["codes"].shape[1], 1, 1)
+    assert "textures.0" not in payload["state_dict"]
     assert payload["state_dict"]["decoder.0.weight"].dtype == torch.float32  # small tensors stay float32
     float32_bytes = sum(t.numel() * 4 for t in load_checkpoint(model_dir)["state_dict"].values())
-    assert small.stat().st_size < 0.6 * float32_bytes < full.stat().st_size
+    assert small.stat().st_size < 0.35 * float32_bytes < full.stat().st_size
 
     view = load_scene(scene_dir).view("view_00.png")
     half = LightField.load(model_dir, "cpu").render_view(view)
@@ -152,8 +153,8 @@ def test_cli_trains_and_resumes_auto(tiny_scene, tmp_path, capsys):
 @pytest.mark.parametrize("image_size", [(480, 270), (504, 378), (1008, 567), (1920, 1080), (4032, 3024)])
 def test_default_model_weights_stay_under_3_mb_at_any_training_resolution(image_size):
     """The default field's texture follows the training images up to a texel budget, so the
-    float16 weights of model.pt stay under the 3 MB target however large the photos."""
-    from neulf_core.checkpoint import half_state_dict
+    weights of model.pt stay under the 3 MB target however large the photos."""
+    from neulf_core.checkpoint import compact_state_dict
     from neulf_core.fields.disparity import MAX_TEXELS, texture_size_for
     from neulf_core.presets import get_preset
 
@@ -162,7 +163,30 @@ def test_default_model_weights_stay_under_3_mb_at_any_training_resolution(image_
     assert abs(cols / rows - image_size[0] / image_size[1]) < 0.02  # the image's aspect is kept
     options = {**get_preset("fast").field_config, "texture_size": [rows, cols]}
     field = build_field("disparity", make_config("disparity", options))
-    weights = half_state_dict(field.state_dict())
-    assert sum(t.numel() * t.element_size() for t in weights.values()) < 2.95e6
+    dense, grids = compact_state_dict(field.state_dict())
+    tensors = [*dense.values(), *(t for grid in grids.values() for t in grid.values())]
+    assert sum(t.numel() * t.element_size() for t in tensors) < 2.95e6
     if image_size == (480, 270):  # small photos keep about one texel per pixel
         assert [rows, cols] == [338, 600]
+
+
+def test_a_damaged_8_bit_grid_gives_a_clear_message(fast_model, tmp_path):
+    _, model_dir = fast_model
+    model = tmp_path / "model"
+    shutil.copytree(model_dir, model)
+    payload = torch.load(model / MODEL_NAME, map_location="cpu", weights_only=False)
+    del payload["grids"]["textures.0"]["step"]
+    torch.save(payload, model / MODEL_NAME)
+    os.utime(model / MODEL_NAME)  # still the newer file, so rendering reads it
+    with pytest.raises(NeulfError, match="damaged"):
+        LightField.load(model, "cpu")
+
+
+def test_8_bit_grids_round_trip_within_half_a_step_per_channel():
+    from neulf_core.checkpoint import compact_state_dict, dequantise_grid
+    grid = torch.randn(2, 3, 17, 9) * torch.tensor([0.01, 1.0, 100.0]).view(1, 3, 1, 1)
+    dense, grids = compact_state_dict({"grid": grid, "matrix": torch.randn(128, 64), "bias": torch.randn(5)})
+    assert set(grids) == {"grid"} and dense["matrix"].dtype == torch.float16 and dense["bias"].dtype == torch.float32
+    step = grids["grid"]["step"]
+    assert step.shape == (2, 3, 1, 1)  # one step per channel: a small channel keeps its precision
+    assert bool(((dequantise_grid(grids["grid"]) - grid).abs() <= step / 2 + 1e-6).all())
