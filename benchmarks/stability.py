@@ -217,7 +217,7 @@ def prepare(job: Job) -> tuple[Scene, list[View], list[View]]:
 
 def score_views(model_dir: Path, held: list[View], scale: float) -> dict:
     light_field = LightField.load(model_dir, "cpu")
-    psnrs, ssims, matched, nonfinite = [], [], [], 0
+    psnrs, ssims, matched, half_fit, nonfinite = [], [], [], [], 0
     for view in held:
         target = view.load_image(scale).astype(np.float32) / 255.0
         image = light_field.render_view(view, scale, depth=False).rgb
@@ -226,20 +226,32 @@ def score_views(model_dir: Path, held: list[View], scale: float) -> dict:
         psnrs.append(psnr(image, target))
         ssims.append(ssim(image, target))
         matched.append(psnr(colour_matched(image, target), target))
+        half_fit.append(psnr_right_half_after_left_fit(image, target))
     return {"psnr": float(np.mean(psnrs)), "ssim": float(np.mean(ssims)), "psnr_matched": float(np.mean(matched)),
+            "psnr_half_fit": float(np.mean(half_fit)),
             "psnr_per_view": ";".join(f"{view.stem}={p:.2f}" for view, p in zip(held, psnrs)),
             "nonfinite_pixels": nonfinite}
 
 
-def colour_matched(image: np.ndarray, target: np.ndarray) -> np.ndarray:
-    """`image` after the per-channel gain and offset that best fit `target` (least squares): a
-    diagnostic that separates a global colour/exposure offset from errors in structure."""
+def colour_matched(image: np.ndarray, target: np.ndarray, fit_columns: slice = slice(None)) -> np.ndarray:
+    """`image` after the per-channel gain and offset that best fit `target` (least squares) on
+    `fit_columns`: a diagnostic that separates a global colour/exposure offset from errors in
+    structure."""
     out = np.empty_like(image)
     for c in range(3):
-        design = np.stack([image[..., c].ravel(), np.ones(image[..., c].size)], axis=1)
-        coef, *_ = np.linalg.lstsq(design, target[..., c].ravel(), rcond=None)
-        out[..., c] = (design @ coef).reshape(image.shape[:2])
+        fit = image[:, fit_columns, c].ravel()
+        coef, *_ = np.linalg.lstsq(np.stack([fit, np.ones(fit.size)], axis=1), target[:, fit_columns, c].ravel(), rcond=None)
+        out[..., c] = image[..., c] * coef[0] + coef[1]
     return np.clip(out, 0.0, 1.0)
+
+
+def psnr_right_half_after_left_fit(image: np.ndarray, target: np.ndarray) -> float:
+    """NeRF-in-the-wild's protocol for appearance-compensated models: the held-out photo's
+    appearance (here a per-channel gain and offset) is fitted on its left half only and the
+    PSNR is taken on the right half, which the fit never saw."""
+    half = image.shape[1] // 2
+    matched = colour_matched(image, target, slice(0, half))
+    return psnr(matched[:, half:], target[:, half:])
 
 
 def train_config(job: Job, held: list[View]) -> TrainConfig:
@@ -434,15 +446,17 @@ def variants_table(rows: list[dict]) -> list[str]:
 
 
 def exposure_table(rows: list[dict]) -> list[str]:
-    lines = ["| trained on | compensation | held-out PSNR (vs nominal exposure) | cost | colour-matched PSNR | cost |",
-             "|---|---|---|---|---|---|"]
+    lines = ["| trained on | compensation | held-out PSNR (vs nominal exposure) | cost | gain/offset fitted on the left half, "
+             "PSNR of the right half (NeRF-W) | cost | colour-matched on the whole photo | cost |",
+             "|---|---|---|---|---|---|---|---|"]
     nominal = group(rows, **base("lambertian", "fast"))
     for scene, appearance, label in (("lambertian", False, "nominal exposure"), ("jitter1", False, "exposure ±1 stop"),
                                      ("jitter1", True, "exposure ±1 stop")):
         c = group(rows, **base(scene, "fast", appearance=appearance))
-        costs = [cost_text(nominal, c, column) if scene != "lambertian" else "-" for column in ("psnr", "psnr_matched")]
+        costs = [cost_text(nominal, c, column) if scene != "lambertian" else "-"
+                 for column in ("psnr", "psnr_half_fit", "psnr_matched")]
         lines.append(f"| {label} | {'per-view appearance' if appearance else 'none'} | {cell(c)} | {costs[0]} | "
-                     f"{cell(c, 'psnr_matched')} | {costs[1]} |")
+                     f"{cell(c, 'psnr_half_fit')} | {costs[1]} | {cell(c, 'psnr_matched')} | {costs[2]} |")
     return lines
 
 
@@ -501,13 +515,20 @@ def targets(rows: list[dict]) -> list[str]:
     plain = stats(group(rows, **base("jitter1", "fast")))
     matched_cost = cost_text(group(rows, **base("lambertian", "fast")),
                              group(rows, **base("jitter1", "fast", appearance=True)), "psnr_matched")
+    nominal_half = stats(group(rows, **base("lambertian", "fast")), "psnr_half_fit")
+    comp_half = stats(group(rows, **base("jitter1", "fast", appearance=True)), "psnr_half_fit")
     if nominal and plain:
         out.append(f"- exposure ±1 stop without compensation: {nominal['mean'] - plain['mean']:.2f} dB lost")
     if nominal and comp:
         cost = nominal["mean"] - comp["mean"]
-        out.append(f"- exposure ±1 stop with compensation: {cost:.2f} dB lost (target ≤ 0.5): "
-                   f"{'met' if cost <= 0.5 else 'MISSED'}; after a per-channel colour fit to each held-out photo: "
-                   f"{matched_cost} lost")
+        out.append(f"- exposure ±1 stop with compensation, rendered as is against the nominal exposure: {cost:.2f} dB "
+                   f"lost (target ≤ 0.5): {'met' if cost <= 0.5 else 'MISSED'}; after a per-channel colour fit to each "
+                   f"held-out photo: {matched_cost} lost")
+        if nominal_half and comp_half:
+            half_cost = nominal_half["mean"] - comp_half["mean"]
+            out.append(f"- exposure ±1 stop with compensation, NeRF-W protocol (gain and offset fitted on the left half "
+                       f"of each held-out photo, PSNR of the right half, the nominal model scored alike): {half_cost:.2f} "
+                       f"dB lost (target ≤ 0.5): {'met' if half_cost <= 0.5 else 'MISSED'}")
     elif nominal:
         out.append("- exposure with compensation: not measured (TrainConfig.appearance not available)")
     crashed = sum(r.get("status") == "crashed" for r in rows)
@@ -564,7 +585,7 @@ def update_markdown(path: Path, tables: str) -> None:
 
 
 CSV_COLUMNS = ["scene", "preset", "fraction", "pose_degrees", "appearance", "seed", "status", "psnr", "ssim",
-               "psnr_matched", "psnr_per_view", "train_views", "held_out", "steps", "steps_done", "train_seconds",
+               "psnr_matched", "psnr_half_fit", "psnr_per_view", "train_views", "held_out", "steps", "steps_done", "train_seconds",
                "wall_seconds", "warnings", "warning_text", "nonfinite_pixels", "error", "scale", "path", "truth"]
 
 

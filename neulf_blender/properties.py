@@ -41,9 +41,10 @@ class NeulfSceneSettings(bpy.types.PropertyGroup):
     sweep_teacher: BoolProperty(name="Depth from Photos", default=True,
                                 description="Guide early training with the depth a plane sweep finds in the photos: "
                                             "better depth for click-to-focus; on some captures a softer image")
-    depth_layers: IntProperty(name="Depth Layers", default=0, min=0, max=32,
-                              description="Fast and Auto presets: depth layers for sharper depth edges on shallow, "
-                                          "densely captured scenes (8 measured); worse on deep scenes, +0.5 MB (0: none)")
+    depth_layers: IntProperty(name="Depth Layers", default=-1, min=-1, max=32,
+                              description="Fast and Auto presets: depth layers for sharper depth edges on shallow "
+                                          "scenes; worse on deep ones (-1: automatic, 8 when the scene's far/near "
+                                          "depth ratio is at most 3; 0: none)")
     train_scale: FloatProperty(name="Image Scale", default=1.0, min=0.05, max=1.0,
                                description="Train on images resized by this factor")
     spiral_frames: IntProperty(name="Frames", default=60, min=3, max=2000, description="Frames of the spiral path")

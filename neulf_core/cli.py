@@ -378,8 +378,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="pull the early depth toward the classic plane sweep's (default: the preset's choice; on "
                         "for fast): better depth maps and refocus, docs/DEPTH.md")
     p.add_argument("--depth-layers", type=int, metavar="N",
-                   help="fast/auto presets: N depth layers (8 measured) in the geometry: sharper depth edges on "
-                        "dense, shallow captures, worse on deep ones, +0.5 MB; docs/DEPTH.md")
+                   help="fast/auto presets: N depth layers in the geometry (0: none; default: 8 when the scene's "
+                        "far/near depth ratio is at most 3, else none): sharper depth edges on shallow scenes, "
+                        "worse on deep ones; docs/DEPTH.md")
     p.add_argument("--device", help="cpu, cuda, mps (default: the fastest available)")
     p.set_defaults(run=cmd_train)
 

@@ -191,7 +191,7 @@ def test_train_job_passes_the_sweep_teacher_only_to_a_new_model(ext, tmp_path):
 
 
 def test_train_job_passes_depth_layers_only_to_a_new_model(ext, tmp_path):
-    """The panel's "Depth Layers" becomes `train --depth-layers N` (0: left out)."""
+    """The panel's "Depth Layers" becomes `train --depth-layers N` (-1: left out, the trainer decides)."""
     def argv(**options):
         job = ext.jobs.TrainJob("/bin/true", str(tmp_path), str(tmp_path / "m"), steps=5, **options)
         job.process.wait(timeout=30)
@@ -199,6 +199,8 @@ def test_train_job_passes_depth_layers_only_to_a_new_model(ext, tmp_path):
 
     layered = argv(depth_layers=8)
     assert layered[layered.index("--depth-layers") + 1] == "8"
+    none = argv(depth_layers=0)
+    assert none[none.index("--depth-layers") + 1] == "0"
     assert "--depth-layers" not in argv()
     assert "--depth-layers" not in argv(depth_layers=8, resume=True)
 

@@ -123,6 +123,17 @@ def test_depth_layers_shift_with_the_camera_like_a_surface_at_their_depth():
     assert rgb.shape == (3, 3) and bool(torch.isfinite(unit).all())
 
 
+def test_depth_layers_by_default_only_on_shallow_scenes():
+    from neulf_core.train import DEFAULT_DEPTH_LAYERS, default_depth_layers
+
+    def slab(near, far):
+        return Slab(np.eye(3), np.zeros(3), 0.0, (near + far) / 2, near, far, -np.ones(4), np.ones(4))
+
+    assert default_depth_layers(slab(10.0, 20.0)) == DEFAULT_DEPTH_LAYERS  # Statue-like, far/near 2
+    assert default_depth_layers(slab(2.0, 6.9)) == 0                       # the synthetic scene, 3.3
+    assert default_depth_layers(slab(16.8, 77.8)) == 0                     # fern, 4.6
+
+
 def test_train_cli_depth_layers_are_saved_and_render(tiny_scene, tmp_path, capsys):
     from neulf_core.checkpoint import load_checkpoint
     from neulf_core.cli import main
@@ -134,6 +145,8 @@ def test_train_cli_depth_layers_are_saved_and_render(tiny_scene, tmp_path, capsy
             "--no-sweep-teacher", "--depth-layers", "2"]
     assert main(args) == 0
     assert load_checkpoint(out)["field_config"]["geometry_layers"] == 2
+    assert main(args[:-1] + ["0", "--out", str(tmp_path / "none")]) == 0  # 0 turns the default off
+    assert load_checkpoint(tmp_path / "none")["field_config"]["geometry_layers"] == 0
     rendering = LightField.load(out, "cpu").render_view(load_scene(tiny_scene).views[0], depth=True)
     assert np.isfinite(rendering.rgb).all()
     capsys.readouterr()

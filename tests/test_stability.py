@@ -77,3 +77,16 @@ def test_a_crash_is_recorded_not_raised(stability, tmp_path):
     job = stability.Job("missing", str(tmp_path / "nowhere"), str(tmp_path / "nowhere"), 1.0, "fast", 3, 0)
     row = stability.run_job(job)
     assert row["status"] == "crashed" and "nowhere" in row["error"]
+
+
+def test_nerf_w_protocol_fits_on_the_left_half_and_scores_the_right(stability):
+    rng = np.random.default_rng(0)
+    target = rng.uniform(0.2, 0.8, (16, 20, 3)).astype(np.float32)
+    darker = (target - 0.05) / 1.2                      # a global exposure and offset change only
+    assert stability.psnr_right_half_after_left_fit(darker, target) > 60
+    broken = darker.copy()
+    broken[:, 10:] = rng.uniform(0.2, 0.8, (16, 10, 3))  # structure wrong where it is scored
+    assert stability.psnr_right_half_after_left_fit(broken, target) < 20
+    broken_left = darker.copy()
+    broken_left[:, :10] = 0.5                            # the fit sees only the left half
+    assert stability.psnr_right_half_after_left_fit(broken_left, target) < stability.psnr_right_half_after_left_fit(darker, target)

@@ -48,8 +48,8 @@ class DisparityConfig:
     # spread evenly between near and far, each read where the ray crosses its depth as seen
     # from the slab origin, so a depth edge near one of them stays put as the camera moves.
     # Sharper depth and +1.2 dB on the dense HCI light field, +0.45 dB on Statue, but -0.25 dB
-    # on fern and -0.5 dB on the synthetic scene (wide depth ranges), ~10 % slower per step
-    # and +0.5 MB: opt-in (docs/DEPTH.md).
+    # on fern and -0.5 dB on the synthetic scene (wide depth ranges), ~10 % slower per step:
+    # the trainer turns them on for shallow scenes only (train.default_depth_layers).
     geometry_layers: int = 0
     geometry_layer_res: int = 128
     geometry_layer_channels: int = 2
