@@ -29,6 +29,12 @@ MIN_AXIS_COSINE = float(np.cos(np.radians(80.0)))
 MAX_VIEW_ANGLE_DEG = 65.0
 
 
+# The far/near depth ratio (in slab units) above which a scene counts as deep.  Measured on
+# five scenes: HCI 2.60, CanClip 1.71 and Statue 2.01 on one side, the project's synthetic
+# scene 3.28 and fern 4.64 on the other (docs/DEPTH.md).
+DEEP_SCENE_RATIO = 3.0
+
+
 @dataclass
 class Slab:
     rotation: np.ndarray   # (3, 3) rows: slab x, y, z axes in world coordinates
@@ -115,6 +121,12 @@ class Slab:
     def unit_from_depth(self, depth: torch.Tensor) -> torch.Tensor:
         inv_near, inv_far = 1.0 / self.z_near, 1.0 / self.z_far
         return (1.0 / depth - inv_far) / (inv_near - inv_far)
+
+    @property
+    def is_deep(self) -> bool:
+        """A scene deep for its slab: far/near above DEEP_SCENE_RATIO.  The fast field's
+        training adapts to it (depth layers, the teacher's pull: train.py, teacher.py)."""
+        return self.z_far / self.z_near > DEEP_SCENE_RATIO
 
 
 # ----------------------------------------------------------------------------- fitting

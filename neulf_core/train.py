@@ -100,15 +100,14 @@ def _angular_resolution(n_views: int) -> int:
 
 # Depth layers (DisparityConfig.geometry_layers) by default where they were measured to help:
 # scenes of a shallow depth range -- HCI (far/near 2.6 in slab units) +1.2 dB and a third less
-# disparity error, Statue (2.0) +0.45 dB, CanClip (1.7) +0.08 dB -- but not deep ones, where
-# layers spread over the whole range sit far apart: fern (4.6) -0.25 dB, the synthetic scene
-# (3.3) -0.5 dB (docs/DEPTH.md).
-SHALLOW_DEPTH_RATIO = 3.0
+# disparity error, Statue (2.0) +0.45 dB, CanClip (1.7) +0.08 dB -- but not deep ones
+# (Slab.is_deep), where layers spread over the whole range sit far apart: fern (4.6)
+# -0.25 dB, the synthetic scene (3.3) -0.5 dB (docs/DEPTH.md).
 DEFAULT_DEPTH_LAYERS = 8
 
 
 def default_depth_layers(slab: Slab) -> int:
-    return DEFAULT_DEPTH_LAYERS if slab.z_far / slab.z_near <= SHALLOW_DEPTH_RATIO else 0
+    return 0 if slab.is_deep else DEFAULT_DEPTH_LAYERS
 
 
 def _build_field(preset_name: str, overrides: dict, train_views, slab: Slab, scale: float):
@@ -261,7 +260,7 @@ def _train(scene, model_dir: Path, config: TrainConfig, images_dir, resume: bool
         index = torch.randint(n_rays, (batch,), generator=generator).to(device)
         uvst, target = train_rays.batch(index)
         view_index = train_rays.view_index[index].long()
-        pull = teacher_weight(fraction, len(train_views)) if teacher is not None else 0.0
+        pull = teacher_weight(fraction, len(train_views), deep=slab.is_deep) if teacher is not None else 0.0
         depth_teacher = (teacher[0][index], teacher[1][index], pull) if pull > 0 else None
         loss, objective = _objective(field_module, uvst, target, view_index, appearance, consistency, config, depth_teacher)
         optimizer.zero_grad(set_to_none=True)

@@ -55,6 +55,21 @@ def test_the_pull_strengthens_for_sparse_captures_only():
     assert teacher_weight(TEACHER_FADE, 4) == 0
 
 
+def test_deep_scenes_take_the_strong_pull():
+    from neulf_core.slab import Slab
+    from neulf_core.teacher import TEACHER_WEIGHT_DEEP
+
+    assert teacher_weight(0.0, 17, deep=True) == TEACHER_WEIGHT_DEEP > 10 * teacher_weight(0.0, 17)
+    assert teacher_weight(0.0, 2, deep=True) == TEACHER_WEIGHT_DEEP >= teacher_weight(0.0, 2)
+    assert teacher_weight(TEACHER_FADE, 17, deep=True) == 0
+
+    def slab(near, far):
+        return Slab(np.eye(3), np.zeros(3), 0.0, (near + far) / 2, near, far, -np.ones(4), np.ones(4))
+
+    assert slab(16.8, 77.8).is_deep and slab(2.0, 6.9).is_deep  # fern, the synthetic scene
+    assert not slab(10.0, 20.0).is_deep and not slab(1.26, 3.27).is_deep  # Statue, HCI
+
+
 def test_training_with_the_teacher_learns_the_depth_and_resumes(tiny_scene, tmp_path, monkeypatch):
     # A stronger pull than the default's gentle one, so 120 steps show it (the default's
     # effect at full budgets is measured in docs/DEPTH.md).
