@@ -82,14 +82,18 @@ class ClassicLightField:
         weights = 1.0 / (distance[order] ** 2 + 1e-8)
         return order, weights / weights.sum()
 
-    def _sample(self, index: torch.Tensor, points: torch.Tensor) -> torch.Tensor:
-        """Colours (k, N, 3) and visibility (k, N) of world points (N, 3) in photos `index`."""
+    def _sample(self, index: torch.Tensor, points: torch.Tensor, photos: torch.Tensor | None = None) -> torch.Tensor:
+        """Colours (k, N, 3) and visibility (k, N) of world points (N, 3) in photos `index`
+        (`photos`: those photos as floats in [0, 1], converted once by a caller that samples
+        them at many depths)."""
         cam = torch.einsum("kij,nj->kni", self.R[index], points) + self.t[index][:, None]
         z = cam[..., 2].clamp_min(1e-6)
         pix = torch.einsum("kij,knj->kni", self.K[index], cam / z[..., None])[..., :2]
         height, width = self.images.shape[2:]
         grid = torch.stack([pix[..., 0] / width * 2 - 1, pix[..., 1] / height * 2 - 1], -1)[:, :, None]
-        colours = F.grid_sample(self.images[index].float() / 255.0, grid, mode="bilinear", padding_mode="border", align_corners=False)
+        if photos is None:
+            photos = self.images[index].float() / 255.0
+        colours = F.grid_sample(photos, grid, mode="bilinear", padding_mode="border", align_corners=False)
         inside = (grid.abs() <= 1).all(-1)[..., 0] & (cam[..., 2] > 0)
         return colours[..., 0].permute(0, 2, 1), inside
 
@@ -127,9 +131,10 @@ class ClassicLightField:
         best_seen = torch.zeros(height * width, device=self.device)
         cost_sum = torch.zeros(height * width, device=self.device)
         cost_count = torch.zeros(height * width, device=self.device)
+        photos = self.images[index].float() / 255.0
         for i, z in enumerate(plane_depths):
             points = origin + directions * ((z - o_z) / d_z)[:, None]
-            colours, inside = self._sample(index, points)
+            colours, inside = self._sample(index, points, photos)
             w = weights[:, None] * inside.float() + 1e-6
             w = w / w.sum(0, keepdim=True)
             mean = (w[..., None] * colours).sum(0)

@@ -108,3 +108,21 @@ def test_cli_flag_turns_the_teacher_off_and_it_is_remembered(tiny_scene, tmp_pat
     assert load_checkpoint(out)["train_config"]["teacher"] is False
     assert main(["train", str(tiny_scene), "--out", str(tmp_path / "default"), "--steps", "5", "--progress", "json"]) == 0
     assert "sweep depth of" in capsys.readouterr().out  # on by default for the fast preset
+
+
+def test_a_deep_scenes_sweep_keeps_to_its_pixel_budget(tiny_scene):
+    from neulf_core.scene import load_scene
+    from neulf_core.slab import Slab
+    from neulf_core.teacher import DEEP_SWEEP_PIXELS, SWEEP_SCALE, sweep_scale_for
+
+    views = load_scene(tiny_scene).views
+    width, height = views[0].size
+
+    def slab(near, far):
+        return Slab(np.eye(3), np.zeros(3), 0.0, (near + far) / 2, near, far, -np.ones(4), np.ones(4))
+
+    assert sweep_scale_for(views, 1.0, slab(10.0, 20.0)) == SWEEP_SCALE  # shallow: half resolution
+    for scale in (1.0, 4.0, 16.0):
+        fraction = sweep_scale_for(views, scale, slab(10.0, 50.0))
+        assert fraction <= SWEEP_SCALE
+        assert (width * scale * fraction) * (height * scale * fraction) <= DEEP_SWEEP_PIXELS * 1.01 or fraction == SWEEP_SCALE
