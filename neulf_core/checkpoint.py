@@ -2,10 +2,11 @@
 
 MODEL_DIR/checkpoint.pt holds everything to render and to resume (float32 weights, slab,
 optimizer and random state, progress); MODEL_DIR/model.pt is the render-only copy to ship
-(feature grids as 8-bit codes, other large weights as float16, no optimizer state: 1.4 MB
-against 15.8 MB for the default field at 480x270); MODEL_DIR/model.json is the same metadata for people and other programs
-(no weights).  All are written to a temporary file in the same folder and renamed over the
-old one, so a crash or SIGKILL mid-write leaves the previous files intact.
+(feature grids as 8-bit codes, other large weights as float16, no optimizer state: 1.6 MB
+for the default field at 480x270 against a 19 MB checkpoint); MODEL_DIR/model.json is the same metadata
+for people and other programs (no weights).  All are written to a temporary file in the same
+folder and renamed over the old one, so a crash or SIGKILL mid-write leaves the previous
+files intact.
 """
 
 from __future__ import annotations
@@ -30,8 +31,8 @@ MODEL_NAME = "model.pt"
 # Tensors smaller than this stay float32 in model.pt: the decoders are a few kB, and their
 # rounding would be the only fp16 error that reaches the colour without interpolation.
 HALF_MIN_ELEMENTS = 4096
-# Feature grids (tensors of 3 or more dimensions: textures, planes, layers; any size) go into model.pt as
-# 8-bit codes with a per-channel offset and step: their values are interpolated before a
+# Feature grids (tensors of 3 or more dimensions: textures, planes, layers; any size) go into
+# model.pt as 8-bit codes with a per-channel offset and step: their values are interpolated before a
 # decoder reads them, and 255 levels per channel cost 0.0003-0.009 dB of held-out PSNR
 # (docs/BENCHMARKS.md), for half the bytes of float16.  Matrices (the MLP presets' layers)
 # stay float16: a rounding error there reaches every output.

@@ -65,8 +65,9 @@ class DisparityConfig:
     z_far: float = 2.0
 
 
-# The finest texture's texel budget: with 4 channels in float16 the default model.pt stays
-# under 3 MB (CanClip at 480x270 needs 202,800 texels: 2.66 MB; docs/BENCHMARKS.md).
+# The finest texture's texel budget: it keeps the default model.pt small for photos of any size
+# (CanClip at 480x270 needs 202,800 texels: 1.6 MB with the depth layers, 8-bit grids; more
+# texels or channels at this budget were measured not to pay, docs/BENCHMARKS.md).
 MAX_TEXELS = 220_000
 
 
