@@ -44,7 +44,7 @@ class NeulfSceneSettings(bpy.types.PropertyGroup):
     depth_layers: IntProperty(name="Depth Layers", default=-1, min=-1, max=32,
                               description="Fast and Auto presets: depth layers for sharper depth edges on shallow "
                                           "scenes; worse on deep ones (-1: automatic, 8 when the scene's far/near "
-                                          "depth ratio is at most 3; 0: none)")
+                                          "depth ratio is at most 3 and 20 or more photos train; 0: none)")
     train_scale: FloatProperty(name="Image Scale", default=1.0, min=0.05, max=1.0,
                                description="Train on images resized by this factor")
     spiral_frames: IntProperty(name="Frames", default=60, min=3, max=2000, description="Frames of the spiral path")

@@ -103,11 +103,14 @@ def _angular_resolution(n_views: int) -> int:
 # disparity error, Statue (2.0) +0.45 dB, CanClip (1.7) +0.08 dB -- but not deep ones
 # (Slab.is_deep), where layers spread over the whole range sit far apart: fern (4.6)
 # -0.25 dB, the synthetic scene (3.3) -0.5 dB (docs/DEPTH.md).
+# With few photos the layers overfit: CanClip at 240x135, 1000 steps, 3 seeds, with / without
+# layers: 26 views +0.15 dB, 20 views -0.03, 13 views -0.47, 6 views -1.03 (docs/STABILITY.md).
 DEFAULT_DEPTH_LAYERS = 8
+DEPTH_LAYERS_MIN_VIEWS = 20
 
 
-def default_depth_layers(slab: Slab) -> int:
-    return 0 if slab.is_deep else DEFAULT_DEPTH_LAYERS
+def default_depth_layers(slab: Slab, n_train_views: int) -> int:
+    return 0 if slab.is_deep or n_train_views < DEPTH_LAYERS_MIN_VIEWS else DEFAULT_DEPTH_LAYERS
 
 
 def _build_field(preset_name: str, overrides: dict, train_views, slab: Slab, scale: float):
@@ -122,7 +125,7 @@ def _build_field(preset_name: str, overrides: dict, train_views, slab: Slab, sca
         options.update(slab_geometry(slab))
         if "texture_size" not in overrides:
             options["texture_size"] = texture_size_for(scaled_size(max(v.size for v in train_views), scale))
-        options["geometry_layers"] = default_depth_layers(slab)
+        options["geometry_layers"] = default_depth_layers(slab, n_train_views)
     options.update(overrides)
     config = make_config(preset.field, options)
     return build_field(preset.field, config), preset
@@ -212,6 +215,10 @@ def _train(scene, model_dir: Path, config: TrainConfig, images_dir, resume: bool
     batch = config.batch_size or preset.batch_size
     step, elapsed_before, history = 0, 0.0, []
     teacher, teacher_seconds = _teacher_inputs(train_views, slab, config, preset, device, resumed, progress)
+    # A deep scene takes the strong pull, unless its photos differ in exposure (--appearance):
+    # the sweep compares raw colours across photos, and with exposure jitter the strong pull
+    # cost 0.4 dB of colour-matched PSNR in the stability study (docs/STABILITY.md).
+    strong_pull = slab.is_deep and not config.appearance
     elapsed_before += teacher_seconds  # the sweep is part of the training time it saves
     if resumed:
         optimizer.load_state_dict(resumed["optimizer"])
@@ -260,7 +267,7 @@ def _train(scene, model_dir: Path, config: TrainConfig, images_dir, resume: bool
         index = torch.randint(n_rays, (batch,), generator=generator).to(device)
         uvst, target = train_rays.batch(index)
         view_index = train_rays.view_index[index].long()
-        pull = teacher_weight(fraction, len(train_views), deep=slab.is_deep) if teacher is not None else 0.0
+        pull = teacher_weight(fraction, len(train_views), deep=strong_pull) if teacher is not None else 0.0
         depth_teacher = (teacher[0][index], teacher[1][index], pull) if pull > 0 else None
         loss, objective = _objective(field_module, uvst, target, view_index, appearance, consistency, config, depth_teacher)
         optimizer.zero_grad(set_to_none=True)

@@ -129,9 +129,10 @@ def test_depth_layers_by_default_only_on_shallow_scenes():
     def slab(near, far):
         return Slab(np.eye(3), np.zeros(3), 0.0, (near + far) / 2, near, far, -np.ones(4), np.ones(4))
 
-    assert default_depth_layers(slab(10.0, 20.0)) == DEFAULT_DEPTH_LAYERS  # Statue-like, far/near 2
-    assert default_depth_layers(slab(2.0, 6.9)) == 0                       # the synthetic scene, 3.3
-    assert default_depth_layers(slab(16.8, 77.8)) == 0                     # fern, 4.6
+    assert default_depth_layers(slab(10.0, 20.0), 23) == DEFAULT_DEPTH_LAYERS  # Statue-like, far/near 2
+    assert default_depth_layers(slab(10.0, 20.0), 13) == 0                     # too few photos
+    assert default_depth_layers(slab(2.0, 6.9), 23) == 0                       # the synthetic scene, 3.3
+    assert default_depth_layers(slab(16.8, 77.8), 23) == 0                     # fern, 4.6
 
 
 def test_train_cli_depth_layers_are_saved_and_render(tiny_scene, tmp_path, capsys):
