@@ -82,17 +82,14 @@ class ClassicLightField:
         weights = 1.0 / (distance[order] ** 2 + 1e-8)
         return order, weights / weights.sum()
 
-    def _sample(self, index: torch.Tensor, points: torch.Tensor, photos: torch.Tensor | None = None) -> torch.Tensor:
+    def _sample(self, index: torch.Tensor, points: torch.Tensor, photos: torch.Tensor) -> torch.Tensor:
         """Colours (k, N, 3) and visibility (k, N) of world points (N, 3) in photos `index`
-        (`photos`: those photos as floats in [0, 1], converted once by a caller that samples
-        them at many depths)."""
+        (`photos`: those photos as floats in [0, 1], converted once per render, not per depth)."""
         cam = torch.einsum("kij,nj->kni", self.R[index], points) + self.t[index][:, None]
         z = cam[..., 2].clamp_min(1e-6)
         pix = torch.einsum("kij,knj->kni", self.K[index], cam / z[..., None])[..., :2]
         height, width = self.images.shape[2:]
         grid = torch.stack([pix[..., 0] / width * 2 - 1, pix[..., 1] / height * 2 - 1], -1)[:, :, None]
-        if photos is None:
-            photos = self.images[index].float() / 255.0
         colours = F.grid_sample(photos, grid, mode="bilinear", padding_mode="border", align_corners=False)
         inside = (grid.abs() <= 1).all(-1)[..., 0] & (cam[..., 2] > 0)
         return colours[..., 0].permute(0, 2, 1), inside

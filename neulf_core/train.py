@@ -215,11 +215,11 @@ def _train(scene, model_dir: Path, config: TrainConfig, images_dir, resume: bool
     batch = config.batch_size or preset.batch_size
     step, elapsed_before, history = 0, 0.0, []
     teacher, teacher_seconds = _teacher_inputs(train_views, slab, config, preset, device, resumed, progress)
+    elapsed_before += teacher_seconds  # the sweep is part of the training time it saves
     # A deep scene takes the strong pull, unless its photos differ in exposure (--appearance):
     # the sweep compares raw colours across photos, and with exposure jitter the strong pull
     # cost 0.4 dB of colour-matched PSNR in the stability study (docs/STABILITY.md).
     strong_pull = slab.is_deep and not config.appearance
-    elapsed_before += teacher_seconds  # the sweep is part of the training time it saves
     if resumed:
         optimizer.load_state_dict(resumed["optimizer"])
         step, elapsed_before = resumed["progress"]["step"], resumed["progress"]["elapsed"]
