@@ -17,7 +17,7 @@ import pycolmap
 import torch
 
 from .checkpoint import load_for_render
-from .device import pick_device
+from .device import keep_freed_cpu_memory, pick_device
 from .errors import NeulfError
 from .fields import build_field, make_config
 from .rays import pinhole_rays, single_pixel_K, view_rays
@@ -48,6 +48,8 @@ class LightField:
 
     def __init__(self, field_module: torch.nn.Module, slab: Slab, meta: dict, device: torch.device):
         self.field = field_module.to(device).eval()
+        if device.type == "cpu":
+            keep_freed_cpu_memory()  # chunks reuse freed buffers instead of page-faulting them in
         self.slab = slab
         self.meta = meta
         self.device = device

@@ -154,3 +154,27 @@ def test_train_cli_depth_layers_are_saved_and_render(tiny_scene, tmp_path, capsy
     assert main(["train", str(tiny_scene), "--out", str(tmp_path / "mlp"), "--steps", "1", "--preset", "authors",
                  "--depth-layers", "2"]) != 0
     assert "--depth-layers" in capsys.readouterr().err
+
+
+def test_cpu_render_does_not_page_fault_its_chunk_buffers_in_again():
+    """A CPU render's chunks reuse the buffers the previous chunk freed: a second 480x270
+    frame of the default field takes almost no page faults (4,000-13,000 per frame with
+    glibc's default thresholds, docs/BENCHMARKS.md)."""
+    import platform
+    import resource
+
+    import pytest
+
+    from neulf_core.render import LightField
+
+    if platform.system() != "Linux" or platform.libc_ver()[0] != "glibc":
+        pytest.skip("the allocator setting is glibc's")
+    slab = Slab(np.eye(3), np.zeros(3), 0.0, 4.0, 2.0, 8.0, -np.ones(4), np.ones(4))
+    field = build_field("disparity", make_config("disparity", {**slab_geometry(slab), "texture_size": [338, 600], "texture_channels": 4}))
+    light_field = LightField(field, slab, {}, torch.device("cpu"))
+    K = np.array([[400.0, 0, 240], [0, 400.0, 135], [0, 0, 1]])
+    light_field.render(K, 480, 270, np.eye(3), np.zeros(3))
+    before = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
+    light_field.render(K, 480, 270, np.eye(3), np.zeros(3))
+    faults = resource.getrusage(resource.RUSAGE_SELF).ru_minflt - before
+    assert faults < 1000
