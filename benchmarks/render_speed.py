@@ -6,13 +6,16 @@ chunks and ReLUs not in place), interleaved in one process, median of repeats.
         --model c8=MODEL_DIR --model c4=MODEL_DIR [--threads 2] [--repeats 7] [--no-depth]
 
 The camera is the first held-out view's, at the models' training scale.  Models with depth
-layers (which the reference code cannot evaluate) are timed with the current code only.  Timings on a shared
-machine are noisy: compare the ratios (each repeat renders every variant once, in turn).
+layers (which the reference code cannot evaluate) are timed with the current code only.
+`--default-allocator` times the same with glibc's default malloc thresholds (a process-wide
+setting, so that comparison takes two runs).  Timings on a shared machine are noisy: compare
+the ratios (each repeat renders every variant once, in turn).
 """
 
 from __future__ import annotations
 
 import argparse
+import resource
 import sys
 import time
 from pathlib import Path
@@ -66,7 +69,13 @@ def main() -> None:
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--repeats", type=int, default=7)
     parser.add_argument("--no-depth", action="store_true")
+    parser.add_argument("--default-allocator", action="store_true",
+                        help="leave glibc's malloc thresholds as they are (the render path otherwise keeps freed "
+                             "buffers, device.keep_freed_cpu_memory); run once with and once without to compare")
     args = parser.parse_args()
+    if args.default_allocator:
+        import neulf_core.render as render_module
+        render_module.keep_freed_cpu_memory = lambda: False
     models = {name: LightField.load(folder, "cpu") for name, folder in (m.split("=", 1) for m in args.model)}
     view = split_views(load_scene(args.scene, args.images))[1][0]
     camera = view.scaled_camera(args.scale)
@@ -76,6 +85,7 @@ def main() -> None:
                 if code == "current" or not models[name].field.config.geometry_layers]
     torch.set_num_threads(args.threads)  # for the timing only
     times = {label: [] for label, _, _ in variants}
+    faults_before = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
     for _ in range(args.repeats):
         for label, name, current in variants:
             chunk = use_code(models.values(), current)
@@ -84,7 +94,9 @@ def main() -> None:
             times[label].append(time.perf_counter() - started)
     use_code(models.values(), True)
     first = variants[0][0]
-    print(f"{width}x{height}, {args.threads} threads, depth {not args.no_depth}, {args.repeats} repeats")
+    print(f"{width}x{height}, {args.threads} threads, depth {not args.no_depth}, {args.repeats} repeats, "
+          f"allocator {'default' if args.default_allocator else 'keeping freed buffers'}, "
+          f"page faults {resource.getrusage(resource.RUSAGE_SELF).ru_minflt - faults_before} in all")
     for label in times:
         ratio = np.median([a / b for a, b in zip(times[label], times[first])])
         print(f"{label}: median {np.median(times[label]) * 1000:.0f} ms/frame, min {min(times[label]) * 1000:.0f}, "
