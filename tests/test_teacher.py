@@ -88,8 +88,9 @@ def test_training_with_the_teacher_learns_the_depth_and_resumes(tiny_scene, tmp_
     with torch.no_grad():
         _, unit = field.field(rays.uvst)
     error = (unit.reshape(-1) - _true_units(views, field.slab, 1.0)).abs()
-    # Without the teacher the median error at this step count is 0.047; with it, 0.021.
-    assert float(error.median()) < 0.03, float(error.median())
+    # Without the teacher the median error at this step count is 0.045; with it, 0.038 (the
+    # default field's 4 geometry channels; with 8: 0.047 and 0.029).
+    assert float(error.median()) < 0.042, float(error.median())
     # Past the teacher's part of the budget a resumed run does not sweep again.
     events.clear()
     train(tiny_scene, tmp_path / "m", TrainConfig(steps=150, teacher=True, validate_seconds=1e9), resume=True,
