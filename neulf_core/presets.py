@@ -31,6 +31,11 @@ class Preset:
 # train about 20 % more steps in the same minutes, for the same held-out PSNR within 0.1 dB on
 # CanClip, Statue and fern (docs/BENCHMARKS.md, "Geometry channels").
 FAST_FIELD = {"texture_channels": 4, "geometry_channels": 4}
+# Except for captures whose photos differ in exposure (`train --appearance`): there the fast
+# field keeps 8 geometry channels, which the stability study's +-1-stop exposure jitter needs
+# (NeRF-W protocol, 1000 steps, seeds 0 / 1: 26.86 / 27.26 dB with 8, 26.03 / 26.23 with 4;
+# docs/STABILITY.md).
+APPEARANCE_GEOMETRY = {"geometry_channels": 8}
 
 PRESETS: dict[str, Preset] = {
     "paper": Preset("mlp", {"depth": 20, "width": 256, "skip": "input"}, lr=5e-4, lr_decay_per_epoch=0.995,

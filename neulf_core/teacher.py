@@ -25,17 +25,20 @@ from .slab import Slab
 # a gentle pull keeps the depth gain without the PSNR cost of a strong one (docs/DEPTH.md).
 TEACHER_WEIGHT = 0.002
 TEACHER_FADE = 0.3
-# Below this many training views the photos constrain the depth less, and the pull
-# strengthens in proportion (1/n): at 1000 steps over 3 seeds, 6 of CanClip's views +0.19 dB,
-# 4 of the synthetic scene's +1.2 dB; captures of this many views or more are unchanged
-# (docs/STABILITY.md).
+# Below this many training views the photos constrain the depth less, and the gentle pull
+# (what captures of varying exposure keep) strengthens in proportion (1/n): measured before
+# the strong pull became the default, at 1000 steps over 3 seeds, 6 of CanClip's views +0.19
+# dB, 4 of the synthetic scene's +1.2 dB (docs/STABILITY.md).
 TEACHER_FULL_VIEWS = 14
-# Deep scenes (Slab.is_deep) start with a strong pull instead: their disparity range is wide,
-# and photometric descent from the start depth alone settles in a worse basin.  At 2000
-# steps, seeds 0 / 1: fern 20.77 / 20.82 -> 21.32 / 21.23 dB; the synthetic scene 29.37 ->
-# 29.36 dB.  On shallow scenes a strong pull costs (CanClip -1 dB, Statue -0.3 dB: the
-# sweep's errors at the rig's edge), so they keep the gentle one (docs/DEPTH.md).
-TEACHER_WEIGHT_DEEP = 0.05
+# The pull every capture takes unless its photos differ in exposure (`strong_pull`).  It was
+# first kept for deep scenes (Slab.is_deep), whose wide disparity range leaves photometric
+# descent from the start depth in a worse basin (fern at 2000 steps, seeds 0 / 1: 20.77 /
+# 20.82 -> 21.32 / 21.23 dB), because on shallow ones it had cost (CanClip -1 dB with an
+# earlier confidence and a longer fade).  With the 4-channel geometry it gains everywhere
+# measured: CanClip 480x270 at 1.5 minutes, seeds 0 / 1 / 2, +0.17 / +0.92 / +0.52 dB;
+# Statue +0.59 dB; 6 of CanClip's 26 views at 1000 steps 31.26 -> 32.38 dB
+# (docs/DEPTH.md, docs/STABILITY.md).
+TEACHER_WEIGHT_STRONG = 0.05
 # The sweep's resolution as a fraction of the training images'.
 SWEEP_SCALE = 0.5
 # A deep scene's sweep is held to this many pixels per view: its strong pull needs no finer
@@ -87,12 +90,20 @@ def _confidence(sweep) -> torch.Tensor:
     return distinct * (sweep.seen >= 2).float()
 
 
-def teacher_weight(fraction: float, n_views: int = TEACHER_FULL_VIEWS, deep: bool = False) -> float:
-    """The pull at this fraction of the budget, for a capture of n_views training views of a
-    deep or a shallow scene."""
+def strong_pull(appearance: bool) -> bool:
+    """Whether training takes the strong pull: always, unless the photos differ in exposure
+    (`--appearance`): the sweep compares raw colours across photos, and with exposure jitter
+    the strong pull cost 0.4 dB of colour-matched PSNR in the stability study
+    (docs/STABILITY.md); those captures keep the gentle pull, stronger for fewer views."""
+    return not appearance
+
+
+def teacher_weight(fraction: float, n_views: int = TEACHER_FULL_VIEWS, strong: bool = False) -> float:
+    """The pull at this fraction of the budget, for a capture of n_views training views,
+    gentle or strong (`strong_pull`)."""
     start = TEACHER_WEIGHT * max(1.0, TEACHER_FULL_VIEWS / max(1, n_views))
-    if deep:
-        start = max(start, TEACHER_WEIGHT_DEEP)
+    if strong:
+        start = max(start, TEACHER_WEIGHT_STRONG)
     return start * max(0.0, 1.0 - fraction / TEACHER_FADE)
 
 

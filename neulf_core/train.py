@@ -26,10 +26,10 @@ from .errors import NeulfError
 from .fields import build_field, count_parameters, make_config
 from .fields.disparity import slab_geometry, texture_size_for
 from .lock import training_lock
-from .presets import DEFAULT_PRESET, get_preset
+from .presets import APPEARANCE_GEOMETRY, DEFAULT_PRESET, get_preset
 from .scene import Scene, load_scene, scaled_size, split_views
 from .slab import Slab, fit_slab
-from .teacher import TEACHER_FADE, sweep_depth_targets, teacher_loss, teacher_weight
+from .teacher import TEACHER_FADE, strong_pull, sweep_depth_targets, teacher_loss, teacher_weight
 
 VALIDATION_RAYS = 1 << 16
 # The paper's loss weights: L = L_p + 0.5 L_mp + 0.1 L_d.
@@ -113,7 +113,7 @@ def default_depth_layers(slab: Slab, n_train_views: int) -> int:
     return 0 if slab.is_deep or n_train_views < DEPTH_LAYERS_MIN_VIEWS else DEFAULT_DEPTH_LAYERS
 
 
-def _build_field(preset_name: str, overrides: dict, train_views, slab: Slab, scale: float):
+def _build_field(preset_name: str, overrides: dict, train_views, slab: Slab, scale: float, appearance: bool = False):
     n_train_views = len(train_views)
     preset = get_preset(preset_name)
     options = dict(preset.field_config)
@@ -126,6 +126,8 @@ def _build_field(preset_name: str, overrides: dict, train_views, slab: Slab, sca
         if "texture_size" not in overrides:
             options["texture_size"] = texture_size_for(scaled_size(max(v.size for v in train_views), scale))
         options["geometry_layers"] = default_depth_layers(slab, n_train_views)
+        if appearance:
+            options.update(APPEARANCE_GEOMETRY)
     options.update(overrides)
     config = make_config(preset.field, options)
     return build_field(preset.field, config), preset
@@ -202,9 +204,14 @@ def _train(scene, model_dir: Path, config: TrainConfig, images_dir, resume: bool
     train_rays = train_rays.to(device)
     val_rays = build_rayset(held_views, slab, config.scale).subset(VALIDATION_RAYS, generator).to(device) if held_views else None
 
-    field_module, preset = _build_field(config.preset, config.field_overrides, train_views, slab, config.scale)
     if resumed:
+        # The field exactly as saved: a default that changed since (channels, depth layers)
+        # must not change the shape of a model being continued.
+        preset = get_preset(config.preset)
+        field_module = build_field(resumed["field"], make_config(resumed["field"], resumed["field_config"]))
         field_module.load_state_dict(resumed["state_dict"])
+    else:
+        field_module, preset = _build_field(config.preset, config.field_overrides, train_views, slab, config.scale, config.appearance)
     field_module.to(device).train()
     appearance = ViewAppearance(len(train_views)).to(device) if config.appearance else None
     if appearance is not None and resumed and resumed.get("appearance"):
@@ -216,10 +223,7 @@ def _train(scene, model_dir: Path, config: TrainConfig, images_dir, resume: bool
     step, elapsed_before, history = 0, 0.0, []
     teacher, teacher_seconds = _teacher_inputs(train_views, slab, config, preset, device, resumed, progress)
     elapsed_before += teacher_seconds  # the sweep is part of the training time it saves
-    # A deep scene takes the strong pull, unless its photos differ in exposure (--appearance):
-    # the sweep compares raw colours across photos, and with exposure jitter the strong pull
-    # cost 0.4 dB of colour-matched PSNR in the stability study (docs/STABILITY.md).
-    strong_pull = slab.is_deep and not config.appearance
+    strong = strong_pull(config.appearance)
     if resumed:
         optimizer.load_state_dict(resumed["optimizer"])
         step, elapsed_before = resumed["progress"]["step"], resumed["progress"]["elapsed"]
@@ -267,7 +271,7 @@ def _train(scene, model_dir: Path, config: TrainConfig, images_dir, resume: bool
         index = torch.randint(n_rays, (batch,), generator=generator).to(device)
         uvst, target = train_rays.batch(index)
         view_index = train_rays.view_index[index].long()
-        pull = teacher_weight(fraction, len(train_views), deep=strong_pull) if teacher is not None else 0.0
+        pull = teacher_weight(fraction, len(train_views), strong=strong) if teacher is not None else 0.0
         depth_teacher = (teacher[0][index], teacher[1][index], pull) if pull > 0 else None
         loss, objective = _objective(field_module, uvst, target, view_index, appearance, consistency, config, depth_teacher)
         optimizer.zero_grad(set_to_none=True)

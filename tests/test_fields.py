@@ -178,3 +178,23 @@ def test_cpu_render_does_not_page_fault_its_chunk_buffers_in_again():
     light_field.render(K, 480, 270, np.eye(3), np.zeros(3))
     faults = resource.getrusage(resource.RUSAGE_SELF).ru_minflt - before
     assert faults < 1000
+
+
+def test_appearance_captures_get_eight_geometry_channels_and_resume_keeps_the_saved_shape(tiny_scene, tmp_path, monkeypatch):
+    """`--appearance` trains the fast field with 8 geometry channels (the default has 4); a
+    resumed model keeps the shape it was saved with even when the defaults changed since."""
+    from neulf_core import presets
+    from neulf_core.checkpoint import load_checkpoint
+    from neulf_core.train import TrainConfig, train
+
+    def channels(model):
+        return load_checkpoint(model)["field_config"]["geometry_channels"]
+
+    quick = dict(batch_size=256, teacher=False, validate_seconds=1e9, checkpoint_seconds=1e9)
+    train(tiny_scene, tmp_path / "plain", TrainConfig(steps=2, **quick))
+    train(tiny_scene, tmp_path / "exposures", TrainConfig(steps=2, appearance=True, **quick))
+    assert channels(tmp_path / "plain") == presets.FAST_FIELD["geometry_channels"] == 4
+    assert channels(tmp_path / "exposures") == presets.APPEARANCE_GEOMETRY["geometry_channels"] == 8
+    monkeypatch.setitem(presets.FAST_FIELD, "geometry_channels", 6)
+    result = train(tiny_scene, tmp_path / "plain", TrainConfig(steps=4, **quick), resume=True)
+    assert result.step == 4 and channels(tmp_path / "plain") == 4

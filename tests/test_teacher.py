@@ -55,19 +55,28 @@ def test_the_pull_strengthens_for_sparse_captures_only():
     assert teacher_weight(TEACHER_FADE, 4) == 0
 
 
-def test_deep_scenes_take_the_strong_pull():
-    from neulf_core.slab import Slab
-    from neulf_core.teacher import TEACHER_WEIGHT_DEEP
+def test_the_strong_pull_unless_exposures_differ():
+    from neulf_core.teacher import TEACHER_WEIGHT_STRONG, strong_pull
 
-    assert teacher_weight(0.0, 17, deep=True) == TEACHER_WEIGHT_DEEP > 10 * teacher_weight(0.0, 17)
-    assert teacher_weight(0.0, 2, deep=True) == TEACHER_WEIGHT_DEEP >= teacher_weight(0.0, 2)
-    assert teacher_weight(TEACHER_FADE, 17, deep=True) == 0
+    assert teacher_weight(0.0, 17, strong=True) == TEACHER_WEIGHT_STRONG > 10 * teacher_weight(0.0, 17)
+    assert teacher_weight(0.0, 2, strong=True) == TEACHER_WEIGHT_STRONG >= teacher_weight(0.0, 2)
+    assert teacher_weight(TEACHER_FADE, 17, strong=True) == 0
+    assert strong_pull(appearance=False) and not strong_pull(appearance=True)
 
-    def slab(near, far):
-        return Slab(np.eye(3), np.zeros(3), 0.0, (near + far) / 2, near, far, -np.ones(4), np.ones(4))
 
-    assert slab(16.8, 77.8).is_deep and slab(2.0, 6.9).is_deep  # fern, the synthetic scene
-    assert not slab(10.0, 20.0).is_deep and not slab(1.26, 3.27).is_deep  # Statue, HCI
+def test_training_takes_the_pull_its_photos_allow(tiny_scene, tmp_path, monkeypatch):
+    """The trainer asks for the strong pull unless --appearance is on."""
+    import neulf_core.train as train_module
+
+    asked = []
+    real = train_module.teacher_weight
+    monkeypatch.setattr(train_module, "teacher_weight", lambda f, n, strong: asked.append(strong) or real(f, n, strong))
+    monkeypatch.setattr(teacher, "SWEEP_SCALE", 1.0)
+    for appearance in (False, True):
+        asked.clear()
+        train(tiny_scene, tmp_path / f"m{appearance}", TrainConfig(steps=2, batch_size=256, teacher=True, appearance=appearance,
+                                                                   validate_seconds=1e9, checkpoint_seconds=1e9))
+        assert asked and set(asked) == {not appearance}
 
 
 def test_training_with_the_teacher_learns_the_depth_and_resumes(tiny_scene, tmp_path, monkeypatch):
