@@ -40,7 +40,7 @@ class NeulfSceneSettings(bpy.types.PropertyGroup):
     preset: EnumProperty(name="Preset", items=PRESETS, default="fast")
     sweep_teacher: BoolProperty(name="Depth from Photos", default=True,
                                 description="Guide early training with the depth a plane sweep finds in the photos: "
-                                            "better depth for click-to-focus; on some captures a softer image")
+                                            "better depth for click-to-focus and a sharper image on the scenes measured")
     depth_layers: IntProperty(name="Depth Layers", default=-1, min=-1, max=32,
                               description="Fast and Auto presets: depth layers for sharper depth edges on shallow "
                                           "scenes; worse on deep ones (-1: automatic, 8 when the scene's far/near "
