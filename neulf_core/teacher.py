@@ -30,15 +30,20 @@ TEACHER_FADE = 0.3
 # the strong pull became the default, at 1000 steps over 3 seeds, 6 of CanClip's views +0.19
 # dB, 4 of the synthetic scene's +1.2 dB (docs/STABILITY.md).
 TEACHER_FULL_VIEWS = 14
-# The pull every capture takes unless its photos differ in exposure (`strong_pull`).  It was
-# first kept for deep scenes (Slab.is_deep), whose wide disparity range leaves photometric
-# descent from the start depth in a worse basin (fern at 2000 steps, seeds 0 / 1: 20.77 /
-# 20.82 -> 21.32 / 21.23 dB), because on shallow ones it had cost (CanClip -1 dB with an
-# earlier confidence and a longer fade).  With the 4-channel geometry it gains everywhere
-# measured: CanClip 480x270 at 1.5 minutes, seeds 0 / 1 / 2, +0.17 / +0.92 / +0.52 dB;
+# The pull a capture takes unless it is dense or its photos differ in exposure
+# (`strong_pull`).  It was first kept for deep scenes (Slab.is_deep), whose wide disparity
+# range leaves photometric descent from the start depth in a worse basin (fern at 2000 steps,
+# seeds 0 / 1: 20.77 / 20.82 -> 21.32 / 21.23 dB), because on shallow ones it had cost
+# (CanClip -1 dB with an earlier confidence and a longer fade).  With the 4-channel geometry
+# it gains on every capture of up to 26 views measured: CanClip 480x270 at 1.5 minutes, seeds 0 / 1 / 2, +0.17 / +0.92 / +0.52 dB;
 # Statue +0.59 dB; 6 of CanClip's 26 views at 1000 steps 31.26 -> 32.38 dB
-# (docs/DEPTH.md, docs/STABILITY.md).
+# (docs/DEPTH.md, docs/STABILITY.md).  Not on dense light fields: HCI's 71 training views
+# constrain the depth well on their own, and there the strong pull toward a sweep that is
+# poor on that scene (BadPix 43-50 %) cost 0.24 dB and 4 points of BadPix (docs/DEPTH.md).
 TEACHER_WEIGHT_STRONG = 0.05
+# From this many training views on a capture keeps the gentle pull (between CanClip's 26,
+# where the strong pull gains, and HCI's 71, where it costs; no scene measured in between).
+TEACHER_DENSE_VIEWS = 40
 # The sweep's resolution as a fraction of the training images'.
 SWEEP_SCALE = 0.5
 # A deep scene's sweep is held to this many pixels per view: its strong pull needs no finer
@@ -90,12 +95,13 @@ def _confidence(sweep) -> torch.Tensor:
     return distinct * (sweep.seen >= 2).float()
 
 
-def strong_pull(appearance: bool) -> bool:
-    """Whether training takes the strong pull: always, unless the photos differ in exposure
-    (`--appearance`): the sweep compares raw colours across photos, and with exposure jitter
-    the strong pull cost 0.4 dB of colour-matched PSNR in the stability study
-    (docs/STABILITY.md); those captures keep the gentle pull, stronger for fewer views."""
-    return not appearance
+def strong_pull(n_views: int, appearance: bool) -> bool:
+    """Whether training takes the strong pull: below TEACHER_DENSE_VIEWS training views, unless
+    the photos differ in exposure (`--appearance`): the sweep compares raw colours across
+    photos, and with exposure jitter the strong pull cost 0.4 dB of colour-matched PSNR in the
+    stability study (docs/STABILITY.md); those captures keep the gentle pull, stronger for
+    fewer views."""
+    return n_views < TEACHER_DENSE_VIEWS and not appearance
 
 
 def teacher_weight(fraction: float, n_views: int = TEACHER_FULL_VIEWS, strong: bool = False) -> float:

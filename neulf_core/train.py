@@ -223,7 +223,7 @@ def _train(scene, model_dir: Path, config: TrainConfig, images_dir, resume: bool
     step, elapsed_before, history = 0, 0.0, []
     teacher, teacher_seconds = _teacher_inputs(train_views, slab, config, preset, device, resumed, progress)
     elapsed_before += teacher_seconds  # the sweep is part of the training time it saves
-    strong = strong_pull(config.appearance)
+    strong = strong_pull(len(train_views), config.appearance)
     if resumed:
         optimizer.load_state_dict(resumed["optimizer"])
         step, elapsed_before = resumed["progress"]["step"], resumed["progress"]["elapsed"]

@@ -55,13 +55,18 @@ def test_the_pull_strengthens_for_sparse_captures_only():
     assert teacher_weight(TEACHER_FADE, 4) == 0
 
 
-def test_the_strong_pull_unless_exposures_differ():
+def test_the_strong_pull_unless_dense_or_exposures_differ():
     from neulf_core.teacher import TEACHER_WEIGHT_STRONG, strong_pull
 
     assert teacher_weight(0.0, 17, strong=True) == TEACHER_WEIGHT_STRONG > 10 * teacher_weight(0.0, 17)
     assert teacher_weight(0.0, 2, strong=True) == TEACHER_WEIGHT_STRONG >= teacher_weight(0.0, 2)
     assert teacher_weight(TEACHER_FADE, 17, strong=True) == 0
-    assert strong_pull(appearance=False) and not strong_pull(appearance=True)
+    from neulf_core.teacher import TEACHER_DENSE_VIEWS
+
+    # CanClip (26 views), Statue (23), fern (17), a 6-view capture: strong; HCI (71): gentle.
+    assert all(strong_pull(n, appearance=False) for n in (6, 17, 23, 26, TEACHER_DENSE_VIEWS - 1))
+    assert not strong_pull(TEACHER_DENSE_VIEWS, appearance=False) and not strong_pull(71, appearance=False)
+    assert not strong_pull(6, appearance=True) and not strong_pull(26, appearance=True)
 
 
 def test_training_takes_the_pull_its_photos_allow(tiny_scene, tmp_path, monkeypatch):
