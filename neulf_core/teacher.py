@@ -35,9 +35,9 @@ TEACHER_FULL_VIEWS = 14
 # range leaves photometric descent from the start depth in a worse basin (fern at 2000 steps,
 # seeds 0 / 1: 20.77 / 20.82 -> 21.32 / 21.23 dB), because on shallow ones it had cost
 # (CanClip -1 dB with an earlier confidence and a longer fade).  With the 4-channel geometry
-# it gains on every capture of up to 26 views measured: CanClip 480x270 at 1.5 minutes, seeds 0 / 1 / 2, +0.17 / +0.92 / +0.52 dB;
-# Statue +0.59 dB; 6 of CanClip's 26 views at 1000 steps 31.26 -> 32.38 dB
-# (docs/DEPTH.md, docs/STABILITY.md).  Not on dense light fields: HCI's 71 training views
+# it gains on every capture of up to 26 views measured: CanClip 480x270 at 1.5 minutes,
+# seeds 0 / 1 / 2, +0.17 / +0.92 / +0.52 dB; Statue +0.59 dB; 6 of CanClip's 26 views at
+# 1000 steps 31.26 -> 32.38 dB (docs/DEPTH.md, docs/STABILITY.md).  Not on dense light fields: HCI's 71 training views
 # constrain the depth well on their own, and there the strong pull toward a sweep that is
 # poor on that scene (BadPix 43-50 %) cost 0.24 dB and 4 points of BadPix (docs/DEPTH.md).
 TEACHER_WEIGHT_STRONG = 0.05
