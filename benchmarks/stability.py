@@ -87,6 +87,7 @@ class Job:
     fraction: float = 1.0      # share of the training views kept
     pose_degrees: float = 0.0  # rotation noise on the training poses (translation scales with it)
     appearance: bool = False   # per-view appearance compensation (TrainConfig.appearance)
+    refine_poses: bool = False  # learned per-view pose corrections (TrainConfig.refine_poses)
 
     @property
     def key(self) -> str:
@@ -260,6 +261,8 @@ def train_config(job: Job, held: list[View]) -> TrainConfig:
                    exclude=[v.name for v in held], validate_seconds=1e9, checkpoint_seconds=1e9)
     if job.appearance:
         options["appearance"] = True
+    if job.refine_poses:
+        options["refine_poses"] = True
     return TrainConfig(**options)
 
 
@@ -337,7 +340,7 @@ def run_order(job: Job, jobs: list[Job]) -> tuple:
 def progress_line(row: dict, count: int, total: int) -> str:
     score = f"{row['psnr']:.2f} dB" if isinstance(row.get("psnr"), float) else row.get("error", "")
     return (f"[{count}/{total}] {row['scene']} {row['preset']} views={row['fraction']:g} pose={row['pose_degrees']:g}deg "
-            f"appearance={row['appearance']} seed={row['seed']}: {row['status']} {score} "
+            f"appearance={row['appearance']} refine={row.get('refine_poses', False)} seed={row['seed']}: {row['status']} {score} "
             f"({row.get('steps_done', 0)} steps, {row.get('train_seconds', math.nan)} s, {row.get('warnings', 0)} warnings)")
 
 
@@ -377,6 +380,9 @@ def plan(args, scenes: dict[str, Path]) -> list[Job]:
     if "pose" in studies:
         for degrees in POSE_DEGREES:
             add("lambertian", "fast", synth, pose_degrees=degrees)
+            add("lambertian", "fast", synth, pose_degrees=degrees, refine_poses=True)
+        if "canclip" in scenes:  # what refinement costs where the poses are COLMAP's own
+            add("canclip", "fast", args.canclip_scale, refine_poses=True)
     return list({job.key: job for job in jobs}.values())  # shared baselines run once
 
 
@@ -405,9 +411,10 @@ def cell(rows: list[dict], column: str = "psnr") -> str:
 
 
 def base(scene: str, preset: str | None = None, fraction: float = 1.0, pose_degrees: float = 0.0,
-         appearance: bool = False) -> dict:
+         appearance: bool = False, refine_poses: bool = False) -> dict:
     """Row filter for one configuration (unedited unless told); preset None matches both."""
-    match = {"scene": scene, "fraction": fraction, "pose_degrees": pose_degrees, "appearance": appearance}
+    match = {"scene": scene, "fraction": fraction, "pose_degrees": pose_degrees, "appearance": appearance,
+             "refine_poses": refine_poses}
     return match if preset is None else {**match, "preset": preset}
 
 
@@ -468,8 +475,14 @@ def cost_text(reference: list[dict], rows: list[dict], column: str) -> str:
 def pose_table(rows: list[dict]) -> list[str]:
     lines = ["| pose noise | " + " | ".join(f"{d:g}° / {SHIFT_PER_DEGREE * d:.0%}" for d in POSE_DEGREES) + " |",
              "|---|" + "---|" * len(POSE_DEGREES)]
-    cells = [group(rows, **base("lambertian", "fast", pose_degrees=d)) for d in POSE_DEGREES]
-    lines.append("| fast, lambertian | " + " | ".join(cell(c) for c in cells) + " |")
+    for label, refine in (("fast, lambertian", False), ("fast + `--refine-poses`, lambertian", True)):
+        cells = [group(rows, **base("lambertian", "fast", pose_degrees=d, refine_poses=refine)) for d in POSE_DEGREES]
+        if any(cells):
+            lines.append(f"| {label} | " + " | ".join(cell(c) for c in cells) + " |")
+    exact, refined = group(rows, **base("canclip", "fast")), group(rows, **base("canclip", "fast", refine_poses=True))
+    if refined:
+        lines += ["", f"CanClip (COLMAP's own poses, all views): {cell(exact)} dB without, {cell(refined)} dB with "
+                      f"`--refine-poses` ({cost_text(exact, refined, 'psnr')} lost)."]
     return lines
 
 
@@ -541,8 +554,9 @@ def targets(rows: list[dict]) -> list[str]:
 
 def configurations(rows: list[dict], preset: str) -> list[dict]:
     """The distinct configurations (everything but the seed) that `preset` was run in."""
-    keys = {(r["scene"], r["fraction"], r["pose_degrees"], r["appearance"]) for r in rows if r["preset"] == preset}
-    return [base(scene, preset, fraction, degrees, appearance) for scene, fraction, degrees, appearance in sorted(keys)]
+    keys = {(r["scene"], r["fraction"], r["pose_degrees"], r["appearance"], r["refine_poses"])
+            for r in rows if r["preset"] == preset}
+    return [base(scene, preset, *rest) for scene, *rest in sorted(keys)]
 
 
 def describe(match: dict) -> str:
@@ -553,6 +567,8 @@ def describe(match: dict) -> str:
         parts.append(f"pose noise {match['pose_degrees']:g}°")
     if match.get("appearance"):
         parts.append("appearance")
+    if match.get("refine_poses"):
+        parts.append("pose refinement")
     return ", ".join(parts)
 
 
@@ -584,7 +600,7 @@ def update_markdown(path: Path, tables: str) -> None:
     path.write_text(f"{head}{MARKER_BEGIN}\n{tables}\n{MARKER_END}{tail}")
 
 
-CSV_COLUMNS = ["scene", "preset", "fraction", "pose_degrees", "appearance", "seed", "status", "psnr", "ssim",
+CSV_COLUMNS = ["scene", "preset", "fraction", "pose_degrees", "appearance", "refine_poses", "seed", "status", "psnr", "ssim",
                "psnr_matched", "psnr_half_fit", "psnr_per_view", "train_views", "held_out", "steps", "steps_done", "train_seconds",
                "wall_seconds", "warnings", "warning_text", "nonfinite_pixels", "error", "scale", "path", "truth"]
 
@@ -633,10 +649,13 @@ def chart(rows: list[dict], path: Path) -> None:
     if low:
         axes[1].set_ylim(max(0, min(low) - 3), max(low) + 1)
 
-    points = [(d, stats(group(rows, **base("lambertian", "fast", pose_degrees=d)))) for d in POSE_DEGREES]
-    points = [(d, s) for d, s in points if s]
-    if points:
-        errorbar(axes[2], points, "-o", "C1", "lambertian, fast")
+    for refine, fmt, colour, label in ((False, "-o", "C1", "lambertian, fast"),
+                                       (True, "-^", "C2", "lambertian, fast + --refine-poses")):
+        points = [(d, stats(group(rows, **base("lambertian", "fast", pose_degrees=d, refine_poses=refine))))
+                  for d in POSE_DEGREES]
+        points = [(d, s) for d, s in points if s]
+        if points:
+            errorbar(axes[2], points, fmt, colour, label)
     axes[2].set(xlabel=f"pose noise (degrees; shift {SHIFT_PER_DEGREE:.0%} of the spacing per degree)",
                 ylabel="held-out PSNR (dB)", title="Pose noise")
     for axis in axes:
@@ -684,6 +703,8 @@ def load_log(log: Path) -> dict:
         for line in log.read_text().splitlines():
             row = json.loads(line)
             if row.get("status") in ("finished", "crashed"):
+                for f in fields(Job):  # rows logged before a Job field existed ran with its default
+                    row.setdefault(f.name, f.default)
                 done[Job(**{f.name: row[f.name] for f in fields(Job)}).key] = row
     return done
 

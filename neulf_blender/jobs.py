@@ -152,7 +152,7 @@ class TrainJob(ProcessJob):
                  steps: int | None = None, resume: bool = False, preset: str | None = None, scale: float | None = None,
                  images_dir: str | None = None, device: str | None = None, env: dict | None = None,
                  checkpoint_seconds: float | None = None, sweep_teacher: bool | None = None,
-                 depth_layers: int = -1):
+                 depth_layers: int = -1, appearance: bool = False, refine_poses: bool = False):
         argv = [python, "-m", "neulf_core", "train", scene_dir, "--out", model_dir, "--progress", "json"]
         argv += ["--steps", str(int(steps))] if steps else ["--minutes", repr(float(minutes or 5.0))]
         if resume:
@@ -165,6 +165,10 @@ class TrainJob(ProcessJob):
             argv.append("--sweep-teacher" if sweep_teacher else "--no-sweep-teacher")
         if depth_layers >= 0 and not resume:  # -1: the trainer's choice for the scene
             argv += ["--depth-layers", str(int(depth_layers))]
+        if appearance and not resume:
+            argv.append("--appearance")
+        if refine_poses and not resume:
+            argv.append("--refine-poses")
         if images_dir:
             argv += ["--images", images_dir]
         if device:

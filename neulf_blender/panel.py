@@ -56,6 +56,9 @@ class NEULF_PT_main(bpy.types.Panel):
         row = col.row(align=True)
         row.prop(props, "sweep_teacher")
         row.prop(props, "depth_layers")
+        row = col.row(align=True)
+        row.prop(props, "appearance")
+        row.prop(props, "refine_poses")
         train = tasks.get("train")
         if train is not None and train.running:
             _job_box(layout, train, "Training", "neulf.cancel_train")

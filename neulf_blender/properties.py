@@ -45,6 +45,12 @@ class NeulfSceneSettings(bpy.types.PropertyGroup):
                               description="Fast and Auto presets: depth layers for sharper depth edges on shallow "
                                           "scenes; worse on deep ones (-1: automatic, 8 when the scene's far/near "
                                           "depth ratio is at most 3 and 20 or more photos train; 0: none)")
+    appearance: BoolProperty(name="Varying Exposure", default=False,
+                             description="Learn a colour correction per photo, for captures whose exposure or white "
+                                         "balance changes between shots")
+    refine_poses: BoolProperty(name="Refine Poses", default=False,
+                               description="Learn a small correction of each photo's camera pose, for captures whose "
+                                           "reconstruction is off by a fraction of a degree")
     train_scale: FloatProperty(name="Image Scale", default=1.0, min=0.05, max=1.0,
                                description="Train on images resized by this factor")
     spiral_frames: IntProperty(name="Frames", default=60, min=3, max=2000, description="Frames of the spiral path")

@@ -69,6 +69,7 @@ def cmd_train(args) -> int:
         validate_seconds=args.validate_seconds,
         st_depth=args.st_depth, near=args.near, far=args.far, device=args.device, batch_size=args.batch_size,
         consistency=args.consistency, appearance=args.appearance, teacher=args.sweep_teacher, field_overrides=overrides,
+        refine_poses=args.refine_poses,
     )
     stop = {"signal": None, "reader_gone": False}
 
@@ -387,6 +388,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="the paper's multi-view photometric and depth losses (default: the preset's choice)")
     p.add_argument("--appearance", action="store_true",
                    help="learn a colour transform per photo (captures with changing exposure or white balance)")
+    p.add_argument("--refine-poses", action="store_true",
+                   help="learn a small correction of each photo's camera pose (captures whose poses are off by a "
+                        "fraction of a degree; costs about 0.1 dB where they are exact): docs/STABILITY.md")
     p.add_argument("--sweep-teacher", action=argparse.BooleanOptionalAction, default=None,
                    help="pull the early depth toward the classic plane sweep's (default: the preset's choice; on "
                         "for fast): better depth maps and refocus, docs/DEPTH.md")

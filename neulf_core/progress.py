@@ -85,6 +85,9 @@ class Bar:
             self._bar(event.get("fraction", 0.0), f"step {event['step']} {event['elapsed']:.0f}s loss {event['loss']:.5f}{val}")
         elif kind == "warning":
             self._line(f"warning: {event['message']}")
+        elif kind == "poses":
+            self._line(f"camera poses corrected by {event['median_degrees']:.3f} deg (median; largest "
+                       f"{event['max_degrees']:.3f}) and shifted by {event['median_shift']:.1%} of the camera spacing")
         elif kind in ("finished", "cancelled"):
             val = f", held-out PSNR {event['val_psnr']:.2f} dB (ray sample)" if event.get("val_psnr") is not None else ""
             self._line(f"{kind} after {event['step']} steps, {event['elapsed']:.0f} s{val}; model in {event['model_dir']}")

@@ -26,6 +26,7 @@ from .errors import NeulfError
 from .fields import build_field, count_parameters, make_config
 from .fields.disparity import slab_geometry, texture_size_for
 from .lock import training_lock
+from .poses import PoseRefinement
 from .presets import APPEARANCE_GEOMETRY, DEFAULT_PRESET, get_preset
 from .scene import Scene, load_scene, scaled_size, split_views
 from .slab import Slab, fit_slab
@@ -34,6 +35,13 @@ from .teacher import TEACHER_FADE, strong_pull, sweep_depth_targets, teacher_los
 VALIDATION_RAYS = 1 << 16
 # The paper's loss weights: L = L_p + 0.5 L_mp + 0.1 L_d.
 MULTIVIEW_WEIGHT, DEPTH_WEIGHT = 0.5, 0.1
+# Adam's step for the pose corrections (radians, and shares of the camera spacing), decayed
+# with the field's learning rate.
+# With exact poses, corrections learned from the start drift (the early field is noise) and
+# cost 0.35 dB; from 20 % of the budget on they cost nothing there and keep most of the gain
+# under noise (docs/STABILITY.md, "Pose refinement").
+POSE_LR = 3e-4
+POSE_START = 0.2   # share of the budget before the poses move
 
 
 @dataclass
@@ -59,6 +67,7 @@ class TrainConfig:
     neighbours: int = 5                 # K nearest training cameras
     appearance: bool = False            # learn a per-photo colour transform (exposure, white balance)
     teacher: bool | None = None         # pull early depth toward the classic plane sweep's (None: the preset's default)
+    refine_poses: bool = False          # learn a small rotation and shift of each training camera (poses.py)
 
     def budget_fraction(self, step: int, elapsed: float) -> float:
         fractions = []
@@ -133,10 +142,13 @@ def _build_field(preset_name: str, overrides: dict, train_views, slab: Slab, sca
     return build_field(preset.field, config), preset
 
 
-def _optimizer(field_module, lr: float, appearance: ViewAppearance | None = None) -> torch.optim.Optimizer:
+def _optimizer(field_module, lr: float, appearance: ViewAppearance | None = None,
+               poses: PoseRefinement | None = None) -> torch.optim.Optimizer:
     groups = field_module.param_groups(lr) if hasattr(field_module, "param_groups") else [{"params": field_module.parameters(), "lr": lr}]
     if appearance is not None:
         groups.append({"params": list(appearance.parameters()), "lr": lr, "name": "appearance"})
+    if poses is not None:
+        groups.append({"params": list(poses.parameters()), "lr": POSE_LR, "name": "poses"})
     for group in groups:
         group["initial_lr"] = group["lr"]
     return torch.optim.Adam(groups, betas=(0.9, 0.999), eps=1e-15 if len(groups) > 1 else 1e-8)
@@ -149,6 +161,8 @@ def _set_learning_rate(optimizer, preset, step: int, n_rays: int, batch: int, fr
         factor = preset.lr_final_ratio ** fraction
     for group in optimizer.param_groups:
         group["lr"] = group["initial_lr"] * factor * lr_scale
+        if group.get("name") == "poses" and fraction < POSE_START:
+            group["lr"] = 0.0
     return optimizer.param_groups[-1]["lr"]
 
 
@@ -216,9 +230,12 @@ def _train(scene, model_dir: Path, config: TrainConfig, images_dir, resume: bool
     appearance = ViewAppearance(len(train_views)).to(device) if config.appearance else None
     if appearance is not None and resumed and resumed.get("appearance"):
         appearance.load_state_dict(resumed["appearance"])
+    poses = PoseRefinement(slab, np.stack([v.center for v in train_views])).to(device) if config.refine_poses else None
+    if poses is not None and resumed and resumed.get("poses"):
+        poses.load_state_dict(resumed["poses"])
     use_consistency = preset.consistency if config.consistency is None else config.consistency
     consistency = _consistency_inputs(train_views, slab, config, device) if use_consistency else None
-    optimizer = _optimizer(field_module, preset.lr, appearance)
+    optimizer = _optimizer(field_module, preset.lr, appearance, poses)
     batch = config.batch_size or preset.batch_size
     step, elapsed_before, history = 0, 0.0, []
     teacher, teacher_seconds = _teacher_inputs(train_views, slab, config, preset, device, resumed, progress)
@@ -249,6 +266,7 @@ def _train(scene, model_dir: Path, config: TrainConfig, images_dir, resume: bool
     def save(status: str, val: float | None):
         payload = {**meta, "state_dict": field_module.state_dict(), "optimizer": optimizer.state_dict(),
                    "appearance": appearance.state_dict() if appearance is not None else None,
+                   "poses": poses.state_dict() if poses is not None else None,
                    "rng": {"torch": torch.get_rng_state(), "generator": generator.get_state()},
                    "progress": {"step": step, "elapsed": elapsed, "status": status, "val_psnr": val, "history": history}}
         path = save_checkpoint(model_dir, payload)
@@ -273,6 +291,8 @@ def _train(scene, model_dir: Path, config: TrainConfig, images_dir, resume: bool
         view_index = train_rays.view_index[index].long()
         pull = teacher_weight(fraction, len(train_views), strong=strong) if teacher is not None else 0.0
         depth_teacher = (teacher[0][index], teacher[1][index], pull) if pull > 0 else None
+        if poses is not None:
+            uvst = poses(uvst, view_index)
         loss, objective = _objective(field_module, uvst, target, view_index, appearance, consistency, config, depth_teacher)
         optimizer.zero_grad(set_to_none=True)
         if not torch.isfinite(objective):
@@ -309,6 +329,9 @@ def _train(scene, model_dir: Path, config: TrainConfig, images_dir, resume: bool
             last_checkpoint = time.monotonic()
     if skipped:
         _emit(progress, event="warning", message=f"{skipped} training steps had a non-finite loss and were skipped")
+    if poses is not None:
+        meta["pose_corrections"] = poses.summary()
+        _emit(progress, event="poses", **meta["pose_corrections"])
     elapsed += _fill_unseen(field_module, train_rays) if step > 0 else 0.0
     save(status, val)
     _emit(progress, event=status, step=step, elapsed=elapsed, val_psnr=val, model_dir=str(model_dir))

@@ -205,6 +205,21 @@ def test_train_job_passes_depth_layers_only_to_a_new_model(ext, tmp_path):
     assert "--depth-layers" not in argv(depth_layers=8, resume=True)
 
 
+def test_train_job_passes_exposure_and_pose_options_only_to_a_new_model(ext, tmp_path):
+    """The panel's "Varying Exposure" and "Refine Poses" become `train --appearance` and
+    `train --refine-poses`; a resumed model keeps what it was trained with."""
+    def argv(**options):
+        job = ext.jobs.TrainJob("/bin/true", str(tmp_path), str(tmp_path / "m"), steps=5, **options)
+        job.process.wait(timeout=30)
+        return job.argv
+
+    both = argv(appearance=True, refine_poses=True)
+    assert "--appearance" in both and "--refine-poses" in both
+    assert "--appearance" not in argv() and "--refine-poses" not in argv()
+    resumed = argv(appearance=True, refine_poses=True, resume=True)
+    assert "--appearance" not in resumed and "--refine-poses" not in resumed
+
+
 def test_explain_failure(ext):
     assert ext.jobs.explain_failure(["x", "error: the scene is bad."]) == "the scene is bad."
     assert "no 'torch'" in ext.jobs.explain_failure(["ModuleNotFoundError: No module named 'torch'"])

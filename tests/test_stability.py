@@ -4,6 +4,7 @@ scene edits, a few training steps per run, scoring, and the CSV / chart / tables
 from __future__ import annotations
 
 import csv
+import json
 import importlib.util
 import math
 import sys
@@ -54,6 +55,8 @@ def test_study_runs_end_to_end(stability, tiny_scene, tmp_path):
     jobs = [stability.Job("tiny", str(tiny_scene), str(tiny_scene), 1.0, "fast", 3, seed, fraction=fraction)
             for fraction in (1.0, 0.5) for seed in (0, 1)]
     jobs.append(stability.Job("tiny", str(tiny_scene), str(tiny_scene), 1.0, "fast", 3, 0, pose_degrees=1.0))
+    jobs.append(stability.Job("tiny", str(tiny_scene), str(tiny_scene), 1.0, "fast", 3, 0, pose_degrees=1.0,
+                              refine_poses=True))
     rows = stability.run_jobs(jobs, workers=1, log=tmp_path / "runs.jsonl")
 
     assert [r["status"] for r in rows] == ["finished"] * len(jobs), [r.get("error") for r in rows]
@@ -90,3 +93,14 @@ def test_nerf_w_protocol_fits_on_the_left_half_and_scores_the_right(stability):
     broken_left = darker.copy()
     broken_left[:, :10] = 0.5                            # the fit sees only the left half
     assert stability.psnr_right_half_after_left_fit(broken_left, target) < stability.psnr_right_half_after_left_fit(darker, target)
+
+
+def test_a_log_written_before_a_job_field_existed_still_counts(stability, tmp_path):
+    """Rows logged before `refine_poses` existed ran without it: they stay done, not re-run."""
+    job = stability.Job("tiny", "a", "a", 1.0, "fast", 3, 0)
+    old_row = {**{k: v for k, v in stability.asdict(job).items() if k != "refine_poses"}, "status": "finished", "psnr": 30.0}
+    log = tmp_path / "runs.jsonl"
+    log.write_text(json.dumps(old_row) + "\n")
+    done = stability.load_log(log)
+    assert job.key in done and done[job.key]["refine_poses"] is False
+    assert stability.Job("tiny", "a", "a", 1.0, "fast", 3, 0, refine_poses=True).key not in done

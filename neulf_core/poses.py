@@ -1,0 +1,90 @@
+"""Per-photo pose refinement: a small learned rotation and shift of each training camera.
+
+A light field is unforgiving of pose error: every training ray is stored at the (u, v, s, t)
+its camera's pose gives it, and a camera that is off by a quarter of a pixel writes its
+photo's colours onto the wrong rays, where they fight the neighbours' (docs/STABILITY.md:
+0.1 degree of noise costs about 1 dB).  Here each training view gets a rotation about its
+own centre and a shift, both zero at the start, learned with the field by the same
+photometric loss (as BARF and NeRF-- do for radiance fields).
+
+The correction acts on the stored rays themselves: a ray's two slab crossings are two
+points on a line through its camera's centre; moving those points with the camera and
+intersecting the moved line with the two planes again gives the corrected (u, v, s, t).
+So no per-ray bearing is kept and a batch costs a few arithmetic operations per ray.
+
+The corrections are centred (their mean over the views is zero): moving all cameras
+together is the same as moving the scene, which would shift the light field away from
+the held-out cameras' (and any render camera's) frame.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import torch
+from torch import nn
+
+from .slab import Slab
+
+
+def rotation_matrices(axis_angle: torch.Tensor) -> torch.Tensor:
+    """(V, 3) axis-angle vectors (radians) -> (V, 3, 3) rotations (Rodrigues; exact at 0)."""
+    angle_sq = (axis_angle ** 2).sum(1, keepdim=True)
+    # sin(a)/a and (1 - cos a)/a^2 by their series near 0, where the corrections live.
+    a = 1 - angle_sq / 6 + angle_sq ** 2 / 120
+    b = 0.5 - angle_sq / 24 + angle_sq ** 2 / 720
+    x, y, z = axis_angle.unbind(1)
+    zero = torch.zeros_like(x)
+    k = torch.stack([zero, -z, y, z, zero, -x, -y, x, zero], 1).reshape(-1, 3, 3)
+    eye = torch.eye(3, device=axis_angle.device, dtype=axis_angle.dtype).expand_as(k)
+    return eye + a[..., None] * k + b[..., None] * (k @ k)
+
+
+class PoseRefinement(nn.Module):
+    """Learned corrections of the training cameras, applied to their rays' (u, v, s, t)."""
+
+    def __init__(self, slab: Slab, centres_world: np.ndarray):
+        super().__init__()
+        centres = slab.to_slab(np.asarray(centres_world, dtype=np.float64))
+        gaps = np.linalg.norm(centres[:, None] - centres[None], axis=2)
+        np.fill_diagonal(gaps, np.inf)
+        spacing = float(np.median(gaps.min(axis=1))) if len(centres) > 1 else 1.0
+        _, _, centre, half = slab._tensors("cpu", torch.float32)
+        self.register_buffer("centres", torch.as_tensor(centres, dtype=torch.float32))
+        self.register_buffer("uvst_centre", centre)
+        self.register_buffer("uvst_half", half)
+        self.register_buffer("planes", torch.tensor([slab.z_uv, slab.z_st], dtype=torch.float32))
+        # Shifts are learned in units of the camera spacing, so one learning rate suits every
+        # scene's units; rotations in radians.
+        self.spacing = spacing
+        self.rotation = nn.Parameter(torch.zeros(len(centres), 3))
+        self.shift = nn.Parameter(torch.zeros(len(centres), 3))
+
+    def corrections(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """Centred per-view (axis-angle radians, shift in scene units), slab frame."""
+        return self.rotation - self.rotation.mean(0), (self.shift - self.shift.mean(0)) * self.spacing
+
+    def forward(self, uvst: torch.Tensor, view_index: torch.Tensor) -> torch.Tensor:
+        rotation, shift = self.corrections()
+        turn, moved, centre = rotation_matrices(rotation)[view_index], shift[view_index], self.centres[view_index]
+        raw = uvst * self.uvst_half + self.uvst_centre
+        z_uv, z_st = self.planes[0], self.planes[1]
+        p_uv = torch.cat([raw[:, :2], z_uv.expand(len(raw), 1)], 1)
+        p_st = torch.cat([raw[:, 2:], z_st.expand(len(raw), 1)], 1)
+        # Both crossings move with the camera: about its centre, then by its shift.
+        a = centre + torch.bmm(turn, (p_uv - centre).unsqueeze(-1)).squeeze(-1) + moved
+        b = centre + torch.bmm(turn, (p_st - centre).unsqueeze(-1)).squeeze(-1) + moved
+        d = b - a
+        uv = a[:, :2] + d[:, :2] * ((z_uv - a[:, 2]) / d[:, 2])[:, None]
+        st = a[:, :2] + d[:, :2] * ((z_st - a[:, 2]) / d[:, 2])[:, None]
+        return (torch.cat([uv, st], 1) - self.uvst_centre) / self.uvst_half
+
+    @torch.no_grad()
+    def summary(self) -> dict:
+        """Median and largest correction over the views: degrees, and shares of the spacing."""
+        rotation, shift = self.corrections()
+        degrees = rotation.norm(dim=1) * 180.0 / math.pi
+        spacings = shift.norm(dim=1) / self.spacing
+        return {"median_degrees": float(degrees.median()), "max_degrees": float(degrees.max()),
+                "median_shift": float(spacings.median()), "max_shift": float(spacings.max())}

@@ -1,0 +1,127 @@
+"""Per-photo pose refinement (neulf_core/poses.py): the geometry of the corrected rays, that the
+photometric gradient finds a known pose error, and its place in training and resuming."""
+
+import json
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from neulf_core.poses import PoseRefinement, rotation_matrices
+from neulf_core.slab import Slab
+
+# World frame = slab frame; uv plane at z = 0, st plane at z = 3.
+SLAB = Slab(np.eye(3), np.zeros(3), 0.0, 3.0, 2.0, 6.0, np.array([-1.0, -1.0, -2.0, -2.0]), np.array([1.0, 1.0, 2.0, 2.0]))
+CENTRES = np.array([[-0.2, 0.0, -0.5], [0.2, 0.0, -0.5]])
+
+
+def camera_rays(centre, n=64, seed=0):
+    rng = np.random.default_rng(seed)
+    directions = np.column_stack([rng.uniform(-0.3, 0.3, (n, 2)), np.ones(n)])
+    directions /= np.linalg.norm(directions, axis=1, keepdims=True)
+    return torch.tensor(centre, dtype=torch.float64), torch.tensor(directions)
+
+
+def test_rotation_matrices_match_rodrigues():
+    axis_angle = torch.tensor([[0.0, 0.0, 0.0], [0.01, -0.02, 0.005], [0.3, 0.1, -0.2]], dtype=torch.float64)
+    rotations = rotation_matrices(axis_angle)
+    for vector, rotation in zip(axis_angle.numpy(), rotations.numpy()):
+        angle = np.linalg.norm(vector)
+        if angle == 0:
+            assert np.allclose(rotation, np.eye(3))
+            continue
+        k = np.array([[0, -vector[2], vector[1]], [vector[2], 0, -vector[0]], [-vector[1], vector[0], 0]]) / angle
+        exact = np.eye(3) + math.sin(angle) * k + (1 - math.cos(angle)) * k @ k
+        assert np.allclose(rotation, exact, atol=1e-6)  # the series is exact to ~angle^6 / 5040
+        assert np.allclose(rotation @ rotation.T, np.eye(3), atol=1e-6)
+
+
+def test_zero_corrections_leave_the_rays_alone():
+    poses = PoseRefinement(SLAB, CENTRES)
+    origin, directions = camera_rays(CENTRES[0])
+    uvst, _ = SLAB.rays_to_uvst(origin, directions)
+    moved = poses(uvst.float(), torch.zeros(len(uvst), dtype=torch.long))
+    assert torch.allclose(moved, uvst.float(), atol=1e-6)
+
+
+def test_a_correction_moves_the_rays_as_the_moved_camera_sees_them():
+    """Turning camera 0 by R about its centre and shifting it by d gives the (u, v, s, t) of the
+    rays that camera would cast from c + d with directions R d_i."""
+    poses = PoseRefinement(SLAB, CENTRES)
+    turn = torch.tensor([0.004, -0.006, 0.01])
+    shift = torch.tensor([0.05, -0.02, 0.03])  # shares of the spacing (0.4 here)
+    with torch.no_grad():  # opposite corrections: their mean is zero, so centring keeps them
+        poses.rotation[:] = torch.stack([turn, -turn])
+        poses.shift[:] = torch.stack([shift, -shift])
+    assert poses.spacing == pytest.approx(0.4)
+    origin, directions = camera_rays(CENTRES[0])
+    uvst, _ = SLAB.rays_to_uvst(origin, directions)
+    moved = poses(uvst.float(), torch.zeros(len(uvst), dtype=torch.long)).double()
+
+    rotation = rotation_matrices(turn.double()[None])[0]
+    expected, _ = SLAB.rays_to_uvst(origin + shift.double() * 0.4, directions @ rotation.T)
+    assert torch.allclose(moved, expected, atol=1e-5)
+    assert (moved - uvst).abs().max() > 1e-2  # and it did move them
+
+
+def test_the_photometric_gradient_finds_a_known_pose_error():
+    """A smooth light field seen by a camera whose pose is off by 0.3 degrees: fitting only the
+    corrections to the true colours turns the camera back (the sign and size of the error)."""
+    def light_field(uvst):  # any smooth function of the ray
+        return torch.stack([torch.sin(3 * uvst[:, 2] + uvst[:, 0]), torch.cos(2 * uvst[:, 3] - uvst[:, 1]),
+                            torch.sin(uvst[:, 2] * uvst[:, 3] + 0.5)], 1)
+
+    true_turn = torch.tensor([0.0, math.radians(0.3), 0.0], dtype=torch.float64)
+    origin, directions = camera_rays(CENTRES[0], n=4096, seed=1)
+    seen, _ = SLAB.rays_to_uvst(origin, directions)                                      # the pose we were given
+    truth, _ = SLAB.rays_to_uvst(origin, directions @ rotation_matrices(true_turn[None])[0].T)  # where the rays went
+    colours = light_field(truth.float())
+
+    poses = PoseRefinement(SLAB, CENTRES)
+    optimizer = torch.optim.Adam(poses.parameters(), lr=1e-3)
+    view = torch.zeros(len(seen), dtype=torch.long)
+    for _ in range(400):
+        optimizer.zero_grad()
+        loss = ((light_field(poses(seen.float(), view)) - colours) ** 2).mean()
+        loss.backward()
+        optimizer.step()
+    rotation, _ = poses.corrections()
+    found = rotation[0].detach().double()
+    assert found[1].item() == pytest.approx(true_turn[1].item(), rel=0.15)
+    assert loss.item() < 1e-5
+
+
+def test_training_with_refinement_saves_and_resumes_the_corrections(tiny_scene, tmp_path):
+    from neulf_core.checkpoint import load_checkpoint
+    from neulf_core.render import LightField
+    from neulf_core.scene import load_scene
+    from neulf_core.train import TrainConfig, train
+
+    events = []
+    config = TrainConfig(steps=12, batch_size=512, refine_poses=True, teacher=False)
+    train(tiny_scene, tmp_path / "m", config, progress=events.append)
+    first = load_checkpoint(tmp_path / "m")
+    assert first["poses"]["rotation"].shape == (len(first["scene"]["train"]), 3)
+    assert first["poses"]["rotation"].abs().max() > 0  # they moved after POSE_START
+    summary = json.loads((tmp_path / "m" / "model.json").read_text())["pose_corrections"]
+    assert 0 < summary["median_degrees"] <= summary["max_degrees"] < 1.0
+    assert [e for e in events if e["event"] == "poses"]
+
+    result = train(tiny_scene, tmp_path / "m", TrainConfig(steps=20), resume=True)
+    resumed = load_checkpoint(tmp_path / "m")
+    assert result.step == 20 and resumed["train_config"]["refine_poses"]
+    assert not torch.equal(resumed["poses"]["rotation"], first["poses"]["rotation"])  # continued, not restarted
+    rendering = LightField.load(tmp_path / "m", "cpu").render_view(load_scene(tiny_scene).views[0])
+    assert np.isfinite(rendering.rgb).all()
+
+
+def test_the_cli_flag_reaches_training(tiny_scene, tmp_path, capsys):
+    from neulf_core.checkpoint import load_checkpoint
+    from neulf_core.cli import main
+
+    out = tmp_path / "m"
+    assert main(["train", str(tiny_scene), "--out", str(out), "--steps", "6", "--batch-size", "256",
+                 "--no-sweep-teacher", "--refine-poses"]) == 0
+    assert load_checkpoint(out)["train_config"]["refine_poses"]
+    assert "camera poses corrected by" in capsys.readouterr().err
