@@ -44,7 +44,7 @@ class NeulfSceneSettings(bpy.types.PropertyGroup):
     depth_layers: IntProperty(name="Depth Layers", default=-1, min=-1, max=32,
                               description="Fast and Auto presets: depth layers for sharper depth edges on shallow "
                                           "scenes; worse on deep ones (-1: automatic, 8 when the scene's far/near "
-                                          "depth ratio is at most 3 and 20 or more photos train; 0: none)")
+                                          "depth ratio is at most 3 and 18 or more photos train; 0: none)")
     appearance: BoolProperty(name="Varying Exposure", default=False,
                              description="Learn a colour correction per photo, for captures whose exposure or white "
                                          "balance changes between shots")

@@ -396,7 +396,7 @@ def build_parser() -> argparse.ArgumentParser:
                         "for fast): better depth maps and refocus, docs/DEPTH.md")
     p.add_argument("--depth-layers", type=int, metavar="N",
                    help="fast/auto presets: N depth layers in the geometry (0: none; default: 8 when the scene's "
-                        "far/near depth ratio is at most 3 and there are 20 or more training views, else none): sharper depth edges on shallow scenes, "
+                        "far/near depth ratio is at most 3 and there are 18 or more training views, else none): sharper depth edges on shallow scenes, "
                         "worse on deep ones; docs/DEPTH.md")
     p.add_argument("--device", help="cpu, cuda, mps (default: the fastest available)")
     p.set_defaults(run=cmd_train)

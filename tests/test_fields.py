@@ -131,6 +131,8 @@ def test_depth_layers_by_default_only_on_shallow_scenes():
 
     assert default_depth_layers(slab(10.0, 20.0), 23) == DEFAULT_DEPTH_LAYERS  # Statue-like, far/near 2
     assert default_depth_layers(slab(10.0, 20.0), 13) == 0                     # too few photos
+    assert default_depth_layers(slab(1.26, 3.27), 18) == DEFAULT_DEPTH_LAYERS  # HCI's 25 %: 18 views
+    assert default_depth_layers(slab(1.26, 3.27), 17) == 0
     assert default_depth_layers(slab(2.0, 6.9), 23) == 0                       # the synthetic scene, 3.3
     assert default_depth_layers(slab(16.8, 77.8), 23) == 0                     # fern, 4.6
 
