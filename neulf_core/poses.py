@@ -29,9 +29,12 @@ from .slab import Slab
 
 
 def rotation_matrices(axis_angle: torch.Tensor) -> torch.Tensor:
-    """(V, 3) axis-angle vectors (radians) -> (V, 3, 3) rotations (Rodrigues; exact at 0)."""
+    """(V, 3) axis-angle vectors (radians) -> (V, 3, 3) rotations (Rodrigues' formula).
+
+    sin(a)/a and (1 - cos a)/a^2 are taken by their series, which are smooth at a = 0 (where
+    every correction starts) and within 2e-7 of the exact values up to 0.3 rad (17 degrees),
+    far beyond any pose correction."""
     angle_sq = (axis_angle ** 2).sum(1, keepdim=True)
-    # sin(a)/a and (1 - cos a)/a^2 by their series near 0, where the corrections live.
     a = 1 - angle_sq / 6 + angle_sq ** 2 / 120
     b = 0.5 - angle_sq / 24 + angle_sq ** 2 / 720
     x, y, z = axis_angle.unbind(1)
