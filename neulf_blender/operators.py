@@ -63,6 +63,18 @@ def progress_text(progress: dict) -> str:
     return f"{status} at step {step}"
 
 
+def pose_text(poses: dict | None) -> str:
+    """The camera corrections a model trained with Refine Poses found, for the status line."""
+    if not poses:
+        return ""
+    return f"; poses corrected by {poses['median_degrees']:.2f}° (largest {poses['max_degrees']:.2f}°)"
+
+
+def model_status(meta: dict) -> str:
+    """progress_text, and the pose corrections where the model has them."""
+    return progress_text(meta.get("progress", {})) + pose_text(meta.get("pose_corrections"))
+
+
 def refresh_model_status(scene) -> str:
     """The scene's `last_status` (shown in the panel) from its model folder, e.g. when a .blend
     is opened after Blender quit during training: the folder, not the .blend, knows how far
@@ -82,7 +94,7 @@ def refresh_model_status(scene) -> str:
         props.last_status = f"no checkpoint in {path} yet; Train starts the model"
         return props.last_status
     progress = meta.get("progress", {})
-    props.last_status = progress_text(progress)
+    props.last_status = model_status(meta)
     if progress.get("val_psnr") is not None:
         props.last_psnr = float(progress["val_psnr"])
     return props.last_status
@@ -198,7 +210,7 @@ def attach_model(context, path: str) -> dict:
     progress = meta.get("progress", {})
     if progress.get("val_psnr") is not None:
         props.last_psnr = float(progress["val_psnr"])
-    props.last_status = progress_text(progress)
+    props.last_status = model_status(meta)
     collection, root = capture.find_capture(context.scene)
     fingerprint = meta.get("scene", {}).get("fingerprint")
     if collection is not None and meta.get("slab") and fingerprint in (None, props.fingerprint):
@@ -294,7 +306,7 @@ def job_status_text(state: dict) -> str:
         text += f" (continued from step {state['resumed_from']})"
     if state["status"] == "cancelled":
         text += "; Train continues it"
-    return text
+    return text + pose_text(state.get("poses"))
 
 
 class NEULF_OT_train(_Reporting, bpy.types.Operator):

@@ -32,7 +32,7 @@ PLANE_NORMAL = np.array([0.25, -0.15, -1.0]) / np.linalg.norm([0.25, -0.15, -1.0
 GRID = [(x, y) for y in (-0.3, 0.0, 0.3) for x in (-0.3, 0.0, 0.3)]
 
 STEPS = ["install", "import", "cameras_match_pycolmap", "slab_planes", "reimport_no_duplicates", "train_blocking",
-         "train_timer_resume", "train_cancel", "train_cancel_resume", "render_camera", "render_worker_process",
+         "train_options", "train_timer_resume", "train_cancel", "train_cancel_resume", "render_camera", "render_worker_process",
          "focus_at", "pick_focus_frame", "pick_focus_click", "root_scale", "engine_f12", "spiral_video", "save_reload",
          "blend_moved", "quit_while_training", "reconstruct_photos", "user_errors", "dependencies_status",
          "install_dependencies"]
@@ -280,6 +280,23 @@ def run_story(setup: dict) -> None:  # noqa: C901 - one story, told in order
         meta = json.loads((model / "model.json").read_text())
         assert meta["progress"]["step"] == 40 and props.last_status.startswith("finished"), props.last_status
         return f"40 steps in {time.monotonic() - started:.1f} s, val {props.last_psnr:.2f} dB"
+
+    @story.step("train_options", "import")
+    def _():
+        # The panel's "Varying Exposure" and "Refine Poses" reach training and come back as
+        # the status line's pose corrections.
+        props = bpy.context.scene.neulf
+        saved = props.model_dir
+        options_model = work / "model_options"
+        props.model_dir, props.appearance, props.refine_poses = str(options_model), True, True
+        try:
+            assert bpy.ops.neulf.train(steps=10) == {"FINISHED"}
+            meta = json.loads((options_model / "model.json").read_text())
+            assert meta["train_config"]["appearance"] and meta["train_config"]["refine_poses"], meta["train_config"]
+            assert "poses corrected by" in props.last_status, props.last_status
+            return props.last_status
+        finally:
+            props.model_dir, props.appearance, props.refine_poses = saved, False, False
 
     @story.step("train_timer_resume", "train_blocking")
     def _():
