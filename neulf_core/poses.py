@@ -53,11 +53,8 @@ class PoseRefinement(nn.Module):
         gaps = np.linalg.norm(centres[:, None] - centres[None], axis=2)
         np.fill_diagonal(gaps, np.inf)
         spacing = float(np.median(gaps.min(axis=1))) if len(centres) > 1 else 1.0
-        _, _, centre, half = slab._tensors("cpu", torch.float32)
+        self.slab = slab
         self.register_buffer("centres", torch.as_tensor(centres, dtype=torch.float32))
-        self.register_buffer("uvst_centre", centre)
-        self.register_buffer("uvst_half", half)
-        self.register_buffer("planes", torch.tensor([slab.z_uv, slab.z_st], dtype=torch.float32))
         # Shifts are learned in units of the camera spacing, so one learning rate suits every
         # scene's units; rotations in radians.
         self.spacing = spacing
@@ -71,17 +68,11 @@ class PoseRefinement(nn.Module):
     def forward(self, uvst: torch.Tensor, view_index: torch.Tensor) -> torch.Tensor:
         rotation, shift = self.corrections()
         turn, moved, centre = rotation_matrices(rotation)[view_index], shift[view_index], self.centres[view_index]
-        raw = uvst * self.uvst_half + self.uvst_centre
-        z_uv, z_st = self.planes[0], self.planes[1]
-        p_uv = torch.cat([raw[:, :2], z_uv.expand(len(raw), 1)], 1)
-        p_st = torch.cat([raw[:, 2:], z_st.expand(len(raw), 1)], 1)
+        p_uv, p_st = self.slab.plane_crossings(uvst)
         # Both crossings move with the camera: about its centre, then by its shift.
         a = centre + torch.bmm(turn, (p_uv - centre).unsqueeze(-1)).squeeze(-1) + moved
         b = centre + torch.bmm(turn, (p_st - centre).unsqueeze(-1)).squeeze(-1) + moved
-        d = b - a
-        uv = a[:, :2] + d[:, :2] * ((z_uv - a[:, 2]) / d[:, 2])[:, None]
-        st = a[:, :2] + d[:, :2] * ((z_st - a[:, 2]) / d[:, 2])[:, None]
-        return (torch.cat([uv, st], 1) - self.uvst_centre) / self.uvst_half
+        return self.slab.slab_rays_to_uvst(a, b - a)[0]
 
     @torch.no_grad()
     def summary(self) -> dict:

@@ -85,13 +85,18 @@ class Slab:
 
         Differentiable in origins and directions.  `origins` may be (3,) or (N, 3).
         """
-        rotation, origin, centre, half = self._tensors(directions.device, directions.dtype)
+        rotation, origin, _, _ = self._tensors(directions.device, directions.dtype)
         o = (origins - origin) @ rotation.T
         d = directions @ rotation.T
         if o.dim() == 1:
             o = o.expand_as(d)
+        return self.slab_rays_to_uvst(o, d, normalise)
+
+    def slab_rays_to_uvst(self, o: torch.Tensor, d: torch.Tensor, normalise: bool = True):
+        """rays_to_uvst for rays already in the slab frame: (N, 3) points and directions."""
+        _, _, centre, half = self._tensors(d.device, d.dtype)
         dz = d[:, 2]
-        valid = dz > MIN_AXIS_COSINE * directions.norm(dim=1)
+        valid = dz > MIN_AXIS_COSINE * d.norm(dim=1)
         dz_safe = torch.where(valid, dz, torch.ones_like(dz))
         uv = o[:, :2] + d[:, :2] * ((self.z_uv - o[:, 2]) / dz_safe)[:, None]
         st = o[:, :2] + d[:, :2] * ((self.z_st - o[:, 2]) / dz_safe)[:, None]
@@ -100,14 +105,20 @@ class Slab:
             uvst = (uvst - centre) / half
         return uvst, valid
 
-    def uvst_to_rays(self, uvst: torch.Tensor, normalised: bool = True):
-        """(N, 4) -> world points on the uv plane (N, 3) and unit directions towards st (N, 3)."""
-        rotation, origin, centre, half = self._tensors(uvst.device, uvst.dtype)
+    def plane_crossings(self, uvst: torch.Tensor, normalised: bool = True):
+        """(N, 4) -> the rays' points on the uv and on the st plane, (N, 3) each, slab frame."""
+        _, _, centre, half = self._tensors(uvst.device, uvst.dtype)
         if normalised:
             uvst = uvst * half + centre
         n = uvst.shape[0]
         p_uv = torch.cat([uvst[:, :2], torch.full((n, 1), self.z_uv, device=uvst.device, dtype=uvst.dtype)], 1)
         p_st = torch.cat([uvst[:, 2:], torch.full((n, 1), self.z_st, device=uvst.device, dtype=uvst.dtype)], 1)
+        return p_uv, p_st
+
+    def uvst_to_rays(self, uvst: torch.Tensor, normalised: bool = True):
+        """(N, 4) -> world points on the uv plane (N, 3) and unit directions towards st (N, 3)."""
+        rotation, origin, _, _ = self._tensors(uvst.device, uvst.dtype)
+        p_uv, p_st = self.plane_crossings(uvst, normalised)
         d = p_st - p_uv
         d = d / d.norm(dim=1, keepdim=True)
         return p_uv @ rotation + origin, d @ rotation
