@@ -103,7 +103,8 @@ def run_learned(preset, scene, views, args, common, minutes: float) -> list[dict
         final = score(lambda v: field.render_view(v, args.scale, depth=False).rgb, views, args.scale)
         rows.append({**common, "method": preset, "train_s": round(result.elapsed, 1), "psnr": final["psnr"], "ssim": final["ssim"],
                      "lpips": final["lpips"], "render_s": final["render_s"], "model_bytes": size, "steps": result.step, "kind": "full views",
-                     "per_view": final["per_view"], "parameters": count_parameters(field.field)})
+                     "per_view": final["per_view"], "parameters": count_parameters(field.field),
+                     "render_precision": "half" if field.half else "full"})
     return rows
 
 

@@ -245,7 +245,7 @@ def cmd_render(args) -> int:
         raise NeulfError(f"--scale must be positive, not {args.scale}.")
     focus_options = _focus_options(args)
     refocus = focus_options[1] > 0 or focus_options[2] is not None
-    light_field = LightField.load(args.model_dir, args.device)
+    light_field = LightField.load(args.model_dir, args.device, args.precision)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     count, started = 0, time.perf_counter()
@@ -318,7 +318,7 @@ def cmd_video(args) -> int:
     from .render import LightField
     from .video import write_video
 
-    light_field = LightField.load(args.model_dir, args.device)
+    light_field = LightField.load(args.model_dir, args.device, args.precision)
     centres, K, width, height = _rig_from_meta(light_field)
     poses = spiral_path(light_field.slab, centres, frames=args.frames)
     started = time.perf_counter()
@@ -352,6 +352,12 @@ def cmd_demo(args) -> int:
 
 
 # ----------------------------------------------------------------------------- parser
+
+
+def _precision_argument(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--precision", choices=("auto", "half", "full"), default="auto",
+                   help="field arithmetic: half (float16 products, GPU tensor cores), full (float32); "
+                        "auto: half on CUDA, full elsewhere (docs/BENCHMARKS.md)")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -416,6 +422,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--f-stop", type=float, help="refocus: aperture as an f-number (with --focal-length) instead of --aperture")
     p.add_argument("--focal-length", type=float, help="refocus: the lens's focal length in scene units, for --f-stop")
     p.add_argument("--device")
+    _precision_argument(p)
     p.set_defaults(run=cmd_render)
 
     p = sub.add_parser("eval", help="PSNR/SSIM on the held-out views")
@@ -438,6 +445,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--frames", type=int, default=60)
     p.add_argument("--fps", type=int, default=30)
     p.add_argument("--device")
+    _precision_argument(p)
     p.set_defaults(run=cmd_video)
 
     p = sub.add_parser("demo", help="render a small Blender scene, reconstruct, train, render (needs bpy)")

@@ -140,6 +140,12 @@ class DisparityField(nn.Module):
 
     def sheared(self, uvst: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Where rays (N, 4) read the texture, (N, 2) in [-1, 1], and their depth unit (N, 1)."""
+        # float32 even when rendering under float16 autocast (render.PRECISIONS): a texel is
+        # 1/512 of the range, and float16 disparities moved colours to 55 dB from float32.
+        with torch.autocast(uvst.device.type, enabled=False):
+            return self._sheared(uvst)
+
+    def _sheared(self, uvst: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         features = self._geometry_features(uvst)
         uv = uvst[:, :2] * self.uv_half + self.uv_centre
         scale = 1.0 / (1.0 + self.config.texture_margin)  # sheared st leaves [-1, 1] a little
