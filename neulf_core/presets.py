@@ -20,7 +20,7 @@ class Preset:
     lr_decay_per_epoch: float | None = None   # the paper's schedule; None: decay over the budget
     lr_final_ratio: float = 0.1               # learning rate at the end of the budget / at start
     batch_size: int = 8192
-    consistency: bool = False                 # the paper's multi-view losses on by default (docs/DEPTH.md)
+    consistency: bool | None = False          # the paper's multi-view losses by default; None: train.default_consistency (docs/DEPTH.md)
     teacher: bool = False                     # early depth pulled toward the classic plane sweep (teacher.py, docs/DEPTH.md)
     description: str = ""
 
@@ -42,9 +42,9 @@ PRESETS: dict[str, Preset] = {
                     description="the paper's network: 20 x 256 ReLU layers, raw-input skips every 4 layers"),
     "authors": Preset("mlp", {"depth": 8, "width": 256, "skip": "embedding"}, lr=5e-4, lr_decay_per_epoch=0.995,
                       description="the authors' code default: 8 x 256, embedding skips"),
-    "fast": Preset("disparity", FAST_FIELD, lr=2e-3, lr_final_ratio=0.1, batch_size=8192, teacher=True,
+    "fast": Preset("disparity", FAST_FIELD, lr=2e-3, lr_final_ratio=0.1, batch_size=8192, teacher=True, consistency=None,
                    description="per-ray disparity shearing one shared st texture; trains in minutes on a CPU"),
-    "auto": Preset("disparity", FAST_FIELD, lr=2e-3, lr_final_ratio=0.1, batch_size=8192,
+    "auto": Preset("disparity", FAST_FIELD, lr=2e-3, lr_final_ratio=0.1, batch_size=8192, consistency=None,
                    description="the fast field with its texture sized per scene on validation views (autosize.py)"),
     "planes": Preset("planes", {}, lr=2e-3, lr_final_ratio=0.1, batch_size=8192,
                      description="six factorised (u,v,s,t) feature planes + tiny MLP (K-Planes style)"),

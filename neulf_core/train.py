@@ -124,6 +124,21 @@ def default_depth_layers(slab: Slab, n_train_views: int) -> int:
     return 0 if slab.is_deep or n_train_views < DEPTH_LAYERS_MIN_VIEWS else DEFAULT_DEPTH_LAYERS
 
 
+# The paper's multi-view losses (consistency.py) cost about twice the time per step, so they
+# are on by default only where they were measured to pay for that at equal training time
+# (1 minute, one thread each, side by side, the fast field; docs/DEPTH.md): deep scenes with
+# few photos -- the project's synthetic scene with 4 / 7 / 14 training views +1.22 / +0.97 /
+# +0.16 dB (3 / 2 / 2 seeds), fern at 252x189 with 4 / 8 / 17 views +0.83 / +0.54 / -0.18 dB.
+# Shallow scenes gain less than the lost steps: CanClip with 6 views -0.39 dB (3 seeds), with
+# all 26 -1.03 dB at 5 minutes.  With many photos the field's shared texture already makes
+# neighbouring rays agree; with few, the losses tie each ray's depth to the other photos.
+CONSISTENCY_MAX_VIEWS = 13
+
+
+def default_consistency(slab: Slab, n_train_views: int) -> bool:
+    return slab.is_deep and 2 <= n_train_views <= CONSISTENCY_MAX_VIEWS
+
+
 def _build_field(preset_name: str, overrides: dict, train_views, slab: Slab, scale: float, appearance: bool = False):
     n_train_views = len(train_views)
     preset = get_preset(preset_name)
@@ -235,7 +250,12 @@ def _train(scene, model_dir: Path, config: TrainConfig, images_dir, resume: bool
     poses = PoseRefinement(slab, np.stack([v.center for v in train_views])).to(device) if config.refine_poses else None
     if poses is not None and resumed and resumed.get("poses"):
         poses.load_state_dict(resumed["poses"])
-    use_consistency = preset.consistency if config.consistency is None else config.consistency
+    use_consistency = config.consistency if config.consistency is not None else preset.consistency
+    if use_consistency is None:
+        use_consistency = default_consistency(slab, len(train_views))
+        if use_consistency:
+            _emit(progress, event="stage", message=f"{len(train_views)} photos of a deep scene: training with the paper's "
+                  "multi-view losses, about twice the time per step (--no-consistency turns them off; docs/DEPTH.md)")
     consistency = _consistency_inputs(train_views, slab, config, device) if use_consistency else None
     optimizer = _optimizer(field_module, preset.lr, appearance, poses)
     batch = config.batch_size or preset.batch_size

@@ -150,3 +150,39 @@ def test_appearance_transforms_average_to_identity():
     views = torch.arange(8) % 4
     expected = torch.einsum("nij,nj->ni", matrix[views], rgb) + offset[views]
     assert torch.allclose(appearance(rgb, views), expected, atol=1e-6)
+
+
+def test_losses_by_default_only_for_few_photos_of_a_deep_scene():
+    from neulf_core.train import CONSISTENCY_MAX_VIEWS, default_consistency
+
+    def slab(near, far):
+        return Slab(np.eye(3), np.zeros(3), 0.0, (near + far) / 2, near, far, -np.ones(4), np.ones(4))
+
+    assert default_consistency(slab(2.0, 6.9), 4)                            # the synthetic scene's 25 %
+    assert default_consistency(slab(16.8, 77.8), 8)                          # fern's 50 %
+    assert default_consistency(slab(16.8, 77.8), CONSISTENCY_MAX_VIEWS)
+    assert not default_consistency(slab(16.8, 77.8), CONSISTENCY_MAX_VIEWS + 1)  # fern's 17: -0.18 dB
+    assert not default_consistency(slab(10.0, 17.1), 6)                      # CanClip's 25 %, shallow
+    assert not default_consistency(slab(2.0, 6.9), 1)                        # no neighbour to compare with
+
+
+@pytest.mark.parametrize("near, far, asked, expected", [
+    (1.0, 6.0, None, True),     # deep, 8 training views: on by default, and said so
+    (1.0, 6.0, False, False),   # --no-consistency wins
+    (2.5, 4.0, None, False),    # shallow: off
+    (2.5, 4.0, True, True),     # --consistency wins
+])
+def test_training_applies_the_default_and_the_flag(tiny_scene, tmp_path, monkeypatch, near, far, asked, expected):
+    import neulf_core.train as train_module
+
+    calls = []
+    real = train_module.multiview_losses
+    monkeypatch.setattr(train_module, "multiview_losses", lambda *a, **k: calls.append(1) or real(*a, **k))
+    events = []
+    config = train_module.TrainConfig(preset="fast", steps=2, consistency=asked, near=near, far=far, batch_size=128,
+                                      consistency_rays=32, validate_seconds=1e9, teacher=False,
+                                      field_overrides={"texture_size": [16, 16]})
+    train_module.train(tiny_scene, tmp_path / "m", config, progress=events.append)
+    assert bool(calls) == expected
+    said = any("multi-view losses" in e.get("message", "") for e in events if e.get("event") == "stage")
+    assert said == (expected and asked is None)
