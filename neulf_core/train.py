@@ -128,7 +128,8 @@ def default_depth_layers(slab: Slab, n_train_views: int) -> int:
 # are on by default only where they were measured to pay for that at equal training time
 # (1 minute, one thread each, side by side, the fast field; docs/DEPTH.md): deep scenes with
 # few photos -- the project's synthetic scene with 4 / 7 / 14 training views +1.22 / +0.97 /
-# +0.16 dB (3 / 2 / 2 seeds), fern at 252x189 with 4 / 8 / 17 views +0.83 / +0.54 / -0.18 dB.
+# +0.16 dB (3 / 2 / 2 seeds), fern at 252x189 with 4 / 8 / 17 views +0.82 / +0.54 / -0.18 dB
+# (2 / 1 / 1 seeds).
 # Shallow scenes gain less than the lost steps: CanClip with 6 views -0.39 dB (3 seeds), with
 # all 26 -1.03 dB at 5 minutes.  With many photos the field's shared texture already makes
 # neighbouring rays agree; with few, the losses tie each ray's depth to the other photos.
