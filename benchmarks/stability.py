@@ -1,7 +1,7 @@
 """Stability study: where the light field breaks, and by how much (issue 4, "Stability").
 
     python benchmarks/stability.py [--workers 2] [--fast-steps 1000] [--paper-steps 100] \
-        [--seeds 0,1,2] [--cache /tmp/neulf_stability] [--only views,variants,exposure,pose]
+        [--seeds 0,1,2] [--cache /tmp/neulf_stability] [--only views,variants,exposure,pose,losses]
 
 Trains the default model (`fast`) and, on a reduced set of configurations, the paper's
 network (`paper`, about 50x slower per step on a CPU) on:
@@ -14,8 +14,10 @@ network (`paper`, about 50x slower per step on a CPU) on:
   stop, trained with and without per-view appearance compensation, scored against the
   held-out views rendered at the nominal exposure;
 - pose noise: training poses rotated and shifted by increasing amounts (held-out poses exact);
+- the paper's multi-view losses off and on at equal wall-clock time (`--losses-minutes`) with
+  fewer views, on the synthetic scene, fern and CanClip: where the default turns them on;
 
-three seeds each. Fixed step budgets and one torch thread per run, so the numbers do not
+three seeds each (two for the losses study). Fixed step budgets and one torch thread per run, so the numbers do not
 depend on how busy the (shared) machine is. Synthetic scenes are rendered once with
 `python -m neulf_synth` into the cache folder; finished runs are appended to
 `<cache>/runs.jsonl` and reused on the next call (`--fresh` ignores them).
@@ -52,14 +54,17 @@ sys.path.insert(0, str(REPO))
 from neulf_core.metrics import psnr, ssim  # noqa: E402
 from neulf_core.render import LightField  # noqa: E402
 from neulf_core.scene import Scene, View, find_model_dir, load_scene, split_views  # noqa: E402
-from neulf_core.train import TrainConfig, train  # noqa: E402
+from neulf_core.train import CONSISTENCY_MAX_VIEWS, TrainConfig, train  # noqa: E402
 
 DOCS = REPO / "docs"
 CANCLIP = REPO.parent / "shared" / "data" / "canclip"
 # The densest capture at hand (a 9x9 grid, 70 training views): the paper's own fewer-views
 # scenes had 303-307 photos, so its 25 % still kept 76-77 of them.
 HCI = REPO.parent / "shared" / "data" / "hci_antinous"
+FERN = REPO.parent / "shared" / "data" / "fern"
 FEWER_VIEWS_SCENES = ("canclip", "hci", "lambertian")
+# The losses study: scenes and shares of the training views (deep: lambertian, fern; shallow: canclip).
+LOSSES_PLAN = {"lambertian": (1.0, 0.5, 0.25), "fern": (1.0, 0.5, 0.25), "canclip": (1.0, 0.25)}
 DEFAULT_CACHE = Path(tempfile.gettempdir()) / "neulf_stability"
 FRACTIONS = (1.0, 0.75, 0.5, 0.25)
 POSE_DEGREES = (0.0, 0.1, 0.25, 0.5, 1.0, 2.0)
@@ -92,6 +97,8 @@ class Job:
     pose_degrees: float = 0.0  # rotation noise on the training poses (translation scales with it)
     appearance: bool = False   # per-view appearance compensation (TrainConfig.appearance)
     refine_poses: bool = False  # learned per-view pose corrections (TrainConfig.refine_poses)
+    consistency: bool | None = None  # the paper's multi-view losses forced on / off (None: the default's rule)
+    minutes: float = 0.0       # a wall-clock budget instead of `steps` (the losses study's equal time)
 
     @property
     def key(self) -> str:
@@ -235,7 +242,7 @@ def score_views(model_dir: Path, held: list[View], scale: float) -> dict:
     return {"psnr": float(np.mean(psnrs)), "ssim": float(np.mean(ssims)), "psnr_matched": float(np.mean(matched)),
             "psnr_half_fit": float(np.mean(half_fit)),
             "psnr_per_view": ";".join(f"{view.stem}={p:.2f}" for view, p in zip(held, psnrs)),
-            "nonfinite_pixels": nonfinite}
+            "nonfinite_pixels": nonfinite, "deep_scene": bool(light_field.slab.is_deep)}
 
 
 def colour_matched(image: np.ndarray, target: np.ndarray, fit_columns: slice = slice(None)) -> np.ndarray:
@@ -267,6 +274,10 @@ def train_config(job: Job, held: list[View]) -> TrainConfig:
         options["appearance"] = True
     if job.refine_poses:
         options["refine_poses"] = True
+    if job.consistency is not None:
+        options["consistency"] = job.consistency
+    if job.minutes:
+        options.update(steps=None, minutes=job.minutes)
     return TrainConfig(**options)
 
 
@@ -335,6 +346,8 @@ def run_order(job: Job, jobs: list[Job]) -> tuple:
     first_seed = min(j.seed for j in jobs)
     if job.preset == "paper":
         return (1, job.seed)
+    if job.minutes:  # the losses study last, its off / on pairs side by side
+        return (4, job.seed, job.scene, job.fraction)
     if job.seed == first_seed:
         return (0, job.seed)
     targeted = job.pose_degrees == 0 and (job.fraction in (1.0, 0.25) or job.scene.startswith("jitter"))
@@ -389,6 +402,16 @@ def plan(args, scenes: dict[str, Path]) -> list[Job]:
             add("lambertian", "fast", synth, pose_degrees=degrees, refine_poses=True)
         if "canclip" in scenes:  # what refinement costs where the poses are COLMAP's own
             add("canclip", "fast", args.canclip_scale, refine_poses=True)
+    if "losses" in studies:
+        scales = {"lambertian": synth, "fern": args.fern_scale, "canclip": args.canclip_scale}
+        losses_seeds = [int(s) for s in args.losses_seeds.split(",")]
+        for scene, shares in LOSSES_PLAN.items():
+            if scene not in scenes:
+                continue
+            for fraction in shares:
+                for consistency in (False, True):
+                    add(scene, "fast", scales[scene], seed_list=losses_seeds, fraction=fraction,
+                        consistency=consistency, minutes=args.losses_minutes)
     return list({job.key: job for job in jobs}.values())  # shared baselines run once
 
 
@@ -417,10 +440,11 @@ def cell(rows: list[dict], column: str = "psnr") -> str:
 
 
 def base(scene: str, preset: str | None = None, fraction: float = 1.0, pose_degrees: float = 0.0,
-         appearance: bool = False, refine_poses: bool = False) -> dict:
+         appearance: bool = False, refine_poses: bool = False, consistency: bool | None = None,
+         minutes: float = 0.0) -> dict:
     """Row filter for one configuration (unedited unless told); preset None matches both."""
     match = {"scene": scene, "fraction": fraction, "pose_degrees": pose_degrees, "appearance": appearance,
-             "refine_poses": refine_poses}
+             "refine_poses": refine_poses, "consistency": consistency, "minutes": minutes}
     return match if preset is None else {**match, "preset": preset}
 
 
@@ -492,19 +516,45 @@ def pose_table(rows: list[dict]) -> list[str]:
     return lines
 
 
+def losses_table(rows: list[dict]) -> list[str]:
+    lines = ["| scene | training views | off | on (the paper's losses) | gain | steps off / on (mean) | the default |",
+             "|---|---|---|---|---|---|---|"]
+    for scene, shares in LOSSES_PLAN.items():
+        for fraction in shares:
+            minutes = next((r["minutes"] for r in rows if r["scene"] == scene and r["minutes"]), None)
+            if minutes is None:
+                continue
+            off, on = (group(rows, preset="fast", **base(scene, fraction=fraction, consistency=c, minutes=minutes))
+                       for c in (False, True))
+            a, b = stats(off), stats(on)
+            if not (a or b):
+                continue
+            gain = f"{b['mean'] - a['mean']:+.2f} dB" if a and b else "-"
+            steps = "/".join(f"{np.mean([r['steps_done'] for r in c if r.get('status') == 'finished']):.0f}" if c else "-"
+                             for c in (off, on))
+            views = next((r.get("train_views") for r in off + on if r.get("train_views")), "?")
+            deep = next((r["deep_scene"] for r in off + on if "deep_scene" in r), None)
+            default = "?" if deep is None or not isinstance(views, int) else (
+                "on" if deep and 2 <= views <= CONSISTENCY_MAX_VIEWS else "off")
+            lines.append(f"| {scene} | {views} | {cell(off)} | {cell(on)} | {gain} | {steps} | {default} |")
+    return lines
+
+
 def runs_table(rows: list[dict]) -> list[str]:
     lines = ["| model | runs | finished | crashed | NaN/skip warnings | steps per run | mean s per run "
              "| ms per step (wall clock, shared machine) |",
              "|---|---|---|---|---|---|---|---|"]
-    for preset in ("fast", "paper"):
-        c = group(rows, preset=preset)
+    for label, preset, timed in (("fast", "fast", False), ("fast, equal time (losses study)", "fast", True),
+                                 ("paper", "paper", False)):
+        c = [r for r in group(rows, preset=preset) if bool(r.get("minutes")) == timed]
         if not c:
             continue
         ok = [r for r in c if r.get("status") == "finished"]
         seconds = [r["train_seconds"] for r in ok]
         steps = sorted({r["steps_done"] for r in ok})
+        steps = steps if not timed or not steps else [f"{min(steps)}-{max(steps)}"]
         per_step = [1000 * r["train_seconds"] / max(r["steps_done"], 1) for r in ok]
-        lines.append(f"| {preset} | {len(c)} | {len(ok)} | {sum(r.get('status') == 'crashed' for r in c)} | "
+        lines.append(f"| {label} | {len(c)} | {len(ok)} | {sum(r.get('status') == 'crashed' for r in c)} | "
                      f"{sum(int(r.get('warnings', 0)) for r in c)} | {'/'.join(map(str, steps))} | "
                      f"{np.mean(seconds) if seconds else math.nan:.0f} | {np.mean(per_step) if per_step else math.nan:.0f} |")
     return lines
@@ -520,6 +570,8 @@ def targets(rows: list[dict]) -> list[str]:
             out.append(f"- 100% -> 25% views on {scene}: {loss:.2f} dB lost (target ≤ 1.5): {'met' if loss <= 1.5 else 'MISSED'}")
     spreads = []
     for match in configurations(rows, "fast"):
+        if match["minutes"]:  # wall-clock budgets also vary with the machine's load, not only the seed
+            continue
         s = stats(group(rows, **match))
         if s and s["n"] >= 2:
             spreads.append((s["spread"], match))
@@ -560,8 +612,8 @@ def targets(rows: list[dict]) -> list[str]:
 
 def configurations(rows: list[dict], preset: str) -> list[dict]:
     """The distinct configurations (everything but the seed) that `preset` was run in."""
-    keys = {(r["scene"], r["fraction"], r["pose_degrees"], r["appearance"], r["refine_poses"])
-            for r in rows if r["preset"] == preset}
+    keys = {(r["scene"], r["fraction"], r["pose_degrees"], r["appearance"], r["refine_poses"], r["consistency"],
+             r["minutes"]) for r in rows if r["preset"] == preset}
     return [base(scene, preset, *rest) for scene, *rest in sorted(keys)]
 
 
@@ -575,6 +627,10 @@ def describe(match: dict) -> str:
         parts.append("appearance")
     if match.get("refine_poses"):
         parts.append("pose refinement")
+    if match.get("consistency") is not None:
+        parts.append(f"losses {'on' if match['consistency'] else 'off'}")
+    if match.get("minutes"):
+        parts.append(f"{match['minutes']:g} min")
     return ", ".join(parts)
 
 
@@ -590,6 +646,9 @@ def tables_markdown(rows: list[dict], meta: dict) -> str:
         *exposure_table(rows),
         "", "### Pose noise (fast; synthetic Lambertian scene; rotation / translation as a share of the camera spacing)", "",
         *pose_table(rows),
+        "", f"### The paper's multi-view losses with fewer views (fast; equal time, {meta.get('losses_minutes', 1.0):g} min "
+        f"per run; seeds {meta.get('losses_seeds', '0,1')}; the default turns them on for deep scenes with at most "
+        f"{CONSISTENCY_MAX_VIEWS} training views)", "", *losses_table(rows),
         "", "### Runs", "", *runs_table(rows),
         "", "### Targets (issue 4)", "", *targets(rows),
     ]
@@ -729,7 +788,11 @@ def parse_args(argv=None) -> argparse.Namespace:
     parser.add_argument("--canclip-scale", type=float, default=0.25)
     parser.add_argument("--hci", type=Path, default=HCI)
     parser.add_argument("--hci-scale", type=float, default=0.5)
-    parser.add_argument("--only", default="views,variants,exposure,pose")
+    parser.add_argument("--fern", type=Path, default=FERN)
+    parser.add_argument("--fern-scale", type=float, default=0.5, help="of fern's 504x378 images_8")
+    parser.add_argument("--losses-minutes", type=float, default=1.0, help="the losses study's equal wall-clock budget")
+    parser.add_argument("--losses-seeds", default="0,1")
+    parser.add_argument("--only", default="views,variants,exposure,pose,losses")
     parser.add_argument("--fresh", action="store_true", help="ignore the runs already in the cache's log")
     parser.add_argument("--report-only", action="store_true", help="rewrite the docs from the log, train nothing")
     return parser.parse_args(argv)
@@ -747,6 +810,8 @@ def main(argv=None) -> None:
         scenes["canclip"] = args.canclip
     if args.hci.is_dir():
         scenes["hci"] = args.hci
+    if args.fern.is_dir():
+        scenes["fern"] = args.fern
     if not appearance_available():
         print("note: TrainConfig has no 'appearance' option yet; those runs are marked unavailable", flush=True)
     jobs = plan(args, scenes)
@@ -757,7 +822,8 @@ def main(argv=None) -> None:
     else:
         rows = run_jobs(jobs, args.workers, done, log)
     meta = {"date": date.today().isoformat(), "machine": machine(), "fast_steps": args.fast_steps,
-            "paper_steps": args.paper_steps, "seeds": args.seeds}
+            "paper_steps": args.paper_steps, "seeds": args.seeds, "losses_minutes": args.losses_minutes,
+            "losses_seeds": args.losses_seeds}
     print(write_outputs(rows, args.docs, meta))
 
 
