@@ -319,7 +319,7 @@ def run_jobs(jobs: list[Job], workers: int = 2, done: dict | None = None, log: P
 
     def record(row: dict) -> None:
         done[Job(**{f.name: row[f.name] for f in fields(Job)}).key] = row
-        print(progress_line(row, len(done), len(jobs)), flush=True)
+        print(progress_line(row, sum(job.key in done for job in jobs), len(jobs)), flush=True)
         if log is not None:
             with open(log, "a") as handle:
                 handle.write(json.dumps(row, default=float) + "\n")
@@ -357,7 +357,9 @@ def run_order(job: Job, jobs: list[Job]) -> tuple:
 def progress_line(row: dict, count: int, total: int) -> str:
     score = f"{row['psnr']:.2f} dB" if isinstance(row.get("psnr"), float) else row.get("error", "")
     return (f"[{count}/{total}] {row['scene']} {row['preset']} views={row['fraction']:g} pose={row['pose_degrees']:g}deg "
-            f"appearance={row['appearance']} refine={row.get('refine_poses', False)} seed={row['seed']}: {row['status']} {score} "
+            f"appearance={row['appearance']} refine={row.get('refine_poses', False)} seed={row['seed']}"
+            f"{'' if row.get('consistency') is None else ' losses=' + ('on' if row['consistency'] else 'off')}"
+            f"{' minutes=%g' % row['minutes'] if row.get('minutes') else ''}: {row['status']} {score} "
             f"({row.get('steps_done', 0)} steps, {row.get('train_seconds', math.nan)} s, {row.get('warnings', 0)} warnings)")
 
 
@@ -519,11 +521,10 @@ def pose_table(rows: list[dict]) -> list[str]:
 def losses_table(rows: list[dict]) -> list[str]:
     lines = ["| scene | training views | off | on (the paper's losses) | gain | steps off / on (mean) | the default |",
              "|---|---|---|---|---|---|---|"]
-    for scene, shares in LOSSES_PLAN.items():
-        for fraction in shares:
-            minutes = next((r["minutes"] for r in rows if r["scene"] == scene and r["minutes"]), None)
-            if minutes is None:
-                continue
+    timed = [r for r in rows if r.get("minutes") and r.get("consistency") is not None]
+    for scene in dict.fromkeys([*LOSSES_PLAN, *(r["scene"] for r in timed)]):
+        for fraction in sorted({r["fraction"] for r in timed if r["scene"] == scene}, reverse=True):
+            minutes = next(r["minutes"] for r in timed if r["scene"] == scene)
             off, on = (group(rows, preset="fast", **base(scene, fraction=fraction, consistency=c, minutes=minutes))
                        for c in (False, True))
             a, b = stats(off), stats(on)
@@ -614,7 +615,8 @@ def configurations(rows: list[dict], preset: str) -> list[dict]:
     """The distinct configurations (everything but the seed) that `preset` was run in."""
     keys = {(r["scene"], r["fraction"], r["pose_degrees"], r["appearance"], r["refine_poses"], r["consistency"],
              r["minutes"]) for r in rows if r["preset"] == preset}
-    return [base(scene, preset, *rest) for scene, *rest in sorted(keys)]
+    ordered = sorted(keys, key=lambda k: tuple(-1 if v is None else v for v in k))  # consistency may be None
+    return [base(scene, preset, *rest) for scene, *rest in ordered]
 
 
 def describe(match: dict) -> str:
@@ -665,7 +667,7 @@ def update_markdown(path: Path, tables: str) -> None:
     path.write_text(f"{head}{MARKER_BEGIN}\n{tables}\n{MARKER_END}{tail}")
 
 
-CSV_COLUMNS = ["scene", "preset", "fraction", "pose_degrees", "appearance", "refine_poses", "seed", "status", "psnr", "ssim",
+CSV_COLUMNS = ["scene", "preset", "fraction", "pose_degrees", "appearance", "refine_poses", "consistency", "minutes", "deep_scene", "seed", "status", "psnr", "ssim",
                "psnr_matched", "psnr_half_fit", "psnr_per_view", "train_views", "held_out", "steps", "steps_done", "train_seconds",
                "wall_seconds", "warnings", "warning_text", "nonfinite_pixels", "error", "scale", "path", "truth"]
 

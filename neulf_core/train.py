@@ -126,13 +126,12 @@ def default_depth_layers(slab: Slab, n_train_views: int) -> int:
 
 # The paper's multi-view losses (consistency.py) cost about twice the time per step, so they
 # are on by default only where they were measured to pay for that at equal training time
-# (1 minute, one thread each, side by side, the fast field; docs/DEPTH.md): deep scenes with
-# few photos -- the project's synthetic scene with 4 / 7 / 14 training views +1.22 / +0.97 /
-# +0.16 dB (3 / 2 / 2 seeds), fern at 252x189 with 4 / 8 / 17 views +0.82 / +0.54 / -0.18 dB
-# (2 / 1 / 1 seeds).
-# Shallow scenes gain less than the lost steps: CanClip with 6 views -0.39 dB (3 seeds), with
-# all 26 -1.03 dB at 5 minutes.  With many photos the field's shared texture already makes
-# neighbouring rays agree; with few, the losses tie each ray's depth to the other photos.
+# (1 minute, two seeds, the fast field; `benchmarks/stability.py`'s losses study,
+# docs/DEPTH.md): deep scenes with few photos -- the project's synthetic scene with 4 / 7 / 14
+# training views +1.23 / +0.89 / +0.10 dB, fern at 252x189 with 4 / 8 / 17 views +0.79 /
+# +0.31 / -0.37 dB.  Shallow scenes gain less than the lost steps: CanClip with 6 / 26 views
+# -0.32 / -0.73 dB.  With many photos the field's shared texture already makes neighbouring
+# rays agree; with few, the losses tie each ray's depth to the other photos.
 CONSISTENCY_MAX_VIEWS = 13
 
 
