@@ -17,8 +17,10 @@ network (`paper`, about 50x slower per step on a CPU) on:
 - the paper's multi-view losses off and on at equal wall-clock time (`--losses-minutes`) with
   fewer views, on the synthetic scene, fern and CanClip: where the default turns them on;
 
-three seeds each (two for the losses study). Fixed step budgets and one torch thread per run, so the numbers do not
-depend on how busy the (shared) machine is. Synthetic scenes are rendered once with
+three seeds each (two for the losses study). Fixed step budgets and one torch thread per run, so
+the numbers do not depend on how busy the (shared) machine is -- except the losses study, whose
+point is equal wall-clock time: run it on an otherwise idle machine (its off / on runs go side
+by side, one core each), and its runs stay out of the seed-spread target. Synthetic scenes are rendered once with
 `python -m neulf_synth` into the cache folder; finished runs are appended to
 `<cache>/runs.jsonl` and reused on the next call (`--fresh` ignores them).
 

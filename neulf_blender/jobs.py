@@ -199,6 +199,8 @@ class TrainJob(ProcessJob):
                 state["val_psnr"] = event["val_psnr"]
         elif kind == "warning":
             state["warnings"].append(event.get("message", ""))
+        elif kind == "losses":  # few photos of a deep scene: the multi-view losses are on by default
+            state["losses"] = True
         elif kind == "poses":  # Refine Poses: the corrections it found
             state["poses"] = {k: event.get(k) for k in ("median_degrees", "max_degrees", "median_shift", "max_shift")}
         elif kind in ("finished", "cancelled"):

@@ -306,6 +306,8 @@ def job_status_text(state: dict) -> str:
         text += f" (continued from step {state['resumed_from']})"
     if state["status"] == "cancelled":
         text += "; Train continues it"
+    if state.get("losses"):
+        text += "; with the multi-view losses (few photos of a deep scene)"
     return text + pose_text(state.get("poses"))
 
 

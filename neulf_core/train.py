@@ -254,8 +254,9 @@ def _train(scene, model_dir: Path, config: TrainConfig, images_dir, resume: bool
     if use_consistency is None:
         use_consistency = default_consistency(slab, len(train_views))
         if use_consistency:
-            _emit(progress, event="stage", message=f"{len(train_views)} photos of a deep scene: training with the paper's "
-                  "multi-view losses, about twice the time per step (--no-consistency turns them off; docs/DEPTH.md)")
+            _emit(progress, event="losses", train_views=len(train_views),
+                  message=f"{len(train_views)} photos of a deep scene: training with the paper's multi-view losses, "
+                  "about twice the time per step (--no-consistency turns them off; docs/DEPTH.md)")
     consistency = _consistency_inputs(train_views, slab, config, device) if use_consistency else None
     optimizer = _optimizer(field_module, preset.lr, appearance, poses)
     batch = config.batch_size or preset.batch_size
@@ -282,6 +283,7 @@ def _train(scene, model_dir: Path, config: TrainConfig, images_dir, resume: bool
             "mean_colour": mean_colour(train_rays).tolist(),
         },
         "train_config": asdict(config),
+        "multiview_losses": bool(use_consistency),  # what the default decided, when train_config.consistency is None
         "rig": _rig(train_views, config.scale),
     }
 

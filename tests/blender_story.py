@@ -294,6 +294,8 @@ def run_story(setup: dict) -> None:  # noqa: C901 - one story, told in order
             meta = json.loads((options_model / "model.json").read_text())
             assert meta["train_config"]["appearance"] and meta["train_config"]["refine_poses"], meta["train_config"]
             assert "poses corrected by" in props.last_status, props.last_status
+            # the status line says when the default trained with the multi-view losses
+            assert ("multi-view losses" in props.last_status) == meta["multiview_losses"], props.last_status
             return props.last_status
         finally:
             props.model_dir, props.appearance, props.refine_poses = saved, False, False

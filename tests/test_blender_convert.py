@@ -170,12 +170,14 @@ def test_train_job_parses_events(ext):
                   {"event": "step", "step": 10, "elapsed": 2.0, "loss": 0.01, "fraction": 0.25},
                   {"event": "validate", "step": 20, "elapsed": 4.0, "loss": 0.01, "fraction": 0.5, "val_psnr": 21.5},
                   {"event": "warning", "message": "careful"},
+                  {"event": "losses", "train_views": 7, "message": "7 photos of a deep scene: ..."},
                   {"event": "poses", "median_degrees": 0.08, "max_degrees": 0.13, "median_shift": 0.01, "max_shift": 0.02}]:
         job.on_stdout(json.dumps(event))
     job.on_stdout("not json")
     assert job.state["step"] == 20 and job.state["fraction"] == 0.5 and job.state["val_psnr"] == 21.5
     assert job.state["device"].startswith("cpu") and job.state["warnings"] == ["careful"]
     assert job.state["poses"]["max_degrees"] == 0.13
+    assert job.state["losses"] is True
 
 
 def test_train_job_passes_the_sweep_teacher_only_to_a_new_model(ext, tmp_path):

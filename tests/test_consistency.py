@@ -3,6 +3,7 @@ an exactly Lambertian light field, and training with them (and with per-photo ap
 
 from __future__ import annotations
 
+import json
 import numpy as np
 import pytest
 import torch
@@ -184,5 +185,6 @@ def test_training_applies_the_default_and_the_flag(tiny_scene, tmp_path, monkeyp
                                       field_overrides={"texture_size": [16, 16]})
     train_module.train(tiny_scene, tmp_path / "m", config, progress=events.append)
     assert bool(calls) == expected
-    said = any("multi-view losses" in e.get("message", "") for e in events if e.get("event") == "stage")
+    assert json.loads((tmp_path / "m" / "model.json").read_text())["multiview_losses"] is expected
+    said = any("multi-view losses" in e.get("message", "") for e in events if e.get("event") == "losses")
     assert said == (expected and asked is None)
