@@ -252,7 +252,9 @@ def _train(scene, model_dir: Path, config: TrainConfig, images_dir, resume: bool
         poses.load_state_dict(resumed["poses"])
     use_consistency = config.consistency if config.consistency is not None else preset.consistency
     if use_consistency is None:
-        use_consistency = default_consistency(slab, len(train_views))
+        # A resumed model keeps what it was trained with (models saved before the rule: off).
+        use_consistency = (bool(resumed.get("multiview_losses", False)) if resumed
+                           else default_consistency(slab, len(train_views)))
         if use_consistency:
             _emit(progress, event="losses", train_views=len(train_views),
                   message=f"{len(train_views)} photos of a deep scene: training with the paper's multi-view losses, "

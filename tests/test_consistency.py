@@ -188,3 +188,27 @@ def test_training_applies_the_default_and_the_flag(tiny_scene, tmp_path, monkeyp
     assert json.loads((tmp_path / "m" / "model.json").read_text())["multiview_losses"] is expected
     said = any("multi-view losses" in e.get("message", "") for e in events if e.get("event") == "losses")
     assert said == (expected and asked is None)
+
+
+def test_a_resumed_model_keeps_what_the_default_decided(tiny_scene, tmp_path, monkeypatch):
+    import neulf_core.train as train_module
+
+    calls = []
+    real = train_module.multiview_losses
+    monkeypatch.setattr(train_module, "multiview_losses", lambda *a, **k: calls.append(1) or real(*a, **k))
+    config = train_module.TrainConfig(preset="fast", steps=2, near=1.0, far=6.0, batch_size=128, consistency_rays=32,
+                                      validate_seconds=1e9, teacher=False, field_overrides={"texture_size": [16, 16]})
+    train_module.train(tiny_scene, tmp_path / "m", config)
+    assert len(calls) == 2
+    config.steps = 4
+    train_module.train(tiny_scene, tmp_path / "m", config, resume=True)
+    assert len(calls) == 4  # still on
+    # a checkpoint written before the rule existed trained without them, and resumes so
+    checkpoint = tmp_path / "m" / "checkpoint.pt"
+    payload = torch.load(checkpoint, weights_only=False)
+    del payload["multiview_losses"]
+    torch.save(payload, checkpoint)
+    (tmp_path / "m" / "model.pt").unlink()
+    config.steps = 6
+    train_module.train(tiny_scene, tmp_path / "m", config, resume=True)
+    assert len(calls) == 4
