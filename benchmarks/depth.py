@@ -90,7 +90,7 @@ def hci_depth_errors(model_dir: str) -> dict:
     from neulf_core.render import LightField
     from neulf_core.scene import load_scene
 
-    light_field = LightField.load(model_dir)
+    light_field = LightField.load(model_dir, precision="full")
     scene = load_scene(DATA / "hci_antinous")
     view = scene.view("input_Cam040.png")
     depth = light_field.render_view(view, 1.0, depth=True).depth
@@ -116,7 +116,7 @@ def synthetic_depth_error(model_dir: str, scene: Path) -> dict:
     from neulf_core.render import LightField
     from neulf_core.scene import load_scene
 
-    light_field = LightField.load(model_dir)
+    light_field = LightField.load(model_dir, precision="full")
     loaded = load_scene(scene)
     truth_dir = Path(os.path.realpath(scene / "images")).parent / "ground_truth"
     errors, maps = [], {}
@@ -140,7 +140,7 @@ def refocus_study(model_dir: str, scene: Path, out_dir: Path, aperture: float) -
     from neulf_core.render import LightField
     from neulf_core.scene import load_scene
 
-    light_field = LightField.load(model_dir)
+    light_field = LightField.load(model_dir, precision="full")
     view = load_scene(scene).view("view_00_00.png")
     truth_dir = Path(os.path.realpath(scene / "images")).parent / "ground_truth"
     objects = np.load(truth_dir / "object_index_view_00_00.npy")

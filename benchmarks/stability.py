@@ -22,7 +22,9 @@ the numbers do not depend on how busy the (shared) machine is -- except the loss
 point is equal wall-clock time: run it on an otherwise idle machine (its off / on runs go side
 by side, one core each), and its runs stay out of the seed-spread target. Synthetic scenes are rendered once with
 `python -m neulf_synth` into the cache folder; finished runs are appended to
-`<cache>/runs.jsonl` and reused on the next call (`--fresh` ignores them).
+`<cache>/runs.jsonl` and reused on the next call (`--fresh` ignores them). A run's key is its
+configuration, not the code: after a change of the default's rules (depth layers, the
+multi-view losses, which each row records as `multiview_losses`), delete the rows it affects.
 
 Writes docs/stability.csv (one row per run), docs/stability.png and the generated tables in
 docs/STABILITY.md (between the `stability tables` markers; the prose around them is kept).
@@ -230,7 +232,7 @@ def prepare(job: Job) -> tuple[Scene, list[View], list[View]]:
 
 
 def score_views(model_dir: Path, held: list[View], scale: float) -> dict:
-    light_field = LightField.load(model_dir, "cpu")
+    light_field = LightField.load(model_dir, "cpu", precision="full")
     psnrs, ssims, matched, half_fit, nonfinite = [], [], [], [], 0
     for view in held:
         target = view.load_image(scale).astype(np.float32) / 255.0
@@ -244,7 +246,8 @@ def score_views(model_dir: Path, held: list[View], scale: float) -> dict:
     return {"psnr": float(np.mean(psnrs)), "ssim": float(np.mean(ssims)), "psnr_matched": float(np.mean(matched)),
             "psnr_half_fit": float(np.mean(half_fit)),
             "psnr_per_view": ";".join(f"{view.stem}={p:.2f}" for view, p in zip(held, psnrs)),
-            "nonfinite_pixels": nonfinite, "deep_scene": bool(light_field.slab.is_deep)}
+            "nonfinite_pixels": nonfinite, "deep_scene": bool(light_field.slab.is_deep),
+            "multiview_losses": light_field.meta.get("multiview_losses")}
 
 
 def colour_matched(image: np.ndarray, target: np.ndarray, fit_columns: slice = slice(None)) -> np.ndarray:
@@ -375,8 +378,9 @@ def plan(args, scenes: dict[str, Path]) -> list[Job]:
     seeds = [int(s) for s in args.seeds.split(",")]
     jobs: list[Job] = []
 
-    def add(scene: str, preset: str, scale: float, truth: str | None = None, seed_list=None, **edits):
-        steps = args.fast_steps if preset == "fast" else args.paper_steps
+    def add(scene: str, preset: str, scale: float, truth: str | None = None, seed_list=None, steps=None, **edits):
+        # (a wall-clock job has steps 0: --fast-steps does not change it)
+        steps = steps if steps is not None else args.fast_steps if preset == "fast" else args.paper_steps
         for seed in seed_list or seeds:
             path = str(scenes[scene])
             jobs.append(Job(scene, path, str(scenes[truth]) if truth else path, scale, preset, steps, seed, **edits))
@@ -415,7 +419,7 @@ def plan(args, scenes: dict[str, Path]) -> list[Job]:
             for fraction in shares:
                 for consistency in (False, True):
                     add(scene, "fast", scales[scene], seed_list=losses_seeds, fraction=fraction,
-                        consistency=consistency, minutes=args.losses_minutes)
+                        consistency=consistency, minutes=args.losses_minutes, steps=0)
     return list({job.key: job for job in jobs}.values())  # shared baselines run once
 
 
@@ -669,7 +673,7 @@ def update_markdown(path: Path, tables: str) -> None:
     path.write_text(f"{head}{MARKER_BEGIN}\n{tables}\n{MARKER_END}{tail}")
 
 
-CSV_COLUMNS = ["scene", "preset", "fraction", "pose_degrees", "appearance", "refine_poses", "consistency", "minutes", "deep_scene", "seed", "status", "psnr", "ssim",
+CSV_COLUMNS = ["scene", "preset", "fraction", "pose_degrees", "appearance", "refine_poses", "consistency", "minutes", "deep_scene", "multiview_losses", "seed", "status", "psnr", "ssim",
                "psnr_matched", "psnr_half_fit", "psnr_per_view", "train_views", "held_out", "steps", "steps_done", "train_seconds",
                "wall_seconds", "warnings", "warning_text", "nonfinite_pixels", "error", "scale", "path", "truth"]
 

@@ -23,7 +23,8 @@ from .fields.disparity import texture_size_for
 from .metrics import psnr
 from .render import LightField
 from .scene import Scene, load_scene, scaled_size, split_views
-from .train import TrainConfig, TrainResult, _emit, train
+from .slab import fit_slab
+from .train import TrainConfig, TrainResult, _emit, announce_default_losses, default_consistency, train
 
 PRESET = "auto"
 FACTORS = (1.0, 0.7, 0.5)    # finest texture size / the default (~1 texel per pixel); area 1, 1/2, 1/4
@@ -75,7 +76,7 @@ def validation_split(scene: Scene, config: TrainConfig):
 
 def validation_psnr(model_dir: Path, views, scale: float, device: str | None = None) -> float:
     """Mean PSNR of full renders of `views` by the shipped model file (model.pt)."""
-    light_field = LightField.load(model_dir, device)
+    light_field = LightField.load(model_dir, device, precision="full")
     scores = [psnr(light_field.render_view(v, scale, depth=False).rgb, v.load_image(scale).astype(np.float32) / 255.0)
               for v in views]
     return float(np.mean(scores))
@@ -110,6 +111,8 @@ def train_auto(scene: Scene | str | Path, model_dir: str | Path, config: TrainCo
     if not isinstance(scene, Scene):
         scene = load_scene(scene, images_dir)
     config = replace(config, preset=PRESET)
+    if config.consistency is None:
+        config = replace(config, consistency=_losses_by_default(scene, config, progress))
     started = time.monotonic()
     searched = _search(scene, config, factors, progress, should_stop)
     if searched is None:  # cancelled; nothing saved yet: the search starts again next time
@@ -126,6 +129,18 @@ def train_auto(scene: Scene | str | Path, model_dir: str | Path, config: TrainCo
     result = train(scene, model_dir, final, progress=_rescaled(progress, SEARCH_SHARE, 1 - SEARCH_SHARE, None),
                    should_stop=should_stop)
     return _record(model_dir, record, result)
+
+
+def _losses_by_default(scene: Scene, config: TrainConfig, progress) -> bool:
+    """train.default_consistency for the final model's training views, decided once: the
+    search runs (fewer views: the validation views are carved out) train as the model will."""
+    train_views, _ = split_views(scene, config.holdout_every, config.exclude)
+    slab = fit_slab(scene, train_views, scale=config.scale, st_depth=config.st_depth, uv_depth=config.uv_depth,
+                    near=config.near, far=config.far)
+    on = default_consistency(slab, len(train_views))
+    if on:
+        announce_default_losses(progress, len(train_views))
+    return on
 
 
 def _search(scene: Scene, config: TrainConfig, factors, progress, should_stop):

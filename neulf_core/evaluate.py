@@ -19,7 +19,7 @@ from .scene import load_scene
 
 def evaluate_model(model_dir, scene_dir, *, images_dir=None, out_dir=None, views=None, device=None,
                    save_images: bool = True) -> dict:
-    light_field = LightField.load(model_dir, device)
+    light_field = LightField.load(model_dir, device, precision="full")  # scores are float32's
     scene = load_scene(scene_dir, images_dir)
     light_field.check_scene(scene)
     names = views or light_field.meta["scene"]["held_out"]

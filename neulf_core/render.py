@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import math
 
+from contextlib import nullcontext
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -39,14 +40,19 @@ EXTRAPOLATION_MARGIN = 0.1
 # Measured on CPU against float32 (CanClip, 2000-step default field, one view at 480x270):
 # colours 78 dB apart, depth identical; autocast over the whole render instead (ray
 # directions in float16 too) put them 47 dB apart with depth 2 % off.  "auto" is half on
-# CUDA only: on a CPU float16 products are slower, not faster.
+# CUDA only: on a CPU float16 products are slower, not faster ("half" there is for checking
+# the numbers).  Scores (eval, the auto preset's validation) render in "full".
 PRECISIONS = ("auto", "half", "full")
+HALF_DEVICES = ("cuda", "cpu")  # where torch.autocast takes float16 in every torch this supports
 
 
 def half_precision(precision: str, device: torch.device) -> bool:
     """Whether the field runs in float16 (see PRECISIONS)."""
     if precision not in PRECISIONS:
         raise NeulfError(f"unknown precision '{precision}'; use one of {', '.join(PRECISIONS)}.")
+    if precision == "half" and device.type not in HALF_DEVICES:
+        raise NeulfError(f"half precision renders on CUDA (or on the CPU, to check it), not on {device.type}; "
+                         "use --precision full or auto.")
     return precision == "half" or (precision == "auto" and device.type == "cuda")
 
 
@@ -113,7 +119,7 @@ class LightField:
     def query(self, origins: torch.Tensor, directions: torch.Tensor, want_depth: bool = True):
         """Colour (N, 3), camera-independent depth along the slab axis (N,), valid (N,)."""
         uvst, valid = self.slab.rays_to_uvst(origins, directions)
-        with torch.autocast(self.device.type, dtype=torch.float16, enabled=self.half):
+        with torch.autocast(self.device.type, dtype=torch.float16) if self.half else nullcontext():
             rgb, depth_unit = self.field(uvst.float())
         rgb = torch.where(valid[:, None], rgb.float(), self.background)
         slab_depth = self.slab.depth_from_unit(depth_unit[:, 0].to(self.geometry_dtype)) if want_depth else None

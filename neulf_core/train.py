@@ -139,6 +139,13 @@ def default_consistency(slab: Slab, n_train_views: int) -> bool:
     return slab.is_deep and 2 <= n_train_views <= CONSISTENCY_MAX_VIEWS
 
 
+def announce_default_losses(progress, n_train_views: int) -> None:
+    """Tell the user (CLI line, Blender status) that the default turned the losses on."""
+    _emit(progress, event="losses", train_views=n_train_views,
+          message=f"{n_train_views} photos of a deep scene: training with the paper's multi-view losses, "
+          "about twice the time per step (--no-consistency turns them off; docs/DEPTH.md)")
+
+
 def _build_field(preset_name: str, overrides: dict, train_views, slab: Slab, scale: float, appearance: bool = False):
     n_train_views = len(train_views)
     preset = get_preset(preset_name)
@@ -256,9 +263,7 @@ def _train(scene, model_dir: Path, config: TrainConfig, images_dir, resume: bool
         use_consistency = (bool(resumed.get("multiview_losses", False)) if resumed
                            else default_consistency(slab, len(train_views)))
         if use_consistency:
-            _emit(progress, event="losses", train_views=len(train_views),
-                  message=f"{len(train_views)} photos of a deep scene: training with the paper's multi-view losses, "
-                  "about twice the time per step (--no-consistency turns them off; docs/DEPTH.md)")
+            announce_default_losses(progress, len(train_views))
     consistency = _consistency_inputs(train_views, slab, config, device) if use_consistency else None
     optimizer = _optimizer(field_module, preset.lr, appearance, poses)
     batch = config.batch_size or preset.batch_size

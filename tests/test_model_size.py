@@ -190,3 +190,21 @@ def test_8_bit_grids_round_trip_within_half_a_step_per_channel():
     step = grids["grid"]["step"]
     assert step.shape == (2, 3, 1, 1)  # one step per channel: a small channel keeps its precision
     assert bool(((dequantise_grid(grids["grid"]) - grid).abs() <= step / 2 + 1e-6).all())
+
+
+@pytest.mark.parametrize("max_views, expected", [(13, True), (6, False)])
+def test_auto_decides_the_losses_once_for_its_search_and_its_model(tiny_scene, tmp_path, monkeypatch, max_views, expected):
+    """The search runs train on fewer views (the validation view is carved out): with the
+    rule's threshold between the two counts they must still train as the final model does."""
+    import neulf_core.train as train_module
+
+    monkeypatch.setattr(train_module, "CONSISTENCY_MAX_VIEWS", max_views)  # 7 training views, 6 in the search
+    calls = []
+    real = train_module.multiview_losses
+    monkeypatch.setattr(train_module, "multiview_losses", lambda *a, **k: calls.append(1) or real(*a, **k))
+    events = []
+    train_auto(tiny_scene, tmp_path / "auto", fast_config(12, preset="auto", near=1.0, far=6.0, consistency_rays=32,
+                                                         teacher=False), progress=events.append)
+    assert len(calls) == (12 if expected else 0)  # every step of the 3 candidates and of the final run, or none
+    assert [e["event"] for e in events].count("losses") == (1 if expected else 0)
+    assert json.loads((tmp_path / "auto" / METADATA_NAME).read_text())["multiview_losses"] is expected

@@ -68,14 +68,19 @@ def test_auto_precision_is_half_on_cuda_only():
         half_precision("double", torch.device("cpu"))
 
 
-def test_render_cli_precision_flag(trained_model, tiny_scene, tmp_path):
+def test_render_cli_precision_flag(trained_model, tiny_scene, tmp_path, monkeypatch):
     preset, model_dir = trained_model
     if preset != "fast":
         pytest.skip("one preset is enough for the flag")
     name = load_scene(tiny_scene).views[0].name
+    asked = []
+    real_load = LightField.load.__func__
+    monkeypatch.setattr(LightField, "load", classmethod(lambda cls, *a, **k: asked.append(a[2] if len(a) > 2 else k.get("precision"))
+                                                        or real_load(cls, *a, **k)))
     for precision in ("full", "half"):
         code = main(["render", str(model_dir), "--scene", str(tiny_scene), "--views", name,
                      "--out", str(tmp_path / precision), "--precision", precision, "--device", "cpu"])
         assert code == 0
+    assert asked == ["full", "half"]  # the flag reaches the renderer
     images = [np.asarray(Image.open(next((tmp_path / p).glob("*.png"))), np.float32) / 255 for p in ("full", "half")]
     assert _psnr(*images) > 45.0

@@ -142,6 +142,9 @@ class DisparityField(nn.Module):
         """Where rays (N, 4) read the texture, (N, 2) in [-1, 1], and their depth unit (N, 1)."""
         # float32 even when rendering under float16 autocast (render.PRECISIONS): a texel is
         # 1/512 of the range, and float16 disparities moved colours to 55 dB from float32.
+        # (Only where half precision can run: older torch refuses autocast objects for MPS.)
+        if uvst.device.type not in ("cuda", "cpu"):
+            return self._sheared(uvst)
         with torch.autocast(uvst.device.type, enabled=False):
             return self._sheared(uvst)
 
