@@ -58,7 +58,7 @@ sys.path.insert(0, str(REPO))
 from neulf_core.metrics import psnr, ssim  # noqa: E402
 from neulf_core.render import LightField  # noqa: E402
 from neulf_core.scene import Scene, View, find_model_dir, load_scene, split_views  # noqa: E402
-from neulf_core.train import CONSISTENCY_MAX_VIEWS, TrainConfig, train  # noqa: E402
+from neulf_core.train import CONSISTENCY_MAX_VIEWS, TrainConfig, losses_by_default, train  # noqa: E402
 
 DOCS = REPO / "docs"
 CANCLIP = REPO.parent / "shared" / "data" / "canclip"
@@ -542,7 +542,7 @@ def losses_table(rows: list[dict]) -> list[str]:
             views = next((r.get("train_views") for r in off + on if r.get("train_views")), "?")
             deep = next((r["deep_scene"] for r in off + on if "deep_scene" in r), None)
             default = "?" if deep is None or not isinstance(views, int) else (
-                "on" if deep and 2 <= views <= CONSISTENCY_MAX_VIEWS else "off")
+                "on" if losses_by_default(deep, views) else "off")
             lines.append(f"| {scene} | {views} | {cell(off)} | {cell(on)} | {gain} | {steps} | {default} |")
     return lines
 

@@ -355,6 +355,7 @@ def cmd_demo(args) -> int:
 
 
 def _precision_argument(p: argparse.ArgumentParser) -> None:
+    # render.PRECISIONS, spelled out: the CLI imports torch only once a command runs
     p.add_argument("--precision", choices=("auto", "half", "full"), default="auto",
                    help="field arithmetic: half (float16 products, GPU tensor cores), full (float32); "
                         "auto: half on CUDA, full elsewhere (docs/BENCHMARKS.md)")

@@ -6,6 +6,11 @@ import torch
 
 from .errors import NeulfError
 
+# Device types where torch.autocast takes float16 in every torch this project supports (older
+# torch refuses to build an autocast object for MPS at all): half-precision rendering
+# (render.PRECISIONS) and the fast field's float32 geometry branch under it.
+HALF_DEVICES = ("cuda", "cpu")
+
 
 def pick_device(name: str | None = None) -> torch.device:
     if name:

@@ -18,7 +18,7 @@ import pycolmap
 import torch
 
 from .checkpoint import load_for_render
-from .device import keep_freed_cpu_memory, pick_device
+from .device import HALF_DEVICES, keep_freed_cpu_memory, pick_device
 from .errors import NeulfError
 from .fields import build_field, make_config
 from .rays import pinhole_rays, single_pixel_K, view_rays
@@ -43,7 +43,6 @@ EXTRAPOLATION_MARGIN = 0.1
 # CUDA only: on a CPU float16 products are slower, not faster ("half" there is for checking
 # the numbers).  Scores (eval, the auto preset's validation) render in "full".
 PRECISIONS = ("auto", "half", "full")
-HALF_DEVICES = ("cuda", "cpu")  # where torch.autocast takes float16 in every torch this supports
 
 
 def half_precision(precision: str, device: torch.device) -> bool:

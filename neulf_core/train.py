@@ -135,8 +135,12 @@ def default_depth_layers(slab: Slab, n_train_views: int) -> int:
 CONSISTENCY_MAX_VIEWS = 13
 
 
+def losses_by_default(deep: bool, n_train_views: int) -> bool:
+    return deep and 2 <= n_train_views <= CONSISTENCY_MAX_VIEWS
+
+
 def default_consistency(slab: Slab, n_train_views: int) -> bool:
-    return slab.is_deep and 2 <= n_train_views <= CONSISTENCY_MAX_VIEWS
+    return losses_by_default(slab.is_deep, n_train_views)
 
 
 def announce_default_losses(progress, n_train_views: int) -> None:

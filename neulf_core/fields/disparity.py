@@ -23,6 +23,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from ..device import HALF_DEVICES
 from . import register
 from .planes import ANGULAR, PAIRS, PlanesConfig, PlanesField, total_variation
 
@@ -142,8 +143,7 @@ class DisparityField(nn.Module):
         """Where rays (N, 4) read the texture, (N, 2) in [-1, 1], and their depth unit (N, 1)."""
         # float32 even when rendering under float16 autocast (render.PRECISIONS): a texel is
         # 1/512 of the range, and float16 disparities moved colours to 55 dB from float32.
-        # (Only where half precision can run: older torch refuses autocast objects for MPS.)
-        if uvst.device.type not in ("cuda", "cpu"):
+        if uvst.device.type not in HALF_DEVICES:  # no autocast there to switch off
             return self._sheared(uvst)
         with torch.autocast(uvst.device.type, enabled=False):
             return self._sheared(uvst)
