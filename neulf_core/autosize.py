@@ -24,7 +24,8 @@ from .metrics import psnr
 from .render import LightField
 from .scene import Scene, load_scene, scaled_size, split_views
 from .slab import fit_slab
-from .train import TrainConfig, TrainResult, _emit, announce_default_losses, default_consistency, train
+from .train import (TrainConfig, TrainResult, _emit, announce_default_losses, default_coarse_to_fine, default_consistency,
+                    train)
 
 PRESET = "auto"
 FACTORS = (1.0, 0.7, 0.5)    # finest texture size / the default (~1 texel per pixel); area 1, 1/2, 1/4
@@ -113,6 +114,8 @@ def train_auto(scene: Scene | str | Path, model_dir: str | Path, config: TrainCo
     config = replace(config, preset=PRESET)
     if config.consistency is None:
         config = replace(config, consistency=_losses_by_default(scene, config, progress))
+    if config.coarse_to_fine is None:  # likewise decided once, for the final model's view count
+        config = replace(config, coarse_to_fine=default_coarse_to_fine(len(split_views(scene, config.holdout_every, config.exclude)[0])))
     started = time.monotonic()
     searched = _search(scene, config, factors, progress, should_stop)
     if searched is None:  # cancelled; nothing saved yet: the search starts again next time

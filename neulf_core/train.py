@@ -68,6 +68,7 @@ class TrainConfig:
     appearance: bool = False            # learn a per-photo colour transform (exposure, white balance)
     teacher: bool | None = None         # pull early depth toward the classic plane sweep's (None: the preset's default)
     refine_poses: bool = False          # learn a small rotation and shift of each training camera (poses.py)
+    coarse_to_fine: bool | None = None  # fade the finer geometry scales in (None: on for at most 13 training views)
 
     def budget_fraction(self, step: int, elapsed: float) -> float:
         fractions = []
@@ -139,6 +140,24 @@ def losses_by_default(deep: bool, n_train_views: int) -> bool:
     return deep and 2 <= n_train_views <= CONSISTENCY_MAX_VIEWS
 
 
+# Coarse to fine (DisparityConfig.geometry_coarse_to_fine): with few photos the finer geometry
+# scales fade in over the first 80 % of the budget.  Measured at 1000 steps (fast field;
+# docs/STABILITY.md): 6 of CanClip's views +0.42 dB (three seeds), 4 of the synthetic scene's
+# +0.33 (three seeds), its 7 +0.34 (two seeds), 4 of fern's +0.34 (one seed); CanClip's 13
+# +0.12; with more photos it does nothing measurable (CanClip's 20 / 26 views +0.01 / -0.08
+# dB, the synthetic scene's 14 -0.04, fern's 17 +0.10; one seed each).  Ramps over 30 / 50 /
+# 80 / 100 % of the budget at 6 of CanClip's views: +0.23 / +0.37 / +0.45 / +0.49 dB; the
+# synthetic scene's 4: +0.30 / +0.49 / +0.54 / +0.50 (seed 0).  Fading the texture levels in
+# as well helped 4 photos of the synthetic scene (+0.24 dB more) but not 4 of fern's (+0.04),
+# and cost with 7 or 8 (-0.06 to -0.17) and on CanClip: not adopted.
+COARSE_TO_FINE = 0.8
+COARSE_TO_FINE_MAX_VIEWS = 13
+
+
+def default_coarse_to_fine(n_train_views: int) -> bool:
+    return 2 <= n_train_views <= COARSE_TO_FINE_MAX_VIEWS
+
+
 def default_consistency(slab: Slab, n_train_views: int) -> bool:
     return losses_by_default(slab.is_deep, n_train_views)
 
@@ -150,7 +169,8 @@ def announce_default_losses(progress, n_train_views: int) -> None:
           "about twice the time per step (--no-consistency turns them off; docs/DEPTH.md)")
 
 
-def _build_field(preset_name: str, overrides: dict, train_views, slab: Slab, scale: float, appearance: bool = False):
+def _build_field(preset_name: str, overrides: dict, train_views, slab: Slab, scale: float, appearance: bool = False,
+                 coarse_to_fine: bool | None = None):
     n_train_views = len(train_views)
     preset = get_preset(preset_name)
     options = dict(preset.field_config)
@@ -163,6 +183,8 @@ def _build_field(preset_name: str, overrides: dict, train_views, slab: Slab, sca
         if "texture_size" not in overrides:
             options["texture_size"] = texture_size_for(scaled_size(max(v.size for v in train_views), scale))
         options["geometry_layers"] = default_depth_layers(slab, n_train_views)
+        use_ramp = coarse_to_fine if coarse_to_fine is not None else default_coarse_to_fine(n_train_views)
+        options["geometry_coarse_to_fine"] = COARSE_TO_FINE if use_ramp else 0.0
         if appearance:
             options.update(APPEARANCE_GEOMETRY)
     options.update(overrides)
@@ -253,7 +275,8 @@ def _train(scene, model_dir: Path, config: TrainConfig, images_dir, resume: bool
         field_module = build_field(resumed["field"], make_config(resumed["field"], resumed["field_config"]))
         field_module.load_state_dict(resumed["state_dict"])
     else:
-        field_module, preset = _build_field(config.preset, config.field_overrides, train_views, slab, config.scale, config.appearance)
+        field_module, preset = _build_field(config.preset, config.field_overrides, train_views, slab, config.scale,
+                                            config.appearance, config.coarse_to_fine)
     field_module.to(device).train()
     appearance = ViewAppearance(len(train_views)).to(device) if config.appearance else None
     if appearance is not None and resumed and resumed.get("appearance"):
@@ -321,6 +344,8 @@ def _train(scene, model_dir: Path, config: TrainConfig, images_dir, resume: bool
             break
         fraction = config.budget_fraction(step, elapsed)
         lr = _set_learning_rate(optimizer, preset, step, n_rays, batch, fraction, lr_scale)
+        if hasattr(field_module, "set_training_progress"):
+            field_module.set_training_progress(fraction)
         index = torch.randint(n_rays, (batch,), generator=generator).to(device)
         uvst, target = train_rays.batch(index)
         view_index = train_rays.view_index[index].long()

@@ -219,3 +219,76 @@ def test_appearance_captures_get_eight_geometry_channels_and_resume_keeps_the_sa
     monkeypatch.setitem(presets.FAST_FIELD, "geometry_channels", 6)
     result = train(tiny_scene, tmp_path / "plain", TrainConfig(steps=4, **quick), resume=True)
     assert result.step == 4 and channels(tmp_path / "plain") == 4
+
+
+def test_coarse_to_fine_fades_the_finer_geometry_scales_in_and_a_saved_model_keeps_its_weights():
+    """geometry_coarse_to_fine = T: the coarsest scale counts from the start, the next ones
+    fade in one after another until T of the budget; a model saved part-way (a checkpoint,
+    Cancel) loads with the weights it was trained with, not all ones; a weight never drops
+    (a model resumed with a larger budget sees a smaller fraction)."""
+    slab = Slab(np.eye(3), np.zeros(3), 0.0, 4.0, 2.0, 8.0, -np.ones(4), np.ones(4))
+    options = {**slab_geometry(slab), "texture_size": [16, 16], "geometry_spatial_res": [8, 16, 32], "geometry_coarse_to_fine": 0.8}
+    field = build_field("disparity", make_config("disparity", options))
+    weights = {0.0: field.geometry_scale_weights.tolist()}
+    for fraction in (0.2, 0.4, 0.6, 0.8, 1.0):
+        field.set_training_progress(fraction)
+        weights[fraction] = field.geometry_scale_weights.tolist()
+    assert weights[0.0] == [1.0, 0.0, 0.0]
+    assert np.allclose(weights[0.2], [1.0, 0.5, 0.0]) and np.allclose(weights[0.6], [1.0, 1.0, 0.5])
+    assert weights[0.4] == [1.0, 1.0, 0.0] and weights[0.8] == weights[1.0] == [1.0, 1.0, 1.0]
+    field.set_training_progress(0.1)
+    assert field.geometry_scale_weights.tolist() == [1.0, 1.0, 1.0]
+
+    partial = build_field("disparity", make_config("disparity", options))
+    partial.set_training_progress(0.3)
+    uvst = torch.rand(64, 4) * 2 - 1
+    with torch.no_grad():  # the finest scale is off at 0.3: its planes do not change the output
+        before = partial(uvst)[1]
+        partial.geometry.scales[2][5].add_(torch.randn_like(partial.geometry.scales[2][5]))
+        assert torch.equal(partial(uvst)[1], before)
+    loaded = build_field("disparity", make_config("disparity", options))
+    loaded.load_state_dict(partial.state_dict())
+    assert np.allclose(loaded.geometry_scale_weights.tolist(), [1.0, 0.75, 0.0])
+    with torch.no_grad():
+        assert torch.equal(loaded(uvst)[0], partial(uvst)[0])
+
+    off = build_field("disparity", make_config("disparity", {k: v for k, v in options.items() if k != "geometry_coarse_to_fine"}))
+    assert "geometry_scale_weights" not in off.state_dict()  # models saved before the option load as before
+    off.set_training_progress(0.0)  # and ignore the trainer's calls
+
+
+def test_coarse_to_fine_by_default_with_few_photos_and_the_cli_flags(tiny_scene, tmp_path, capsys):
+    from neulf_core.checkpoint import load_checkpoint
+    from neulf_core.cli import main
+    from neulf_core.render import LightField
+    from neulf_core.scene import load_scene
+    from neulf_core.train import COARSE_TO_FINE, TrainConfig, default_coarse_to_fine, train
+
+    assert default_coarse_to_fine(4) and default_coarse_to_fine(13)          # 25 % of the synthetic scene, 50 % of CanClip
+    assert not default_coarse_to_fine(14) and not default_coarse_to_fine(26)  # all of them
+    assert not default_coarse_to_fine(1)
+
+    def ramp(model):
+        payload = load_checkpoint(model)
+        return payload["field_config"]["geometry_coarse_to_fine"], payload["state_dict"].get("geometry_scale_weights")
+
+    quick = dict(batch_size=256, teacher=False, validate_seconds=1e9, checkpoint_seconds=1e9)
+    n_train = len(load_scene(tiny_scene).views) - len(load_scene(tiny_scene).views[::8])
+    assert default_coarse_to_fine(n_train)  # the test scene is a capture of few photos
+    train(tiny_scene, tmp_path / "default", TrainConfig(steps=10, **quick))
+    value, weights = ramp(tmp_path / "default")
+    assert value == COARSE_TO_FINE and weights.tolist() == [1.0, 1.0, 1.0]  # the budget's end is past the ramp's
+    result = train(tiny_scene, tmp_path / "default", TrainConfig(steps=20, **quick), resume=True)
+    assert result.step == 20 and ramp(tmp_path / "default")[1].tolist() == [1.0, 1.0, 1.0]
+
+    args = ["train", str(tiny_scene), "--steps", "3", "--batch-size", "256", "--progress", "json", "--no-sweep-teacher"]
+    assert main(args + ["--out", str(tmp_path / "off"), "--no-coarse-to-fine"]) == 0
+    assert ramp(tmp_path / "off") == (0.0, None)
+    assert main(args + ["--out", str(tmp_path / "short"), "--coarse-to-fine"]) == 0
+    value, weights = ramp(tmp_path / "short")  # 3 steps, the last at 2/3 of the budget: inside the ramp
+    assert value == COARSE_TO_FINE and weights.tolist()[:2] == [1.0, 1.0] and 0 < weights.tolist()[2] < 1
+    rendering = LightField.load(tmp_path / "short", "cpu").render_view(load_scene(tiny_scene).views[0], depth=True)
+    assert np.isfinite(rendering.rgb).all()
+    capsys.readouterr()
+    assert main(args + ["--out", str(tmp_path / "mlp"), "--preset", "authors", "--coarse-to-fine"]) != 0
+    assert "--coarse-to-fine" in capsys.readouterr().err

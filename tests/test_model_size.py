@@ -208,3 +208,19 @@ def test_auto_decides_the_losses_once_for_its_search_and_its_model(tiny_scene, t
     assert len(calls) == (12 if expected else 0)  # every step of the 3 candidates and of the final run, or none
     assert [e["event"] for e in events].count("losses") == (1 if expected else 0)
     assert json.loads((tmp_path / "auto" / METADATA_NAME).read_text())["multiview_losses"] is expected
+
+
+@pytest.mark.parametrize("max_views, expected", [(13, True), (6, False)])
+def test_auto_decides_coarse_to_fine_once_for_its_search_and_its_model(tiny_scene, tmp_path, monkeypatch, max_views, expected):
+    """As with the losses: 7 training views, 6 in the search runs; with the threshold between
+    the two, every run trains as the final model does."""
+    import neulf_core.train as train_module
+
+    monkeypatch.setattr(train_module, "COARSE_TO_FINE_MAX_VIEWS", max_views)
+    ramps = []
+    real = train_module._build_field
+    monkeypatch.setattr(train_module, "_build_field", lambda *a, **k: ramps.append(a[-1]) or real(*a, **k))
+    train_auto(tiny_scene, tmp_path / "auto", fast_config(8, preset="auto", teacher=False))
+    assert ramps == [expected] * 4  # 3 candidates and the final run
+    config = json.loads((tmp_path / "auto" / METADATA_NAME).read_text())["field_config"]
+    assert config["geometry_coarse_to_fine"] == (train_module.COARSE_TO_FINE if expected else 0.0)

@@ -56,6 +56,10 @@ class DisparityConfig:
     geometry_layer_channels: int = 2
     geometry_layer_tv: float = 1e-3
     tv_weight: float = 1e-3
+    # Coarse to fine: the finer geometry scales fade in over this share of the training budget
+    # (0: all from the start); the trainer sets it for captures of few photos
+    # (train.default_coarse_to_fine).
+    geometry_coarse_to_fine: float = 0.0
     # Slab geometry in normalised units, set by the trainer from the slab (see slab_geometry()).
     uv_half: list[float] = field(default_factory=lambda: [1.0, 1.0])
     uv_centre: list[float] = field(default_factory=lambda: [0.0, 0.0])
@@ -111,6 +115,10 @@ class DisparityField(nn.Module):
         self.textures = nn.ParameterList(
             nn.Parameter(torch.randn(1, config.texture_channels, max(2, rows >> level), max(2, cols >> level)) * 0.01)
             for level in range(config.texture_levels))
+        if config.geometry_coarse_to_fine > 0:
+            # Persistent: a model saved part-way (a checkpoint, Cancel) renders with the weights
+            # it was trained with, and a resumed one continues from them.
+            self.register_buffer("geometry_scale_weights", _fade_in_weights(len(config.geometry_spatial_res), 0.0))
         decoder_in = config.texture_channels * config.texture_levels + (2 if config.view_dependence else 0)
         self.decoder = nn.Sequential(nn.Linear(decoder_in, config.hidden), nn.ReLU(), nn.Linear(config.hidden, 3))
         for layer in (*self.geometry.decoder, *self.decoder):
@@ -124,6 +132,21 @@ class DisparityField(nn.Module):
         unit = (1.0 / c.z_st - 1.0 / c.z_far) / (1.0 / c.z_near - 1.0 / c.z_far)
         unit = min(max(unit, 1e-3), 1 - 1e-3)
         return float(torch.logit(torch.tensor(unit)))
+
+    @torch.no_grad()
+    def set_training_progress(self, fraction: float) -> None:
+        """Coarse to fine (geometry_coarse_to_fine = T; the trainer calls this every step): the
+        coarsest geometry scale counts from the start, and scale k of K fades in linearly while
+        the budget goes from T (k - 1) / (K - 1) to T k / (K - 1).  With few photos the depth
+        then settles on the broad shapes they agree on before finer cells can bend it toward
+        one photo's noise (docs/STABILITY.md).  A weight never drops: a model resumed with a
+        larger budget (a smaller fraction) keeps the scales it has."""
+        ramp = self.config.geometry_coarse_to_fine
+        if ramp <= 0:
+            return
+        weights = _fade_in_weights(self.geometry_scale_weights.numel(), fraction / ramp)
+        torch.maximum(self.geometry_scale_weights, weights.to(self.geometry_scale_weights.device),
+                      out=self.geometry_scale_weights)
 
     def disparity(self, unit: torch.Tensor) -> torch.Tensor:
         c = self.config
@@ -198,6 +221,8 @@ class DisparityField(nn.Module):
             product = angular.view(-1, n)[k * channels:(k + 1) * channels] * spatial
             for plane in mixed.unbind(0):  # explicit products: prod()'s gradient divides
                 product = product * plane
+            if self.config.geometry_coarse_to_fine > 0:
+                product = product * self.geometry_scale_weights[k]
             per_scale.append(product.t())
         return _rows(per_scale)
 
@@ -214,6 +239,14 @@ class DisparityField(nn.Module):
              "lr": lr * 10.0, "name": "geometry planes"},
             {"params": list(self.geometry.decoder.parameters()) + list(self.decoder.parameters()), "lr": lr, "name": "decoders"},
         ]
+
+
+def _fade_in_weights(count: int, progress: float) -> torch.Tensor:
+    """(count,) weights, coarse to fine, at `progress` through the ramp (0 start, 1 end): the
+    first is 1 throughout, the k-th rises from 0 to 1 while progress goes from (k - 1) /
+    (count - 1) to k / (count - 1)."""
+    position = min(1.0, max(0.0, progress)) * max(1, count - 1)
+    return torch.tensor([min(1.0, max(0.0, position - k + 1)) for k in range(count)])
 
 
 def mark_bilinear_footprint(mask: torch.Tensor, grid: torch.Tensor, rows: int, cols: int) -> None:
