@@ -410,7 +410,7 @@ def build_parser() -> argparse.ArgumentParser:
                         "worse on deep ones; docs/DEPTH.md")
     p.add_argument("--coarse-to-fine", action=argparse.BooleanOptionalAction, default=None,
                    help="fast/auto presets: fade the finer depth cells in over 80%% of the budget (default: on with "
-                        "at most 13 training views, where it gains 0.3-0.4 dB; docs/STABILITY.md)")
+                        "at most 13 training views, where it gains up to 0.4 dB; docs/STABILITY.md)")
     p.add_argument("--device", help="cpu, cuda, mps (default: the fastest available)")
     p.set_defaults(run=cmd_train)
 
