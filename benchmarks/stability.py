@@ -1,7 +1,7 @@
 """Stability study: where the light field breaks, and by how much (issue 4, "Stability").
 
     python benchmarks/stability.py [--workers 2] [--fast-steps 1000] [--paper-steps 100] \
-        [--seeds 0,1,2] [--cache /tmp/neulf_stability] [--only views,variants,exposure,pose,losses]
+        [--seeds 0,1,2] [--cache /tmp/neulf_stability] [--only views,variants,exposure,pose,losses,coarse]
 
 Trains the default model (`fast`) and, on a reduced set of configurations, the paper's
 network (`paper`, about 50x slower per step on a CPU) on:
@@ -16,6 +16,8 @@ network (`paper`, about 50x slower per step on a CPU) on:
 - pose noise: training poses rotated and shifted by increasing amounts (held-out poses exact);
 - the paper's multi-view losses off and on at equal wall-clock time (`--losses-minutes`) with
   fewer views, on the synthetic scene, fern and CanClip: where the default turns them on;
+- coarse to fine off, on the fewer-views runs with at most 13 training views (where the default
+  turns it on);
 
 three seeds each (two for the losses study). Fixed step budgets and one torch thread per run, so
 the numbers do not depend on how busy the (shared) machine is -- except the losses study, whose
@@ -24,7 +26,8 @@ by side, one core each), and its runs stay out of the seed-spread target. Synthe
 `python -m neulf_synth` into the cache folder; finished runs are appended to
 `<cache>/runs.jsonl` and reused on the next call (`--fresh` ignores them). A run's key is its
 configuration, not the code: after a change of the default's rules (depth layers, the
-multi-view losses, which each row records as `multiview_losses`), delete the rows it affects.
+multi-view losses, coarse to fine, which each row records as `multiview_losses` and
+`coarse_to_fine_used`), delete the rows it affects.
 
 Writes docs/stability.csv (one row per run), docs/stability.png and the generated tables in
 docs/STABILITY.md (between the `stability tables` markers; the prose around them is kept).
@@ -58,7 +61,7 @@ sys.path.insert(0, str(REPO))
 from neulf_core.metrics import psnr, ssim  # noqa: E402
 from neulf_core.render import LightField  # noqa: E402
 from neulf_core.scene import Scene, View, find_model_dir, load_scene, split_views  # noqa: E402
-from neulf_core.train import CONSISTENCY_MAX_VIEWS, TrainConfig, losses_by_default, train  # noqa: E402
+from neulf_core.train import COARSE_TO_FINE_MAX_VIEWS, CONSISTENCY_MAX_VIEWS, TrainConfig, losses_by_default, train  # noqa: E402
 
 DOCS = REPO / "docs"
 CANCLIP = REPO.parent / "shared" / "data" / "canclip"
@@ -69,6 +72,9 @@ FERN = REPO.parent / "shared" / "data" / "fern"
 FEWER_VIEWS_SCENES = ("canclip", "hci", "lambertian")
 # The losses study: scenes and shares of the training views (deep: lambertian, fern; shallow: canclip).
 LOSSES_PLAN = {"lambertian": (1.0, 0.5, 0.25), "fern": (1.0, 0.5, 0.25), "canclip": (1.0, 0.25)}
+# The coarse-to-fine study: the fewer-views shares with at most 13 training views (coarse to
+# fine's default), trained without it as well.
+COARSE_PLAN = {"canclip": (0.5, 0.25), "lambertian": (0.75, 0.5, 0.25)}
 DEFAULT_CACHE = Path(tempfile.gettempdir()) / "neulf_stability"
 FRACTIONS = (1.0, 0.75, 0.5, 0.25)
 POSE_DEGREES = (0.0, 0.1, 0.25, 0.5, 1.0, 2.0)
@@ -103,6 +109,7 @@ class Job:
     refine_poses: bool = False  # learned per-view pose corrections (TrainConfig.refine_poses)
     consistency: bool | None = None  # the paper's multi-view losses forced on / off (None: the default's rule)
     minutes: float = 0.0       # a wall-clock budget instead of `steps` (the losses study's equal time)
+    coarse_to_fine: bool | None = None  # coarse to fine forced on / off (None: the default's rule)
 
     @property
     def key(self) -> str:
@@ -247,7 +254,8 @@ def score_views(model_dir: Path, held: list[View], scale: float) -> dict:
             "psnr_half_fit": float(np.mean(half_fit)),
             "psnr_per_view": ";".join(f"{view.stem}={p:.2f}" for view, p in zip(held, psnrs)),
             "nonfinite_pixels": nonfinite, "deep_scene": bool(light_field.slab.is_deep),
-            "multiview_losses": light_field.meta.get("multiview_losses")}
+            "multiview_losses": light_field.meta.get("multiview_losses"),
+            "coarse_to_fine_used": bool(light_field.meta.get("field_config", {}).get("geometry_coarse_to_fine", 0.0))}
 
 
 def colour_matched(image: np.ndarray, target: np.ndarray, fit_columns: slice = slice(None)) -> np.ndarray:
@@ -283,6 +291,8 @@ def train_config(job: Job, held: list[View]) -> TrainConfig:
         options["consistency"] = job.consistency
     if job.minutes:
         options.update(steps=None, minutes=job.minutes)
+    if job.coarse_to_fine is not None:
+        options["coarse_to_fine"] = job.coarse_to_fine
     return TrainConfig(**options)
 
 
@@ -420,6 +430,12 @@ def plan(args, scenes: dict[str, Path]) -> list[Job]:
                 for consistency in (False, True):
                     add(scene, "fast", scales[scene], seed_list=losses_seeds, fraction=fraction,
                         consistency=consistency, minutes=args.losses_minutes, steps=0)
+    if "coarse" in studies:  # the fewer-views runs the default trains coarse to fine, without it
+        for scene, shares in COARSE_PLAN.items():
+            if scene in scenes:
+                for fraction in shares:
+                    add(scene, "fast", args.canclip_scale if scene == "canclip" else synth, fraction=fraction,
+                        coarse_to_fine=False)
     return list({job.key: job for job in jobs}.values())  # shared baselines run once
 
 
@@ -449,10 +465,11 @@ def cell(rows: list[dict], column: str = "psnr") -> str:
 
 def base(scene: str, preset: str | None = None, fraction: float = 1.0, pose_degrees: float = 0.0,
          appearance: bool = False, refine_poses: bool = False, consistency: bool | None = None,
-         minutes: float = 0.0) -> dict:
+         minutes: float = 0.0, coarse_to_fine: bool | None = None) -> dict:
     """Row filter for one configuration (unedited unless told); preset None matches both."""
     match = {"scene": scene, "fraction": fraction, "pose_degrees": pose_degrees, "appearance": appearance,
-             "refine_poses": refine_poses, "consistency": consistency, "minutes": minutes}
+             "refine_poses": refine_poses, "consistency": consistency, "minutes": minutes,
+             "coarse_to_fine": coarse_to_fine}
     return match if preset is None else {**match, "preset": preset}
 
 
@@ -547,6 +564,21 @@ def losses_table(rows: list[dict]) -> list[str]:
     return lines
 
 
+def coarse_table(rows: list[dict]) -> list[str]:
+    lines = ["| scene | training views | without | with (the default) | gain |", "|---|---|---|---|---|"]
+    without = [r for r in rows if r.get("coarse_to_fine") is False]
+    for scene in dict.fromkeys(r["scene"] for r in without):
+        for fraction in sorted({r["fraction"] for r in without if r["scene"] == scene}, reverse=True):
+            off = group(rows, preset="fast", **base(scene, fraction=fraction, coarse_to_fine=False))
+            on = group(rows, preset="fast", **base(scene, fraction=fraction))
+            a, b = stats(off), stats(on)
+            if not (a and b):
+                continue
+            views = next((r.get("train_views") for r in off + on if r.get("train_views")), "?")
+            lines.append(f"| {scene} | {views} | {cell(off)} | {cell(on)} | {b['mean'] - a['mean']:+.2f} dB |")
+    return lines
+
+
 def runs_table(rows: list[dict]) -> list[str]:
     lines = ["| model | runs | finished | crashed | NaN/skip warnings | steps per run | mean s per run "
              "| ms per step (wall clock, shared machine) |",
@@ -620,7 +652,7 @@ def targets(rows: list[dict]) -> list[str]:
 def configurations(rows: list[dict], preset: str) -> list[dict]:
     """The distinct configurations (everything but the seed) that `preset` was run in."""
     keys = {(r["scene"], r["fraction"], r["pose_degrees"], r["appearance"], r["refine_poses"], r["consistency"],
-             r["minutes"]) for r in rows if r["preset"] == preset}
+             r["minutes"], r["coarse_to_fine"]) for r in rows if r["preset"] == preset}
     ordered = sorted(keys, key=lambda k: tuple(-1 if v is None else v for v in k))  # consistency may be None
     return [base(scene, preset, *rest) for scene, *rest in ordered]
 
@@ -639,6 +671,8 @@ def describe(match: dict) -> str:
         parts.append(f"losses {'on' if match['consistency'] else 'off'}")
     if match.get("minutes"):
         parts.append(f"{match['minutes']:g} min")
+    if match.get("coarse_to_fine") is not None:
+        parts.append(f"coarse to fine {'on' if match['coarse_to_fine'] else 'off'}")
     return ", ".join(parts)
 
 
@@ -657,6 +691,8 @@ def tables_markdown(rows: list[dict], meta: dict) -> str:
         "", f"### The paper's multi-view losses with fewer views (fast; equal time, {meta.get('losses_minutes', 1.0):g} min "
         f"per run; seeds {meta.get('losses_seeds', '0,1')}; the default turns them on for deep scenes with at most "
         f"{CONSISTENCY_MAX_VIEWS} training views)", "", *losses_table(rows),
+        "", f"### Coarse to fine with fewer views (fast; the default turns it on with at most {COARSE_TO_FINE_MAX_VIEWS} "
+        "training views)", "", *coarse_table(rows),
         "", "### Runs", "", *runs_table(rows),
         "", "### Targets (issue 4)", "", *targets(rows),
     ]
@@ -673,7 +709,8 @@ def update_markdown(path: Path, tables: str) -> None:
     path.write_text(f"{head}{MARKER_BEGIN}\n{tables}\n{MARKER_END}{tail}")
 
 
-CSV_COLUMNS = ["scene", "preset", "fraction", "pose_degrees", "appearance", "refine_poses", "consistency", "minutes", "deep_scene", "multiview_losses", "seed", "status", "psnr", "ssim",
+CSV_COLUMNS = ["scene", "preset", "fraction", "pose_degrees", "appearance", "refine_poses", "consistency", "minutes",
+               "coarse_to_fine", "coarse_to_fine_used", "deep_scene", "multiview_losses", "seed", "status", "psnr", "ssim",
                "psnr_matched", "psnr_half_fit", "psnr_per_view", "train_views", "held_out", "steps", "steps_done", "train_seconds",
                "wall_seconds", "warnings", "warning_text", "nonfinite_pixels", "error", "scale", "path", "truth"]
 
@@ -800,7 +837,7 @@ def parse_args(argv=None) -> argparse.Namespace:
     parser.add_argument("--fern-scale", type=float, default=0.5, help="of fern's 504x378 images_8")
     parser.add_argument("--losses-minutes", type=float, default=1.0, help="the losses study's equal wall-clock budget")
     parser.add_argument("--losses-seeds", default="0,1")
-    parser.add_argument("--only", default="views,variants,exposure,pose,losses")
+    parser.add_argument("--only", default="views,variants,exposure,pose,losses,coarse")
     parser.add_argument("--fresh", action="store_true", help="ignore the runs already in the cache's log")
     parser.add_argument("--report-only", action="store_true", help="rewrite the docs from the log, train nothing")
     return parser.parse_args(argv)

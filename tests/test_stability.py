@@ -60,6 +60,9 @@ def test_study_runs_end_to_end(stability, tiny_scene, tmp_path):
     # the losses study: off / on for the same wall-clock budget
     jobs += [stability.Job("tiny", str(tiny_scene), str(tiny_scene), 1.0, "fast", 3, seed, fraction=0.5,
                            consistency=on, minutes=0.05) for on, seed in ((False, 0), (False, 1), (True, 0))]
+    # the coarse-to-fine study: the half share (4 training views, on by default) without it
+    jobs += [stability.Job("tiny", str(tiny_scene), str(tiny_scene), 1.0, "fast", 3, seed, fraction=0.5,
+                           coarse_to_fine=False) for seed in (0, 1)]
     rows = stability.run_jobs(jobs, workers=1, log=tmp_path / "runs.jsonl")
 
     assert [r["status"] for r in rows] == ["finished"] * len(jobs), [r.get("error") for r in rows]
@@ -83,8 +86,12 @@ def test_study_runs_end_to_end(stability, tiny_scene, tmp_path):
     losses_line = next(line for line in stability.losses_table(rows) if line.startswith("| tiny |"))
     assert "| 4 |" in losses_line  # the 4 training views of the half share
     assert "| off |" in losses_line  # the tiny plane is shallow: the default leaves the losses off
-    # wall-clock runs stay out of the seed-spread target: the two step-budget configurations only
-    assert "within 0.2 dB" in tables and "of 2 configurations" in tables
+    coarse_line = next(line for line in stability.coarse_table(rows) if line.startswith("| tiny |"))
+    assert "| 4 |" in coarse_line
+    used = {(r["fraction"], r["coarse_to_fine"]): r["coarse_to_fine_used"] for r in rows if not r["minutes"] and not r["pose_degrees"]}
+    assert used == {(1.0, None): True, (0.5, None): True, (0.5, False): False}  # 8 and 4 training views: on by default
+    # wall-clock runs stay out of the seed-spread target: the three step-budget configurations only
+    assert "within 0.2 dB" in tables and "of 3 configurations" in tables
 
 
 def test_a_crash_is_recorded_not_raised(stability, tmp_path):
