@@ -35,7 +35,11 @@ CURRENT_FORWARD = DisparityField.forward
 
 def reference_forward(self, uvst):
     """DisparityField.forward before the speed-up (commit d63c3d7)."""
-    geometry = self.geometry.decoder(self.geometry.features(uvst))
+    features = self.geometry.features(uvst)
+    if self.config.geometry_coarse_to_fine > 0:  # a model saved inside its coarse-to-fine ramp
+        weights = self.geometry_scale_weights
+        features = features * weights.repeat_interleave(features.shape[1] // weights.numel())
+    geometry = self.geometry.decoder(features)
     unit = torch.sigmoid(geometry[:, 3:4])
     delta = self.disparity(unit)
     uv = uvst[:, :2] * self.uv_half + self.uv_centre
