@@ -374,7 +374,9 @@ def progress_line(row: dict, count: int, total: int) -> str:
     return (f"[{count}/{total}] {row['scene']} {row['preset']} views={row['fraction']:g} pose={row['pose_degrees']:g}deg "
             f"appearance={row['appearance']} refine={row.get('refine_poses', False)} seed={row['seed']}"
             f"{'' if row.get('consistency') is None else ' losses=' + ('on' if row['consistency'] else 'off')}"
-            f"{' minutes=%g' % row['minutes'] if row.get('minutes') else ''}: {row['status']} {score} "
+            f"{' minutes=%g' % row['minutes'] if row.get('minutes') else ''}"
+            f"{'' if row.get('coarse_to_fine') is None else ' coarse=' + ('on' if row['coarse_to_fine'] else 'off')}"
+            f": {row['status']} {score} "
             f"({row.get('steps_done', 0)} steps, {row.get('train_seconds', math.nan)} s, {row.get('warnings', 0)} warnings)")
 
 
