@@ -287,8 +287,12 @@ def test_coarse_to_fine_by_default_with_few_photos_and_the_cli_flags(tiny_scene,
     assert main(args + ["--out", str(tmp_path / "short"), "--coarse-to-fine"]) == 0
     value, weights = ramp(tmp_path / "short")  # 3 steps, the last at 2/3 of the budget: inside the ramp
     assert value == COARSE_TO_FINE and weights.tolist()[:2] == [1.0, 1.0] and 0 < weights.tolist()[2] < 1
-    rendering = LightField.load(tmp_path / "short", "cpu").render_view(load_scene(tiny_scene).views[0], depth=True)
-    assert np.isfinite(rendering.rgb).all()
+    view = load_scene(tiny_scene).views[0]
+    small = LightField.load(tmp_path / "short", "cpu")                     # model.pt: 8-bit grids, small tensors as saved
+    full = LightField.load(tmp_path / "short" / "checkpoint.pt", "cpu")    # float32
+    assert small.field.geometry_scale_weights.tolist() == weights.tolist()  # rendered as trained, not all ones
+    a, b = small.render_view(view, depth=True), full.render_view(view, depth=True)
+    assert np.isfinite(a.rgb).all() and np.abs(a.rgb - b.rgb).mean() < 0.01
     capsys.readouterr()
     assert main(args + ["--out", str(tmp_path / "mlp"), "--preset", "authors", "--coarse-to-fine"]) != 0
     assert "--coarse-to-fine" in capsys.readouterr().err
