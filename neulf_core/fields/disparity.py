@@ -142,11 +142,12 @@ class DisparityField(nn.Module):
         one photo's noise (docs/STABILITY.md).  A weight never drops: a model resumed with a
         larger budget (a smaller fraction) keeps the scales it has."""
         ramp = self.config.geometry_coarse_to_fine
-        if ramp <= 0:
+        if ramp <= 0 or getattr(self, "_ramp_done", False):
             return
         weights = _fade_in_weights(self.geometry_scale_weights.numel(), fraction / ramp)
         torch.maximum(self.geometry_scale_weights, weights.to(self.geometry_scale_weights.device),
                       out=self.geometry_scale_weights)
+        self._ramp_done = bool((weights == 1).all())  # no host-to-device copy per step after the ramp
 
     def disparity(self, unit: torch.Tensor) -> torch.Tensor:
         c = self.config
