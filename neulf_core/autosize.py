@@ -112,10 +112,7 @@ def train_auto(scene: Scene | str | Path, model_dir: str | Path, config: TrainCo
     if not isinstance(scene, Scene):
         scene = load_scene(scene, images_dir)
     config = replace(config, preset=PRESET)
-    if config.consistency is None:
-        config = replace(config, consistency=_losses_by_default(scene, config, progress))
-    if config.coarse_to_fine is None:  # likewise decided once, for the final model's view count
-        config = replace(config, coarse_to_fine=default_coarse_to_fine(len(split_views(scene, config.holdout_every, config.exclude)[0])))
+    config = _final_model_defaults(scene, config, progress)
     started = time.monotonic()
     searched = _search(scene, config, factors, progress, should_stop)
     if searched is None:  # cancelled; nothing saved yet: the search starts again next time
@@ -134,16 +131,20 @@ def train_auto(scene: Scene | str | Path, model_dir: str | Path, config: TrainCo
     return _record(model_dir, record, result)
 
 
-def _losses_by_default(scene: Scene, config: TrainConfig, progress) -> bool:
-    """train.default_consistency for the final model's training views, decided once: the
+def _final_model_defaults(scene: Scene, config: TrainConfig, progress) -> TrainConfig:
+    """`config` with the view-count rules left to the default (train.default_consistency,
+    train.default_coarse_to_fine) decided once, for the final model's training views: the
     search runs (fewer views: the validation views are carved out) train as the model will."""
     train_views, _ = split_views(scene, config.holdout_every, config.exclude)
-    slab = fit_slab(scene, train_views, scale=config.scale, st_depth=config.st_depth, uv_depth=config.uv_depth,
-                    near=config.near, far=config.far)
-    on = default_consistency(slab, len(train_views))
-    if on:
-        announce_default_losses(progress, len(train_views))
-    return on
+    if config.coarse_to_fine is None:
+        config = replace(config, coarse_to_fine=default_coarse_to_fine(len(train_views)))
+    if config.consistency is None:
+        slab = fit_slab(scene, train_views, scale=config.scale, st_depth=config.st_depth, uv_depth=config.uv_depth,
+                        near=config.near, far=config.far)
+        config = replace(config, consistency=default_consistency(slab, len(train_views)))
+        if config.consistency:
+            announce_default_losses(progress, len(train_views))
+    return config
 
 
 def _search(scene: Scene, config: TrainConfig, factors, progress, should_stop):

@@ -119,6 +119,7 @@ class DisparityField(nn.Module):
             # Persistent: a model saved part-way (a checkpoint, Cancel) renders with the weights
             # it was trained with, and a resumed one continues from them.
             self.register_buffer("geometry_scale_weights", _fade_in_weights(len(config.geometry_spatial_res), 0.0))
+        self._ramp_done = False  # every weight at 1: the trainer's calls need no more copies
         decoder_in = config.texture_channels * config.texture_levels + (2 if config.view_dependence else 0)
         self.decoder = nn.Sequential(nn.Linear(decoder_in, config.hidden), nn.ReLU(), nn.Linear(config.hidden, 3))
         for layer in (*self.geometry.decoder, *self.decoder):
@@ -142,12 +143,12 @@ class DisparityField(nn.Module):
         one photo's noise (docs/STABILITY.md).  A weight never drops: a model resumed with a
         larger budget (a smaller fraction) keeps the scales it has."""
         ramp = self.config.geometry_coarse_to_fine
-        if ramp <= 0 or getattr(self, "_ramp_done", False):
+        if ramp <= 0 or self._ramp_done:
             return
         weights = _fade_in_weights(self.geometry_scale_weights.numel(), fraction / ramp)
         torch.maximum(self.geometry_scale_weights, weights.to(self.geometry_scale_weights.device),
                       out=self.geometry_scale_weights)
-        self._ramp_done = bool((weights == 1).all())  # no host-to-device copy per step after the ramp
+        self._ramp_done = bool((weights == 1).all())
 
     def disparity(self, unit: torch.Tensor) -> torch.Tensor:
         c = self.config
