@@ -65,6 +65,20 @@ def test_fast_field_starts_on_the_st_plane():
     assert torch.allclose(depth, torch.full_like(depth, 4.0), rtol=0.02)
 
 
+def test_rendering_decodes_colour_in_slices_with_the_same_result_as_training():
+    """Without gradients on a CPU the colour decoder runs DECODE_ROWS rays at a time (faster:
+    the hidden layer stays in cache); the colours must equal one call's, slice edges included."""
+    from neulf_core.fields import disparity
+    slab = Slab(np.eye(3), np.zeros(3), 0.0, 4.0, 2.0, 8.0, -np.ones(4), np.ones(4))
+    torch.manual_seed(0)
+    field = build_field("disparity", make_config("disparity", {**slab_geometry(slab), "texture_size": [16, 16], "hidden": 128}))
+    uvst = torch.rand(2 * disparity.DECODE_ROWS + 5, 4) * 2 - 1
+    whole, unit = field(uvst)  # gradients on: one decoder call
+    with torch.no_grad():
+        sliced, unit_sliced = field(uvst)
+    assert torch.allclose(sliced, whole.detach(), atol=1e-6) and torch.equal(unit_sliced, unit.detach())
+
+
 def test_push_pull_fill_keeps_seen_texels_and_fills_holes_from_their_neighbours():
     texture = torch.zeros(1, 2, 8, 8)
     texture[:, 0, :, :4] = 1.0     # left half seen, channel 0 at 1
@@ -203,13 +217,18 @@ def test_cpu_render_does_not_page_fault_its_chunk_buffers_in_again():
 
 def test_appearance_captures_get_eight_geometry_channels_and_resume_keeps_the_saved_shape(tiny_scene, tmp_path, monkeypatch):
     """`--appearance` trains the fast field with 8 geometry channels (the default has 4); a
-    resumed model keeps the shape it was saved with even when the defaults changed since."""
+    resumed model keeps the shape it was saved with even when the defaults changed since:
+    the channels, and the colour decoder's width (128 now; models saved with 64 keep it)."""
     from neulf_core import presets
     from neulf_core.checkpoint import load_checkpoint
+    from neulf_core.render import LightField
     from neulf_core.train import TrainConfig, train
 
     def channels(model):
         return load_checkpoint(model)["field_config"]["geometry_channels"]
+
+    def width(model):
+        return load_checkpoint(model)["field_config"]["hidden"]
 
     quick = dict(batch_size=256, teacher=False, validate_seconds=1e9, checkpoint_seconds=1e9)
     train(tiny_scene, tmp_path / "plain", TrainConfig(steps=2, **quick))
@@ -219,6 +238,14 @@ def test_appearance_captures_get_eight_geometry_channels_and_resume_keeps_the_sa
     monkeypatch.setitem(presets.FAST_FIELD, "geometry_channels", 6)
     result = train(tiny_scene, tmp_path / "plain", TrainConfig(steps=4, **quick), resume=True)
     assert result.step == 4 and channels(tmp_path / "plain") == 4
+    assert width(tmp_path / "plain") == presets.FAST_FIELD["hidden"] == 128
+
+    monkeypatch.setitem(presets.FAST_FIELD, "hidden", 64)  # a model saved before the wider decoder
+    train(tiny_scene, tmp_path / "narrow", TrainConfig(steps=2, **quick))
+    monkeypatch.setitem(presets.FAST_FIELD, "hidden", 128)
+    result = train(tiny_scene, tmp_path / "narrow", TrainConfig(steps=4, **quick), resume=True)
+    assert result.step == 4 and width(tmp_path / "narrow") == 64
+    assert LightField.load(tmp_path / "narrow", "cpu").field.decoder[0].out_features == 64
 
 
 def test_coarse_to_fine_fades_the_finer_geometry_scales_in_and_a_saved_model_keeps_its_weights():

@@ -74,6 +74,7 @@ class DisparityConfig:
 # (CanClip at 480x270 needs 202,800 texels: 1.6 MB with the depth layers, 8-bit grids; more
 # texels or channels at this budget were measured not to pay, docs/BENCHMARKS.md).
 MAX_TEXELS = 220_000
+DECODE_ROWS = 8192  # rays per colour-decoder call when rendering on a CPU (DisparityField._colour)
 
 
 def texture_size_for(image_size: tuple[int, int], margin: float = 0.25) -> list[int]:
@@ -162,7 +163,15 @@ class DisparityField(nn.Module):
         features = [_sample(texture, grid).view(texture.shape[1], n).t() for texture in self.textures]
         if self.config.view_dependence:
             features.append(uvst[:, :2])
-        return torch.sigmoid(self.decoder(_rows(features))), unit
+        return self._colour(_rows(features)), unit
+
+    def _colour(self, features: torch.Tensor) -> torch.Tensor:
+        if torch.is_grad_enabled() or features.device.type != "cpu" or features.shape[0] <= DECODE_ROWS:
+            return torch.sigmoid(self.decoder(features))
+        # Rendering on a CPU: a 32k-ray chunk's hidden layer (32k x 128 floats, 16 MB) falls out
+        # of the cache between the decoder's steps; 8k rows at a time decode in 4.2 instead of
+        # 6.6 ms per 32k rays (docs/BENCHMARKS.md, "Colour decoder width").
+        return torch.cat([torch.sigmoid(self.decoder(rows)) for rows in features.split(DECODE_ROWS)])
 
     def sheared(self, uvst: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Where rays (N, 4) read the texture, (N, 2) in [-1, 1], and their depth unit (N, 1)."""
