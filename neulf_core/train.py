@@ -205,11 +205,19 @@ def _optimizer(field_module, lr: float, appearance: ViewAppearance | None = None
     return torch.optim.Adam(groups, betas=(0.9, 0.999), eps=1e-15 if len(groups) > 1 else 1e-8)
 
 
-def _set_learning_rate(optimizer, preset, step: int, n_rays: int, batch: int, fraction: float, lr_scale: float) -> float:
+def learning_rate_factor(preset, fraction: float, epochs: float = 0.0) -> float:
+    """The learning rate over its initial value, `fraction` of the way through the budget
+    (`epochs`: training rays seen over the training set's size, for the paper's schedule)."""
     if preset.lr_decay_per_epoch is not None:
-        factor = preset.lr_decay_per_epoch ** (step * batch / max(1, n_rays))
-    else:
-        factor = preset.lr_final_ratio ** fraction
+        return preset.lr_decay_per_epoch ** epochs
+    if preset.lr_schedule == "cosine":
+        final = preset.lr_final_ratio
+        return final + (1.0 - final) * 0.5 * (1.0 + math.cos(math.pi * min(1.0, max(0.0, fraction))))
+    return preset.lr_final_ratio ** fraction
+
+
+def _set_learning_rate(optimizer, preset, step: int, n_rays: int, batch: int, fraction: float, lr_scale: float) -> float:
+    factor = learning_rate_factor(preset, fraction, step * batch / max(1, n_rays))
     for group in optimizer.param_groups:
         group["lr"] = group["initial_lr"] * factor * lr_scale
         if group.get("name") == "poses" and fraction < POSE_START:

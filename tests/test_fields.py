@@ -248,6 +248,29 @@ def test_appearance_captures_get_eight_geometry_channels_and_resume_keeps_the_sa
     assert LightField.load(tmp_path / "narrow", "cpu").field.decoder[0].out_features == 64
 
 
+def test_fast_preset_learning_rate_falls_along_a_cosine_to_one_percent(tiny_scene, tmp_path):
+    """The default's schedule (docs/STABILITY.md, "Learning-rate schedule"): a cosine from the
+    preset's rate to 1 % of it over the budget; the paper's networks keep their per-epoch decay."""
+    from neulf_core.presets import get_preset
+    from neulf_core.train import TrainConfig, learning_rate_factor, train
+
+    fast = get_preset("fast")
+    factors = [learning_rate_factor(fast, f) for f in np.linspace(0, 1, 21)]
+    assert factors[0] == 1.0 and abs(factors[10] - 0.505) < 1e-9 and abs(factors[-1] - 0.01) < 1e-12
+    assert all(a > b for a, b in zip(factors, factors[1:]))
+    assert learning_rate_factor(fast, 0.25) > 0.1 ** 0.25  # longer at a high rate than the old exponential
+    paper = get_preset("paper")
+    assert abs(learning_rate_factor(paper, 0.5, epochs=2.0) - 0.995 ** 2) < 1e-12
+
+    # what training uses: the rate logged at each validation follows the cosine
+    result = train(tiny_scene, tmp_path / "m", TrainConfig(steps=40, batch_size=256, teacher=False,
+                                                           validate_seconds=0.0, checkpoint_seconds=1e9))
+    rates = [(record["step"], record["lr"]) for record in result.history]
+    for step, lr in rates:  # logged after step `step`, set at its start: fraction (step - 1) / 40
+        assert abs(lr - fast.lr * learning_rate_factor(fast, (step - 1) / 40)) < 1e-9
+    assert rates[-1][1] < 0.02 * fast.lr
+
+
 def test_coarse_to_fine_fades_the_finer_geometry_scales_in_and_a_saved_model_keeps_its_weights():
     """geometry_coarse_to_fine = T: the coarsest scale counts from the start, the next ones
     fade in one after another until T of the budget; a model saved part-way (a checkpoint,
