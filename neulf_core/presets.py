@@ -19,7 +19,7 @@ class Preset:
     lr: float = 5e-4
     lr_decay_per_epoch: float | None = None   # the paper's schedule; None: decay over the budget
     lr_final_ratio: float = 0.1               # learning rate at the end of the budget / at start
-    lr_schedule: str = "exponential"          # how it gets there: "exponential" or "cosine" (train._set_learning_rate)
+    lr_schedule: str = "exponential"          # how it gets there: "exponential" or "cosine" (train.learning_rate_factor)
     batch_size: int = 8192
     consistency: bool | None = False          # the paper's multi-view losses by default; None: train.default_consistency (docs/DEPTH.md)
     teacher: bool = False                     # early depth pulled toward the classic plane sweep (teacher.py, docs/DEPTH.md)
@@ -42,8 +42,8 @@ FAST_FIELD = {"texture_channels": 4, "geometry_channels": 4, "hidden": 128}
 # HCI 70 views 45.03 / 0.29 -> 45.35 / 0.08 dB, HCI 18 views 44.47 / 0.45 -> 45.04 / 0.13,
 # CanClip 26 views 34.37 -> 34.66, 6 views 33.21 -> 33.45, the synthetic scene 14 views
 # 28.99 -> 29.11, 4 views 27.47 -> 27.59 (docs/STABILITY.md, "Learning-rate schedule").
-# Decaying exponentially to 1 % instead cost 2.1 dB on HCI's 18 views; a cosine to 10 % or
-# to 0 was within 0.15 dB of this one, with a wider spread.
+# Decaying exponentially to 1 % instead lost 1.8 dB on HCI's 18 views against the old
+# schedule; a cosine to 10 % or to 0 came within 0.16 dB of this one, with a wider spread.
 FAST_SCHEDULE = {"lr": 2e-3, "lr_final_ratio": 0.01, "lr_schedule": "cosine"}
 # Except for captures whose photos differ in exposure (`train --appearance`): there the fast
 # field keeps 8 geometry channels, which the stability study's +-1-stop exposure jitter needs
