@@ -28,7 +28,7 @@ from .slab import Slab
 # synthetic scene's photos 27.59 -> 27.67 dB (every seed gains, spread 0.20 -> 0.10), its 7
 # +0.02, its 14 -0.01, 6 / 26 of CanClip's +0.05 / -0.01, 18 of HCI's -0.04 dB; at the
 # product's setting (1.5 minutes at 480x270, seeds 0 / 1, side by side) CanClip -0.01 / +0.02,
-# Statue -0.02 / +0.08, fern +0.05 / -0.09 dB: no change.  15 % cost (HCI's 18 views -0.24 dB).
+# Statue -0.02 / +0.08, fern +0.05 / -0.09 dB: no change.  15 % cost (HCI's 18 views -0.15 dB, wider spreads).
 TEACHER_WEIGHT = 0.002
 TEACHER_FADE = 0.2
 # Below this many training views the photos constrain the depth less, and the gentle pull
