@@ -193,7 +193,7 @@ def _build_field(preset_name: str, overrides: dict, train_views, slab: Slab, sca
     return build_field(preset.field, config), preset
 
 
-def _optimizer(field_module, lr: float, appearance: ViewAppearance | None = None,
+def _optimizer(field_module, lr: float, beta2: float, appearance: ViewAppearance | None = None,
                poses: PoseRefinement | None = None) -> torch.optim.Optimizer:
     groups = field_module.param_groups(lr) if hasattr(field_module, "param_groups") else [{"params": field_module.parameters(), "lr": lr}]
     if appearance is not None:
@@ -202,7 +202,7 @@ def _optimizer(field_module, lr: float, appearance: ViewAppearance | None = None
         groups.append({"params": list(poses.parameters()), "lr": POSE_LR, "name": "poses"})
     for group in groups:
         group["initial_lr"] = group["lr"]
-    return torch.optim.Adam(groups, betas=(0.9, 0.999), eps=1e-15 if len(groups) > 1 else 1e-8)
+    return torch.optim.Adam(groups, betas=(0.9, beta2), eps=1e-15 if len(groups) > 1 else 1e-8)
 
 
 def learning_rate_factor(preset, fraction: float, epochs: float = 0.0) -> float:
@@ -301,7 +301,7 @@ def _train(scene, model_dir: Path, config: TrainConfig, images_dir, resume: bool
         if use_consistency:
             announce_default_losses(progress, len(train_views))
     consistency = _consistency_inputs(train_views, slab, config, device) if use_consistency else None
-    optimizer = _optimizer(field_module, preset.lr, appearance, poses)
+    optimizer = _optimizer(field_module, preset.lr, preset.adam_beta2, appearance, poses)
     batch = config.batch_size or preset.batch_size
     step, elapsed_before, history = 0, 0.0, []
     teacher, teacher_seconds = _teacher_inputs(train_views, slab, config, preset, device, resumed, progress)

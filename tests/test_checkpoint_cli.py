@@ -185,6 +185,15 @@ def test_split_training_equals_straight_training_with_a_step_schedule(tiny_scene
     assert_same_weights(tmp_path / "straight", tmp_path / "split")
 
 
+def test_each_preset_trains_with_its_own_adam_betas(tiny_scene, tmp_path):
+    """`fast` uses Adam's second-moment decay 0.99 (presets.py); the paper's recipe keeps
+    PyTorch's 0.999; the betas travel in the checkpoint, so a resumed model keeps its own."""
+    for preset, overrides, beta2 in (("fast", {"texture_size": [16, 16]}, 0.99), ("authors", dict(SMALL_MLP), 0.999)):
+        train(tiny_scene, tmp_path / preset, small_config(2, preset=preset, field_overrides=overrides))
+        groups = load_checkpoint(tmp_path / preset)["optimizer"]["param_groups"]
+        assert {tuple(group["betas"]) for group in groups} == {(0.9, beta2)}
+
+
 def test_cancel_then_resume_equals_straight_training(tiny_scene, tmp_path):
     """`fast` decays the learning rate over the budget; with the same total budget, a run
     cancelled after k steps and resumed matches an uninterrupted one bit for bit."""
