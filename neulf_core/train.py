@@ -27,7 +27,7 @@ from .fields import build_field, count_parameters, make_config
 from .fields.disparity import slab_geometry, texture_size_for
 from .lock import training_lock
 from .poses import PoseRefinement
-from .presets import APPEARANCE_GEOMETRY, DEFAULT_PRESET, get_preset
+from .presets import APPEARANCE_ADAM_BETA2, APPEARANCE_GEOMETRY, DEFAULT_PRESET, get_preset
 from .scene import Scene, load_scene, scaled_size, split_views
 from .slab import Slab, fit_slab
 from .teacher import TEACHER_FADE, strong_pull, sweep_depth_targets, teacher_loss, teacher_weight
@@ -301,7 +301,8 @@ def _train(scene, model_dir: Path, config: TrainConfig, images_dir, resume: bool
         if use_consistency:
             announce_default_losses(progress, len(train_views))
     consistency = _consistency_inputs(train_views, slab, config, device) if use_consistency else None
-    optimizer = _optimizer(field_module, preset.lr, preset.adam_beta2, appearance, poses)
+    beta2 = APPEARANCE_ADAM_BETA2 if appearance is not None else preset.adam_beta2
+    optimizer = _optimizer(field_module, preset.lr, beta2, appearance, poses)
     batch = config.batch_size or preset.batch_size
     step, elapsed_before, history = 0, 0.0, []
     teacher, teacher_seconds = _teacher_inputs(train_views, slab, config, preset, device, resumed, progress)

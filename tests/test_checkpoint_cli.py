@@ -186,11 +186,15 @@ def test_split_training_equals_straight_training_with_a_step_schedule(tiny_scene
 
 
 def test_each_preset_trains_with_its_own_adam_betas(tiny_scene, tmp_path):
-    """`fast` uses Adam's second-moment decay 0.99 (presets.py); the paper's recipe keeps
-    PyTorch's 0.999; the betas travel in the checkpoint, so a resumed model keeps its own."""
-    for preset, overrides, beta2 in (("fast", {"texture_size": [16, 16]}, 0.99), ("authors", dict(SMALL_MLP), 0.999)):
-        train(tiny_scene, tmp_path / preset, small_config(2, preset=preset, field_overrides=overrides))
-        groups = load_checkpoint(tmp_path / preset)["optimizer"]["param_groups"]
+    """`fast` uses Adam's second-moment decay 0.99 (presets.py), except with `--appearance`;
+    the paper's recipe keeps PyTorch's 0.999; the betas travel in the checkpoint, so a
+    resumed model keeps its own."""
+    small_fast = {"texture_size": [16, 16]}
+    for name, options, beta2 in (("fast", dict(preset="fast", field_overrides=small_fast), 0.99),
+                                 ("appearance", dict(preset="fast", field_overrides=small_fast, appearance=True), 0.999),
+                                 ("authors", dict(preset="authors", field_overrides=dict(SMALL_MLP)), 0.999)):
+        train(tiny_scene, tmp_path / name, small_config(2, **options))
+        groups = load_checkpoint(tmp_path / name)["optimizer"]["param_groups"]
         assert {tuple(group["betas"]) for group in groups} == {(0.9, beta2)}
 
 
