@@ -48,7 +48,7 @@ FAST_FIELD = {"texture_channels": 4, "geometry_channels": 4, "hidden": 128}
 # Its optimiser: Adam with a second-moment decay of 0.99 instead of PyTorch's 0.999, as grid
 # fields are commonly trained (Instant-NGP): the per-texel step sizes follow the shrinking
 # gradients sooner, so the field converges in fewer steps.  At the product's setting
-# (1.5 minutes at 480x270, side by side, seeds 0 / 1): HCI +1.35 dB (seed 0), CanClip
+# (1.5 minutes at 480x270, side by side, seeds 0 / 1): HCI +1.35 / +1.45 dB, CanClip
 # +0.23 / +0.19, fern +0.04 / +0.01, Statue +0.04 / -0.18; at the stability study's 1000
 # steps HCI 52 views 45.17 -> 46.20 dB, CanClip 6 views 33.50 -> 33.70 (docs/STABILITY.md,
 # "Adam's second moment").  0.95 gained more at 1000 steps but lost on Statue at 1.5 minutes

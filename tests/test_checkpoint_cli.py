@@ -187,8 +187,8 @@ def test_split_training_equals_straight_training_with_a_step_schedule(tiny_scene
 
 def test_each_preset_trains_with_its_own_adam_betas(tiny_scene, tmp_path):
     """`fast` uses Adam's second-moment decay 0.99 (presets.py), except with `--appearance`;
-    the paper's recipe keeps PyTorch's 0.999; the betas travel in the checkpoint, so a
-    resumed model keeps its own."""
+    the paper's recipe keeps PyTorch's 0.999.  The betas are saved with Adam's state in the
+    checkpoint, which a resumed run loads, so a model keeps the betas it started with."""
     small_fast = {"texture_size": [16, 16]}
     for name, options, beta2 in (("fast", dict(preset="fast", field_overrides=small_fast), 0.99),
                                  ("appearance", dict(preset="fast", field_overrides=small_fast, appearance=True), 0.999),
