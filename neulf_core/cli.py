@@ -395,7 +395,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--far", type=float)
     p.add_argument("--consistency", action=argparse.BooleanOptionalAction, default=None,
                    help="the paper's multi-view photometric and depth losses (default: fast/auto turn them on for deep "
-                        "scenes with at most 13 training views, where they were measured to help; docs/DEPTH.md)")
+                        "scenes with at most 20 training views, where they were measured to help; docs/DEPTH.md)")
     p.add_argument("--appearance", action="store_true",
                    help="learn a colour transform per photo (captures with changing exposure or white balance)")
     p.add_argument("--refine-poses", action="store_true",

@@ -44,6 +44,16 @@ POSE_LR = 3e-4
 POSE_START = 0.2   # share of the budget before the poses move
 
 
+# Rays per step that get the multi-view losses: 512 of the 8192 (a step costs ~1.4 times one
+# without the losses, against ~2.1 times with 2048).  Their weight is per ray, so fewer rays
+# pull as hard, only noisier, and the steps saved buy more training.  Equal time, side by side,
+# seeds 0 / 1 (docs/DEPTH.md, "The default"): 1024 rays against 2048 at 1 minute, the synthetic
+# scene's 14 / 4 views +0.10 / +0.01, +0.16 / +0.21 dB, fern's 17 -0.05 / +0.11; 512 against
+# 1024, +0.07 / +0.24, +0.11 / +0.13, +0.03 / -0.05; at 5 minutes (14 views, seed 0) 1024
+# against 2048 +0.34 dB, 512 against 1024 +0.01.
+CONSISTENCY_RAYS = 512
+
+
 @dataclass
 class TrainConfig:
     preset: str = DEFAULT_PRESET
@@ -63,7 +73,7 @@ class TrainConfig:
     field_overrides: dict = field(default_factory=dict)
     device: str | None = None
     consistency: bool | None = None     # the paper's multi-view losses L_mp, L_d (None: the preset's default)
-    consistency_rays: int = 2048        # rays per step that get them (each costs K more field queries)
+    consistency_rays: int = CONSISTENCY_RAYS  # rays per step that get them (each costs K more field queries)
     neighbours: int = 5                 # K nearest training cameras
     appearance: bool = False            # learn a per-photo colour transform (exposure, white balance)
     teacher: bool | None = None         # pull early depth toward the classic plane sweep's (None: the preset's default)
@@ -125,15 +135,20 @@ def default_depth_layers(slab: Slab, n_train_views: int) -> int:
     return 0 if slab.is_deep or n_train_views < DEPTH_LAYERS_MIN_VIEWS else DEFAULT_DEPTH_LAYERS
 
 
-# The paper's multi-view losses (consistency.py) cost about twice the time per step, so they
-# are on by default only where they were measured to pay for that at equal training time
-# (1 minute, two seeds, the fast field; `benchmarks/stability.py`'s losses study,
-# docs/DEPTH.md): deep scenes with few photos -- the project's synthetic scene with 4 / 7 / 14
-# training views +1.23 / +0.89 / +0.10 dB, fern at 252x189 with 4 / 8 / 17 views +0.79 /
-# +0.31 / -0.37 dB.  Shallow scenes gain less than the lost steps: CanClip with 6 / 26 views
-# -0.32 / -0.73 dB.  With many photos the field's shared texture already makes neighbouring
+# The paper's multi-view losses (consistency.py) cost time per step (~1.4 times with
+# CONSISTENCY_RAYS), so they are on by default only where they were measured to pay for it at
+# equal training time (two runs side by side, seeds 0 / 1, the fast field;
+# `benchmarks/stability.py`'s losses study and docs/DEPTH.md): deep scenes with up to 20
+# photos.  At 1 minute on a 2-core CPU (2048 rays then): the project's synthetic scene with 4 /
+# 7 / 14 training views +1.10 / +1.07 / +0.39 dB, fern at 252x189 with 4 / 8 / 17 views +0.75 /
+# +0.58 / +0.19 dB; the synthetic scene on a denser 8x8 rig with 20 / 28 views, 512 rays,
+# -0.09 / +0.13 and -0.28 / -0.25 dB (56 views, 2048 rays: -0.07 / -0.33).  The gains grow
+# with the budget: at the Blender panel's 5 minutes (seed 0, 2048 rays) 14 views +0.94 dB,
+# fern's 17 +0.69, 20 views +0.28, 28 views +0.02 -- without the losses, deep scenes overfit
+# as training goes on.  Shallow scenes gain less than the lost steps: CanClip with 6 / 26 views
+# -0.01 / -1.04 dB.  With many photos the field's shared texture already makes neighbouring
 # rays agree; with few, the losses tie each ray's depth to the other photos.
-CONSISTENCY_MAX_VIEWS = 13
+CONSISTENCY_MAX_VIEWS = 20
 
 
 def losses_by_default(deep: bool, n_train_views: int) -> bool:

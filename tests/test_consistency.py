@@ -153,7 +153,7 @@ def test_appearance_transforms_average_to_identity():
     assert torch.allclose(appearance(rgb, views), expected, atol=1e-6)
 
 
-def test_losses_by_default_only_for_few_photos_of_a_deep_scene():
+def test_losses_by_default_only_for_up_to_20_photos_of_a_deep_scene():
     from neulf_core.train import CONSISTENCY_MAX_VIEWS, default_consistency
 
     def slab(near, far):
@@ -161,8 +161,9 @@ def test_losses_by_default_only_for_few_photos_of_a_deep_scene():
 
     assert default_consistency(slab(2.0, 6.9), 4)                            # the synthetic scene's 25 %
     assert default_consistency(slab(16.8, 77.8), 8)                          # fern's 50 %
+    assert default_consistency(slab(16.8, 77.8), 17)                         # all of fern's (+0.19 dB at 1 min)
     assert default_consistency(slab(16.8, 77.8), CONSISTENCY_MAX_VIEWS)
-    assert not default_consistency(slab(16.8, 77.8), CONSISTENCY_MAX_VIEWS + 1)  # more views: off (fern's 17: -0.37 dB)
+    assert not default_consistency(slab(16.8, 77.8), CONSISTENCY_MAX_VIEWS + 1)  # more views: off (28 views: -0.27 dB at 1 min)
     assert not default_consistency(slab(10.0, 17.1), 6)                      # CanClip's 25 %, shallow
     assert not default_consistency(slab(2.0, 6.9), 1)                        # no neighbour to compare with
 
