@@ -141,7 +141,7 @@ def _final_model_defaults(scene: Scene, config: TrainConfig, progress) -> TrainC
     if config.consistency is None:
         slab = fit_slab(scene, train_views, scale=config.scale, st_depth=config.st_depth, uv_depth=config.uv_depth,
                         near=config.near, far=config.far)
-        config = replace(config, consistency=default_consistency(slab, len(train_views)))
+        config = replace(config, consistency=default_consistency(slab, train_views, config))
         if config.consistency:
             announce_default_losses(progress, len(train_views))
     return config

@@ -395,7 +395,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--far", type=float)
     p.add_argument("--consistency", action=argparse.BooleanOptionalAction, default=None,
                    help="the paper's multi-view photometric and depth losses (default: fast/auto turn them on for deep "
-                        "scenes with at most 20 training views, where they were measured to help; docs/DEPTH.md)")
+                        "scenes with at most 20 training views when the budget passes over the training pixels at "
+                        "least 20 times, where they were measured to help; docs/DEPTH.md)")
     p.add_argument("--appearance", action="store_true",
                    help="learn a colour transform per photo (captures with changing exposure or white balance)")
     p.add_argument("--refine-poses", action="store_true",

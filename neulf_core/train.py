@@ -149,10 +149,30 @@ def default_depth_layers(slab: Slab, n_train_views: int) -> int:
 # -0.01 / -1.04 dB.  With many photos the field's shared texture already makes neighbouring
 # rays agree; with few, the losses tie each ray's depth to the other photos.
 CONSISTENCY_MAX_VIEWS = 20
+# ... and only when the budget passes over every training pixel often enough for the field
+# to start overfitting what the losses hold.  Fern's 17 views at 504x378, seed 0, off / on side
+# by side (PSNR, LPIPS): 1.5 minutes (~8 passes as counted below) 21.35 / 21.26 dB, LPIPS
+# 0.267 / 0.296 (seed 1: -0.10 / +0.02 dB); 3 minutes (~15 passes) 21.25 / 21.39 dB, 0.262 /
+# 0.272; 5 minutes (~25 passes) 21.01 / 21.46 dB, 0.266 / 0.256 -- without the losses fern
+# gets worse as training goes on.  At 252x189 for 1 minute (~20 passes) +0.23 dB.  A minutes
+# budget counts as LOSSES_STEPS_PER_MINUTE steps, about what the slowest machine measured
+# (2-core Intel Xeon, one torch thread) does with the losses on: a faster machine makes more
+# passes than counted, so the rule errs towards leaving them off there.
+LOSSES_MIN_PASSES = 20.0
+LOSSES_STEPS_PER_MINUTE = 2000
 
 
-def losses_by_default(deep: bool, n_train_views: int) -> bool:
-    return deep and 2 <= n_train_views <= CONSISTENCY_MAX_VIEWS
+def budget_passes(config: "TrainConfig", batch: int, train_pixels: int) -> float:
+    """How many times the budget (steps, or minutes at LOSSES_STEPS_PER_MINUTE) passes over
+    the training pixels; whichever budget ends training first counts."""
+    budgets = [config.steps] if config.steps else []
+    if config.minutes:
+        budgets.append(config.minutes * LOSSES_STEPS_PER_MINUTE)
+    return min(budgets, default=0) * batch / max(train_pixels, 1)
+
+
+def losses_by_default(deep: bool, n_train_views: int, passes: float = math.inf) -> bool:
+    return deep and 2 <= n_train_views <= CONSISTENCY_MAX_VIEWS and passes >= LOSSES_MIN_PASSES
 
 
 # Coarse to fine (DisparityConfig.geometry_coarse_to_fine): with few photos the finer geometry
@@ -174,15 +194,17 @@ def default_coarse_to_fine(n_train_views: int) -> bool:
     return 2 <= n_train_views <= COARSE_TO_FINE_MAX_VIEWS
 
 
-def default_consistency(slab: Slab, n_train_views: int) -> bool:
-    return losses_by_default(slab.is_deep, n_train_views)
+def default_consistency(slab: Slab, train_views, config: "TrainConfig") -> bool:
+    batch = config.batch_size or get_preset(config.preset).batch_size
+    pixels = sum(math.prod(scaled_size(v.size, config.scale)) for v in train_views)
+    return losses_by_default(slab.is_deep, len(train_views), budget_passes(config, batch, pixels))
 
 
 def announce_default_losses(progress, n_train_views: int) -> None:
     """Tell the user (CLI line, Blender status) that the default turned the losses on."""
     _emit(progress, event="losses", train_views=n_train_views,
           message=f"{n_train_views} photos of a deep scene: training with the paper's multi-view losses, "
-          "about twice the time per step (--no-consistency turns them off; docs/DEPTH.md)")
+          "about 1.4 times the time per step (--no-consistency turns them off; docs/DEPTH.md)")
 
 
 def _build_field(preset_name: str, overrides: dict, train_views, slab: Slab, scale: float, appearance: bool = False,
@@ -312,7 +334,7 @@ def _train(scene, model_dir: Path, config: TrainConfig, images_dir, resume: bool
     if use_consistency is None:
         # A resumed model keeps what it was trained with (models saved before the rule: off).
         use_consistency = (bool(resumed.get("multiview_losses", False)) if resumed
-                           else default_consistency(slab, len(train_views)))
+                           else default_consistency(slab, train_views, config))
         if use_consistency:
             announce_default_losses(progress, len(train_views))
     consistency = _consistency_inputs(train_views, slab, config, device) if use_consistency else None

@@ -4,6 +4,8 @@ an exactly Lambertian light field, and training with them (and with per-photo ap
 from __future__ import annotations
 
 import json
+import math
+
 import numpy as np
 import pytest
 import torch
@@ -154,18 +156,39 @@ def test_appearance_transforms_average_to_identity():
 
 
 def test_losses_by_default_only_for_up_to_20_photos_of_a_deep_scene():
-    from neulf_core.train import CONSISTENCY_MAX_VIEWS, default_consistency
+    from neulf_core.train import CONSISTENCY_MAX_VIEWS, losses_by_default
+
+    assert losses_by_default(True, 4)                                # the synthetic scene's 25 %
+    assert losses_by_default(True, 17)                               # all of fern's (+0.23 dB at 1 min)
+    assert losses_by_default(True, CONSISTENCY_MAX_VIEWS)
+    assert not losses_by_default(True, CONSISTENCY_MAX_VIEWS + 1)    # more views: off (28 views: -0.27 dB at 1 min)
+    assert not losses_by_default(False, 6)                           # CanClip's 25 %, shallow
+    assert not losses_by_default(True, 1)                            # no neighbour to compare with
+
+
+def test_losses_by_default_need_a_budget_that_passes_over_the_photos_often_enough():
+    """Fern's 17 views: at 504x378 for 1.5 minutes the losses did not pay, at 252x189 for 1
+    minute they did; a step budget counts as it is, a minutes budget at the slow CPU's rate."""
+    from neulf_core.train import LOSSES_MIN_PASSES, LOSSES_STEPS_PER_MINUTE, TrainConfig, budget_passes, default_consistency
 
     def slab(near, far):
         return Slab(np.eye(3), np.zeros(3), 0.0, (near + far) / 2, near, far, -np.ones(4), np.ones(4))
 
-    assert default_consistency(slab(2.0, 6.9), 4)                            # the synthetic scene's 25 %
-    assert default_consistency(slab(16.8, 77.8), 8)                          # fern's 50 %
-    assert default_consistency(slab(16.8, 77.8), 17)                         # all of fern's (+0.19 dB at 1 min)
-    assert default_consistency(slab(16.8, 77.8), CONSISTENCY_MAX_VIEWS)
-    assert not default_consistency(slab(16.8, 77.8), CONSISTENCY_MAX_VIEWS + 1)  # more views: off (28 views: -0.27 dB at 1 min)
-    assert not default_consistency(slab(10.0, 17.1), 6)                      # CanClip's 25 %, shallow
-    assert not default_consistency(slab(2.0, 6.9), 1)                        # no neighbour to compare with
+    class Photo:
+        size = (504, 378)
+
+    fern = [Photo()] * 17
+    pixels = 17 * 504 * 378
+    assert budget_passes(TrainConfig(minutes=1.5, scale=1.0), 8192, pixels) == pytest.approx(1.5 * LOSSES_STEPS_PER_MINUTE * 8192 / pixels)
+    assert budget_passes(TrainConfig(steps=100, minutes=60.0), 8192, pixels) == pytest.approx(100 * 8192 / pixels)  # the first to end
+    assert not default_consistency(slab(16.8, 77.8), fern, TrainConfig(minutes=1.5, scale=1.0))   # ~8 passes
+    assert not default_consistency(slab(16.8, 77.8), fern, TrainConfig(minutes=3.0, scale=1.0))   # ~15: LPIPS worse
+    assert default_consistency(slab(16.8, 77.8), fern, TrainConfig(minutes=1.0, scale=0.5))       # ~20 passes
+    assert default_consistency(slab(16.8, 77.8), fern, TrainConfig(minutes=5.0, scale=1.0))       # the Blender panel's 5 minutes
+    enough = math.ceil(LOSSES_MIN_PASSES * pixels / 8192)
+    assert default_consistency(slab(16.8, 77.8), fern, TrainConfig(steps=enough, scale=1.0))
+    assert not default_consistency(slab(16.8, 77.8), fern, TrainConfig(steps=enough - 1, scale=1.0))
+    assert not default_consistency(slab(10.0, 17.1), fern, TrainConfig(minutes=5.0, scale=1.0))  # shallow
 
 
 @pytest.mark.parametrize("near, far, asked, expected", [
@@ -177,6 +200,7 @@ def test_losses_by_default_only_for_up_to_20_photos_of_a_deep_scene():
 def test_training_applies_the_default_and_the_flag(tiny_scene, tmp_path, monkeypatch, near, far, asked, expected):
     import neulf_core.train as train_module
 
+    monkeypatch.setattr(train_module, "LOSSES_MIN_PASSES", 0.0)  # 2 steps of a tiny scene: the budget rule aside
     calls = []
     real = train_module.multiview_losses
     monkeypatch.setattr(train_module, "multiview_losses", lambda *a, **k: calls.append(1) or real(*a, **k))
@@ -191,9 +215,19 @@ def test_training_applies_the_default_and_the_flag(tiny_scene, tmp_path, monkeyp
     assert said == (expected and asked is None)
 
 
+def test_a_short_budget_leaves_the_losses_off_on_a_deep_scene(tiny_scene, tmp_path):
+    import neulf_core.train as train_module
+
+    config = train_module.TrainConfig(preset="fast", steps=2, near=1.0, far=6.0, batch_size=128, consistency_rays=32,
+                                      validate_seconds=1e9, teacher=False, field_overrides={"texture_size": [16, 16]})
+    train_module.train(tiny_scene, tmp_path / "m", config)
+    assert json.loads((tmp_path / "m" / "model.json").read_text())["multiview_losses"] is False
+
+
 def test_a_resumed_model_keeps_what_the_default_decided(tiny_scene, tmp_path, monkeypatch):
     import neulf_core.train as train_module
 
+    monkeypatch.setattr(train_module, "LOSSES_MIN_PASSES", 0.0)
     calls = []
     real = train_module.multiview_losses
     monkeypatch.setattr(train_module, "multiview_losses", lambda *a, **k: calls.append(1) or real(*a, **k))
