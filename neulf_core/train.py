@@ -162,7 +162,7 @@ LOSSES_MIN_PASSES = 20.0
 LOSSES_STEPS_PER_MINUTE = 2000
 
 
-def budget_passes(config: "TrainConfig", batch: int, train_pixels: int) -> float:
+def budget_passes(config: TrainConfig, batch: int, train_pixels: int) -> float:
     """How many times the budget (steps, or minutes at LOSSES_STEPS_PER_MINUTE) passes over
     the training pixels; whichever budget ends training first counts."""
     budgets = [config.steps] if config.steps else []
@@ -194,7 +194,7 @@ def default_coarse_to_fine(n_train_views: int) -> bool:
     return 2 <= n_train_views <= COARSE_TO_FINE_MAX_VIEWS
 
 
-def default_consistency(slab: Slab, train_views, config: "TrainConfig") -> bool:
+def default_consistency(slab: Slab, train_views, config: TrainConfig) -> bool:
     batch = config.batch_size or get_preset(config.preset).batch_size
     pixels = sum(math.prod(scaled_size(v.size, config.scale)) for v in train_views)
     return losses_by_default(slab.is_deep, len(train_views), budget_passes(config, batch, pixels))
