@@ -55,6 +55,38 @@ def test_disparity_shear_maps_rays_through_one_point_to_one_texel():
     assert abs(float(slab.depth_from_unit(unit)) - 3.0) < 1e-9
 
 
+def test_depth_detail_correction_is_shared_by_every_viewpoint_of_a_surface_point():
+    """The depth detail is read where the planes' depth puts a ray's surface point in the
+    texture's coordinates: rays from anywhere on the uv plane through one point on that depth
+    get one correction, rays through another point another; with its zero read-out at the
+    start the field's depth is the planes' own."""
+    slab = Slab(np.eye(3), np.zeros(3), 0.0, 4.0, 2.0, 8.0, np.array([-0.5, -0.4, -3.0, -2.0]), np.array([0.7, 0.4, 3.0, 2.5]))
+    options = {**slab_geometry(slab), "texture_size": [32, 32], "depth_detail_shift": 1}
+    field = build_field("disparity", make_config("disparity", options))
+    assert field.depth_detail.shape == (1, 4, 16, 16)
+    uv_points = torch.tensor([[-0.4, -0.3, 0.0], [0.0, 0.0, 0.0], [0.6, 0.35, 0.0], [0.3, -0.2, 0.0]], dtype=torch.float64)
+
+    def rays_through(point):
+        directions = torch.tensor(point, dtype=torch.float64) - uv_points
+        uvst, valid = slab.rays_to_uvst(uv_points, directions / directions.norm(dim=1, keepdim=True))
+        assert bool(valid.all())
+        return uvst.float()
+
+    with torch.no_grad():
+        planes_unit = torch.sigmoid(field.geometry.decoder[-1].bias[3])  # the start: the planes give every ray this depth
+        field.geometry.decoder[-1].weight.zero_()
+        first, second = rays_through([0.8, -0.3, 4.0]), rays_through([-1.5, 1.2, 4.0])  # on the st plane (depth 4)
+        assert torch.allclose(field.sheared(first)[1], planes_unit.expand(4, 1))
+        field.depth_detail.normal_()
+        field.depth_detail_readout.weight.normal_()
+        unit_first, unit_second = field.sheared(first)[1], field.sheared(second)[1]
+    assert float((unit_first - planes_unit).abs().min()) > 1e-3                    # corrected ...
+    assert torch.allclose(unit_first, unit_first[0].expand_as(unit_first), atol=1e-6)  # ... alike from every viewpoint
+    assert torch.allclose(unit_second, unit_second[0].expand_as(unit_second), atol=1e-6)
+    assert abs(float(unit_first[0] - unit_second[0])) > 1e-3                      # another point, another correction
+    assert "depth_detail" not in build_field("disparity", make_config("disparity", {**options, "depth_detail_shift": 0})).state_dict()
+
+
 def test_fast_field_starts_on_the_st_plane():
     """Before training, the fast field's depth output is the st plane: classic single-plane
     light field rendering is the starting point."""
@@ -162,8 +194,10 @@ def test_train_cli_depth_layers_are_saved_and_render(tiny_scene, tmp_path, capsy
             "--no-sweep-teacher", "--depth-layers", "2"]
     assert main(args) == 0
     assert load_checkpoint(out)["field_config"]["geometry_layers"] == 2
+    assert load_checkpoint(out)["field_config"]["depth_detail_shift"] == 0  # the layers replace the depth detail
     assert main(args[:-1] + ["0", "--out", str(tmp_path / "none")]) == 0  # 0 turns the default off
     assert load_checkpoint(tmp_path / "none")["field_config"]["geometry_layers"] == 0
+    assert load_checkpoint(tmp_path / "none")["field_config"]["depth_detail_shift"] == 2
     rendering = LightField.load(out, "cpu").render_view(load_scene(tiny_scene).views[0], depth=True)
     assert np.isfinite(rendering.rgb).all()
     capsys.readouterr()
@@ -246,6 +280,13 @@ def test_appearance_captures_get_eight_geometry_channels_and_resume_keeps_the_sa
     result = train(tiny_scene, tmp_path / "narrow", TrainConfig(steps=4, **quick), resume=True)
     assert result.step == 4 and width(tmp_path / "narrow") == 64
     assert LightField.load(tmp_path / "narrow", "cpu").field.decoder[0].out_features == 64
+
+    assert presets.FAST_FIELD["depth_detail_shift"] == 2 and hasattr(LightField.load(tmp_path / "plain", "cpu").field, "depth_detail")
+    monkeypatch.setitem(presets.FAST_FIELD, "depth_detail_shift", 0)  # a model saved before the depth detail
+    train(tiny_scene, tmp_path / "flat", TrainConfig(steps=2, **quick))
+    monkeypatch.setitem(presets.FAST_FIELD, "depth_detail_shift", 2)
+    result = train(tiny_scene, tmp_path / "flat", TrainConfig(steps=4, **quick), resume=True)
+    assert result.step == 4 and not hasattr(LightField.load(tmp_path / "flat", "cpu").field, "depth_detail")
 
 
 def test_fast_preset_learning_rate_falls_along_a_cosine_to_one_percent(tiny_scene, tmp_path):
