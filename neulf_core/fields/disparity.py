@@ -63,8 +63,9 @@ class DisparityConfig:
     # viewpoint, as the colour texture's does -- where the planes' correction is a function of
     # the ray, and a viewpoint between the photos gets an interpolation of theirs.  At 1000
     # steps, seeds 0 / 1 / 2: the synthetic scene's 14 views 29.53 -> 30.03 dB, its 4 views
-    # 27.76 -> 28.18, CanClip's 6 views 33.70 -> 34.07, its 26 views 35.06 -> 35.14, HCI's 70
-    # views 46.22 -> 46.21 (docs/STABILITY.md).  0: off (models saved before read as they were).
+    # 27.76 -> 28.18, CanClip's 6 views 33.70 -> 34.07 (docs/STABILITY.md); fern at 1.5 minutes
+    # +0.11 / +0.19 dB (docs/BENCHMARKS.md, "Depth detail").  The trainer leaves it out where
+    # the depth layers are on (train._build_field).  0: off (models saved before read as they were).
     depth_detail_shift: int = 0
     depth_detail_channels: int = 4
     # Coarse to fine: the finer geometry scales fade in over this share of the training budget
