@@ -62,9 +62,9 @@ class DisparityConfig:
     # reads the same cell there, so a correction learned from some photos holds for every
     # viewpoint, as the colour texture's does -- where the planes' correction is a function of
     # the ray, and a viewpoint between the photos gets an interpolation of theirs.  At 1000
-    # steps, seeds 0 / 1 / 2, read twice: the synthetic scene's 14 views 29.53 -> 29.97 dB, its
-    # 4 views 27.76 -> 28.44, CanClip's 6 views 33.70 -> 34.01 (docs/STABILITY.md); fern at 1.5
-    # minutes, read once, +0.11 / +0.19 dB (docs/BENCHMARKS.md, "Depth detail").  The trainer leaves it out where
+    # steps, seeds 0 / 1 / 2: the synthetic scene's 14 views 29.53 -> 30.03 dB, its 4 views
+    # 27.76 -> 28.18, CanClip's 6 views 33.70 -> 34.07 (docs/STABILITY.md); fern at 1.5 minutes
+    # +0.11 / +0.19 dB (docs/BENCHMARKS.md, "Depth detail").  The trainer leaves it out where
     # the depth layers are on (train._build_field).  0: off (models saved before read as they were).
     depth_detail_shift: int = 0
     depth_detail_channels: int = 4
