@@ -37,8 +37,8 @@ class Preset:
 # +0.33 / +0.35 dB, Statue +0.17 / +0.16, fern +0.10 / +0.06, HCI +0.33 / +0.20;
 # docs/BENCHMARKS.md, "Colour decoder width").  Models saved before keep their 64.
 # Its depth detail (DisparityConfig.depth_detail_shift): a depth correction stored over the
-# texture's coordinates at a quarter of its size, shared by every viewpoint, read twice.
-FAST_FIELD = {"texture_channels": 4, "geometry_channels": 4, "hidden": 128, "depth_detail_shift": 2, "depth_detail_reads": 2}
+# texture's coordinates at a quarter of its size, shared by every viewpoint.
+FAST_FIELD = {"texture_channels": 4, "geometry_channels": 4, "hidden": 128, "depth_detail_shift": 2}
 # Its learning rate: a cosine from 2e-3 down to 1 % over the budget instead of an exponential
 # decay to 10 %.  Same cost per step; the field learns longer at a high rate, then settles.
 # Stability study's setting (1000 steps, three seeds, mean / spread of held-out PSNR):

@@ -59,8 +59,7 @@ def test_depth_detail_correction_is_shared_by_every_viewpoint_of_a_surface_point
     """The depth detail is read where the planes' depth puts a ray's surface point in the
     texture's coordinates: rays from anywhere on the uv plane through one point on that depth
     get one correction, rays through another point another; with its zero read-out at the
-    start the field's depth is the planes' own.  A second read (the fast preset's) looks again
-    where the corrected depth puts the point."""
+    start the field's depth is the planes' own."""
     slab = Slab(np.eye(3), np.zeros(3), 0.0, 4.0, 2.0, 8.0, np.array([-0.5, -0.4, -3.0, -2.0]), np.array([0.7, 0.4, 3.0, 2.5]))
     options = {**slab_geometry(slab), "texture_size": [32, 32], "depth_detail_shift": 1}
     field = build_field("disparity", make_config("disparity", options))
@@ -86,18 +85,6 @@ def test_depth_detail_correction_is_shared_by_every_viewpoint_of_a_surface_point
     assert torch.allclose(unit_second, unit_second[0].expand_as(unit_second), atol=1e-6)
     assert abs(float(unit_first[0] - unit_second[0])) > 1e-3                      # another point, another correction
     assert "depth_detail" not in build_field("disparity", make_config("disparity", {**options, "depth_detail_shift": 0})).state_dict()
-
-    twice = build_field("disparity", make_config("disparity", {**options, "depth_detail_reads": 2}))
-    twice.load_state_dict(field.state_dict())
-    with torch.no_grad():
-        uv = first[:, :2] * field.uv_half + field.uv_centre
-        scale = 1.0 / (1.0 + field.config.texture_margin)
-        logit = torch.logit(planes_unit).expand(4, 1)
-        again = field._shear(first, uv, unit_first, scale).view(1, -1, 1, 2)
-        detail = torch.nn.functional.grid_sample(field.depth_detail, again, align_corners=True, padding_mode="border")
-        expected = torch.sigmoid(logit + field.depth_detail_readout(detail.view(4, -1).t()))
-        assert torch.allclose(twice.sheared(first)[1], expected, atol=1e-5)
-        assert float((expected - unit_first).abs().max()) > 1e-3  # the second read moved it
 
 
 def test_fast_field_starts_on_the_st_plane():

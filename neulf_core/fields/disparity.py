@@ -68,12 +68,6 @@ class DisparityConfig:
     # the depth layers are on (train._build_field).  0: off (models saved before read as they were).
     depth_detail_shift: int = 0
     depth_detail_channels: int = 4
-    # How many times a ray reads the detail, each time where the last correction put its
-    # surface point (as parallax mapping iterates); the fast preset reads it twice.  At 1000
-    # steps, three seeds, two reads against one: the synthetic scene's 4 / 7 views +0.26 /
-    # +0.30 dB, its 14 -0.06, CanClip's 6 -0.06; fern at 1.5 minutes +0.00 / +0.13 dB
-    # (docs/STABILITY.md).  Three reads gained no more.  Models saved before read it once.
-    depth_detail_reads: int = 1
     # Coarse to fine: the finer geometry scales fade in over this share of the training budget
     # (0: all from the start); the trainer sets it for captures of few photos
     # (train.default_coarse_to_fine).
@@ -221,11 +215,10 @@ class DisparityField(nn.Module):
         unit = torch.sigmoid(logit)
         grid = self._shear(uvst, uv, unit, scale)
         if self.config.depth_detail_shift:
-            for _ in range(self.config.depth_detail_reads):
-                # Read the correction where the current depth puts the ray's surface point, then shear again.
-                detail = _sample(self.depth_detail, grid.view(1, -1, 1, 2)).view(self.depth_detail.shape[1], -1).t()
-                unit = torch.sigmoid(logit + self.depth_detail_readout(detail))
-                grid = self._shear(uvst, uv, unit, scale)
+            # Read the correction where the planes' depth puts the ray's surface point, then shear again.
+            detail = _sample(self.depth_detail, grid.view(1, -1, 1, 2)).view(self.depth_detail.shape[1], -1).t()
+            unit = torch.sigmoid(logit + self.depth_detail_readout(detail))
+            grid = self._shear(uvst, uv, unit, scale)
         return grid, unit
 
     def _shear(self, uvst: torch.Tensor, uv: torch.Tensor, unit: torch.Tensor, scale: float) -> torch.Tensor:
