@@ -178,9 +178,7 @@ class DisparityField(nn.Module):
 
     def forward(self, uvst: torch.Tensor):
         grid, unit = self.sheared(uvst)
-        grid = grid.view(1, -1, 1, 2)
-        n = uvst.shape[0]
-        features = [_sample(texture, grid).view(texture.shape[1], n).t() for texture in self.textures]
+        features = [_features_at(texture, grid) for texture in self.textures]
         if self.config.view_dependence:
             features.append(uvst[:, :2])
         return self._colour(_rows(features)), unit
@@ -216,8 +214,7 @@ class DisparityField(nn.Module):
         grid = self._shear(uvst, uv, unit, scale)
         if self.config.depth_detail_shift:
             # Read the correction where the planes' depth puts the ray's surface point, then shear again.
-            detail = _sample(self.depth_detail, grid.view(1, -1, 1, 2)).view(self.depth_detail.shape[1], -1).t()
-            unit = torch.sigmoid(logit + self.depth_detail_readout(detail))
+            unit = torch.sigmoid(logit + self.depth_detail_readout(_features_at(self.depth_detail, grid)))
             grid = self._shear(uvst, uv, unit, scale)
         return grid, unit
 
@@ -321,6 +318,11 @@ def push_pull_fill(texture: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
 def _sample(texture: torch.Tensor, grid: torch.Tensor) -> torch.Tensor:
     """Bilinear samples (B, C, N, 1) of texture (B, C, H, W) at grid (B, N, 1, 2) in [-1, 1]."""
     return F.grid_sample(texture, grid, mode="bilinear", padding_mode="border", align_corners=True)
+
+
+def _features_at(texture: torch.Tensor, points: torch.Tensor) -> torch.Tensor:
+    """(N, C) features of a texture (1, C, H, W) at points (N, 2) in [-1, 1] (a transposed view)."""
+    return _sample(texture, points.view(1, -1, 1, 2)).view(texture.shape[1], -1).t()
 
 
 def _rows(columns: list[torch.Tensor]) -> torch.Tensor:
