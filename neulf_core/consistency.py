@@ -38,6 +38,11 @@ class CameraNeighbours:
     def to(self, device) -> "CameraNeighbours":
         return CameraNeighbours(self.centres.to(device), self.index.to(device), self.weights.to(device))
 
+    def with_centres(self, centres: torch.Tensor) -> "CameraNeighbours":
+        """The same neighbours standing at `centres` (V, 3) (refined poses): the neighbour
+        choice and weights stay those of the cameras' first positions."""
+        return CameraNeighbours(centres, self.index, self.weights)
+
 
 def camera_neighbours(centres_world: np.ndarray, slab, k: int = 5) -> CameraNeighbours:
     """The K nearest training cameras of each training camera (the paper uses K = 5)."""

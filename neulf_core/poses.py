@@ -65,6 +65,11 @@ class PoseRefinement(nn.Module):
         """Centred per-view (axis-angle radians, shift in scene units), slab frame."""
         return self.rotation - self.rotation.mean(0), (self.shift - self.shift.mean(0)) * self.spacing
 
+    def corrected_centres(self) -> torch.Tensor:
+        """(V, 3) the cameras' centres after their shifts, slab frame (a rotation about a centre
+        leaves it in place)."""
+        return self.centres + self.corrections()[1]
+
     def forward(self, uvst: torch.Tensor, view_index: torch.Tensor) -> torch.Tensor:
         rotation, shift = self.corrections()
         turn, moved, centre = rotation_matrices(rotation)[view_index], shift[view_index], self.centres[view_index]

@@ -406,9 +406,14 @@ def _train(scene, model_dir: Path, config: TrainConfig, images_dir, resume: bool
         view_index = train_rays.view_index[index].long()
         pull = teacher_weight(fraction, len(train_views), strong=strong) if teacher is not None else 0.0
         depth_teacher = (teacher[0][index], teacher[1][index], pull) if pull > 0 else None
+        step_consistency = consistency
         if poses is not None:
             uvst = poses(uvst, view_index)
-        loss, objective = _objective(field_module, uvst, target, view_index, appearance, consistency, config, depth_teacher)
+            if consistency is not None:
+                # The neighbours' rays leave from where the refined cameras now stand.
+                step_consistency = (consistency[0], consistency[1].with_centres(poses.corrected_centres()))
+        loss, objective = _objective(field_module, uvst, target, view_index, appearance, step_consistency, config,
+                                     depth_teacher)
         optimizer.zero_grad(set_to_none=True)
         if not torch.isfinite(objective):
             # A NaN/inf step is skipped; repeated ones halve the learning rate (reported).

@@ -125,3 +125,34 @@ def test_the_cli_flag_reaches_training(tiny_scene, tmp_path, capsys):
                  "--no-sweep-teacher", "--refine-poses"]) == 0
     assert load_checkpoint(out)["train_config"]["refine_poses"]
     assert "camera poses corrected by" in capsys.readouterr().err
+
+
+def test_corrected_centres_are_the_shifted_cameras():
+    poses = PoseRefinement(SLAB, CENTRES)
+    with torch.no_grad():
+        poses.shift[:] = torch.tensor([[0.05, -0.02, 0.03], [-0.05, 0.02, -0.03]])
+        poses.rotation[:] = torch.tensor([[0.01, 0.0, 0.0], [-0.01, 0.0, 0.0]])  # turning leaves a centre in place
+    expected = torch.tensor(CENTRES, dtype=torch.float32) + poses.shift.detach() * poses.spacing
+    assert torch.allclose(poses.corrected_centres(), expected, atol=1e-7)
+
+
+def test_the_multiview_losses_cast_neighbour_rays_from_the_refined_cameras(tiny_scene, tmp_path, monkeypatch):
+    """With pose refinement the neighbours' rays leave from the corrected centres: the field is
+    learned in the corrected frame, and rays from the cameras' first positions would compare a
+    surface point with the wrong rays (and leave the shifts out of the losses' gradient)."""
+    import neulf_core.train as train_module
+    from neulf_core.train import TrainConfig, train
+
+    seen = []
+    real = train_module.multiview_losses
+
+    def recording(field, geometry, neighbours, *args, **kwargs):
+        seen.append((neighbours.centres.detach().clone(), neighbours.centres.requires_grad))
+        return real(field, geometry, neighbours, *args, **kwargs)
+
+    monkeypatch.setattr(train_module, "multiview_losses", recording)
+    train(tiny_scene, tmp_path / "m", TrainConfig(steps=12, batch_size=512, refine_poses=True, consistency=True, teacher=False))
+    first, last = seen[0][0], seen[-1][0]
+    assert seen[0][1]  # the centres carry the shifts' gradient
+    assert not torch.equal(first, last)  # they moved with the cameras after POSE_START
+    assert (last - first).abs().max() < 0.1 * (first.max(0).values - first.min(0).values).max()  # a correction, not a jump
