@@ -194,6 +194,15 @@ def default_coarse_to_fine(n_train_views: int) -> bool:
     return 2 <= n_train_views <= COARSE_TO_FINE_MAX_VIEWS
 
 
+# Few photos, where the planes' depth is furthest off: the depth detail is read twice
+# (DisparityConfig.depth_detail_reads).  The same count as coarse to fine's.
+DETAIL_TWICE_MAX_VIEWS = 13
+
+
+def default_depth_detail_reads(n_train_views: int) -> int:
+    return 2 if n_train_views <= DETAIL_TWICE_MAX_VIEWS else 1
+
+
 def default_consistency(slab: Slab, train_views, config: TrainConfig) -> bool:
     batch = config.batch_size or get_preset(config.preset).batch_size
     pixels = sum(math.prod(scaled_size(v.size, config.scale)) for v in train_views)
@@ -223,6 +232,7 @@ def _build_field(preset_name: str, overrides: dict, train_views, slab: Slab, sca
         options["geometry_layers"] = default_depth_layers(slab, n_train_views)
         use_ramp = coarse_to_fine if coarse_to_fine is not None else default_coarse_to_fine(n_train_views)
         options["geometry_coarse_to_fine"] = COARSE_TO_FINE if use_ramp else 0.0
+        options["depth_detail_reads"] = default_depth_detail_reads(n_train_views)
         if appearance:
             options.update(APPEARANCE_GEOMETRY)
     options.update(overrides)

@@ -6,7 +6,7 @@ import numpy as np
 import torch
 
 from neulf_core.fields import build_field, count_parameters, make_config
-from neulf_core.fields.disparity import mark_bilinear_footprint, push_pull_fill, slab_geometry
+from neulf_core.fields.disparity import _features_at, mark_bilinear_footprint, push_pull_fill, slab_geometry
 from neulf_core.slab import Slab
 
 
@@ -59,7 +59,8 @@ def test_depth_detail_correction_is_shared_by_every_viewpoint_of_a_surface_point
     """The depth detail is read where the planes' depth puts a ray's surface point in the
     texture's coordinates: rays from anywhere on the uv plane through one point on that depth
     get one correction, rays through another point another; with its zero read-out at the
-    start the field's depth is the planes' own."""
+    start the field's depth is the planes' own.  A second read (the trainer's for few photos)
+    looks again where the corrected depth puts the point."""
     slab = Slab(np.eye(3), np.zeros(3), 0.0, 4.0, 2.0, 8.0, np.array([-0.5, -0.4, -3.0, -2.0]), np.array([0.7, 0.4, 3.0, 2.5]))
     options = {**slab_geometry(slab), "texture_size": [32, 32], "depth_detail_shift": 1}
     field = build_field("disparity", make_config("disparity", options))
@@ -85,6 +86,25 @@ def test_depth_detail_correction_is_shared_by_every_viewpoint_of_a_surface_point
     assert torch.allclose(unit_second, unit_second[0].expand_as(unit_second), atol=1e-6)
     assert abs(float(unit_first[0] - unit_second[0])) > 1e-3                      # another point, another correction
     assert "depth_detail" not in build_field("disparity", make_config("disparity", {**options, "depth_detail_shift": 0})).state_dict()
+
+    twice = build_field("disparity", make_config("disparity", {**options, "depth_detail_reads": 2}))
+    twice.load_state_dict(field.state_dict())
+    with torch.no_grad():
+        uv = first[:, :2] * field.uv_half + field.uv_centre
+        scale = 1.0 / (1.0 + field.config.texture_margin)
+        again = field._shear(first, uv, unit_first, scale)  # where the first correction put the point
+        detail = _features_at(field.depth_detail, again)
+        expected = torch.sigmoid(torch.logit(planes_unit).expand(4, 1) + field.depth_detail_readout(detail))
+        assert torch.allclose(twice.sheared(first)[1], expected, atol=1e-5)
+    assert float((expected - unit_first).abs().max()) > 1e-3  # the second read moved it
+
+
+def test_the_depth_detail_is_read_twice_for_few_photos():
+    from neulf_core.train import default_coarse_to_fine, default_depth_detail_reads
+
+    assert default_depth_detail_reads(4) == default_depth_detail_reads(13) == 2
+    assert default_depth_detail_reads(14) == default_depth_detail_reads(70) == 1  # the synthetic scene's 14: -0.19 dB
+    assert all((default_depth_detail_reads(n) == 2) == default_coarse_to_fine(n) for n in range(2, 40))
 
 
 def test_fast_field_starts_on_the_st_plane():
@@ -198,6 +218,7 @@ def test_train_cli_depth_layers_are_saved_and_render(tiny_scene, tmp_path, capsy
     assert main(args[:-1] + ["0", "--out", str(tmp_path / "none")]) == 0  # 0 turns the default off
     assert load_checkpoint(tmp_path / "none")["field_config"]["geometry_layers"] == 0
     assert load_checkpoint(tmp_path / "none")["field_config"]["depth_detail_shift"] == 2
+    assert load_checkpoint(tmp_path / "none")["field_config"]["depth_detail_reads"] == 2  # 7 training views
     rendering = LightField.load(out, "cpu").render_view(load_scene(tiny_scene).views[0], depth=True)
     assert np.isfinite(rendering.rgb).all()
     capsys.readouterr()
