@@ -2,9 +2,9 @@
 
     python benchmarks/depth.py --steps 3000 [--hci-steps 8000] [--parts hci,synthetic,canclip,refocus] [--jobs 2]
 
-Parts (each trains the default `fast` field three ways -- plain, with the paper's losses, and
-with the plane-sweep depth teacher (`train --sweep-teacher`) -- same steps, same seed;
-held-out views are every 8th view and never trained on):
+Parts (each trains the default `fast` field four ways -- plain, with the paper's losses, with
+the plane-sweep depth teacher (`train --sweep-teacher`), and as `train` chooses by default for
+the scene -- same steps, same seed; held-out views are every 8th view and never trained on):
 - hci:       ../shared/data/hci_antinous, the centre view (held out): disparity error against
              the benchmark's ground truth -- BadPix(0.07) and MSE x100 as HCI reports them,
              both as rendered and after a least-squares fit d = a/Z + b (only relative depth
@@ -16,7 +16,8 @@ held-out views are every 8th view and never trained on):
 - refocus:   on the synthetic scene's held-out view, focus at a pixel on the near sphere and
              on the back wall (the model's depth there), and compare the variance of the
              Laplacian of each object between the two renders; images saved for people.
-Writes docs/depth.csv and docs/depth/*.png; prints the rows.
+Writes docs/depth.csv (rows of scenes not in this run's parts are kept) and docs/depth/*.png;
+prints the rows.
 """
 
 from __future__ import annotations
@@ -78,7 +79,9 @@ def train_model(scene: Path, name: str, consistency: bool, steps: int, scale: fl
                                            validate_seconds=1e9, checkpoint_seconds=1e9))
     seconds = time.perf_counter() - started
     report = evaluate_model(out, scene, save_images=False)
-    row = {"model": str(out), "scene": name, "consistency": consistency, "teacher": teacher, "steps": result.step,
+    meta = json.loads((out / "model.json").read_text())
+    row = {"model": str(out), "scene": name, "mode": mode_of(consistency, teacher), "consistency": consistency,
+           "teacher": teacher, "losses_used": bool(meta.get("multiview_losses")), "steps": result.step,
            "train_seconds": round(seconds, 1), "psnr": report["mean_psnr"], "ssim": report["mean_ssim"]}
     record.write_text(json.dumps(row))
     return row
@@ -166,11 +169,14 @@ def refocus_study(model_dir: str, scene: Path, out_dir: Path, aperture: float) -
 
 
 # ----------------------------------------------------------------------------- parts
-# (paper's losses, plane-sweep teacher): off, the losses on, the teacher on (teacher.py).
-MODES = ((False, False), (True, False), (False, True))
+# (paper's losses, plane-sweep teacher): off, the losses on, the teacher on (teacher.py), and
+# the default (None, None: what `train` chooses for the scene; the row records the losses' choice).
+MODES = ((False, False), (True, False), (False, True), (None, None))
 
 
-def mode_of(consistency: bool, teacher: bool) -> str:
+def mode_of(consistency: bool | None, teacher: bool | None) -> str:
+    if consistency is None and teacher is None:
+        return "default"
     return "teacher" if teacher else ("on" if consistency else "off")
 
 
@@ -192,7 +198,7 @@ def measure(row: dict, out_dir: Path, aperture: float) -> dict:
     from neulf_core.video import depth_to_colour
     from neulf_core.images import save_rgb
 
-    tag = f"{row['scene']}_{mode_of(row['consistency'], row.get('teacher', False))}"
+    tag = f"{row['scene']}_{row.get('mode') or mode_of(row['consistency'], row.get('teacher', False))}"
     if row["scene"] == "hci":
         scores = hci_depth_errors(row["model"])
         disparity = scores.pop("disparity_map")
@@ -203,7 +209,7 @@ def measure(row: dict, out_dir: Path, aperture: float) -> dict:
         scores = synthetic_depth_error(row["model"], scene)
         depth, truth = next(iter(scores.pop("maps").values()))
         save_rgb(out_dir / f"depth_{tag}.png", depth_to_colour(depth))
-        if not row["consistency"] and not row.get("teacher"):
+        if row.get("mode", "off") == "off":
             save_rgb(out_dir / f"depth_{row['scene']}_truth.png", depth_to_colour(np.where(np.isfinite(truth), truth, np.nan)))
         row.update(scores)
         if row["scene"] == "synthetic":
@@ -231,16 +237,29 @@ def main(argv=None) -> int:
     out_dir.mkdir(parents=True, exist_ok=True)
     rows = [measure({"teacher": False, **row}, out_dir, args.aperture) for row in rows]
     hardware = _hardware()
-    fields = sorted({k for row in rows for k in row if k != "model"},
-                    key=lambda k: (k not in ("scene", "consistency", "teacher"), k))
+    table = kept_rows(Path(args.csv), {row["scene"] for row in rows}) + [{**row, "hardware": hardware} for row in rows]
+    fields = sorted({k for row in table for k in row if k not in ("model", "hardware")},
+                    key=lambda k: (k not in ("scene", "mode", "consistency", "teacher"), k))
     with open(args.csv, "w", newline="") as handle:
         writer = csv.DictWriter(handle, fieldnames=fields + ["hardware"])
         writer.writeheader()
-        for row in rows:
-            writer.writerow({**{k: row.get(k, "") for k in fields}, "hardware": hardware})
+        for row in table:
+            writer.writerow({k: row.get(k, "") for k in fields + ["hardware"]})
     for row in rows:
         print({k: (round(v, 3) if isinstance(v, float) else v) for k, v in row.items() if k != "model"})
     return 0
+
+
+def kept_rows(path: Path, replaced_scenes: set[str]) -> list[dict]:
+    """The rows of an earlier CSV whose scenes this run did not measure (a run of some parts
+    updates those and keeps the rest, each row with the hardware it ran on)."""
+    if not path.is_file():
+        return []
+    with open(path, newline="") as handle:
+        rows = [row for row in csv.DictReader(handle) if row.get("scene") not in replaced_scenes]
+    for row in rows:  # CSVs from before the default's row name their mode by its two switches
+        row["mode"] = row.get("mode") or mode_of(row.get("consistency") == "True", row.get("teacher") == "True")
+    return rows
 
 
 def _hardware() -> str:
