@@ -73,8 +73,9 @@ class DisparityConfig:
     # 13 photos (train.default_depth_detail_reads): there the planes' depth is further off, and
     # a read where it puts the point learns a correction for the wrong point.  The synthetic
     # scene at 2400 steps, seeds 0 / 1, two reads against one: 4 views +0.27 / +0.21 dB, 7
-    # views +0.23 / ..., but 14 views -0.19 / -0.19 (a higher training PSNR: with many photos
-    # the second read fits them, not the viewpoints between them; docs/STABILITY.md).
+    # views +0.23 / +0.12, but 14 views -0.19 / -0.19 (a higher training PSNR: with many photos
+    # the second read fits them, not the viewpoints between them; docs/BENCHMARKS.md, "Depth
+    # detail").
     # Models saved before read it once.
     depth_detail_reads: int = 1
     # Coarse to fine: the finer geometry scales fade in over this share of the training budget
