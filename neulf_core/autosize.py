@@ -25,7 +25,7 @@ from .render import LightField
 from .scene import Scene, load_scene, scaled_size, split_views
 from .slab import fit_slab
 from .train import (TrainConfig, TrainResult, _emit, announce_default_losses, default_coarse_to_fine, default_consistency,
-                    train)
+                    default_depth_detail_reads, train)
 
 PRESET = "auto"
 FACTORS = (1.0, 0.7, 0.5)    # finest texture size / the default (~1 texel per pixel); area 1, 1/2, 1/4
@@ -133,11 +133,15 @@ def train_auto(scene: Scene | str | Path, model_dir: str | Path, config: TrainCo
 
 def _final_model_defaults(scene: Scene, config: TrainConfig, progress) -> TrainConfig:
     """`config` with the view-count rules left to the default (train.default_consistency,
-    train.default_coarse_to_fine) decided once, for the final model's training views: the
-    search runs (fewer views: the validation views are carved out) train as the model will."""
+    train.default_coarse_to_fine, train.default_depth_detail_reads) decided once, for the
+    final model's training views: the search runs (fewer views: the validation views are
+    carved out) train as the model will."""
     train_views, _ = split_views(scene, config.holdout_every, config.exclude)
     if config.coarse_to_fine is None:
         config = replace(config, coarse_to_fine=default_coarse_to_fine(len(train_views)))
+    if "depth_detail_reads" not in config.field_overrides:
+        reads = default_depth_detail_reads(len(train_views))
+        config = replace(config, field_overrides={**config.field_overrides, "depth_detail_reads": reads})
     if config.consistency is None:
         slab = fit_slab(scene, train_views, scale=config.scale, st_depth=config.st_depth, uv_depth=config.uv_depth,
                         near=config.near, far=config.far)

@@ -225,3 +225,24 @@ def test_auto_decides_coarse_to_fine_once_for_its_search_and_its_model(tiny_scen
     assert ramps == [expected] * 4  # 3 candidates and the final run
     config = json.loads((tmp_path / "auto" / METADATA_NAME).read_text())["field_config"]
     assert config["geometry_coarse_to_fine"] == (train_module.COARSE_TO_FINE if expected else 0.0)
+
+
+@pytest.mark.parametrize("max_views, expected", [(7, 2), (6, 1)])
+def test_auto_decides_the_depth_detail_reads_once_for_its_search_and_its_model(tiny_scene, tmp_path, monkeypatch,
+                                                                               max_views, expected):
+    """The same for reading the depth detail twice: 7 training views, 6 in the search runs."""
+    import neulf_core.train as train_module
+
+    monkeypatch.setattr(train_module, "DETAIL_TWICE_MAX_VIEWS", max_views)
+    reads = []
+    real = train_module._build_field
+
+    def recording(*args, **kwargs):
+        field, preset = real(*args, **kwargs)
+        reads.append(field.config.depth_detail_reads)
+        return field, preset
+
+    monkeypatch.setattr(train_module, "_build_field", recording)
+    train_auto(tiny_scene, tmp_path / "auto", fast_config(8, preset="auto", teacher=False))
+    assert reads == [expected] * 4  # 3 candidates and the final run
+    assert json.loads((tmp_path / "auto" / METADATA_NAME).read_text())["field_config"]["depth_detail_reads"] == expected
