@@ -170,6 +170,37 @@ def test_fast_field_fills_texels_no_training_ray_reads():
         assert bool((texture.detach()[..., ~mask] >= seen.amin(-1, keepdim=True) - 1e-5).all())
 
 
+def test_fast_field_fills_depth_detail_cells_no_training_ray_reads():
+    """The depth detail's cells outside every training ray's reads (at both reads' points) take
+    the read cells' features, so an extrapolated view gets no random depth correction; the read
+    cells stay bit-identical."""
+    slab = Slab(np.eye(3), np.zeros(3), 0.0, 4.0, 2.0, 8.0, -np.ones(4), np.ones(4))
+    options = {**slab_geometry(slab), "texture_size": [32, 32], "texture_levels": 1, "depth_detail_shift": 1,
+               "depth_detail_reads": 2}
+    field = build_field("disparity", make_config("disparity", options))
+    with torch.no_grad():
+        field.depth_detail.normal_()
+        field.depth_detail_readout.weight.normal_()
+    before = field.depth_detail.detach().clone()
+    rays = torch.rand(4000, 4) * 2 - 1
+    rays[:, 2] = rays[:, 2].abs() * 0.5        # training rays read only the right part of s
+    reads = []
+    field.sheared(rays, reads)
+    assert len(reads) == 2 and not torch.equal(reads[0], reads[1])  # the second read is elsewhere
+    mask = torch.zeros(16 * 16, dtype=torch.bool)
+    for points in reads:
+        mark_bilinear_footprint(mask, points, 16, 16)
+    mask = mask.view(16, 16)
+    assert 0.2 < float(mask.float().mean()) < 0.9
+    field.fill_unseen_texels([rays[:2000], rays[2000:]])
+    after = field.depth_detail.detach()
+    assert torch.equal(after[..., mask], before[..., mask])
+    assert not torch.equal(after[..., ~mask], before[..., ~mask])
+    seen = before[..., mask]
+    assert bool((after[..., ~mask] <= seen.amax(-1, keepdim=True) + 1e-5).all())
+    assert bool((after[..., ~mask] >= seen.amin(-1, keepdim=True) - 1e-5).all())
+
+
 def test_depth_layers_shift_with_the_camera_like_a_surface_at_their_depth():
     """A depth layer's feature at one disparity is read, from every ray through a point at that
     depth, at one place: rays through one 3D point on layer k get layer k's same feature."""

@@ -201,16 +201,17 @@ class DisparityField(nn.Module):
         # 6.6 ms per 32k rays (docs/BENCHMARKS.md, "Colour decoder width").
         return torch.cat([torch.sigmoid(self.decoder(rows)) for rows in features.split(DECODE_ROWS)])
 
-    def sheared(self, uvst: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """Where rays (N, 4) read the texture, (N, 2) in [-1, 1], and their depth unit (N, 1)."""
+    def sheared(self, uvst: torch.Tensor, detail_reads: list | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+        """Where rays (N, 4) read the texture, (N, 2) in [-1, 1], and their depth unit (N, 1).
+        `detail_reads`, a list: gets the (N, 2) points where the rays read the depth detail."""
         # float32 even when rendering under float16 autocast (render.PRECISIONS): a texel is
         # 1/512 of the range, and float16 disparities moved colours to 55 dB from float32.
         if uvst.device.type not in HALF_DEVICES:  # no autocast there to switch off
-            return self._sheared(uvst)
+            return self._sheared(uvst, detail_reads)
         with torch.autocast(uvst.device.type, enabled=False):
-            return self._sheared(uvst)
+            return self._sheared(uvst, detail_reads)
 
-    def _sheared(self, uvst: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    def _sheared(self, uvst: torch.Tensor, detail_reads: list | None = None) -> tuple[torch.Tensor, torch.Tensor]:
         features = self._geometry_features(uvst)
         uv = uvst[:, :2] * self.uv_half + self.uv_centre
         scale = 1.0 / (1.0 + self.config.texture_margin)  # sheared st leaves [-1, 1] a little
@@ -224,6 +225,8 @@ class DisparityField(nn.Module):
         grid = self._shear(uvst, uv, unit, scale)
         if self.config.depth_detail_shift:
             for _ in range(max(1, self.config.depth_detail_reads)):
+                if detail_reads is not None:
+                    detail_reads.append(grid)
                 # Read the correction where the current depth puts the ray's surface point, then shear again.
                 unit = torch.sigmoid(logit + self.depth_detail_readout(_features_at(self.depth_detail, grid)))
                 grid = self._shear(uvst, uv, unit, scale)
@@ -240,16 +243,21 @@ class DisparityField(nn.Module):
         something from every camera) keep their random start and decode to a wrong colour
         where a new viewpoint reads them.  Give each the features of the nearest seen texels
         (push-pull over a pyramid), so an extrapolated view continues the edge the photos
-        saw.  `uvst_chunks`: iterable of (N, 4) training rays.  Returns the unseen share of
-        the finest texture."""
-        seen = [torch.zeros(t.shape[2] * t.shape[3], dtype=torch.bool, device=t.device) for t in self.textures]
+        saw.  The depth detail's unseen cells likewise, which would otherwise give such a view
+        a random depth correction.  `uvst_chunks`: iterable of (N, 4) training rays.  Returns
+        the unseen share of the finest texture."""
+        grids = list(self.textures) + ([self.depth_detail] if self.config.depth_detail_shift else [])
+        seen = [torch.zeros(g.shape[2] * g.shape[3], dtype=torch.bool, device=g.device) for g in grids]
         for uvst in uvst_chunks:
-            grid, _ = self.sheared(uvst)
+            detail_reads = []
+            grid, _ = self.sheared(uvst, detail_reads)
             for texture, mask in zip(self.textures, seen):
                 mark_bilinear_footprint(mask, grid, texture.shape[2], texture.shape[3])
-        for texture, mask in zip(self.textures, seen):
-            mask = mask.view(texture.shape[2:])
-            texture.data.copy_(torch.where(mask, texture.data, push_pull_fill(texture.data, mask)))
+            for points in detail_reads:
+                mark_bilinear_footprint(seen[-1], points, self.depth_detail.shape[2], self.depth_detail.shape[3])
+        for values, mask in zip(grids, seen):
+            mask = mask.view(values.shape[2:])
+            values.data.copy_(torch.where(mask, values.data, push_pull_fill(values.data, mask)))
         return float(1.0 - seen[0].float().mean())
 
     def _geometry_features(self, uvst: torch.Tensor) -> torch.Tensor:
