@@ -25,7 +25,7 @@ from .render import LightField
 from .scene import Scene, load_scene, scaled_size, split_views
 from .slab import fit_slab
 from .train import (TrainConfig, TrainResult, _emit, announce_default_losses, default_coarse_to_fine, default_consistency,
-                    default_depth_detail_reads, train)
+                    default_depth_detail_reads, default_geometry_tv, train)
 
 PRESET = "auto"
 FACTORS = (1.0, 0.7, 0.5)    # finest texture size / the default (~1 texel per pixel); area 1, 1/2, 1/4
@@ -142,6 +142,8 @@ def _final_model_defaults(scene: Scene, config: TrainConfig, progress) -> TrainC
     if "depth_detail_reads" not in config.field_overrides:
         reads = default_depth_detail_reads(len(train_views))
         config = replace(config, field_overrides={**config.field_overrides, "depth_detail_reads": reads})
+    if "tv_weight" not in config.field_overrides:
+        config = replace(config, field_overrides={**config.field_overrides, "tv_weight": default_geometry_tv(len(train_views))})
     if config.consistency is None:
         slab = fit_slab(scene, train_views, scale=config.scale, st_depth=config.st_depth, uv_depth=config.uv_depth,
                         near=config.near, far=config.far)

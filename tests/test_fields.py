@@ -107,6 +107,14 @@ def test_the_depth_detail_is_read_twice_for_few_photos():
     assert all((default_depth_detail_reads(n) == 2) == default_coarse_to_fine(n) for n in range(2, 40))
 
 
+def test_few_photos_get_a_stronger_smoothness_prior_on_the_geometry():
+    from neulf_core.train import FEW_VIEWS_GEOMETRY_TV, default_coarse_to_fine, default_geometry_tv
+
+    assert default_geometry_tv(4) == default_geometry_tv(13) == FEW_VIEWS_GEOMETRY_TV == 3e-3
+    assert default_geometry_tv(14) == make_config("disparity", {}).tv_weight == 1e-3  # the field's own
+    assert all((default_geometry_tv(n) == 3e-3) == default_coarse_to_fine(n) for n in range(2, 40))
+
+
 def test_fast_field_starts_on_the_st_plane():
     """Before training, the fast field's depth output is the st plane: classic single-plane
     light field rendering is the starting point."""
@@ -250,6 +258,7 @@ def test_train_cli_depth_layers_are_saved_and_render(tiny_scene, tmp_path, capsy
     assert load_checkpoint(tmp_path / "none")["field_config"]["geometry_layers"] == 0
     assert load_checkpoint(tmp_path / "none")["field_config"]["depth_detail_shift"] == 2
     assert load_checkpoint(tmp_path / "none")["field_config"]["depth_detail_reads"] == 2  # 7 training views
+    assert load_checkpoint(tmp_path / "none")["field_config"]["tv_weight"] == 3e-3
     rendering = LightField.load(out, "cpu").render_view(load_scene(tiny_scene).views[0], depth=True)
     assert np.isfinite(rendering.rgb).all()
     capsys.readouterr()

@@ -230,7 +230,8 @@ def test_auto_decides_coarse_to_fine_once_for_its_search_and_its_model(tiny_scen
 @pytest.mark.parametrize("max_views, expected", [(7, 2), (6, 1)])
 def test_auto_decides_the_depth_detail_reads_once_for_its_search_and_its_model(tiny_scene, tmp_path, monkeypatch,
                                                                                max_views, expected):
-    """The same for reading the depth detail twice: 7 training views, 6 in the search runs."""
+    """The same for reading the depth detail twice and the geometry's smoothness prior: 7
+    training views, 6 in the search runs."""
     import neulf_core.train as train_module
 
     monkeypatch.setattr(train_module, "DETAIL_TWICE_MAX_VIEWS", max_views)
@@ -239,10 +240,11 @@ def test_auto_decides_the_depth_detail_reads_once_for_its_search_and_its_model(t
 
     def recording(*args, **kwargs):
         field, preset = real(*args, **kwargs)
-        reads.append(field.config.depth_detail_reads)
+        reads.append((field.config.depth_detail_reads, field.config.tv_weight))
         return field, preset
 
     monkeypatch.setattr(train_module, "_build_field", recording)
     train_auto(tiny_scene, tmp_path / "auto", fast_config(8, preset="auto", teacher=False))
-    assert reads == [expected] * 4  # 3 candidates and the final run
+    tv = train_module.FEW_VIEWS_GEOMETRY_TV if expected == 2 else 1e-3
+    assert reads == [(expected, tv)] * 4  # 3 candidates and the final run
     assert json.loads((tmp_path / "auto" / METADATA_NAME).read_text())["field_config"]["depth_detail_reads"] == expected
