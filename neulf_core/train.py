@@ -207,7 +207,8 @@ def default_depth_detail_reads(n_train_views: int) -> int:
 # at 36.6 dB, held-out 28.3): a three times stronger total-variation prior on the geometry
 # planes there.  1000 steps, seeds 0 / 1 / 2, against 1e-3: the synthetic scene's 4 views
 # +0.05 / +0.21 / +0.23 dB, its 7 -0.03 / +0.06 / +0.02, CanClip's 6 +0.01 / +0.23 / -0.02
-# (docs/STABILITY.md).  The same count as coarse to fine's.
+# (docs/STABILITY.md); seeds 3 / 4, not used to choose it, +0.43 / +0.15 dB at 4 views.  The
+# same count as coarse to fine's.
 FEW_VIEWS_GEOMETRY_TV = 3e-3
 
 
