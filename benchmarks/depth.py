@@ -256,10 +256,7 @@ def kept_rows(path: Path, replaced_scenes: set[str]) -> list[dict]:
     if not path.is_file():
         return []
     with open(path, newline="") as handle:
-        rows = [row for row in csv.DictReader(handle) if row.get("scene") not in replaced_scenes]
-    for row in rows:  # CSVs from before the default's row name their mode by its two switches
-        row["mode"] = row.get("mode") or mode_of(row.get("consistency") == "True", row.get("teacher") == "True")
-    return rows
+        return [row for row in csv.DictReader(handle) if row.get("scene") not in replaced_scenes]
 
 
 def _hardware() -> str:

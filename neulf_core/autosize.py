@@ -133,17 +133,15 @@ def train_auto(scene: Scene | str | Path, model_dir: str | Path, config: TrainCo
 
 def _final_model_defaults(scene: Scene, config: TrainConfig, progress) -> TrainConfig:
     """`config` with the view-count rules left to the default (train.default_consistency,
-    train.default_coarse_to_fine, train.default_depth_detail_reads) decided once, for the
-    final model's training views: the search runs (fewer views: the validation views are
-    carved out) train as the model will."""
+    train.default_coarse_to_fine, train.default_depth_detail_reads, train.default_geometry_tv)
+    decided once, for the final model's training views: the search runs (fewer views: the
+    validation views are carved out) train as the model will."""
     train_views, _ = split_views(scene, config.holdout_every, config.exclude)
     if config.coarse_to_fine is None:
         config = replace(config, coarse_to_fine=default_coarse_to_fine(len(train_views)))
-    if "depth_detail_reads" not in config.field_overrides:
-        reads = default_depth_detail_reads(len(train_views))
-        config = replace(config, field_overrides={**config.field_overrides, "depth_detail_reads": reads})
-    if "tv_weight" not in config.field_overrides:
-        config = replace(config, field_overrides={**config.field_overrides, "tv_weight": default_geometry_tv(len(train_views))})
+    rules = {"depth_detail_reads": default_depth_detail_reads, "tv_weight": default_geometry_tv}
+    chosen = {name: rule(len(train_views)) for name, rule in rules.items() if name not in config.field_overrides}
+    config = replace(config, field_overrides={**config.field_overrides, **chosen})
     if config.consistency is None:
         slab = fit_slab(scene, train_views, scale=config.scale, st_depth=config.st_depth, uv_depth=config.uv_depth,
                         near=config.near, far=config.far)

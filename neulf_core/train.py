@@ -194,13 +194,14 @@ def default_coarse_to_fine(n_train_views: int) -> bool:
     return 2 <= n_train_views <= COARSE_TO_FINE_MAX_VIEWS
 
 
-# Few photos, where the planes' depth is furthest off: the depth detail is read twice
-# (DisparityConfig.depth_detail_reads).  The same count as coarse to fine's.
-DETAIL_TWICE_MAX_VIEWS = 13
+# Few photos (the same count as coarse to fine's): their planes' depth is furthest off, so the
+# depth detail is read twice (DisparityConfig.depth_detail_reads), and their depth overfits, so
+# the geometry's smoothness prior is stronger (FEW_VIEWS_GEOMETRY_TV).
+FEW_PHOTOS_MAX_VIEWS = 13
 
 
 def default_depth_detail_reads(n_train_views: int) -> int:
-    return 2 if n_train_views <= DETAIL_TWICE_MAX_VIEWS else 1
+    return 2 if n_train_views <= FEW_PHOTOS_MAX_VIEWS else 1
 
 
 # Few photos overfit their depth (the synthetic scene's 4 views at 2400 steps: training views
@@ -215,7 +216,7 @@ FEW_VIEWS_GEOMETRY_TV = 3e-3
 def default_geometry_tv(n_train_views: int) -> float:
     """The geometry planes' total-variation weight for this many training views (above the
     few-photo count, the field's own: 1e-3)."""
-    return FEW_VIEWS_GEOMETRY_TV if n_train_views <= DETAIL_TWICE_MAX_VIEWS else DisparityConfig.tv_weight
+    return FEW_VIEWS_GEOMETRY_TV if n_train_views <= FEW_PHOTOS_MAX_VIEWS else DisparityConfig.tv_weight
 
 
 def default_consistency(slab: Slab, train_views, config: TrainConfig) -> bool:

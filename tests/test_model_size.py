@@ -234,7 +234,7 @@ def test_auto_decides_the_depth_detail_reads_once_for_its_search_and_its_model(t
     training views, 6 in the search runs."""
     import neulf_core.train as train_module
 
-    monkeypatch.setattr(train_module, "DETAIL_TWICE_MAX_VIEWS", max_views)
+    monkeypatch.setattr(train_module, "FEW_PHOTOS_MAX_VIEWS", max_views)
     reads = []
     real = train_module._build_field
 
