@@ -152,7 +152,8 @@ class TrainJob(ProcessJob):
                  steps: int | None = None, resume: bool = False, preset: str | None = None, scale: float | None = None,
                  images_dir: str | None = None, device: str | None = None, env: dict | None = None,
                  checkpoint_seconds: float | None = None, sweep_teacher: bool | None = None,
-                 depth_layers: int = -1, appearance: bool = False, refine_poses: bool = False):
+                 depth_layers: int = -1, appearance: bool = False, refine_poses: bool = False,
+                 stop_early: bool = True):
         argv = [python, "-m", "neulf_core", "train", scene_dir, "--out", model_dir, "--progress", "json"]
         argv += ["--steps", str(int(steps))] if steps else ["--minutes", repr(float(minutes or 5.0))]
         if resume:
@@ -169,6 +170,8 @@ class TrainJob(ProcessJob):
             argv.append("--appearance")
         if refine_poses and not resume:
             argv.append("--refine-poses")
+        if not stop_early:  # also when continuing: a model that stopped at the limit then trains on
+            argv += ["--max-passes", "0"]
         if images_dir:
             argv += ["--images", images_dir]
         if device:
@@ -201,6 +204,8 @@ class TrainJob(ProcessJob):
             state["warnings"].append(event.get("message", ""))
         elif kind == "losses":  # few photos of a deep scene: the multi-view losses are on by default
             state["losses"] = True
+        elif kind == "passes":  # few photos: training ends at this step at the latest
+            state["pass_limit"] = event.get("steps")
         elif kind == "poses":  # Refine Poses: the corrections it found
             state["poses"] = {k: event.get(k) for k in ("median_degrees", "max_degrees", "median_shift", "max_shift")}
         elif kind in ("finished", "cancelled"):
@@ -390,3 +395,24 @@ def pip_install_job(python: str, target: str, packages: list[str], index_url: st
 
 def interpreter_of_this_blender() -> str:
     return sys.executable
+
+
+def pose_text(poses: dict | None) -> str:
+    """The camera corrections a model trained with Refine Poses found, for the status line."""
+    if not poses:
+        return ""
+    return f"; poses corrected by {poses['median_degrees']:.2f}° (largest {poses['max_degrees']:.2f}°)"
+
+
+def job_status_text(state: dict) -> str:
+    """'cancelled at step 57', 'finished at step 67 (continued from step 57)'."""
+    text = f"{state['status']} at step {state.get('step', 0)}"
+    if state.get("resumed_from") is not None:
+        text += f" (continued from step {state['resumed_from']})"
+    if state["status"] == "cancelled":
+        text += "; Train continues it"
+    if state.get("losses"):
+        text += "; with the multi-view losses (few photos of a deep scene)"
+    if state["status"] == "finished" and state.get("pass_limit") and state.get("step", 0) >= state["pass_limit"]:
+        text += "; stopped before the time was up: more training would only memorise so few photos"
+    return text + pose_text(state.get("poses"))

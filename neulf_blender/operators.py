@@ -11,6 +11,7 @@ import numpy as np
 from bpy.props import FloatProperty, IntProperty, StringProperty
 
 from . import capture, jobs, tasks
+from .jobs import job_status_text, pose_text
 from .preferences import get_core, get_prefs, worker_python
 from ..neulf_core.errors import NeulfError
 
@@ -61,13 +62,6 @@ def progress_text(progress: dict) -> str:
     if status == "training":  # the last periodic checkpoint: its process ended without the final save
         return f"interrupted at step {step} (last checkpoint); Train continues it"
     return f"{status} at step {step}"
-
-
-def pose_text(poses: dict | None) -> str:
-    """The camera corrections a model trained with Refine Poses found, for the status line."""
-    if not poses:
-        return ""
-    return f"; poses corrected by {poses['median_degrees']:.2f}° (largest {poses['max_degrees']:.2f}°)"
 
 
 def model_status(meta: dict) -> str:
@@ -271,7 +265,8 @@ def start_training(context, *, minutes=None, steps=None):
     job = jobs.TrainJob(python, scene_dir, out, minutes=minutes, steps=steps, resume=resume, preset=props.preset,
                         scale=props.train_scale, images_dir=abspath(props.images_dir) or None, device=device,
                         env=jobs.core_environment(extra), sweep_teacher=props.sweep_teacher,
-                        depth_layers=props.depth_layers, appearance=props.appearance, refine_poses=props.refine_poses)
+                        depth_layers=props.depth_layers, appearance=props.appearance, refine_poses=props.refine_poses,
+                        stop_early=props.stop_early)
     job.state["resumed_from"] = resumed_from
     props.model_dir = store_path(out)
     props.last_status = (f"training from step {resumed_from}" if resume else "training")
@@ -297,18 +292,6 @@ def start_training(context, *, minutes=None, steps=None):
 
     tasks.start("train", job, done)
     return job, resume
-
-
-def job_status_text(state: dict) -> str:
-    """'cancelled at step 57', 'finished at step 67 (continued from step 57)'."""
-    text = f"{state['status']} at step {state.get('step', 0)}"
-    if state.get("resumed_from") is not None:
-        text += f" (continued from step {state['resumed_from']})"
-    if state["status"] == "cancelled":
-        text += "; Train continues it"
-    if state.get("losses"):
-        text += "; with the multi-view losses (few photos of a deep scene)"
-    return text + pose_text(state.get("poses"))
 
 
 class NEULF_OT_train(_Reporting, bpy.types.Operator):

@@ -59,6 +59,7 @@ class NEULF_PT_main(bpy.types.Panel):
         row = col.row(align=True)
         row.prop(props, "appearance")
         row.prop(props, "refine_poses")
+        col.prop(props, "stop_early")
         train = tasks.get("train")
         if train is not None and train.running:
             _job_box(layout, train, "Training", "neulf.cancel_train")

@@ -51,6 +51,10 @@ class NeulfSceneSettings(bpy.types.PropertyGroup):
     refine_poses: BoolProperty(name="Refine Poses", default=False,
                                description="Learn a small correction of each photo's camera pose, for captures whose "
                                            "reconstruction is off by a fraction of a degree")
+    stop_early: BoolProperty(name="Stop Early", default=True,
+                             description="With at most 13 photos, end training once it has passed over their "
+                                         "pixels 100 times, even before the time is up: more only memorises so few "
+                                         "photos and blurs the views between them. Off: train for the whole time")
     train_scale: FloatProperty(name="Image Scale", default=1.0, min=0.05, max=1.0,
                                description="Train on images resized by this factor")
     spiral_frames: IntProperty(name="Frames", default=60, min=3, max=2000, description="Frames of the spiral path")

@@ -63,6 +63,8 @@ def cmd_train(args) -> int:
         if preset.field != "disparity" or args.depth_layers < 0:
             raise NeulfError("--depth-layers takes a count of 0 or more, with the fast or auto preset.")
         overrides["geometry_layers"] = args.depth_layers
+    if args.max_passes is not None and args.max_passes < 0:
+        raise NeulfError("--max-passes takes a number of passes (0: no limit).")
     if args.coarse_to_fine is not None and preset.field != "disparity":
         raise NeulfError("--coarse-to-fine / --no-coarse-to-fine apply to the fast and auto presets only.")
     config = TrainConfig(
@@ -71,7 +73,7 @@ def cmd_train(args) -> int:
         validate_seconds=args.validate_seconds,
         st_depth=args.st_depth, near=args.near, far=args.far, device=args.device, batch_size=args.batch_size,
         consistency=args.consistency, appearance=args.appearance, teacher=args.sweep_teacher, field_overrides=overrides,
-        refine_poses=args.refine_poses, coarse_to_fine=args.coarse_to_fine,
+        refine_poses=args.refine_poses, coarse_to_fine=args.coarse_to_fine, max_passes=args.max_passes,
     )
     stop = {"signal": None, "reader_gone": False}
 
@@ -412,6 +414,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--coarse-to-fine", action=argparse.BooleanOptionalAction, default=None,
                    help="fast/auto presets: fade the finer depth cells in over 80%% of the budget (default: on with "
                         "at most 13 training views, where it gains up to 0.4 dB; docs/STABILITY.md)")
+    p.add_argument("--max-passes", type=float, metavar="N",
+                   help="fast/auto presets: stop once the steps have passed over the training pixels N times, "
+                        "whatever the budget (default: 100 with at most 13 training views, where more training "
+                        "only memorises the photos; none with more; 0: no limit): docs/STABILITY.md")
     p.add_argument("--device", help="cpu, cuda, mps (default: the fastest available)")
     p.set_defaults(run=cmd_train)
 

@@ -79,13 +79,19 @@ class TrainConfig:
     teacher: bool | None = None         # pull early depth toward the classic plane sweep's (None: the preset's default)
     refine_poses: bool = False          # learn a small rotation and shift of each training camera (poses.py)
     coarse_to_fine: bool | None = None  # fade the finer geometry scales in (None: on for at most 13 training views)
+    max_passes: float | None = None     # stop after this many passes over the training pixels (None: the
+                                        # default, FEW_PHOTOS_MAX_PASSES for few photos; 0: no limit)
 
-    def budget_fraction(self, step: int, elapsed: float) -> float:
+    def budget_fraction(self, step: int, elapsed: float, step_limit: int | None = None) -> float:
+        """How far through its budget training is; whichever budget (steps, minutes, or the
+        passes' `step_limit`) ends first sets the pace of the schedules."""
         fractions = []
         if self.steps:
             fractions.append(step / self.steps)
         if self.minutes:
             fractions.append(elapsed / (60.0 * self.minutes))
+        if step_limit:
+            fractions.append(step / step_limit)
         return min(1.0, max(fractions)) if fractions else 0.0
 
 
@@ -217,6 +223,41 @@ def default_geometry_tv(n_train_views: int) -> float:
     """The geometry planes' total-variation weight for this many training views (above the
     few-photo count, the field's own: 1e-3)."""
     return FEW_VIEWS_GEOMETRY_TV if n_train_views <= FEW_PHOTOS_MAX_VIEWS else DisparityConfig.tv_weight
+
+
+# Few photos overfit a long budget: their held-out views peak and then fall while the photos
+# go on fitting.  Held-out PSNR at 500 / 1000 / 2400 / 5000 steps (the fast field, 8192-ray
+# steps, seeds 0 and 1 where two numbers; passes over the training pixels in brackets;
+# docs/STABILITY.md, "Training longer"): the synthetic scene's 4 views 28.61 (53) / 28.60 (107)
+# / 28.34 (256) / 28.03 (533) dB, its 7 views 29.72 (30) / 30.22 (61) / 30.16 (146) / 29.92
+# (305), fern's 4 at 252x189 21.10 (22) / 20.96 (43) / 20.82 (103) / 20.69 (215), fern's 8
+# 22.61 / 22.60 / 22.42 / 22.34 (107), CanClip's 6 at 240x135 33.24 (21) / 34.12 (42) / 34.33
+# (101) / 34.08 (211).  Where the fall starts differs with the scene (fern from ~20 passes,
+# CanClip after ~100); a limit of 100 passes is where no scene measured was still gaining, and
+# cuts the long budgets' loss (the synthetic 4 views +0.6 dB at 5000 steps) and their time.
+# With many photos the held-out views keep gaining or hold (the synthetic scene's 14: 30.03 /
+# 30.30 / 30.32 dB at 1000 / 2400 / 5000 steps), so there is no limit there.
+FEW_PHOTOS_MAX_PASSES = 100.0
+
+
+def pass_step_limit(config: TrainConfig, field_name: str, n_train_views: int, train_pixels: int, batch: int) -> int | None:
+    """The step at which training stops for passing over its photos often enough, or None."""
+    passes = config.max_passes
+    if passes is None:
+        few = field_name == "disparity" and n_train_views <= FEW_PHOTOS_MAX_VIEWS
+        passes = FEW_PHOTOS_MAX_PASSES if few else 0
+    return math.ceil(passes * train_pixels / batch) if passes > 0 else None
+
+
+def announce_pass_limit(progress, config: TrainConfig, n_train_views: int, step_limit: int | None) -> None:
+    """Tell the user when few photos will end training before the budget does."""
+    if step_limit is None or (config.steps and config.steps <= step_limit):
+        return
+    _emit(progress, event="passes", steps=step_limit, train_views=n_train_views,
+          message=f"{n_train_views} photos: training stops at step {step_limit} at the latest ({FEW_PHOTOS_MAX_PASSES:g} passes "
+          "over their pixels), since more only memorises so few photos (--max-passes 0 trains on; docs/STABILITY.md)"
+          if config.max_passes is None else
+          f"training stops at step {step_limit} at the latest ({config.max_passes:g} passes over the photos' pixels)")
 
 
 def default_consistency(slab: Slab, train_views, config: TrainConfig) -> bool:
@@ -413,6 +454,8 @@ def _train(scene, model_dir: Path, config: TrainConfig, images_dir, resume: bool
         _emit(progress, event="checkpoint", path=str(path), step=step)
 
     n_rays = len(train_rays)
+    step_limit = pass_step_limit(config, field_module.field_name, len(train_views), n_rays, batch)
+    announce_pass_limit(progress, config, len(train_views), step_limit)
     start_time = time.monotonic()
     last_checkpoint = last_validation = start_time
     elapsed = elapsed_before
@@ -420,11 +463,11 @@ def _train(scene, model_dir: Path, config: TrainConfig, images_dir, resume: bool
     lr_scale, bad_steps, skipped = 1.0, 0, 0
     status = "finished"
     loss_value = float("nan")
-    while config.budget_fraction(step, elapsed) < 1.0:
+    while config.budget_fraction(step, elapsed, step_limit) < 1.0:
         if should_stop is not None and should_stop():
             status = "cancelled"
             break
-        fraction = config.budget_fraction(step, elapsed)
+        fraction = config.budget_fraction(step, elapsed, step_limit)
         lr = _set_learning_rate(optimizer, preset, step, n_rays, batch, fraction, lr_scale)
         if hasattr(field_module, "set_training_progress"):
             field_module.set_training_progress(fraction)
@@ -459,18 +502,18 @@ def _train(scene, model_dir: Path, config: TrainConfig, images_dir, resume: bool
         loss_value = float(loss.detach())
         now = time.monotonic()
         elapsed = elapsed_before + (now - start_time)
-        if now - last_validation >= config.validate_seconds or config.budget_fraction(step, elapsed) >= 1.0:
+        if now - last_validation >= config.validate_seconds or config.budget_fraction(step, elapsed, step_limit) >= 1.0:
             val = validation_psnr(field_module, val_rays) if val_rays is not None else None
             record = {"step": step, "elapsed": round(elapsed, 2), "loss": loss_value,
                       "train_psnr": -10 * math.log10(max(loss_value, 1e-12)), "val_psnr": val, "lr": lr}
             history.append(record)
-            _emit(progress, event="validate", fraction=config.budget_fraction(step, elapsed), **record)
+            _emit(progress, event="validate", fraction=config.budget_fraction(step, elapsed, step_limit), **record)
             last_validation = time.monotonic()
             start_time += last_validation - now  # validation time does not count against the budget
             now = last_validation
         else:
             _emit(progress, event="step", step=step, elapsed=elapsed, loss=loss_value,
-                  fraction=config.budget_fraction(step, elapsed), lr=lr)
+                  fraction=config.budget_fraction(step, elapsed, step_limit), lr=lr)
         if now - last_checkpoint >= config.checkpoint_seconds:
             save("training", val)
             last_checkpoint = time.monotonic()
@@ -560,6 +603,8 @@ def _config_for_resume(payload: dict, config: TrainConfig, scene: Scene) -> Trai
     previous.steps, previous.minutes = config.steps, config.minutes
     previous.checkpoint_seconds, previous.validate_seconds = config.checkpoint_seconds, config.validate_seconds
     previous.device = config.device
+    if config.max_passes is not None:  # --max-passes 0 lets a model that stopped at the limit train on
+        previous.max_passes = config.max_passes
     return previous
 
 

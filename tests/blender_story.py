@@ -283,22 +283,25 @@ def run_story(setup: dict) -> None:  # noqa: C901 - one story, told in order
 
     @story.step("train_options", "import")
     def _():
-        # The panel's "Varying Exposure" and "Refine Poses" reach training and come back as
-        # the status line's pose corrections.
+        # The panel's "Varying Exposure", "Refine Poses" and "Stop Early" (off) reach training,
+        # and the pose corrections come back on the status line.
         props = bpy.context.scene.neulf
         saved = props.model_dir
         options_model = work / "model_options"
         props.model_dir, props.appearance, props.refine_poses = str(options_model), True, True
+        props.stop_early = False
         try:
             assert bpy.ops.neulf.train(steps=10) == {"FINISHED"}
             meta = json.loads((options_model / "model.json").read_text())
             assert meta["train_config"]["appearance"] and meta["train_config"]["refine_poses"], meta["train_config"]
+            assert meta["train_config"]["max_passes"] == 0, meta["train_config"]
             assert "poses corrected by" in props.last_status, props.last_status
             # the status line says when the default trained with the multi-view losses
             assert ("multi-view losses" in props.last_status) == meta["multiview_losses"], props.last_status
             return props.last_status
         finally:
             props.model_dir, props.appearance, props.refine_poses = saved, False, False
+            props.stop_early = True
 
     @story.step("train_timer_resume", "train_blocking")
     def _():

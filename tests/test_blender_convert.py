@@ -171,13 +171,18 @@ def test_train_job_parses_events(ext):
                   {"event": "validate", "step": 20, "elapsed": 4.0, "loss": 0.01, "fraction": 0.5, "val_psnr": 21.5},
                   {"event": "warning", "message": "careful"},
                   {"event": "losses", "train_views": 7, "message": "7 photos of a deep scene: ..."},
+                  {"event": "passes", "train_views": 7, "steps": 20, "message": "7 photos: training stops at ..."},
                   {"event": "poses", "median_degrees": 0.08, "max_degrees": 0.13, "median_shift": 0.01, "max_shift": 0.02}]:
         job.on_stdout(json.dumps(event))
     job.on_stdout("not json")
     assert job.state["step"] == 20 and job.state["fraction"] == 0.5 and job.state["val_psnr"] == 21.5
     assert job.state["device"].startswith("cpu") and job.state["warnings"] == ["careful"]
     assert job.state["poses"]["max_degrees"] == 0.13
-    assert job.state["losses"] is True
+    assert job.state["losses"] is True and job.state["pass_limit"] == 20
+    job.state["status"] = "finished"  # at the limit, before the panel's minutes were up: the panel says why
+    assert "more training would only memorise so few photos" in ext.jobs.job_status_text(job.state)
+    job.state["step"] = 19
+    assert "memorise" not in ext.jobs.job_status_text(job.state)
 
 
 def test_train_job_passes_the_sweep_teacher_only_to_a_new_model(ext, tmp_path):
@@ -211,7 +216,8 @@ def test_train_job_passes_depth_layers_only_to_a_new_model(ext, tmp_path):
 
 def test_train_job_passes_exposure_and_pose_options_only_to_a_new_model(ext, tmp_path):
     """The panel's "Varying Exposure" and "Refine Poses" become `train --appearance` and
-    `train --refine-poses`; a resumed model keeps what it was trained with."""
+    `train --refine-poses`; a resumed model keeps what it was trained with.  "Stop Early" off
+    becomes `train --max-passes 0`, for a continued model too."""
     def argv(**options):
         job = ext.jobs.TrainJob("/bin/true", str(tmp_path), str(tmp_path / "m"), steps=5, **options)
         job.process.wait(timeout=30)
@@ -222,6 +228,11 @@ def test_train_job_passes_exposure_and_pose_options_only_to_a_new_model(ext, tmp
     assert "--appearance" not in argv() and "--refine-poses" not in argv()
     resumed = argv(appearance=True, refine_poses=True, resume=True)
     assert "--appearance" not in resumed and "--refine-poses" not in resumed
+    # "Stop Early" off: no pass limit, for a new model and for one continued past its limit.
+    assert "--max-passes" not in argv()
+    for options in ({}, {"resume": True}):
+        trains_on = argv(stop_early=False, **options)
+        assert trains_on[trains_on.index("--max-passes") + 1] == "0"
 
 
 def test_explain_failure(ext):

@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import json
+import math
+
 import numpy as np
 import torch
 
@@ -448,3 +451,48 @@ def test_coarse_to_fine_by_default_with_few_photos_and_the_cli_flags(tiny_scene,
     capsys.readouterr()
     assert main(args + ["--out", str(tmp_path / "mlp"), "--preset", "authors", "--coarse-to-fine"]) != 0
     assert "--coarse-to-fine" in capsys.readouterr().err
+
+
+def test_few_photos_stop_after_a_hundred_passes_over_their_pixels():
+    from neulf_core.train import FEW_PHOTOS_MAX_PASSES, TrainConfig, default_coarse_to_fine, pass_step_limit
+
+    # The synthetic scene's 4 views at 160x120, 8192-ray steps: 938 steps (its held-out views
+    # fall from 28.60 dB at 1000 steps to 28.03 at 5000); its 14 views train on.
+    assert pass_step_limit(TrainConfig(), "disparity", 4, 4 * 160 * 120, 8192) == 938 == math.ceil(
+        FEW_PHOTOS_MAX_PASSES * 4 * 160 * 120 / 8192)
+    assert pass_step_limit(TrainConfig(), "disparity", 14, 14 * 160 * 120, 8192) is None
+    assert all((pass_step_limit(TrainConfig(), "disparity", n, 1000, 100) is not None) == default_coarse_to_fine(n)
+               for n in range(2, 40))
+    assert pass_step_limit(TrainConfig(), "mlp", 4, 1000, 100) is None                # measured on the fast field only
+    assert pass_step_limit(TrainConfig(max_passes=0), "disparity", 4, 1000, 100) is None  # no limit
+    assert pass_step_limit(TrainConfig(max_passes=2.5), "disparity", 40, 1000, 100) == 25  # asked for, any capture
+
+
+def test_a_time_budget_ends_at_the_pass_limit_and_resume_can_lift_it(tiny_scene, tmp_path, capsys):
+    from neulf_core.checkpoint import load_checkpoint
+    from neulf_core.cli import main
+    from neulf_core.train import TrainConfig, pass_step_limit, train
+
+    events = []
+    quick = dict(batch_size=256, teacher=False, validate_seconds=1e9, checkpoint_seconds=1e9)
+    result = train(tiny_scene, tmp_path / "m", TrainConfig(minutes=30.0, max_passes=0.5, **quick), progress=events.append)
+    meta = load_checkpoint(tmp_path / "m")
+    said = [e for e in events if e["event"] == "passes"]
+    assert len(said) == 1 and result.status == "finished" and result.step == said[0]["steps"]
+    assert result.elapsed < 60.0  # half a pass, not half an hour
+    assert meta["progress"]["step"] == result.step and meta["train_config"]["max_passes"] == 0.5
+    # The learning rate's schedule ran to its end at the limit, as it would at a step budget.
+    assert meta["optimizer"]["param_groups"][0]["lr"] < 0.05 * meta["optimizer"]["param_groups"][0]["initial_lr"]
+    # A finished model asked to go on with the limit lifted trains on.
+    again = train(tiny_scene, tmp_path / "m", TrainConfig(steps=result.step + 4, max_passes=0, **quick), resume=True)
+    assert again.step == result.step + 4
+
+    # The default limit applies to few photos (the test scene's 8), and the CLI says so.
+    args = ["train", str(tiny_scene), "--out", str(tmp_path / "cli"), "--steps", "100000", "--batch-size", "4096",
+            "--no-sweep-teacher", "--validate-seconds", "1e9", "--progress", "json"]
+    assert main(args) == 0
+    out = [json.loads(line) for line in capsys.readouterr().out.splitlines()]
+    limit = next(e for e in out if e["event"] == "passes")
+    assert "100 passes" in limit["message"] and out[-1]["event"] == "finished" and out[-1]["step"] == limit["steps"]
+    assert main(args[:2] + ["--out", str(tmp_path / "bad"), "--max-passes", "-1"]) != 0
+    assert "--max-passes" in capsys.readouterr().err
