@@ -227,37 +227,52 @@ def default_geometry_tv(n_train_views: int) -> float:
 
 # Few photos overfit a long budget: their held-out views peak and then fall while the photos
 # go on fitting.  Held-out PSNR at 500 / 1000 / 2400 / 5000 steps (the fast field, 8192-ray
-# steps, seeds 0 and 1 where two numbers; passes over the training pixels in brackets;
-# docs/STABILITY.md, "Training longer"): the synthetic scene's 4 views 28.61 (53) / 28.60 (107)
-# / 28.34 (256) / 28.03 (533) dB, its 7 views 29.72 (30) / 30.22 (61) / 30.16 (146) / 29.92
-# (305), fern's 4 at 252x189 21.10 (22) / 20.96 (43) / 20.82 (103) / 20.69 (215), fern's 8
-# 22.61 / 22.60 / 22.42 / 22.34 (107), CanClip's 6 at 240x135 33.24 (21) / 34.12 (42) / 34.33
-# (101) / 34.08 (211).  Where the fall starts differs with the scene (fern from ~20 passes,
-# CanClip after ~100); a limit of 100 passes is where no scene measured was still gaining, and
-# cuts the long budgets' loss (the synthetic 4 views +0.6 dB at 5000 steps) and their time.
-# With many photos the held-out views keep gaining or hold (the synthetic scene's 14: 30.03 /
-# 30.30 / 30.32 dB at 1000 / 2400 / 5000 steps), so there is no limit there.
+# steps, mean of seeds 0 and 1; passes over the training pixels in brackets; docs/STABILITY.md,
+# "few photos stop after 100 passes"): the synthetic scene's 4 views 28.66 (53) / 28.68 (107) /
+# 28.56 (256) / 28.27 (533) dB, its 7 views 29.76 (30) / 30.15 (61) / 30.07 (146) / 29.82
+# (305), fern's 4 at 252x189 21.12 (22) / 21.02 (43) / 20.84 (103) / 20.73 (215), fern's 8
+# 22.55 / 22.55 / 22.47 / 22.30 (107), CanClip's 6 at 240x135 33.25 (21) / 34.20 (42) / 34.42
+# (101) / 34.16 (211).  Where the fall starts differs with the scene (fern from ~20 passes,
+# CanClip after ~100); 100 passes is where no capture measured was still gaining.  With the
+# stop, at a 5000-step budget: the synthetic 4 views +0.41 / +0.52 dB, its 7 +0.21 / +0.29,
+# CanClip's 6 +0.19 / +0.30, fern's 4 +0.09 / +0.16, in a fifth to a half of the time.  With
+# many photos the held-out views keep gaining or hold (the synthetic scene's 14: 30.03 / 30.30
+# / 30.32 dB at 1000 / 2400 / 5000 steps, three seeds), so there is no limit there.
 FEW_PHOTOS_MAX_PASSES = 100.0
+
+
+def default_max_passes(n_train_views: int) -> float:
+    """The fast field's pass limit for this many training views (0: none)."""
+    return FEW_PHOTOS_MAX_PASSES if n_train_views <= FEW_PHOTOS_MAX_VIEWS else 0.0
+
+
+def max_passes(config: TrainConfig, field_name: str, n_train_views: int) -> float:
+    """The passes `config` asks for, or the default where it leaves them open (measured on the
+    fast field only: none for the others)."""
+    if config.max_passes is not None:
+        return config.max_passes
+    return default_max_passes(n_train_views) if field_name == "disparity" else 0.0
 
 
 def pass_step_limit(config: TrainConfig, field_name: str, n_train_views: int, train_pixels: int, batch: int) -> int | None:
     """The step at which training stops for passing over its photos often enough, or None."""
-    passes = config.max_passes
-    if passes is None:
-        few = field_name == "disparity" and n_train_views <= FEW_PHOTOS_MAX_VIEWS
-        passes = FEW_PHOTOS_MAX_PASSES if few else 0
+    passes = max_passes(config, field_name, n_train_views)
     return math.ceil(passes * train_pixels / batch) if passes > 0 else None
 
 
-def announce_pass_limit(progress, config: TrainConfig, n_train_views: int, step_limit: int | None) -> None:
-    """Tell the user when few photos will end training before the budget does."""
+def announce_pass_limit(progress, config: TrainConfig, field_name: str, n_train_views: int, step_limit: int | None,
+                        step: int = 0) -> None:
+    """Tell the user when few photos will end training before the budget does (`step`: where a
+    resumed model starts)."""
     if step_limit is None or (config.steps and config.steps <= step_limit):
         return
+    passes = max_passes(config, field_name, n_train_views)
+    why = (", since more only memorises so few photos (--max-passes 0 trains on; docs/STABILITY.md)"
+           if passes == default_max_passes(n_train_views) else " (--max-passes 0 trains on)")
+    when = (f"this model has passed over their pixels {passes:g} times already: training ends here" if step >= step_limit
+            else f"training stops at step {step_limit} at the latest ({passes:g} passes over their pixels)")
     _emit(progress, event="passes", steps=step_limit, train_views=n_train_views,
-          message=f"{n_train_views} photos: training stops at step {step_limit} at the latest ({FEW_PHOTOS_MAX_PASSES:g} passes "
-          "over their pixels), since more only memorises so few photos (--max-passes 0 trains on; docs/STABILITY.md)"
-          if config.max_passes is None else
-          f"training stops at step {step_limit} at the latest ({config.max_passes:g} passes over the photos' pixels)")
+          message=f"{n_train_views} photos: {when}{why}")
 
 
 def default_consistency(slab: Slab, train_views, config: TrainConfig) -> bool:
@@ -455,7 +470,7 @@ def _train(scene, model_dir: Path, config: TrainConfig, images_dir, resume: bool
 
     n_rays = len(train_rays)
     step_limit = pass_step_limit(config, field_module.field_name, len(train_views), n_rays, batch)
-    announce_pass_limit(progress, config, len(train_views), step_limit)
+    announce_pass_limit(progress, config, field_module.field_name, len(train_views), step_limit, step)
     start_time = time.monotonic()
     last_checkpoint = last_validation = start_time
     elapsed = elapsed_before

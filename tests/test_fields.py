@@ -483,7 +483,11 @@ def test_a_time_budget_ends_at_the_pass_limit_and_resume_can_lift_it(tiny_scene,
     assert meta["progress"]["step"] == result.step and meta["train_config"]["max_passes"] == 0.5
     # The learning rate's schedule ran to its end at the limit, as it would at a step budget.
     assert meta["optimizer"]["param_groups"][0]["lr"] < 0.05 * meta["optimizer"]["param_groups"][0]["initial_lr"]
-    # A finished model asked to go on with the limit lifted trains on.
+    # Asked to go on, a model at its limit ends at once and says why; with the limit lifted it trains on.
+    more = []
+    same = train(tiny_scene, tmp_path / "m", TrainConfig(minutes=30.0, **quick), resume=True, progress=more.append)
+    assert same.step == result.step and same.status == "finished"
+    assert any("already" in e["message"] and "--max-passes 0" in e["message"] for e in more if e["event"] == "passes")
     again = train(tiny_scene, tmp_path / "m", TrainConfig(steps=result.step + 4, max_passes=0, **quick), resume=True)
     assert again.step == result.step + 4
 
