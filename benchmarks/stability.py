@@ -421,8 +421,11 @@ def plan(args, scenes: dict[str, Path]) -> list[Job]:
         for degrees in POSE_DEGREES:
             add("lambertian", "fast", synth, pose_degrees=degrees)
             add("lambertian", "fast", synth, pose_degrees=degrees, refine_poses=True)
-        if "canclip" in scenes:  # what refinement costs where the poses are COLMAP's own
+        if "canclip" in scenes:  # a real capture: COLMAP's own poses (0°: what refinement costs there), perturbed
             add("canclip", "fast", args.canclip_scale, refine_poses=True)
+            for degrees in POSE_DEGREES[1:]:
+                add("canclip", "fast", args.canclip_scale, pose_degrees=degrees)
+                add("canclip", "fast", args.canclip_scale, pose_degrees=degrees, refine_poses=True)
     if "losses" in studies:
         scales = {"lambertian": synth, "fern": args.fern_scale, "canclip": args.canclip_scale}
         losses_seeds = [int(s) for s in args.losses_seeds.split(",")]
@@ -533,10 +536,11 @@ def cost_text(reference: list[dict], rows: list[dict], column: str) -> str:
 def pose_table(rows: list[dict]) -> list[str]:
     lines = ["| pose noise | " + " | ".join(f"{d:g}° / {SHIFT_PER_DEGREE * d:.0%}" for d in POSE_DEGREES) + " |",
              "|---|" + "---|" * len(POSE_DEGREES)]
-    for label, refine in (("fast, lambertian", False), ("fast + `--refine-poses`, lambertian", True)):
-        cells = [group(rows, **base("lambertian", "fast", pose_degrees=d, refine_poses=refine)) for d in POSE_DEGREES]
-        if any(cells):
-            lines.append(f"| {label} | " + " | ".join(cell(c) for c in cells) + " |")
+    for scene in ("lambertian", "canclip"):
+        for label, refine in ((f"fast, {scene}", False), (f"fast + `--refine-poses`, {scene}", True)):
+            cells = [group(rows, **base(scene, "fast", pose_degrees=d, refine_poses=refine)) for d in POSE_DEGREES]
+            if any(cells[1:]):
+                lines.append(f"| {label} | " + " | ".join(cell(c) for c in cells) + " |")
     exact, refined = group(rows, **base("canclip", "fast")), group(rows, **base("canclip", "fast", refine_poses=True))
     if refined:
         lines += ["", f"CanClip (COLMAP's own poses, all views): {cell(exact)} dB without, {cell(refined)} dB with "
@@ -689,7 +693,7 @@ def tables_markdown(rows: list[dict], meta: dict) -> str:
         "", "### View-dependent effects and fine texture (synthetic scene, all training views)", "", *variants_table(rows),
         "", "### Exposure (fast; synthetic scene, held-out views scored against the nominal-exposure render)", "",
         *exposure_table(rows),
-        "", "### Pose noise (fast; synthetic Lambertian scene; rotation / translation as a share of the camera spacing)", "",
+        "", "### Pose noise (fast; the synthetic Lambertian scene and CanClip, all training views; rotation / translation as a share of the camera spacing)", "",
         *pose_table(rows),
         "", f"### The paper's multi-view losses with fewer views (fast; equal time, {meta.get('losses_minutes', 1.0):g} min "
         f"per run; seeds {meta.get('losses_seeds', '0,1')}; the default turns them on for deep scenes with at most "
@@ -763,9 +767,11 @@ def chart(rows: list[dict], path: Path) -> None:
     if low:
         axes[1].set_ylim(max(0, min(low) - 3), max(low) + 1)
 
-    for refine, fmt, colour, label in ((False, "-o", "C1", "lambertian, fast"),
-                                       (True, "-^", "C3", "lambertian, fast + --refine-poses")):
-        points = [(d, stats(group(rows, **base("lambertian", "fast", pose_degrees=d, refine_poses=refine))))
+    for scene, refine, fmt, colour, label in (("lambertian", False, "-o", "C1", "lambertian, fast"),
+                                              ("lambertian", True, "-^", "C3", "lambertian, fast + --refine-poses"),
+                                              ("canclip", False, "--o", "C0", "canclip, fast"),
+                                              ("canclip", True, "--^", "C2", "canclip, fast + --refine-poses")):
+        points = [(d, stats(group(rows, **base(scene, "fast", pose_degrees=d, refine_poses=refine))))
                   for d in POSE_DEGREES]
         points = [(d, s) for d, s in points if s]
         if points:
