@@ -202,7 +202,7 @@ class TrainJob(ProcessJob):
                 state["val_psnr"] = event["val_psnr"]
         elif kind == "warning":
             state["warnings"].append(event.get("message", ""))
-        elif kind == "losses":  # few photos of a deep scene: the multi-view losses are on by default
+        elif kind == "losses":  # few photos: the multi-view losses are on by default
             state["losses"] = True
         elif kind == "passes":  # few photos: training ends at this step at the latest
             state["pass_limit"] = event.get("steps")
@@ -412,7 +412,7 @@ def job_status_text(state: dict) -> str:
     if state["status"] == "cancelled":
         text += "; Train continues it"
     if state.get("losses"):
-        text += "; with the multi-view losses (few photos of a deep scene)"
+        text += "; with the multi-view losses (few photos)"
     if state["status"] == "finished" and state.get("pass_limit") and state.get("step", 0) >= state["pass_limit"]:
         text += "; stopped before the time was up: more training would only memorise so few photos"
     return text + pose_text(state.get("poses"))

@@ -151,8 +151,7 @@ def default_depth_layers(slab: Slab, n_train_views: int) -> int:
 # -0.09 / +0.13 and -0.28 / -0.25 dB (56 views, 2048 rays: -0.07 / -0.33).  The gains grow
 # with the budget: at the Blender panel's 5 minutes (seed 0, 2048 rays) 14 views +0.94 dB,
 # fern's 17 +0.69, 20 views +0.28, 28 views +0.02 -- without the losses, deep scenes overfit
-# as training goes on.  Shallow scenes gain less than the lost steps: CanClip with 6 / 26 views
-# -0.01 / -1.04 dB.  With many photos the field's shared texture already makes neighbouring
+# as training goes on.  With many photos the field's shared texture already makes neighbouring
 # rays agree; with few, the losses tie each ray's depth to the other photos.
 CONSISTENCY_MAX_VIEWS = 20
 # ... and only when the budget passes over every training pixel often enough for the field
@@ -166,6 +165,14 @@ CONSISTENCY_MAX_VIEWS = 20
 # passes than counted, so the rule errs towards leaving them off there.
 LOSSES_MIN_PASSES = 20.0
 LOSSES_STEPS_PER_MINUTE = 2000
+# Shallow scenes (far/near at most 3) gain only with the fewest photos and a longer budget.
+# Side by side, seeds 0 / 1, off -> on, at 240x135 (seventeenth session; docs/STABILITY.md):
+# CanClip with 6 views at 0.5 / 1 / 2 minutes (~42 / 84 / 169 passes as counted above) -0.44 /
+# -0.39, +0.42 / +0.09, +0.65 / +0.23 dB, and -0.27 dB at 1000 steps (42 passes, three seeds);
+# Statue with 6 views +0.35 / +0.16, +0.59 / +0.40, +0.84 / -0.15; with 12 / 13 views at 1 minute
+# Statue +0.19 / -0.23, CanClip -0.59 / -0.73, and all 26 of CanClip's -0.69.
+SHALLOW_CONSISTENCY_MAX_VIEWS = 6
+SHALLOW_LOSSES_MIN_PASSES = 80.0
 
 
 def budget_passes(config: TrainConfig, batch: int, train_pixels: int) -> float:
@@ -178,7 +185,9 @@ def budget_passes(config: TrainConfig, batch: int, train_pixels: int) -> float:
 
 
 def losses_by_default(deep: bool, n_train_views: int, passes: float = math.inf) -> bool:
-    return deep and 2 <= n_train_views <= CONSISTENCY_MAX_VIEWS and passes >= LOSSES_MIN_PASSES
+    if deep:
+        return 2 <= n_train_views <= CONSISTENCY_MAX_VIEWS and passes >= LOSSES_MIN_PASSES
+    return 2 <= n_train_views <= SHALLOW_CONSISTENCY_MAX_VIEWS and passes >= SHALLOW_LOSSES_MIN_PASSES
 
 
 # Coarse to fine (DisparityConfig.geometry_coarse_to_fine): with few photos the finer geometry
@@ -284,7 +293,7 @@ def default_consistency(slab: Slab, train_views, config: TrainConfig) -> bool:
 def announce_default_losses(progress, n_train_views: int) -> None:
     """Tell the user (CLI line, Blender status) that the default turned the losses on."""
     _emit(progress, event="losses", train_views=n_train_views,
-          message=f"{n_train_views} photos of a deep scene: training with the paper's multi-view losses, "
+          message=f"{n_train_views} photos: training with the paper's multi-view losses, "
           "about 1.4 times the time per step (--no-consistency turns them off; docs/DEPTH.md)")
 
 

@@ -170,7 +170,7 @@ def test_train_job_parses_events(ext):
                   {"event": "step", "step": 10, "elapsed": 2.0, "loss": 0.01, "fraction": 0.25},
                   {"event": "validate", "step": 20, "elapsed": 4.0, "loss": 0.01, "fraction": 0.5, "val_psnr": 21.5},
                   {"event": "warning", "message": "careful"},
-                  {"event": "losses", "train_views": 7, "message": "7 photos of a deep scene: ..."},
+                  {"event": "losses", "train_views": 7, "message": "7 photos: training with the paper's multi-view losses, ..."},
                   {"event": "passes", "train_views": 7, "steps": 20, "message": "7 photos: training stops at ..."},
                   {"event": "poses", "median_degrees": 0.08, "max_degrees": 0.13, "median_shift": 0.01, "max_shift": 0.02}]:
         job.on_stdout(json.dumps(event))
