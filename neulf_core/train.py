@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Callable
 
@@ -82,16 +82,14 @@ class TrainConfig:
     max_passes: float | None = None     # stop after this many passes over the training pixels (None: the
                                         # default, FEW_PHOTOS_MAX_PASSES for few photos; 0: no limit)
 
-    def budget_fraction(self, step: int, elapsed: float, step_limit: int | None = None) -> float:
-        """How far through its budget training is; whichever budget (steps, minutes, or the
-        passes' `step_limit`) ends first sets the pace of the schedules."""
+    def budget_fraction(self, step: int, elapsed: float) -> float:
+        """How far through its budget training is; whichever budget (steps or minutes) ends
+        first sets the pace of the schedules."""
         fractions = []
         if self.steps:
             fractions.append(step / self.steps)
         if self.minutes:
             fractions.append(elapsed / (60.0 * self.minutes))
-        if step_limit:
-            fractions.append(step / step_limit)
         return min(1.0, max(fractions)) if fractions else 0.0
 
 
@@ -480,6 +478,8 @@ def _train(scene, model_dir: Path, config: TrainConfig, images_dir, resume: bool
     n_rays = len(train_rays)
     step_limit = pass_step_limit(config, field_module.field_name, len(train_views), n_rays, batch)
     announce_pass_limit(progress, config, field_module.field_name, len(train_views), step_limit, step)
+    # The pass limit is a tighter step budget (the saved config keeps the one asked for).
+    budget = replace(config, steps=min(config.steps or step_limit, step_limit)) if step_limit else config
     start_time = time.monotonic()
     last_checkpoint = last_validation = start_time
     elapsed = elapsed_before
@@ -487,11 +487,11 @@ def _train(scene, model_dir: Path, config: TrainConfig, images_dir, resume: bool
     lr_scale, bad_steps, skipped = 1.0, 0, 0
     status = "finished"
     loss_value = float("nan")
-    while config.budget_fraction(step, elapsed, step_limit) < 1.0:
+    while budget.budget_fraction(step, elapsed) < 1.0:
         if should_stop is not None and should_stop():
             status = "cancelled"
             break
-        fraction = config.budget_fraction(step, elapsed, step_limit)
+        fraction = budget.budget_fraction(step, elapsed)
         lr = _set_learning_rate(optimizer, preset, step, n_rays, batch, fraction, lr_scale)
         if hasattr(field_module, "set_training_progress"):
             field_module.set_training_progress(fraction)
@@ -526,18 +526,18 @@ def _train(scene, model_dir: Path, config: TrainConfig, images_dir, resume: bool
         loss_value = float(loss.detach())
         now = time.monotonic()
         elapsed = elapsed_before + (now - start_time)
-        if now - last_validation >= config.validate_seconds or config.budget_fraction(step, elapsed, step_limit) >= 1.0:
+        if now - last_validation >= config.validate_seconds or budget.budget_fraction(step, elapsed) >= 1.0:
             val = validation_psnr(field_module, val_rays) if val_rays is not None else None
             record = {"step": step, "elapsed": round(elapsed, 2), "loss": loss_value,
                       "train_psnr": -10 * math.log10(max(loss_value, 1e-12)), "val_psnr": val, "lr": lr}
             history.append(record)
-            _emit(progress, event="validate", fraction=config.budget_fraction(step, elapsed, step_limit), **record)
+            _emit(progress, event="validate", fraction=budget.budget_fraction(step, elapsed), **record)
             last_validation = time.monotonic()
             start_time += last_validation - now  # validation time does not count against the budget
             now = last_validation
         else:
             _emit(progress, event="step", step=step, elapsed=elapsed, loss=loss_value,
-                  fraction=config.budget_fraction(step, elapsed, step_limit), lr=lr)
+                  fraction=budget.budget_fraction(step, elapsed), lr=lr)
         if now - last_checkpoint >= config.checkpoint_seconds:
             save("training", val)
             last_checkpoint = time.monotonic()
