@@ -36,12 +36,9 @@ VALIDATION_RAYS = 1 << 16
 # The paper's loss weights: L = L_p + 0.5 L_mp + 0.1 L_d.
 MULTIVIEW_WEIGHT, DEPTH_WEIGHT = 0.5, 0.1
 # Adam's step for the pose corrections (radians, and shares of the camera spacing), decayed
-# with the field's learning rate.
-# With exact poses, corrections learned from the start drift (the early field is noise) and
-# cost 0.35 dB; from 20 % of the budget on they cost nothing there and keep most of the gain
-# under noise (docs/STABILITY.md, "Pose refinement").
+# with the field's learning rate; they move from the first step (poses.py says in which part
+# first).
 POSE_LR = 3e-4
-POSE_START = 0.2   # share of the budget before the poses move
 
 
 # Rays per step that get the multi-view losses: 512 of the 8192 (a step costs ~1.4 times one
@@ -355,9 +352,7 @@ def _set_learning_rate(optimizer, preset, step: int, n_rays: int, batch: int, fr
     factor = learning_rate_factor(preset, fraction, step * batch / max(1, n_rays))
     for group in optimizer.param_groups:
         group["lr"] = group["initial_lr"] * factor * lr_scale
-        if group.get("name") == "poses" and fraction < POSE_START:
-            group["lr"] = 0.0
-    return optimizer.param_groups[-1]["lr"]
+    return preset.lr * factor * lr_scale  # the field's base rate (the groups are multiples of it)
 
 
 @torch.no_grad()
@@ -502,6 +497,7 @@ def _train(scene, model_dir: Path, config: TrainConfig, images_dir, resume: bool
         depth_teacher = (teacher[0][index], teacher[1][index], pull) if pull > 0 else None
         step_consistency = consistency
         if poses is not None:
+            poses.set_training_progress(fraction)
             uvst = poses(uvst, view_index)
             if consistency is not None:
                 # The neighbours' rays leave from where the refined cameras now stand.

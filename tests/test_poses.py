@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import torch
 
-from neulf_core.poses import PoseRefinement, rotation_matrices
+from neulf_core.poses import RIG_WIDE_START, PoseRefinement, own_part_projector, rotation_matrices
 from neulf_core.slab import Slab
 
 # World frame = slab frame; uv plane at z = 0, st plane at z = 3.
@@ -65,6 +65,41 @@ def test_a_correction_moves_the_rays_as_the_moved_camera_sees_them():
     assert (moved - uvst).abs().max() > 1e-2  # and it did move them
 
 
+def test_the_own_part_projector_removes_what_varies_linearly_over_the_rig():
+    grid = np.array([[x, y] for x in range(3) for y in range(3)], dtype=np.float64)
+    projector = own_part_projector(grid)
+    rig_wide = np.column_stack([np.ones(9), grid]) @ np.array([[0.3, -0.1], [0.02, 0.05], [-0.04, 0.01]])
+    own = np.random.default_rng(0).normal(size=(9, 2))
+    own = own - np.column_stack([np.ones(9), grid]) @ np.linalg.lstsq(np.column_stack([np.ones(9), grid]), own, rcond=None)[0]
+    assert np.allclose(projector @ rig_wide, 0, atol=1e-12)
+    assert np.allclose(projector @ (rig_wide + own), own, atol=1e-12)
+    assert np.allclose(projector @ projector, projector, atol=1e-12)
+    # Cameras on a line: only the constant and the slope along the line are rig-wide.
+    line = np.column_stack([np.arange(5.0), np.zeros(5)])
+    kept = own_part_projector(line) @ np.array([1.0, -2.0, 1.0, 0.0, 0.0])  # no constant, no slope
+    assert np.allclose(kept, [1.0, -2.0, 1.0, 0.0, 0.0]) and np.linalg.matrix_rank(own_part_projector(line)) == 3
+
+
+def test_the_rig_wide_part_of_the_corrections_joins_after_a_fifth_of_the_budget():
+    """Early on only each camera's own part of its correction acts; a rig-wide fan (rotations
+    linear in the camera's position) drifts freely on a noisy field, so it waits (poses.py)."""
+    centres = np.array([[x * 0.2, y * 0.2, -0.5] for x in range(3) for y in range(3)])
+    poses = PoseRefinement(SLAB, centres)
+    fan = torch.tensor([[0.0, 0.01 * c[0], 0.0] for c in centres], dtype=torch.float32)  # turning about y, more the further right
+    own = torch.zeros(9, 3)
+    own[4, 0], own[[1, 3, 5, 7], 0] = 0.004, -0.001  # the middle camera tilts against its neighbours
+    with torch.no_grad():
+        poses.rotation[:] = fan + own
+    poses.set_training_progress(0.0)
+    early, _ = poses.corrections()
+    assert torch.allclose(early, own, atol=1e-6)
+    poses.set_training_progress(RIG_WIDE_START)
+    late, _ = poses.corrections()
+    assert torch.allclose(late, fan + own - (fan + own).mean(0), atol=1e-6)
+    assert not poses.own_part_only  # and what is saved and rendered is the full correction
+    assert "own_part" not in poses.state_dict()  # follows from the centres; older models load
+
+
 def test_the_photometric_gradient_finds_a_known_pose_error():
     """A smooth light field seen by a camera whose pose is off by 0.3 degrees: fitting only the
     corrections to the true colours turns the camera back (the sign and size of the error)."""
@@ -103,7 +138,7 @@ def test_training_with_refinement_saves_and_resumes_the_corrections(tiny_scene, 
     train(tiny_scene, tmp_path / "m", config, progress=events.append)
     first = load_checkpoint(tmp_path / "m")
     assert first["poses"]["rotation"].shape == (len(first["scene"]["train"]), 3)
-    assert first["poses"]["rotation"].abs().max() > 0  # they moved after POSE_START
+    assert first["poses"]["rotation"].abs().max() > 0  # they moved
     summary = json.loads((tmp_path / "m" / "model.json").read_text())["pose_corrections"]
     assert 0 < summary["median_degrees"] <= summary["max_degrees"] < 1.0
     assert [e for e in events if e["event"] == "poses"]
@@ -154,5 +189,5 @@ def test_the_multiview_losses_cast_neighbour_rays_from_the_refined_cameras(tiny_
     train(tiny_scene, tmp_path / "m", TrainConfig(steps=12, batch_size=512, refine_poses=True, consistency=True, teacher=False))
     first, last = seen[0][0], seen[-1][0]
     assert seen[0][1]  # the centres carry the shifts' gradient
-    assert not torch.equal(first, last)  # they moved with the cameras after POSE_START
+    assert not torch.equal(first, last)  # they moved with the cameras
     assert (last - first).abs().max() < 0.1 * (first.max(0).values - first.min(0).values).max()  # a correction, not a jump
