@@ -50,7 +50,7 @@ class NeulfSceneSettings(bpy.types.PropertyGroup):
                                          "balance changes between shots")
     refine_poses: BoolProperty(name="Refine Poses", default=False,
                                description="Learn a small correction of each photo's camera pose, for captures whose "
-                                           "reconstruction is off by a fraction of a degree")
+                                           "reconstruction is off by a tenth of a degree or more")
     stop_early: BoolProperty(name="Stop Early", default=True,
                              description="With at most 13 photos, end training once it has passed over their "
                                          "pixels 100 times, even before the time is up: more only memorises so few "

@@ -404,7 +404,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="learn a colour transform per photo (captures with changing exposure or white balance)")
     p.add_argument("--refine-poses", action="store_true",
                    help="learn a small correction of each photo's camera pose (captures whose poses are off by a "
-                        "fraction of a degree; costs about 0.1 dB where they are exact): docs/STABILITY.md")
+                        "tenth of a degree or more; costs 0.15-0.5 dB where they are exact): docs/STABILITY.md")
     p.add_argument("--sweep-teacher", action=argparse.BooleanOptionalAction, default=None,
                    help="pull the early depth toward the classic plane sweep's (default: the preset's choice; on "
                         "for fast): better depth maps and refocus, docs/DEPTH.md")

@@ -97,6 +97,10 @@ def test_study_runs_end_to_end(stability, tiny_scene, tmp_path):
     assert used == {(1.0, None): True, (0.5, None): True, (0.5, False): False}  # 8 and 4 training views: on by default
     # wall-clock runs stay out of the seed-spread target: the three step-budget configurations only
     assert "within 0.2 dB" in tables and "of 3 configurations" in tables
+    # and by kind of run: the default's own two, the coarse-to-fine rule switched off for one
+    assert "the default as a user runs it: " in tables and " of 2 within 0.2 dB" in tables
+    assert "switched off or forced on (the rule studies): " in tables and " of 1 within 0.2 dB" in tables
+    assert stability.setting_of({"refine_poses": True, "coarse_to_fine": None}).startswith("with the opt-in")
 
 
 def test_a_crash_is_recorded_not_raised(stability, tmp_path):
