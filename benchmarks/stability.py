@@ -107,7 +107,8 @@ class Job:
     seed: int
     fraction: float = 1.0      # share of the training views kept
     pose_degrees: float = 0.0  # rotation noise on the training poses (translation scales with it)
-    appearance: bool = False   # per-view appearance compensation (TrainConfig.appearance)
+    appearance: bool | None = False  # per-view appearance compensation forced on / off (TrainConfig.appearance;
+                                     # None: the trainer's rule, on when neighbouring photos' exposures differ)
     refine_poses: bool = False  # learned per-view pose corrections (TrainConfig.refine_poses)
     consistency: bool | None = None  # the paper's multi-view losses forced on / off (None: the default's rule)
     minutes: float = 0.0       # a wall-clock budget instead of `steps` (the losses study's equal time)
@@ -257,7 +258,10 @@ def score_views(model_dir: Path, held: list[View], scale: float) -> dict:
             "psnr_per_view": ";".join(f"{view.stem}={p:.2f}" for view, p in zip(held, psnrs)),
             "nonfinite_pixels": nonfinite, "deep_scene": bool(light_field.slab.is_deep),
             "multiview_losses": light_field.meta.get("multiview_losses"),
-            "coarse_to_fine_used": bool(light_field.meta.get("field_config", {}).get("geometry_coarse_to_fine", 0.0))}
+            "coarse_to_fine_used": bool(light_field.meta.get("field_config", {}).get("geometry_coarse_to_fine", 0.0)),
+            "appearance_used": bool(light_field.meta.get("train_config", {}).get("appearance")),
+            "appearance_default": light_field.meta.get("appearance_default"),
+            "exposure_difference_stops": light_field.meta.get("exposure_difference_stops")}
 
 
 def colour_matched(image: np.ndarray, target: np.ndarray, fit_columns: slice = slice(None)) -> np.ndarray:
@@ -285,8 +289,7 @@ def train_config(job: Job, held: list[View]) -> TrainConfig:
     # Validation and checkpoints only at the end: the budget is steps, and nothing is resumed.
     options = dict(preset=job.preset, steps=job.steps, scale=job.scale, seed=job.seed,
                    exclude=[v.name for v in held], validate_seconds=1e9, checkpoint_seconds=1e9)
-    if job.appearance:
-        options["appearance"] = True
+    options["appearance"] = job.appearance  # False stays off: the rule would say so on every nominal capture here
     if job.refine_poses:
         options["refine_poses"] = True
     if job.consistency is not None:
@@ -417,7 +420,7 @@ def plan(args, scenes: dict[str, Path]) -> list[Job]:
     if "exposure" in studies:
         add("lambertian", "fast", synth)
         add("jitter1", "fast", synth, truth="lambertian")
-        add("jitter1", "fast", synth, truth="lambertian", appearance=True)
+        add("jitter1", "fast", synth, truth="lambertian", appearance=None)  # the default: its rule turns it on
     if "pose" in studies:
         for degrees in POSE_DEGREES:
             add("lambertian", "fast", synth, pose_degrees=degrees)
@@ -471,7 +474,7 @@ def cell(rows: list[dict], column: str = "psnr") -> str:
 
 
 def base(scene: str, preset: str | None = None, fraction: float = 1.0, pose_degrees: float = 0.0,
-         appearance: bool = False, refine_poses: bool = False, consistency: bool | None = None,
+         appearance: bool | None = False, refine_poses: bool = False, consistency: bool | None = None,
          minutes: float = 0.0, coarse_to_fine: bool | None = None) -> dict:
     """Row filter for one configuration (unedited unless told); preset None matches both."""
     match = {"scene": scene, "fraction": fraction, "pose_degrees": pose_degrees, "appearance": appearance,
@@ -520,13 +523,23 @@ def exposure_table(rows: list[dict]) -> list[str]:
              "|---|---|---|---|---|---|---|---|"]
     nominal = group(rows, **base("lambertian", "fast"))
     for scene, appearance, label in (("lambertian", False, "nominal exposure"), ("jitter1", False, "exposure ±1 stop"),
-                                     ("jitter1", True, "exposure ±1 stop")):
+                                     ("jitter1", None, "exposure ±1 stop")):
         c = group(rows, **base(scene, "fast", appearance=appearance))
         costs = [cost_text(nominal, c, column) if scene != "lambertian" else "-"
                  for column in ("psnr", "psnr_half_fit", "psnr_matched")]
-        lines.append(f"| {label} | {'per-view appearance' if appearance else 'none'} | {cell(c)} | {costs[0]} | "
+        lines.append(f"| {label} | {compensation_text(appearance, c)} | {cell(c)} | {costs[0]} | "
                      f"{cell(c, 'psnr_half_fit')} | {costs[1]} | {cell(c, 'psnr_matched')} | {costs[2]} |")
     return lines
+
+
+def compensation_text(appearance: bool | None, rows: list[dict]) -> str:
+    """What the exposure table's row trained with; for the default, what its rule measured."""
+    stops = [r["exposure_difference_stops"] for r in rows if r.get("exposure_difference_stops") is not None]
+    measured = f", neighbours {np.mean(stops):.2f} stops apart" if stops else ""
+    if appearance is None:
+        used = [r.get("appearance_used") for r in rows]
+        return f"the default's rule: {'per-view appearance' if used and all(used) else 'none'}{measured}"
+    return ("per-view appearance" if appearance else "none, forced off") + measured
 
 
 def cost_text(reference: list[dict], rows: list[dict], column: str) -> str:
@@ -621,21 +634,21 @@ def targets(rows: list[dict]) -> list[str]:
             continue
         s = stats(group(rows, **match))
         if s and s["n"] >= 2:
-            spreads.append((s["spread"], match))
+            spreads.append((s["spread"], match, group(rows, **match)))
     if spreads:
         worst = max(spreads, key=lambda x: x[0])
-        within = sum(s <= 0.2 for s, _ in spreads)
+        within = sum(s <= 0.2 for s, _, _ in spreads)
         out.append(f"- seed spread (max-min over seeds), fast: worst {worst[0]:.2f} dB ({describe(worst[1])}); "
                    f"{within} of {len(spreads)} configurations within 0.2 dB (target ≤ 0.2): "
                    f"{'met' if worst[0] <= 0.2 else 'MISSED'}")
         out += [f"  - {line}" for line in spread_by_setting(spreads)]
     nominal = stats(group(rows, **base("lambertian", "fast")))
-    comp = stats(group(rows, **base("jitter1", "fast", appearance=True)))
+    comp = stats(group(rows, **base("jitter1", "fast", appearance=None)))
     plain = stats(group(rows, **base("jitter1", "fast")))
     matched_cost = cost_text(group(rows, **base("lambertian", "fast")),
-                             group(rows, **base("jitter1", "fast", appearance=True)), "psnr_matched")
+                             group(rows, **base("jitter1", "fast", appearance=None)), "psnr_matched")
     nominal_half = stats(group(rows, **base("lambertian", "fast")), "psnr_half_fit")
-    comp_half = stats(group(rows, **base("jitter1", "fast", appearance=True)), "psnr_half_fit")
+    comp_half = stats(group(rows, **base("jitter1", "fast", appearance=None)), "psnr_half_fit")
     if nominal and plain:
         out.append(f"- exposure ±1 stop without compensation: {nominal['mean'] - plain['mean']:.2f} dB lost")
     if nominal and comp:
@@ -658,21 +671,25 @@ def targets(rows: list[dict]) -> list[str]:
     return out
 
 
-def setting_of(match: dict) -> str:
+def setting_of(match: dict, rows: list[dict] = ()) -> str:
     """Which kind of run a configuration is: the default as a user runs it, with an opt-in
-    option, or with one of the default's rules switched off for comparison."""
+    option, or with one of the default's rules switched off for comparison.  `rows`: the
+    configuration's runs, which record whether the exposure rule would have turned the
+    compensation on (rows logged before the rule: off, as it is on every nominal capture)."""
     if match.get("refine_poses") or match.get("appearance"):
         return "with the opt-in `--refine-poses` or `--appearance`"
-    if match.get("coarse_to_fine") is not None or match.get("consistency") is not None:
+    rule_wanted_appearance = any(r.get("appearance_default") for r in rows)
+    if (match.get("coarse_to_fine") is not None or match.get("consistency") is not None
+            or (match.get("appearance") is False and rule_wanted_appearance)):
         return "with a default rule switched off or forced on (the rule studies)"
     return "the default as a user runs it"
 
 
-def spread_by_setting(spreads: list[tuple[float, dict]]) -> list[str]:
+def spread_by_setting(spreads: list[tuple[float, dict, list[dict]]]) -> list[str]:
     """'k of n within 0.2 dB (widest ...)' per kind of run."""
     out = []
-    for kind in dict.fromkeys(setting_of(match) for _, match in spreads):
-        mine = sorted(((s, m) for s, m in spreads if setting_of(m) == kind), key=lambda x: -x[0])
+    for kind in dict.fromkeys(setting_of(match, runs) for _, match, runs in spreads):
+        mine = sorted(((s, m) for s, m, runs in spreads if setting_of(m, runs) == kind), key=lambda x: -x[0])
         within = sum(s <= 0.2 for s, _ in mine)
         widest = "; ".join(f"{describe(m)}: {s:.2f}" for s, m in mine[:3] if s > 0.2)
         out.append(f"{kind}: {within} of {len(mine)} within 0.2 dB" + (f" (widest: {widest})" if widest else ""))
@@ -695,6 +712,8 @@ def describe(match: dict) -> str:
         parts.append(f"pose noise {match['pose_degrees']:g}°")
     if match.get("appearance"):
         parts.append("appearance")
+    elif match.get("appearance", False) is None:
+        parts.append("appearance by the default's rule")
     if match.get("refine_poses"):
         parts.append("pose refinement")
     if match.get("consistency") is not None:
@@ -741,7 +760,8 @@ def update_markdown(path: Path, tables: str) -> None:
 
 
 CSV_COLUMNS = ["scene", "preset", "fraction", "pose_degrees", "appearance", "refine_poses", "consistency", "minutes",
-               "coarse_to_fine", "coarse_to_fine_used", "deep_scene", "multiview_losses", "seed", "status", "psnr", "ssim",
+               "coarse_to_fine", "coarse_to_fine_used", "appearance_used", "appearance_default", "exposure_difference_stops",
+               "deep_scene", "multiview_losses", "seed", "status", "psnr", "ssim",
                "psnr_matched", "psnr_half_fit", "psnr_per_view", "train_views", "held_out", "steps", "steps_done", "train_seconds",
                "wall_seconds", "warnings", "warning_text", "nonfinite_pixels", "error", "scale", "path", "truth"]
 
@@ -773,7 +793,7 @@ def chart(rows: list[dict], path: Path) -> None:
     axes[0].invert_xaxis()
 
     labels = ["lambertian", "shiny", "fine", "jitter ±1 stop", "jitter + appearance"]
-    keys = [base("lambertian"), base("shiny"), base("fine"), base("jitter1"), base("jitter1", appearance=True)]
+    keys = [base("lambertian"), base("shiny"), base("fine"), base("jitter1"), base("jitter1", appearance=None)]
     for offset, preset in ((-0.2, "fast"), (0.2, "paper")):
         xs, means, errs = [], [], []
         for i, key in enumerate(keys):

@@ -152,7 +152,7 @@ class TrainJob(ProcessJob):
                  steps: int | None = None, resume: bool = False, preset: str | None = None, scale: float | None = None,
                  images_dir: str | None = None, device: str | None = None, env: dict | None = None,
                  checkpoint_seconds: float | None = None, sweep_teacher: bool | None = None,
-                 depth_layers: int = -1, appearance: bool = False, refine_poses: bool = False,
+                 depth_layers: int = -1, appearance: bool | None = None, refine_poses: bool = False,
                  stop_early: bool = True):
         argv = [python, "-m", "neulf_core", "train", scene_dir, "--out", model_dir, "--progress", "json"]
         argv += ["--steps", str(int(steps))] if steps else ["--minutes", repr(float(minutes or 5.0))]
@@ -166,8 +166,8 @@ class TrainJob(ProcessJob):
             argv.append("--sweep-teacher" if sweep_teacher else "--no-sweep-teacher")
         if depth_layers >= 0 and not resume:  # -1: the trainer's choice for the scene
             argv += ["--depth-layers", str(int(depth_layers))]
-        if appearance and not resume:
-            argv.append("--appearance")
+        if appearance is not None and not resume:  # None: the trainer's choice from the photos' exposures
+            argv.append("--appearance" if appearance else "--no-appearance")
         if refine_poses and not resume:
             argv.append("--refine-poses")
         if not stop_early:  # also when continuing: a model that stopped at the limit then trains on
@@ -204,6 +204,8 @@ class TrainJob(ProcessJob):
             state["warnings"].append(event.get("message", ""))
         elif kind == "losses":  # few photos: the multi-view losses are on by default
             state["losses"] = True
+        elif kind == "appearance":  # the photos' exposures differ: a colour transform per photo
+            state["appearance"] = event.get("exposure_difference_stops")
         elif kind == "passes":  # few photos: training ends at this step at the latest
             state["pass_limit"] = event.get("steps")
         elif kind == "poses":  # Refine Poses: the corrections it found
@@ -413,6 +415,8 @@ def job_status_text(state: dict) -> str:
         text += "; Train continues it"
     if state.get("losses"):
         text += "; with the multi-view losses (few photos)"
+    if state.get("appearance") is not None:
+        text += f"; a colour transform per photo (exposures differ by {state['appearance']:.2f} stops)"
     if state["status"] == "finished" and state.get("pass_limit") and state.get("step", 0) >= state["pass_limit"]:
         text += "; stopped before the time was up: more training would only memorise so few photos"
     return text + pose_text(state.get("poses"))

@@ -265,7 +265,8 @@ def start_training(context, *, minutes=None, steps=None):
     job = jobs.TrainJob(python, scene_dir, out, minutes=minutes, steps=steps, resume=resume, preset=props.preset,
                         scale=props.train_scale, images_dir=abspath(props.images_dir) or None, device=device,
                         env=jobs.core_environment(extra), sweep_teacher=props.sweep_teacher,
-                        depth_layers=props.depth_layers, appearance=props.appearance, refine_poses=props.refine_poses,
+                        depth_layers=props.depth_layers, appearance={"AUTO": None, "ON": True, "OFF": False}[props.appearance],
+                        refine_poses=props.refine_poses,
                         stop_early=props.stop_early)
     job.state["resumed_from"] = resumed_from
     props.model_dir = store_path(out)

@@ -19,6 +19,12 @@ PRESETS = [
     ("authors", "Authors", "The authors' 8 x 256 MLP (slow without a GPU)"),
     ("paper", "Paper", "The paper's 20 x 256 MLP (hours on a GPU)"),
 ]
+# "Varying Exposure": what `train` gets (operators.start_training; Auto passes nothing, the trainer decides).
+APPEARANCE_CHOICES = [
+    ("AUTO", "Auto", "On when neighbouring photos differ in exposure by 0.1 stops or more"),
+    ("ON", "On", "Always learn a colour correction per photo"),
+    ("OFF", "Off", "Never: every photo has the same exposure and white balance"),
+]
 
 
 class NeulfSceneSettings(bpy.types.PropertyGroup):
@@ -45,7 +51,7 @@ class NeulfSceneSettings(bpy.types.PropertyGroup):
                               description="Fast and Auto presets: depth layers for sharper depth edges on shallow "
                                           "scenes; worse on deep ones (-1: automatic, 8 when the scene's far/near "
                                           "depth ratio is at most 3 and 18 or more photos train; 0: none)")
-    appearance: BoolProperty(name="Varying Exposure", default=False,
+    appearance: EnumProperty(name="Varying Exposure", default="AUTO", items=APPEARANCE_CHOICES,
                              description="Learn a colour correction per photo, for captures whose exposure or white "
                                          "balance changes between shots")
     refine_poses: BoolProperty(name="Refine Poses", default=False,

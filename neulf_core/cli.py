@@ -400,8 +400,9 @@ def build_parser() -> argparse.ArgumentParser:
                         "scenes with at most 20 training views when the budget passes over the training pixels at "
                         "least 20 times, and for shallow ones with at most 6 at 80 passes, where they were measured "
                         "to help; docs/DEPTH.md, docs/STABILITY.md)")
-    p.add_argument("--appearance", action="store_true",
-                   help="learn a colour transform per photo (captures with changing exposure or white balance)")
+    p.add_argument("--appearance", action=argparse.BooleanOptionalAction, default=None,
+                   help="learn a colour transform per photo, for captures whose exposure or white balance changes "
+                        "(default: on when neighbouring photos differ in exposure by 0.1 stops or more): docs/STABILITY.md")
     p.add_argument("--refine-poses", action="store_true",
                    help="learn a small correction of each photo's camera pose (captures whose poses are off by a "
                         "tenth of a degree or more; costs 0.15-0.5 dB where they are exact): docs/STABILITY.md")

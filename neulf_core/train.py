@@ -17,7 +17,7 @@ import numpy as np
 import torch
 
 from . import __version__
-from .appearance import ViewAppearance
+from .appearance import ViewAppearance, appearance_by_default, exposure_difference, photo_exposures
 from .checkpoint import checkpoint_path, load_checkpoint, remove_stale_temporaries, save_checkpoint
 from .consistency import SlabGeometry, camera_neighbours, multiview_losses
 from .dataset import RaySet, build_rayset, mean_colour
@@ -72,7 +72,8 @@ class TrainConfig:
     consistency: bool | None = None     # the paper's multi-view losses L_mp, L_d (None: the preset's default)
     consistency_rays: int = CONSISTENCY_RAYS  # rays per step that get them (each costs K more field queries)
     neighbours: int = 5                 # K nearest training cameras
-    appearance: bool = False            # learn a per-photo colour transform (exposure, white balance)
+    appearance: bool | None = None      # learn a per-photo colour transform (exposure, white balance; None: on when
+                                        # neighbouring photos differ in exposure, appearance.EXPOSURE_DIFFERENCE_STOPS)
     teacher: bool | None = None         # pull early depth toward the classic plane sweep's (None: the preset's default)
     refine_poses: bool = False          # learn a small rotation and shift of each training camera (poses.py)
     coarse_to_fine: bool | None = None  # fade the finer geometry scales in (None: on for at most 13 training views)
@@ -292,6 +293,14 @@ def announce_default_losses(progress, n_train_views: int) -> None:
           "about 1.4 times the time per step (--no-consistency turns them off; docs/DEPTH.md)")
 
 
+def announce_default_appearance(progress, n_train_views: int, exposure_stops: float) -> None:
+    """Tell the user (CLI line, Blender status) that the photos' exposures differ, so a colour
+    transform per photo is learned."""
+    _emit(progress, event="appearance", train_views=n_train_views, exposure_difference_stops=exposure_stops,
+          message=f"neighbouring photos differ in exposure by {exposure_stops:.2f} stops: learning a colour "
+          "transform per photo (--no-appearance turns it off; docs/STABILITY.md)")
+
+
 def _build_field(preset_name: str, overrides: dict, train_views, slab: Slab, scale: float, appearance: bool = False,
                  coarse_to_fine: bool | None = None):
     n_train_views = len(train_views)
@@ -406,6 +415,12 @@ def _train(scene, model_dir: Path, config: TrainConfig, images_dir, resume: bool
                               on_view=lambda i, n, v: _emit(progress, event="loading", message=f"rays of {v.name}", done=i + 1, total=n))
     train_rays = train_rays.to(device)
     val_rays = build_rayset(held_views, slab, config.scale).subset(VALIDATION_RAYS, generator).to(device) if held_views else None
+    exposure_stops = exposure_difference(photo_exposures(train_rays.rgb, train_rays.view_index, len(train_views)),
+                                         np.stack([v.center for v in train_views]))
+    if config.appearance is None:
+        config = replace(config, appearance=appearance_by_default(exposure_stops))
+        if config.appearance:
+            announce_default_appearance(progress, len(train_views), exposure_stops)
 
     if resumed:
         # The field exactly as saved: a default that changed since (channels, depth layers)
@@ -458,6 +473,10 @@ def _train(scene, model_dir: Path, config: TrainConfig, images_dir, resume: bool
         },
         "train_config": asdict(config),
         "multiview_losses": bool(use_consistency),  # what the default decided, when train_config.consistency is None
+        # How far neighbouring photos' exposures differ (stops), and whether that turns the
+        # per-photo colour transform on by default (train_config.appearance says what ran).
+        "exposure_difference_stops": round(exposure_stops, 4),
+        "appearance_default": appearance_by_default(exposure_stops),
         "rig": _rig(train_views, config.scale),
     }
 

@@ -172,6 +172,7 @@ def test_train_job_parses_events(ext):
                   {"event": "warning", "message": "careful"},
                   {"event": "losses", "train_views": 7, "message": "7 photos: training with the paper's multi-view losses, ..."},
                   {"event": "passes", "train_views": 7, "steps": 20, "message": "7 photos: training stops at ..."},
+                  {"event": "appearance", "train_views": 7, "exposure_difference_stops": 0.31, "message": "..."},
                   {"event": "poses", "median_degrees": 0.08, "max_degrees": 0.13, "median_shift": 0.01, "max_shift": 0.02}]:
         job.on_stdout(json.dumps(event))
     job.on_stdout("not json")
@@ -181,6 +182,7 @@ def test_train_job_parses_events(ext):
     assert job.state["losses"] is True and job.state["pass_limit"] == 20
     job.state["status"] = "finished"  # at the limit, before the panel's minutes were up: the panel says why
     assert "more training would only memorise so few photos" in ext.jobs.job_status_text(job.state)
+    assert "a colour transform per photo (exposures differ by 0.31 stops)" in ext.jobs.job_status_text(job.state)
     job.state["step"] = 19
     assert "memorise" not in ext.jobs.job_status_text(job.state)
 
@@ -215,9 +217,10 @@ def test_train_job_passes_depth_layers_only_to_a_new_model(ext, tmp_path):
 
 
 def test_train_job_passes_exposure_and_pose_options_only_to_a_new_model(ext, tmp_path):
-    """The panel's "Varying Exposure" and "Refine Poses" become `train --appearance` and
-    `train --refine-poses`; a resumed model keeps what it was trained with.  "Stop Early" off
-    becomes `train --max-passes 0`, for a continued model too."""
+    """The panel's "Varying Exposure" (Auto / On / Off) and "Refine Poses" become nothing /
+    `train --appearance` / `--no-appearance` and `train --refine-poses`; a resumed model keeps
+    what it was trained with.  "Stop Early" off becomes `train --max-passes 0`, for a
+    continued model too."""
     def argv(**options):
         job = ext.jobs.TrainJob("/bin/true", str(tmp_path), str(tmp_path / "m"), steps=5, **options)
         job.process.wait(timeout=30)
@@ -226,8 +229,10 @@ def test_train_job_passes_exposure_and_pose_options_only_to_a_new_model(ext, tmp
     both = argv(appearance=True, refine_poses=True)
     assert "--appearance" in both and "--refine-poses" in both
     assert "--appearance" not in argv() and "--refine-poses" not in argv()
+    assert "--no-appearance" in argv(appearance=False) and "--no-appearance" not in argv()  # Auto: the trainer decides
     resumed = argv(appearance=True, refine_poses=True, resume=True)
     assert "--appearance" not in resumed and "--refine-poses" not in resumed
+    assert "--no-appearance" not in argv(appearance=False, resume=True)
     # "Stop Early" off: no pass limit, for a new model and for one continued past its limit.
     assert "--max-passes" not in argv()
     for options in ({}, {"resume": True}):

@@ -251,3 +251,59 @@ def test_a_resumed_model_keeps_what_the_default_decided(tiny_scene, tmp_path, mo
     config.steps = 6
     train_module.train(tiny_scene, tmp_path / "m", config, resume=True)
     assert len(calls) == 4
+
+
+def test_photo_exposures_read_each_photos_stops_and_neighbours_compare_them():
+    """A photo one stop darker (half the linear light) reads one stop lower; the difference to
+    the nearest camera's is what decides, so a brightness that changes across the rig (a fixed
+    exposure over changing content) stays small."""
+    from neulf_core.appearance import EXPOSURE_DIFFERENCE_STOPS, appearance_by_default, exposure_difference, photo_exposures
+
+    rng = np.random.default_rng(0)
+    linear = rng.uniform(0.05, 0.6, (500, 3))
+    to_srgb = lambda x: np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.clip(x, 0, None) ** (1 / 2.4) - 0.055)
+    stops = np.array([0.0, -1.0, 0.5, 0.0])
+    rgb = np.concatenate([np.round(to_srgb(np.clip(linear * 2.0 ** k, 0, 1)) * 255) for k in stops]).astype(np.uint8)
+    views = torch.arange(4).repeat_interleave(500)
+    found = photo_exposures(torch.from_numpy(rgb), views, 4)
+    assert np.allclose(found - found[0], stops, atol=0.02)
+
+    centres = np.array([[0.0, 0, 0], [1, 0, 0], [2, 0, 0], [3, 0, 0]])
+    assert exposure_difference(np.array([0.0, 0.1, 0.2, 0.3]), centres) == pytest.approx(0.1)  # a slow drift
+    assert exposure_difference(np.array([0.0, 0.0, 0.0, 0.0]), centres) == 0.0
+    assert exposure_difference(stops, centres) == pytest.approx(1.0)
+    assert exposure_difference(np.array([0.4]), centres[:1]) == 0.0  # one photo: nothing to compare
+    assert not appearance_by_default(0.04) and appearance_by_default(EXPOSURE_DIFFERENCE_STOPS) and appearance_by_default(0.33)
+
+
+def test_training_turns_the_colour_transform_on_when_the_photos_exposures_differ(tiny_scene, tmp_path):
+    """Left to the default, photos of one exposure train without the per-photo transform and
+    photos whose exposure alternates by a stop train with it (and are told so); model.json
+    records the measured difference either way, and an explicit choice wins."""
+    import json
+    import shutil
+    from PIL import Image
+
+    from neulf_core.train import TrainConfig, train
+
+    jittered = tmp_path / "jittered"
+    shutil.copytree(tiny_scene, jittered)
+    for i, path in enumerate(sorted((jittered / "images").glob("*.png"))):
+        if i % 2:  # every other photo one stop darker: half the linear light
+            srgb = np.asarray(Image.open(path), dtype=np.float64) / 255
+            linear = np.where(srgb <= 0.04045, srgb / 12.92, ((srgb + 0.055) / 1.055) ** 2.4) / 2
+            darker = np.where(linear <= 0.0031308, 12.92 * linear, 1.055 * linear ** (1 / 2.4) - 0.055)
+            Image.fromarray(np.round(darker * 255).astype(np.uint8)).save(path)
+
+    quick = dict(steps=2, batch_size=256, teacher=False)
+    for name, scene, config, expected in (("plain", tiny_scene, TrainConfig(**quick), False),
+                                          ("jittered", jittered, TrainConfig(**quick), True),
+                                          ("forced_off", jittered, TrainConfig(appearance=False, **quick), False)):
+        events = []
+        train(scene, tmp_path / name, config, progress=events.append)
+        meta = json.loads((tmp_path / name / "model.json").read_text())
+        assert meta["train_config"]["appearance"] is expected, name
+        told = [e for e in events if e["event"] == "appearance"]
+        assert bool(told) == (expected and config.appearance is None), name
+        assert meta["appearance_default"] == (scene == jittered)
+        assert (meta["exposure_difference_stops"] > 0.5) == (scene == jittered), meta["exposure_difference_stops"]
