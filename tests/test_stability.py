@@ -30,14 +30,24 @@ def rotation_angle_degrees(a: np.ndarray, b: np.ndarray) -> float:
     return float(np.degrees(np.arccos(np.clip(cosine, -1.0, 1.0))))
 
 
-def test_pose_noise_has_the_requested_size(stability, tiny_scene):
+def test_pose_noise_has_the_requested_size_and_moves_no_camera_on_average(stability, tiny_scene):
+    """Each camera turns by about the level (a random axis) and moves by about 10 % of the
+    spacing per degree, less what all of them share: their mean turn and move are zero."""
     scene = stability.load_any(tiny_scene)
     spacing = stability.rig_spacing(scene.views)
     noisy = stability.perturb_poses(scene.views, 2.0, spacing)
+    turns, moves = [], []
     for before, after in zip(scene.views, noisy):
-        assert rotation_angle_degrees(before.R, after.R) == pytest.approx(2.0, abs=1e-6)
-        shift = np.linalg.norm(after.center - before.center)
-        assert shift == pytest.approx(2.0 * stability.SHIFT_PER_DEGREE * spacing, rel=1e-6)
+        turn = after.R.T @ before.R  # turn @ R^T = R'^T
+        angle = rotation_angle_degrees(after.R, before.R)
+        axis = np.array([turn[2, 1] - turn[1, 2], turn[0, 2] - turn[2, 0], turn[1, 0] - turn[0, 1]])
+        turns.append(axis / max(np.linalg.norm(axis), 1e-12) * angle)
+        moves.append(after.center - before.center)
+        assert 0.3 * 2.0 < angle < 1.7 * 2.0
+        assert 0.3 < np.linalg.norm(moves[-1]) / (2.0 * stability.SHIFT_PER_DEGREE * spacing) < 1.7
+    assert np.allclose(np.mean(turns, axis=0), 0.0, atol=1e-6) and np.allclose(np.mean(moves, axis=0), 0.0, atol=1e-9)
+    half = stability.perturb_poses(scene.views, 1.0, spacing)  # the same draws, half the size
+    assert rotation_angle_degrees(half[0].R, scene.views[0].R) == pytest.approx(rotation_angle_degrees(noisy[0].R, scene.views[0].R) / 2, rel=1e-6)
 
 
 def test_prepare_edits_only_training_views(stability, tiny_scene):
