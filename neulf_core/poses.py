@@ -24,8 +24,9 @@ a change of the scene's depth, so while the field is still noise nothing holds i
 drifts (exact poses, corrections from the first step: 0.09 degrees after 1000 steps, -1.7 dB
 on the synthetic scene).  The camera's own part is what a reconstruction's error mostly is,
 and learning it from the start lets the corrections travel far (CanClip, 0.5 degrees of
-noise: +4 dB over starting them at a fifth of the budget; docs/STABILITY.md, "Pose
-refinement").
+noise: +4 dB over starting them at a fifth of the budget, measured with the study's first,
+uncentred noise; with the noise centred the refinement leaves 1.8 dB of the 11.6 it costs;
+docs/STABILITY.md, "Pose refinement").
 """
 
 from __future__ import annotations
