@@ -16,6 +16,8 @@ import numpy as np
 import torch
 from torch import nn
 
+from .scene import camera_gaps
+
 # The compensation is on by default when neighbouring photos differ in exposure by at least
 # this much (stops; the median over the photos of the difference to the nearest camera's).
 # Measured on the training photos (exposure_difference): the project's scene 0.004 stops,
@@ -70,12 +72,9 @@ def exposure_difference(exposures: np.ndarray, centres: np.ndarray) -> float:
     """Median over the photos of how far (stops) each one's exposure is from its nearest
     camera's.  Neighbours see nearly the same things, so a fixed exposure keeps this small
     however much the brightness changes across the scene."""
-    centres = np.asarray(centres, dtype=np.float64)
     if len(centres) < 2:
         return 0.0
-    gaps = np.linalg.norm(centres[:, None] - centres[None], axis=2)
-    np.fill_diagonal(gaps, np.inf)
-    return float(np.median(np.abs(exposures - exposures[gaps.argmin(axis=1)])))
+    return float(np.median(np.abs(exposures - exposures[camera_gaps(centres).argmin(axis=1)])))
 
 
 def appearance_by_default(difference_stops: float) -> bool:

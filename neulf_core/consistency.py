@@ -25,6 +25,8 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from .scene import camera_gaps
+
 # Neighbour rays this far outside the normalised training range are not used.
 RANGE_MARGIN = 1.05
 
@@ -50,8 +52,7 @@ def camera_neighbours(centres_world: np.ndarray, slab, k: int = 5) -> CameraNeig
     k = min(k, len(centres) - 1)
     if k < 1:
         raise ValueError("multi-view losses need at least two training views")
-    distance = np.linalg.norm(centres[:, None] - centres[None], axis=-1)
-    np.fill_diagonal(distance, np.inf)
+    distance = camera_gaps(centres)
     index = np.argsort(distance, axis=1)[:, :k]
     inverse_square = 1.0 / np.maximum(np.take_along_axis(distance, index, 1), 1e-9) ** 2
     weights = inverse_square / inverse_square.sum(1, keepdims=True)

@@ -37,6 +37,7 @@ import numpy as np
 import torch
 from torch import nn
 
+from .scene import camera_gaps
 from .slab import Slab
 
 # Share of the budget during which the corrections have no rig-wide part (see above).
@@ -75,9 +76,7 @@ class PoseRefinement(nn.Module):
     def __init__(self, slab: Slab, centres_world: np.ndarray):
         super().__init__()
         centres = slab.to_slab(np.asarray(centres_world, dtype=np.float64))
-        gaps = np.linalg.norm(centres[:, None] - centres[None], axis=2)
-        np.fill_diagonal(gaps, np.inf)
-        spacing = float(np.median(gaps.min(axis=1))) if len(centres) > 1 else 1.0
+        spacing = float(np.median(camera_gaps(centres).min(axis=1))) if len(centres) > 1 else 1.0
         self.slab = slab
         self.register_buffer("centres", torch.as_tensor(centres, dtype=torch.float32))
         # Shifts are learned in units of the camera spacing, so one learning rate suits every

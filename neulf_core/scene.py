@@ -96,6 +96,15 @@ def scaled_size(size: tuple[int, int], scale: float) -> tuple[int, int]:
 # ----------------------------------------------------------------------------- finding the model
 
 
+def camera_gaps(centres: np.ndarray) -> np.ndarray:
+    """(V, V) distances between camera centres, infinite on the diagonal: a camera is not its
+    own neighbour (nearest cameras: argmin / min along axis 1)."""
+    centres = np.asarray(centres, dtype=np.float64)
+    gaps = np.linalg.norm(centres[:, None] - centres[None], axis=-1)
+    np.fill_diagonal(gaps, np.inf)
+    return gaps
+
+
 def find_model_dir(scene_dir: Path) -> Path | None:
     """The folder holding the COLMAP model: sparse/0, sparse, or the folder itself."""
     for candidate in (scene_dir / "sparse" / "0", scene_dir / "sparse", scene_dir):

@@ -417,8 +417,9 @@ def _train(scene, model_dir: Path, config: TrainConfig, images_dir, resume: bool
     val_rays = build_rayset(held_views, slab, config.scale).subset(VALIDATION_RAYS, generator).to(device) if held_views else None
     exposure_stops = exposure_difference(photo_exposures(train_rays.rgb, train_rays.view_index, len(train_views)),
                                          np.stack([v.center for v in train_views]))
+    exposures_differ = appearance_by_default(exposure_stops)
     if config.appearance is None:
-        config = replace(config, appearance=appearance_by_default(exposure_stops))
+        config = replace(config, appearance=exposures_differ)
         if config.appearance:
             announce_default_appearance(progress, len(train_views), exposure_stops)
 
@@ -476,7 +477,7 @@ def _train(scene, model_dir: Path, config: TrainConfig, images_dir, resume: bool
         # How far neighbouring photos' exposures differ (stops), and whether that turns the
         # per-photo colour transform on by default (train_config.appearance says what ran).
         "exposure_difference_stops": round(exposure_stops, 4),
-        "appearance_default": appearance_by_default(exposure_stops),
+        "appearance_default": exposures_differ,
         "rig": _rig(train_views, config.scale),
     }
 
