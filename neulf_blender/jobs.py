@@ -152,7 +152,7 @@ class TrainJob(ProcessJob):
                  steps: int | None = None, resume: bool = False, preset: str | None = None, scale: float | None = None,
                  images_dir: str | None = None, device: str | None = None, env: dict | None = None,
                  checkpoint_seconds: float | None = None, sweep_teacher: bool | None = None,
-                 depth_layers: int = -1, appearance: bool | None = None, refine_poses: bool = False,
+                 depth_layers: int = -1, appearance: bool | None = None, refine_poses: bool | None = None,
                  stop_early: bool = True):
         argv = [python, "-m", "neulf_core", "train", scene_dir, "--out", model_dir, "--progress", "json"]
         argv += ["--steps", str(int(steps))] if steps else ["--minutes", repr(float(minutes or 5.0))]
@@ -168,8 +168,8 @@ class TrainJob(ProcessJob):
             argv += ["--depth-layers", str(int(depth_layers))]
         if appearance is not None and not resume:  # None: the trainer's choice from the photos' exposures
             argv.append("--appearance" if appearance else "--no-appearance")
-        if refine_poses and not resume:
-            argv.append("--refine-poses")
+        if refine_poses is not None and not resume:  # None: the trainer's pose check decides
+            argv.append("--refine-poses" if refine_poses else "--no-refine-poses")
         if not stop_early:  # also when continuing: a model that stopped at the limit then trains on
             argv += ["--max-passes", "0"]
         if images_dir:
@@ -208,6 +208,8 @@ class TrainJob(ProcessJob):
             state["appearance"] = event.get("exposure_difference_stops")
         elif kind == "passes":  # few photos: training ends at this step at the latest
             state["pass_limit"] = event.get("steps")
+        elif kind == "pose_check":  # Refine Poses on Auto: the first steps' verdict on the poses
+            state["message"] = event.get("message", "")
         elif kind == "poses":  # Refine Poses: the corrections it found
             state["poses"] = {k: event.get(k) for k in ("median_degrees", "max_degrees", "median_shift", "max_shift")}
         elif kind in ("finished", "cancelled"):
@@ -400,7 +402,7 @@ def interpreter_of_this_blender() -> str:
 
 
 def pose_text(poses: dict | None) -> str:
-    """The camera corrections a model trained with Refine Poses found, for the status line."""
+    """The camera corrections a model refined its poses with found, for the status line."""
     if not poses:
         return ""
     return f"; poses corrected by {poses['median_degrees']:.2f}° (largest {poses['max_degrees']:.2f}°)"

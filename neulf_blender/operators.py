@@ -13,6 +13,7 @@ from bpy.props import FloatProperty, IntProperty, StringProperty
 from . import capture, jobs, tasks
 from .jobs import job_status_text, pose_text
 from .preferences import get_core, get_prefs, worker_python
+from .properties import CHOICE_OPTION
 from ..neulf_core.errors import NeulfError
 
 RENDER_IMAGE = "NeuLF Render"
@@ -265,8 +266,8 @@ def start_training(context, *, minutes=None, steps=None):
     job = jobs.TrainJob(python, scene_dir, out, minutes=minutes, steps=steps, resume=resume, preset=props.preset,
                         scale=props.train_scale, images_dir=abspath(props.images_dir) or None, device=device,
                         env=jobs.core_environment(extra), sweep_teacher=props.sweep_teacher,
-                        depth_layers=props.depth_layers, appearance={"AUTO": None, "ON": True, "OFF": False}[props.appearance],
-                        refine_poses=props.refine_poses,
+                        depth_layers=props.depth_layers, appearance=CHOICE_OPTION[props.appearance],
+                        refine_poses=CHOICE_OPTION[props.refine_poses],
                         stop_early=props.stop_early)
     job.state["resumed_from"] = resumed_from
     props.model_dir = store_path(out)

@@ -56,9 +56,8 @@ class NEULF_PT_main(bpy.types.Panel):
         row = col.row(align=True)
         row.prop(props, "sweep_teacher")
         row.prop(props, "depth_layers")
-        row = col.row(align=True)
-        row.prop(props, "appearance")
-        row.prop(props, "refine_poses")
+        col.prop(props, "appearance")
+        col.prop(props, "refine_poses")
         col.prop(props, "stop_early")
         train = tasks.get("train")
         if train is not None and train.running:

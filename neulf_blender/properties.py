@@ -25,6 +25,15 @@ APPEARANCE_CHOICES = [
     ("ON", "On", "Always learn a colour correction per photo"),
     ("OFF", "Off", "Never: every photo has the same exposure and white balance"),
 ]
+# "Refine Poses": likewise (Auto: the trainer refines for its first 100 steps and keeps refining
+# only where the corrections say the poses are off).
+POSE_CHOICES = [
+    ("AUTO", "Auto", "Refine the camera poses only where the first training steps find them off"),
+    ("ON", "On", "Always learn a correction of each photo's camera pose"),
+    ("OFF", "Off", "Never: the reconstruction's poses are exact"),
+]
+# What an Auto / On / Off choice passes to the trainer (None: the trainer decides).
+CHOICE_OPTION = {"AUTO": None, "ON": True, "OFF": False}
 
 
 class NeulfSceneSettings(bpy.types.PropertyGroup):
@@ -54,9 +63,9 @@ class NeulfSceneSettings(bpy.types.PropertyGroup):
     appearance: EnumProperty(name="Varying Exposure", default="AUTO", items=APPEARANCE_CHOICES,
                              description="Learn a colour correction per photo, for captures whose exposure or white "
                                          "balance changes between shots")
-    refine_poses: BoolProperty(name="Refine Poses", default=False,
+    refine_poses: EnumProperty(name="Refine Poses", default="AUTO", items=POSE_CHOICES,
                                description="Learn a small correction of each photo's camera pose, for captures whose "
-                                           "reconstruction is off by a tenth of a degree or more")
+                                           "reconstruction is off by a twentieth of a degree or more")
     stop_early: BoolProperty(name="Stop Early", default=True,
                              description="With at most 13 photos, end training once it has passed over their "
                                          "pixels 100 times, even before the time is up: more only memorises so few "

@@ -403,9 +403,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--appearance", action=argparse.BooleanOptionalAction, default=None,
                    help="learn a colour transform per photo, for captures whose exposure or white balance changes "
                         "(default: on when neighbouring photos differ in exposure by 0.1 stops or more): docs/STABILITY.md")
-    p.add_argument("--refine-poses", action="store_true",
-                   help="learn a small correction of each photo's camera pose (captures whose poses are off by a "
-                        "tenth of a degree or more; costs 0.15-0.5 dB where they are exact): docs/STABILITY.md")
+    p.add_argument("--refine-poses", action=argparse.BooleanOptionalAction, default=None,
+                   help="learn a small correction of each photo's camera pose (default: learned for the first "
+                        "steps, then kept only where the corrections found say the poses are off, and dropped where "
+                        "they agree with the photos; docs/STABILITY.md)")
     p.add_argument("--sweep-teacher", action=argparse.BooleanOptionalAction, default=None,
                    help="pull the early depth toward the classic plane sweep's (default: the preset's choice; on "
                         "for fast): better depth maps and refocus, docs/DEPTH.md")

@@ -26,7 +26,7 @@ from .errors import NeulfError
 from .fields import build_field, count_parameters, make_config
 from .fields.disparity import DisparityConfig, slab_geometry, texture_size_for
 from .lock import training_lock
-from .poses import PoseRefinement
+from .poses import POSE_CHECK_STEP, PoseRefinement
 from .presets import APPEARANCE_ADAM_BETA2, APPEARANCE_GEOMETRY, DEFAULT_PRESET, get_preset
 from .scene import Scene, load_scene, scaled_size, split_views
 from .slab import Slab, fit_slab
@@ -75,7 +75,9 @@ class TrainConfig:
     appearance: bool | None = None      # learn a per-photo colour transform (exposure, white balance; None: on when
                                         # neighbouring photos differ in exposure, appearance.EXPOSURE_DIFFERENCE_STOPS)
     teacher: bool | None = None         # pull early depth toward the classic plane sweep's (None: the preset's default)
-    refine_poses: bool = False          # learn a small rotation and shift of each training camera (poses.py)
+    refine_poses: bool | None = None    # learn a small rotation and shift of each training camera (poses.py; None:
+                                        # refine from the start, and keep refining after POSE_CHECK_STEP steps only
+                                        # where the corrections say the poses are off)
     coarse_to_fine: bool | None = None  # fade the finer geometry scales in (None: on for at most 13 training views)
     max_passes: float | None = None     # stop after this many passes over the training pixels (None: the
                                         # default, FEW_PHOTOS_MAX_PASSES for few photos; 0: no limit)
@@ -436,7 +438,11 @@ def _train(scene, model_dir: Path, config: TrainConfig, images_dir, resume: bool
     appearance = ViewAppearance(len(train_views)).to(device) if config.appearance else None
     if appearance is not None and resumed and resumed.get("appearance"):
         appearance.load_state_dict(resumed["appearance"])
-    poses = PoseRefinement(slab, np.stack([v.center for v in train_views])).to(device) if config.refine_poses else None
+    if config.refine_poses is None and not _pose_check_possible(config, resumed):
+        config = replace(config, refine_poses=False)
+    pose_check_pending = config.refine_poses is None
+    poses = (PoseRefinement(slab, np.stack([v.center for v in train_views])).to(device)
+             if config.refine_poses is not False else None)
     if poses is not None and resumed and resumed.get("poses"):
         poses.load_state_dict(resumed["poses"])
     use_consistency = config.consistency if config.consistency is not None else preset.consistency
@@ -516,6 +522,9 @@ def _train(scene, model_dir: Path, config: TrainConfig, images_dir, resume: bool
         pull = teacher_weight(fraction, len(train_views), strong=strong) if teacher is not None else 0.0
         depth_teacher = (teacher[0][index], teacher[1][index], pull) if pull > 0 else None
         step_consistency = consistency
+        if pose_check_pending and step >= POSE_CHECK_STEP:
+            pose_check_pending = False
+            poses = _pose_check(poses, optimizer, meta, progress, step)
         if poses is not None:
             poses.set_training_progress(fraction)
             uvst = poses(uvst, view_index)
@@ -566,6 +575,39 @@ def _train(scene, model_dir: Path, config: TrainConfig, images_dir, resume: bool
     save(status, val)
     _emit(progress, event=status, step=step, elapsed=elapsed, val_psnr=val, model_dir=str(model_dir))
     return TrainResult(model_dir, status, step, elapsed, val, history)
+
+
+def _pose_check_possible(config: TrainConfig, resumed: dict | None) -> bool:
+    """Whether the default's pose check can run: a continued model whose checkpoint holds pose
+    corrections has not decided yet (one without them has, or predates the check); a new one
+    needs a budget long enough to reach the check and still train on (a minutes budget is
+    taken to be)."""
+    if resumed is not None:
+        return bool(resumed.get("poses"))
+    return not config.steps or config.steps >= 2 * POSE_CHECK_STEP
+
+
+def _pose_check(poses: PoseRefinement, optimizer, meta: dict, progress, step: int) -> PoseRefinement | None:
+    """The default's verdict on the poses (poses.py, POSE_CHECK_DEGREES): keep refining where
+    the corrections found so far say the poses are off; elsewhere drop the corrections, which
+    would only drift, and their optimizer state.  The verdict is saved with the model, so a
+    resumed run keeps it."""
+    found = poses.summary()["median_degrees"]
+    keep = poses.poses_look_off()
+    meta["train_config"]["refine_poses"] = keep
+    meta["pose_check"] = {"step": step, "median_degrees": round(found, 4), "refining": keep}
+    if keep:
+        message = (f"the camera poses look off (median correction {found:.3f} deg after {step} steps): refining "
+                   "them (--no-refine-poses turns it off; docs/STABILITY.md)")
+    else:
+        message = f"the camera poses agree with the photos (median correction {found:.3f} deg after {step} steps): not refining them"
+    _emit(progress, event="pose_check", refining=keep, median_degrees=found, step=step, message=message)
+    if keep:
+        return poses
+    optimizer.param_groups[:] = [group for group in optimizer.param_groups if group.get("name") != "poses"]
+    for parameter in poses.parameters():
+        optimizer.state.pop(parameter, None)
+    return None
 
 
 def _fill_unseen(field_module, train_rays: RaySet, chunk: int = 1 << 15) -> float:

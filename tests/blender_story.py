@@ -288,7 +288,7 @@ def run_story(setup: dict) -> None:  # noqa: C901 - one story, told in order
         props = bpy.context.scene.neulf
         saved = props.model_dir
         options_model = work / "model_options"
-        props.model_dir, props.appearance, props.refine_poses = str(options_model), "ON", True
+        props.model_dir, props.appearance, props.refine_poses = str(options_model), "ON", "ON"
         props.stop_early = False
         try:
             assert bpy.ops.neulf.train(steps=10) == {"FINISHED"}
@@ -300,7 +300,7 @@ def run_story(setup: dict) -> None:  # noqa: C901 - one story, told in order
             assert ("multi-view losses" in props.last_status) == meta["multiview_losses"], props.last_status
             return props.last_status
         finally:
-            props.model_dir, props.appearance, props.refine_poses = saved, "AUTO", False
+            props.model_dir, props.appearance, props.refine_poses = saved, "AUTO", "AUTO"
             props.stop_early = True
 
     @story.step("train_timer_resume", "train_blocking")

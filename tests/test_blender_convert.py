@@ -217,8 +217,8 @@ def test_train_job_passes_depth_layers_only_to_a_new_model(ext, tmp_path):
 
 
 def test_train_job_passes_exposure_and_pose_options_only_to_a_new_model(ext, tmp_path):
-    """The panel's "Varying Exposure" (Auto / On / Off) and "Refine Poses" become nothing /
-    `train --appearance` / `--no-appearance` and `train --refine-poses`; a resumed model keeps
+    """The panel's "Varying Exposure" and "Refine Poses" (Auto / On / Off) become nothing /
+    `train --appearance` / `--no-appearance`, and nothing / `--refine-poses` / `--no-refine-poses`; a resumed model keeps
     what it was trained with.  "Stop Early" off becomes `train --max-passes 0`, for a
     continued model too."""
     def argv(**options):
@@ -230,9 +230,11 @@ def test_train_job_passes_exposure_and_pose_options_only_to_a_new_model(ext, tmp
     assert "--appearance" in both and "--refine-poses" in both
     assert "--appearance" not in argv() and "--refine-poses" not in argv()
     assert "--no-appearance" in argv(appearance=False) and "--no-appearance" not in argv()  # Auto: the trainer decides
+    assert "--no-refine-poses" in argv(refine_poses=False) and "--no-refine-poses" not in argv()
     resumed = argv(appearance=True, refine_poses=True, resume=True)
     assert "--appearance" not in resumed and "--refine-poses" not in resumed
     assert "--no-appearance" not in argv(appearance=False, resume=True)
+    assert "--no-refine-poses" not in argv(refine_poses=False, resume=True)
     # "Stop Early" off: no pass limit, for a new model and for one continued past its limit.
     assert "--max-passes" not in argv()
     for options in ({}, {"resume": True}):

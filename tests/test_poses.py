@@ -191,3 +191,104 @@ def test_the_multiview_losses_cast_neighbour_rays_from_the_refined_cameras(tiny_
     assert seen[0][1]  # the centres carry the shifts' gradient
     assert not torch.equal(first, last)  # they moved with the cameras
     assert (last - first).abs().max() < 0.1 * (first.max(0).values - first.min(0).values).max()  # a correction, not a jump
+
+
+# ----------------------------------------------------------------------------- the pose check (the default)
+
+
+def _check_events(events):
+    return [e for e in events if e["event"] == "pose_check"]
+
+
+@pytest.mark.parametrize("threshold, refining", [(90.0, False), (0.0, True)])
+def test_the_pose_check_keeps_or_drops_the_refinement_and_saves_its_verdict(tiny_scene, tmp_path, monkeypatch,
+                                                                            threshold, refining):
+    """The default (refine_poses None) refines from the start and decides at POSE_CHECK_STEP:
+    dropped, the corrections and their optimizer state are gone and a resumed run trains on
+    without them; kept, they go on moving.  The verdict is in model.json and the checkpoint."""
+    import neulf_core.poses as poses_module
+    import neulf_core.train as train_module
+    from neulf_core.checkpoint import load_checkpoint
+    from neulf_core.train import TrainConfig, train
+
+    monkeypatch.setattr(train_module, "POSE_CHECK_STEP", 5)
+    monkeypatch.setattr(poses_module, "POSE_CHECK_DEGREES", threshold)
+    events = []
+    train(tiny_scene, tmp_path / "m", TrainConfig(steps=12, batch_size=512, teacher=False), progress=events.append)
+    (check,) = _check_events(events)
+    assert check["step"] == 5 and check["refining"] is refining and check["message"]
+    saved = load_checkpoint(tmp_path / "m")
+    meta = json.loads((tmp_path / "m" / "model.json").read_text())
+    assert saved["train_config"]["refine_poses"] is refining and meta["pose_check"]["refining"] is refining
+    assert (saved["poses"] is not None) is refining
+    assert len(saved["optimizer"]["param_groups"]) == len([g for g in saved["optimizer"]["param_groups"]
+                                                           if g.get("name") != "poses"]) + refining
+    assert bool([e for e in events if e["event"] == "poses"]) is refining  # corrections reported only when kept
+
+    more = []
+    result = train(tiny_scene, tmp_path / "m", TrainConfig(steps=20), resume=True, progress=more.append)
+    assert result.step == 20 and not _check_events(more)  # decided once
+    resumed = load_checkpoint(tmp_path / "m")
+    assert resumed["train_config"]["refine_poses"] is refining and (resumed["poses"] is not None) is refining
+    if refining:
+        assert not torch.equal(resumed["poses"]["rotation"], saved["poses"]["rotation"])
+
+
+def test_a_run_stopped_before_the_pose_check_checks_when_resumed(tiny_scene, tmp_path, monkeypatch):
+    import neulf_core.poses as poses_module
+    import neulf_core.train as train_module
+    from neulf_core.checkpoint import load_checkpoint
+    from neulf_core.train import TrainConfig, train
+
+    monkeypatch.setattr(train_module, "POSE_CHECK_STEP", 8)
+    monkeypatch.setattr(poses_module, "POSE_CHECK_DEGREES", 90.0)
+    steps = iter(range(1000))
+    first = []
+    result = train(tiny_scene, tmp_path / "m", TrainConfig(steps=20, batch_size=512, teacher=False), progress=first.append,
+                   should_stop=lambda: next(steps) >= 4)  # cancelled at step 4
+    saved = load_checkpoint(tmp_path / "m")
+    assert result.status == "cancelled" and not _check_events(first)
+    assert saved["train_config"]["refine_poses"] is None and saved["poses"] is not None  # undecided, corrections kept
+    more = []
+    train(tiny_scene, tmp_path / "m", TrainConfig(steps=20), resume=True, progress=more.append)
+    (check,) = _check_events(more)
+    assert check["step"] == 8 and not check["refining"]
+    assert load_checkpoint(tmp_path / "m")["poses"] is None
+
+
+def test_a_budget_too_short_for_the_pose_check_trains_without_refinement(tiny_scene, tmp_path):
+    from neulf_core.checkpoint import load_checkpoint
+    from neulf_core.poses import POSE_CHECK_STEP
+    from neulf_core.train import TrainConfig, train
+
+    events = []
+    train(tiny_scene, tmp_path / "m", TrainConfig(steps=2 * POSE_CHECK_STEP - 1, batch_size=256, teacher=False),
+          progress=events.append)
+    saved = load_checkpoint(tmp_path / "m")
+    assert saved["poses"] is None and saved["train_config"]["refine_poses"] is False and not _check_events(events)
+
+
+def test_the_pose_check_finds_poses_that_are_off(tiny_scene, tmp_path):
+    """Behaviour, not plumbing: on the tiny scene with a degree of centred pose noise the check
+    (at its real step and threshold) keeps refining, and the corrections it found at the check
+    are several times those on the exact poses."""
+    import sys
+    from dataclasses import replace
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+    import stability
+    from neulf_core.scene import load_scene, split_views
+    from neulf_core.train import TrainConfig, train
+
+    scene = load_scene(tiny_scene)
+    training, held = split_views(scene, 8, None)
+    found = {}
+    for degrees in (0.0, 1.0):
+        views = stability.perturb_poses(training, degrees, stability.rig_spacing(training)) if degrees else training
+        events = []
+        train(replace(scene, views=sorted(held + views, key=lambda v: v.name)), tmp_path / f"m{degrees}",
+              TrainConfig(steps=200, batch_size=2048, teacher=False), progress=events.append)
+        (found[degrees],) = _check_events(events)
+    assert found[1.0]["refining"]
+    assert found[1.0]["median_degrees"] > 5 * found[0.0]["median_degrees"]

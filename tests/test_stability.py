@@ -110,7 +110,10 @@ def test_study_runs_end_to_end(stability, tiny_scene, tmp_path):
     # and by kind of run: the default's own two, the coarse-to-fine rule switched off for one
     assert "the default as a user runs it: " in tables and " of 2 within 0.2 dB" in tables
     assert "switched off or forced on (the rule studies): " in tables and " of 1 within 0.2 dB" in tables
-    assert stability.setting_of({"refine_poses": True, "coarse_to_fine": None}).startswith("with the opt-in")
+    # pose refinement forced on or off is a rule study too; None is the default's pose check
+    assert stability.setting_of({"refine_poses": True, "coarse_to_fine": None}).startswith("with a default rule")
+    assert stability.setting_of({"refine_poses": False, "coarse_to_fine": None}).startswith("with a default rule")
+    assert stability.setting_of({"refine_poses": None, "coarse_to_fine": None}).startswith("the default")
 
 
 def test_a_crash_is_recorded_not_raised(stability, tmp_path):
@@ -133,11 +136,18 @@ def test_nerf_w_protocol_fits_on_the_left_half_and_scores_the_right(stability):
 
 
 def test_a_log_written_before_a_job_field_existed_still_counts(stability, tmp_path):
-    """Rows logged before `refine_poses` existed ran without it: they stay done, not re-run."""
-    job = stability.Job("tiny", "a", "a", 1.0, "fast", 3, 0)
-    old_row = {**{k: v for k, v in stability.asdict(job).items() if k != "refine_poses"}, "status": "finished", "psnr": 30.0}
+    """Rows logged before `refine_poses` existed, or before the pose check made None the
+    default, ran without refinement: they count as refinement forced off, and the default's
+    runs are trained again.  A budget too short for the check trains the same either way."""
+    def logged(steps, **fields):
+        job = stability.Job("tiny", "a", "a", 1.0, "fast", steps, 0, **fields)
+        return {**{k: v for k, v in stability.asdict(job).items() if k != "refine_poses"}, **fields,
+                "status": "finished", "psnr": 30.0}
+
     log = tmp_path / "runs.jsonl"
-    log.write_text(json.dumps(old_row) + "\n")
+    log.write_text("\n".join(json.dumps(row) for row in (logged(1000), logged(1000, refine_poses=True), logged(3))) + "\n")
     done = stability.load_log(log)
-    assert job.key in done and done[job.key]["refine_poses"] is False
-    assert stability.Job("tiny", "a", "a", 1.0, "fast", 3, 0, refine_poses=True).key not in done
+    job = stability.Job("tiny", "a", "a", 1.0, "fast", 1000, 0)
+    assert stability.replace(job, refine_poses=False).key in done and job.key not in done
+    assert stability.replace(job, refine_poses=True).key in done
+    assert stability.Job("tiny", "a", "a", 1.0, "fast", 3, 0).key in done  # 3 steps: no check, no refinement
