@@ -321,7 +321,7 @@ def run_job(job: Job, threads: int = 1) -> dict:
     """Train and score one configuration; never raises (a crash is a result too)."""
     torch.set_num_threads(threads)
     row = {**asdict(job), "status": "crashed", "steps_done": 0, "train_seconds": math.nan, "warnings": 0,
-           "warning_text": "", "error": ""}
+           "warning_text": "", "error": "", "pose_check_refining": None}
     if job.appearance and not appearance_available():
         return {**row, "status": "unavailable", "error": "TrainConfig has no 'appearance' option"}
     started = time.perf_counter()
@@ -896,9 +896,10 @@ def load_log(log: Path) -> dict:
         for line in log.read_text().splitlines():
             row = json.loads(line)
             if row.get("status") in ("finished", "crashed"):
-                row.setdefault("refine_poses", False)  # logged before the pose check: trained without refinement
-                if row["refine_poses"] is False and not row.get("minutes") and row["steps"] < 2 * POSE_CHECK_STEP:
-                    row["refine_poses"] = None  # too short for the check: the default trains it so too
+                if "pose_check_refining" not in row:  # logged before the pose check: trained without refinement
+                    row.setdefault("refine_poses", False)  # unless it says so
+                    if row["refine_poses"] is False and not row.get("minutes") and row["steps"] < 2 * POSE_CHECK_STEP:
+                        row["refine_poses"] = None  # too short for the check: the default trains it so too
                 for f in fields(Job):  # rows logged before a Job field existed ran with its default
                     row.setdefault(f.name, f.default)
                 done[Job(**{f.name: row[f.name] for f in fields(Job)}).key] = row

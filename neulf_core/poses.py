@@ -124,9 +124,12 @@ class PoseRefinement(nn.Module):
         b = centre + torch.bmm(turn, (p_st - centre).unsqueeze(-1)).squeeze(-1) + moved
         return self.slab.slab_rays_to_uvst(a, b - a)[0]
 
-    def poses_look_off(self) -> bool:
-        """The pose check's verdict on the corrections found so far (see POSE_CHECK_DEGREES)."""
-        return self.summary()["median_degrees"] >= POSE_CHECK_DEGREES
+    @torch.no_grad()
+    def own_part_degrees(self) -> float:
+        """The pose check's statistic (POSE_CHECK_DEGREES): the median rotation of the cameras'
+        own part of the corrections, in degrees; what it was calibrated on, whether or not the
+        rig-wide part has joined by then (budgets under 500 steps, a resumed run)."""
+        return float((self.own_part @ self.rotation).norm(dim=1).median()) * 180.0 / math.pi
 
     @torch.no_grad()
     def summary(self) -> dict:

@@ -26,6 +26,7 @@ from .errors import NeulfError
 from .fields import build_field, count_parameters, make_config
 from .fields.disparity import DisparityConfig, slab_geometry, texture_size_for
 from .lock import training_lock
+from . import poses as poses_module
 from .poses import POSE_CHECK_STEP, PoseRefinement
 from .presets import APPEARANCE_ADAM_BETA2, APPEARANCE_GEOMETRY, DEFAULT_PRESET, get_preset
 from .scene import Scene, load_scene, scaled_size, split_views
@@ -341,11 +342,13 @@ def _optimizer(field_module, lr: float, beta2: float, appearance: ViewAppearance
     groups = field_module.param_groups(lr) if hasattr(field_module, "param_groups") else [{"params": field_module.parameters(), "lr": lr}]
     if appearance is not None:
         groups.append({"params": list(appearance.parameters()), "lr": lr, "name": "appearance"})
+    # (the pose corrections, which the default's check may drop, leave the field's eps alone)
+    eps = 1e-15 if len(groups) > 1 else 1e-8
     if poses is not None:
         groups.append({"params": list(poses.parameters()), "lr": POSE_LR, "name": "poses"})
     for group in groups:
         group["initial_lr"] = group["lr"]
-    return torch.optim.Adam(groups, betas=(0.9, beta2), eps=1e-15 if len(groups) > 1 else 1e-8)
+    return torch.optim.Adam(groups, betas=(0.9, beta2), eps=eps)
 
 
 def learning_rate_factor(preset, fraction: float, epochs: float = 0.0) -> float:
@@ -438,7 +441,10 @@ def _train(scene, model_dir: Path, config: TrainConfig, images_dir, resume: bool
     appearance = ViewAppearance(len(train_views)).to(device) if config.appearance else None
     if appearance is not None and resumed and resumed.get("appearance"):
         appearance.load_state_dict(resumed["appearance"])
-    if config.refine_poses is None and not _pose_check_possible(config, resumed):
+    batch = config.batch_size or preset.batch_size
+    n_rays = len(train_rays)
+    step_limit = pass_step_limit(config, field_module.field_name, len(train_views), n_rays, batch)
+    if config.refine_poses is None and not _pose_check_possible(config, step_limit, resumed):
         config = replace(config, refine_poses=False)
     pose_check_pending = config.refine_poses is None
     poses = (PoseRefinement(slab, np.stack([v.center for v in train_views])).to(device)
@@ -455,7 +461,6 @@ def _train(scene, model_dir: Path, config: TrainConfig, images_dir, resume: bool
     consistency = _consistency_inputs(train_views, slab, config, device) if use_consistency else None
     beta2 = APPEARANCE_ADAM_BETA2 if appearance is not None else preset.adam_beta2
     optimizer = _optimizer(field_module, preset.lr, beta2, appearance, poses)
-    batch = config.batch_size or preset.batch_size
     step, elapsed_before, history = 0, 0.0, []
     teacher, teacher_seconds = _teacher_inputs(train_views, slab, config, preset, device, resumed, progress)
     elapsed_before += teacher_seconds  # the sweep is part of the training time it saves
@@ -486,6 +491,8 @@ def _train(scene, model_dir: Path, config: TrainConfig, images_dir, resume: bool
         "appearance_default": exposures_differ,
         "rig": _rig(train_views, config.scale),
     }
+    if resumed and resumed.get("pose_check"):
+        meta["pose_check"] = resumed["pose_check"]  # the verdict of the run being continued
 
     def save(status: str, val: float | None):
         payload = {**meta, "state_dict": field_module.state_dict(), "optimizer": optimizer.state_dict(),
@@ -496,8 +503,6 @@ def _train(scene, model_dir: Path, config: TrainConfig, images_dir, resume: bool
         path = save_checkpoint(model_dir, payload)
         _emit(progress, event="checkpoint", path=str(path), step=step)
 
-    n_rays = len(train_rays)
-    step_limit = pass_step_limit(config, field_module.field_name, len(train_views), n_rays, batch)
     announce_pass_limit(progress, config, field_module.field_name, len(train_views), step_limit, step)
     # The pass limit is a tighter step budget (the saved config keeps the one asked for).
     budget = replace(config, steps=min(config.steps or step_limit, step_limit)) if step_limit else config
@@ -568,6 +573,8 @@ def _train(scene, model_dir: Path, config: TrainConfig, images_dir, resume: bool
             last_checkpoint = time.monotonic()
     if skipped:
         _emit(progress, event="warning", message=f"{skipped} training steps had a non-finite loss and were skipped")
+    if pose_check_pending and status == "finished":  # the budget ended before the check (a short --minutes)
+        poses = _pose_check(poses, optimizer, meta, progress, step)
     if poses is not None:
         meta["pose_corrections"] = poses.summary()
         _emit(progress, event="poses", **meta["pose_corrections"])
@@ -577,14 +584,15 @@ def _train(scene, model_dir: Path, config: TrainConfig, images_dir, resume: bool
     return TrainResult(model_dir, status, step, elapsed, val, history)
 
 
-def _pose_check_possible(config: TrainConfig, resumed: dict | None) -> bool:
+def _pose_check_possible(config: TrainConfig, step_limit: int | None, resumed: dict | None) -> bool:
     """Whether the default's pose check can run: a continued model whose checkpoint holds pose
     corrections has not decided yet (one without them has, or predates the check); a new one
     needs a budget long enough to reach the check and still train on (a minutes budget is
-    taken to be)."""
+    taken to be; one that ends first is checked at its end).  `step_limit`: the pass limit."""
     if resumed is not None:
         return bool(resumed.get("poses"))
-    return not config.steps or config.steps >= 2 * POSE_CHECK_STEP
+    steps = min(s for s in (config.steps, step_limit, math.inf) if s)
+    return steps >= 2 * POSE_CHECK_STEP
 
 
 def _pose_check(poses: PoseRefinement, optimizer, meta: dict, progress, step: int) -> PoseRefinement | None:
@@ -592,8 +600,8 @@ def _pose_check(poses: PoseRefinement, optimizer, meta: dict, progress, step: in
     the corrections found so far say the poses are off; elsewhere drop the corrections, which
     would only drift, and their optimizer state.  The verdict is saved with the model, so a
     resumed run keeps it."""
-    found = poses.summary()["median_degrees"]
-    keep = poses.poses_look_off()
+    found = poses.own_part_degrees()
+    keep = found >= poses_module.POSE_CHECK_DEGREES
     meta["train_config"]["refine_poses"] = keep
     meta["pose_check"] = {"step": step, "median_degrees": round(found, 4), "refining": keep}
     if keep:

@@ -230,6 +230,7 @@ def test_the_pose_check_keeps_or_drops_the_refinement_and_saves_its_verdict(tiny
     assert result.step == 20 and not _check_events(more)  # decided once
     resumed = load_checkpoint(tmp_path / "m")
     assert resumed["train_config"]["refine_poses"] is refining and (resumed["poses"] is not None) is refining
+    assert json.loads((tmp_path / "m" / "model.json").read_text())["pose_check"] == meta["pose_check"]  # kept
     if refining:
         assert not torch.equal(resumed["poses"]["rotation"], saved["poses"]["rotation"])
 
@@ -292,3 +293,30 @@ def test_the_pose_check_finds_poses_that_are_off(tiny_scene, tmp_path):
         (found[degrees],) = _check_events(events)
     assert found[1.0]["refining"]
     assert found[1.0]["median_degrees"] > 5 * found[0.0]["median_degrees"]
+
+
+def test_a_minutes_budget_that_ends_before_the_pose_check_is_checked_at_its_end(tiny_scene, tmp_path, monkeypatch):
+    import neulf_core.train as train_module
+    from neulf_core.train import TrainConfig, train
+
+    monkeypatch.setattr(train_module, "POSE_CHECK_STEP", 10 ** 6)
+    events = []
+    result = train(tiny_scene, tmp_path / "m", TrainConfig(minutes=0.01, max_passes=0, batch_size=256, teacher=False),
+                   progress=events.append)
+    (check,) = _check_events(events)
+    assert check["step"] == result.step
+    meta = json.loads((tmp_path / "m" / "model.json").read_text())
+    assert meta["train_config"]["refine_poses"] is check["refining"] and meta["pose_check"]["step"] == result.step
+
+
+def test_the_pose_check_measures_each_cameras_own_part():
+    """A rotation that varies linearly across the rig (what drifts once the rig-wide part has
+    joined) does not count; the cameras' own turns do."""
+    centres = np.array([[x, y, -0.5] for x in (-0.2, 0.0, 0.2) for y in (-0.2, 0.0, 0.2)])
+    poses = PoseRefinement(SLAB, centres)
+    with torch.no_grad():
+        poses.rotation[:, 1] = torch.tensor(centres[:, 0] * 0.01, dtype=torch.float32)  # rig-wide: linear in x
+    assert poses.own_part_degrees() < 1e-4
+    with torch.no_grad():
+        poses.rotation[:, 2] += torch.tensor([1e-3, -1e-3] * 4 + [0.0], dtype=torch.float32)  # each its own
+    assert poses.own_part_degrees() == pytest.approx(math.degrees(1e-3), rel=0.2)

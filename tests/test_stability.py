@@ -151,3 +151,14 @@ def test_a_log_written_before_a_job_field_existed_still_counts(stability, tmp_pa
     assert stability.replace(job, refine_poses=False).key in done and job.key not in done
     assert stability.replace(job, refine_poses=True).key in done
     assert stability.Job("tiny", "a", "a", 1.0, "fast", 3, 0).key in done  # 3 steps: no check, no refinement
+
+
+def test_rows_logged_since_the_pose_check_are_read_as_logged(stability, tmp_path):
+    """A short run forced off since the check existed stays forced off (the normalisation of
+    older rows must not turn it into the default's)."""
+    forced_off = stability.Job("tiny", "a", "a", 1.0, "fast", 3, 0, refine_poses=False)
+    log = tmp_path / "runs.jsonl"
+    log.write_text(json.dumps({**stability.asdict(forced_off), "status": "finished", "psnr": 30.0,
+                               "pose_check_refining": None}) + "\n")
+    done = stability.load_log(log)
+    assert forced_off.key in done and stability.replace(forced_off, refine_poses=None).key not in done
