@@ -65,7 +65,7 @@ class NeulfSceneSettings(bpy.types.PropertyGroup):
                                          "balance changes between shots")
     refine_poses: EnumProperty(name="Refine Poses", default="AUTO", items=POSE_CHOICES,
                                description="Learn a small correction of each photo's camera pose, for captures whose "
-                                           "reconstruction is off by a twentieth of a degree or more")
+                                           "reconstruction is off by a tenth of a degree or more")
     stop_early: BoolProperty(name="Stop Early", default=True,
                              description="With at most 13 photos, end training once it has passed over their "
                                          "pixels 100 times, even before the time is up: more only memorises so few "

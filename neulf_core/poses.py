@@ -44,15 +44,18 @@ from .slab import Slab
 RIG_WIDE_START = 0.2
 
 # The pose check (the trainer's default, TrainConfig.refine_poses None): the corrections move
-# from the first step, and after POSE_CHECK_STEP steps their median rotation says whether the
-# poses are off.  Where the poses agree with the photos the corrections only drift, and the
-# refinement would cost up to half a dB; where they are off it recovers most of what the error
-# costs.  The median at step 100, 1000 steps, seeds 0 / 1 (docs/STABILITY.md, "The pose check"):
-# exact or COLMAP's poses 0.019-0.034 degrees on the synthetic scene, CanClip and fern; 0.05
-# degrees of centred noise 0.040-0.061; 0.1 degrees 0.092-0.106.  The statistic hardly moves
-# from step 100 to step 700, nor with a 3000-step budget.
+# from the first step, and after POSE_CHECK_STEP steps the median rotation of the cameras' own
+# part says whether the poses are off.  Where the poses agree with the photos the corrections
+# only drift, and the refinement would cost up to half a dB; where they are off it recovers
+# most of what the error costs.  The statistic at step 100 (1000-step budgets; docs/STABILITY.md,
+# "The pose check"): where the poses are right 0.011-0.037 degrees on every capture of the
+# study at every share of its photos, up to 0.045 with 6 of CanClip's photos and 0.049 where
+# the photos' exposures differ (the colour transform not yet learned, the corrections take up
+# some of the difference); 0.1 degrees of centred noise 0.092-0.106, 0.05 degrees 0.040-0.061
+# (which it cannot tell from right poses).  The threshold sits between the two clusters.  The
+# statistic hardly moves from step 100 to step 700, nor with a 3000-step budget.
 POSE_CHECK_STEP = 100
-POSE_CHECK_DEGREES = 0.04
+POSE_CHECK_DEGREES = 0.06
 
 
 def rotation_matrices(axis_angle: torch.Tensor) -> torch.Tensor:
