@@ -700,8 +700,9 @@ def targets(rows: list[dict]) -> list[str]:
 
 
 def setting_of(match: dict, rows: list[dict] = ()) -> str:
-    """Which kind of run a configuration is: the default as a user runs it, with an opt-in
-    option, or with one of the default's rules switched off for comparison.  `rows`: the
+    """Which kind of run a configuration is: the default as a user runs it, or with one of
+    the default's rules (pose check, exposure, losses, coarse to fine) switched off or forced
+    on for comparison.  `rows`: the
     configuration's runs, which record whether the exposure rule would have turned the
     compensation on (rows logged before the rule: off, as it is on every nominal capture)."""
     rule_wanted_appearance = any(r.get("appearance_default") for r in rows)

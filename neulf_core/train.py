@@ -575,7 +575,7 @@ def _train(scene, model_dir: Path, config: TrainConfig, images_dir, resume: bool
         _emit(progress, event="warning", message=f"{skipped} training steps had a non-finite loss and were skipped")
     if pose_check_pending and status == "finished":  # the budget ended before the check (a short --minutes)
         poses = _pose_check(poses, optimizer, meta, progress, step)
-    if poses is not None:
+    if poses is not None and not pose_check_pending:  # (stopped before the check: provisional, not reported)
         meta["pose_corrections"] = poses.summary()
         _emit(progress, event="poses", **meta["pose_corrections"])
     elapsed += _fill_unseen(field_module, train_rays) if step > 0 else 0.0

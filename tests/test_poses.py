@@ -250,6 +250,7 @@ def test_a_run_stopped_before_the_pose_check_checks_when_resumed(tiny_scene, tmp
     saved = load_checkpoint(tmp_path / "m")
     assert result.status == "cancelled" and not _check_events(first)
     assert saved["train_config"]["refine_poses"] is None and saved["poses"] is not None  # undecided, corrections kept
+    assert not [e for e in first if e["event"] == "poses"] and "pose_corrections" not in saved  # nor reported yet
     more = []
     train(tiny_scene, tmp_path / "m", TrainConfig(steps=20), resume=True, progress=more.append)
     (check,) = _check_events(more)
