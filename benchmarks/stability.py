@@ -59,7 +59,7 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 from neulf_core.metrics import psnr, ssim  # noqa: E402
-from neulf_core.poses import POSE_CHECK_DEGREES, POSE_CHECK_STEP  # noqa: E402
+from neulf_core.poses import POSE_CHECK_DEGREES, POSE_CHECK_SETTLED, POSE_CHECK_STEP  # noqa: E402
 from neulf_core.render import LightField  # noqa: E402
 from neulf_core.scene import Scene, View, camera_gaps, find_model_dir, load_scene, split_views  # noqa: E402
 from neulf_core.train import (COARSE_TO_FINE_MAX_VIEWS, CONSISTENCY_MAX_VIEWS, LOSSES_MIN_PASSES,  # noqa: E402
@@ -277,6 +277,7 @@ def score_views(model_dir: Path, held: list[View], scale: float) -> dict:
             "appearance_used": bool(light_field.meta.get("train_config", {}).get("appearance")),
             "pose_check_refining": light_field.meta.get("pose_check", {}).get("refining"),
             "pose_check_degrees": light_field.meta.get("pose_check", {}).get("median_degrees"),
+            "pose_check_halfway": light_field.meta.get("pose_check", {}).get("halfway_degrees"),
             "appearance_default": light_field.meta.get("appearance_default"),
             "exposure_difference_stops": light_field.meta.get("exposure_difference_stops")}
 
@@ -575,7 +576,8 @@ def pose_table(rows: list[dict]) -> list[str]:
                 kept.append(f"{scene} " + ", ".join(f"{d:g}° {pose_check_kept(c)}" for d, c in zip(POSE_DEGREES, cells) if c))
     if kept:
         lines += ["", "Runs in which the default's pose check kept refining (after "
-                      f"{POSE_CHECK_STEP} steps, median correction at least {POSE_CHECK_DEGREES:g}°): " + "; ".join(kept) + "."]
+                      f"{POSE_CHECK_STEP} steps, median correction at least {POSE_CHECK_DEGREES:g}° and at least "
+                      f"{POSE_CHECK_SETTLED:g} times the one after {POSE_CHECK_STEP // 2}): " + "; ".join(kept) + "."]
     exact, refined = group(rows, **base("canclip", "fast", refine_poses=False)), group(rows, **base("canclip", "fast", refine_poses=True))
     if refined:
         lines += ["", f"CanClip (COLMAP's own poses, all views): {cell(exact)} dB without refinement, {cell(refined)} dB "
@@ -789,7 +791,7 @@ def update_markdown(path: Path, tables: str) -> None:
 
 CSV_COLUMNS = ["scene", "preset", "fraction", "pose_degrees", "appearance", "refine_poses", "consistency", "minutes",
                "coarse_to_fine", "coarse_to_fine_used", "appearance_used", "appearance_default", "exposure_difference_stops",
-               "pose_check_refining", "pose_check_degrees",
+               "pose_check_refining", "pose_check_degrees", "pose_check_halfway",
                "deep_scene", "multiview_losses", "seed", "status", "psnr", "ssim",
                "psnr_matched", "psnr_half_fit", "psnr_per_view", "train_views", "held_out", "steps", "steps_done", "train_seconds",
                "wall_seconds", "warnings", "warning_text", "nonfinite_pixels", "error", "scale", "path", "truth"]

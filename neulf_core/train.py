@@ -527,6 +527,8 @@ def _train(scene, model_dir: Path, config: TrainConfig, images_dir, resume: bool
         pull = teacher_weight(fraction, len(train_views), strong=strong) if teacher is not None else 0.0
         depth_teacher = (teacher[0][index], teacher[1][index], pull) if pull > 0 else None
         step_consistency = consistency
+        if pose_check_pending and POSE_CHECK_STEP // 2 <= step < POSE_CHECK_STEP and "halfway_degrees" not in meta.get("pose_check", {}):
+            meta["pose_check"] = {"halfway_step": step, "halfway_degrees": round(poses.own_part_degrees(), 4)}
         if pose_check_pending and step >= POSE_CHECK_STEP:
             pose_check_pending = False
             poses = _pose_check(poses, optimizer, meta, progress, step)
@@ -596,20 +598,26 @@ def _pose_check_possible(config: TrainConfig, step_limit: int | None, resumed: d
 
 
 def _pose_check(poses: PoseRefinement, optimizer, meta: dict, progress, step: int) -> PoseRefinement | None:
-    """The default's verdict on the poses (poses.py, POSE_CHECK_DEGREES): keep refining where
+    """The default's verdict on the poses (poses.py, poses_look_off): keep refining where
     the corrections found so far say the poses are off; elsewhere drop the corrections, which
     would only drift, and their optimizer state.  The verdict is saved with the model, so a
     resumed run keeps it."""
     found = poses.own_part_degrees()
-    keep = found >= poses_module.POSE_CHECK_DEGREES
+    record = meta.get("pose_check", {})
+    halfway = record.get("halfway_degrees")
+    keep = poses_module.poses_look_off(found, halfway)
     meta["train_config"]["refine_poses"] = keep
-    meta["pose_check"] = {"step": step, "median_degrees": round(found, 4), "refining": keep}
+    meta["pose_check"] = {**record, "step": step, "median_degrees": round(found, 4), "refining": keep}
+    seen = f"median correction {found:.3f} deg after {step} steps" + (
+        f", {halfway:.3f} after {record['halfway_step']}" if halfway is not None else "")
     if keep:
-        message = (f"the camera poses look off (median correction {found:.3f} deg after {step} steps): refining "
-                   "them (--no-refine-poses turns it off; docs/STABILITY.md)")
+        message = f"the camera poses look off ({seen}): refining them (--no-refine-poses turns it off; docs/STABILITY.md)"
+    elif found >= poses_module.POSE_CHECK_DEGREES:
+        message = f"the pose corrections fade as the light field sharpens ({seen}): not refining the poses"
     else:
-        message = f"the camera poses agree with the photos (median correction {found:.3f} deg after {step} steps): not refining them"
-    _emit(progress, event="pose_check", refining=keep, median_degrees=found, step=step, message=message)
+        message = f"the camera poses agree with the photos ({seen}): not refining them"
+    _emit(progress, event="pose_check", refining=keep, median_degrees=found, halfway_degrees=halfway, step=step,
+          message=message)
     if keep:
         return poses
     optimizer.param_groups[:] = [group for group in optimizer.param_groups if group.get("name") != "poses"]

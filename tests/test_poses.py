@@ -321,3 +321,15 @@ def test_the_pose_check_measures_each_cameras_own_part():
     with torch.no_grad():
         poses.rotation[:, 2] += torch.tensor([1e-3, -1e-3] * 4 + [0.0], dtype=torch.float32)  # each its own
     assert poses.own_part_degrees() == pytest.approx(math.degrees(1e-3), rel=0.2)
+
+
+def test_the_pose_check_keeps_refining_only_corrections_that_have_settled():
+    """Large enough, and not fading: Statue's COLMAP poses measure as much as 0.1 degrees of
+    noise after 100 steps, but their corrections were shrinking, and refining there gained
+    nothing (docs/STABILITY.md)."""
+    from neulf_core.poses import POSE_CHECK_DEGREES, POSE_CHECK_SETTLED, poses_look_off
+
+    assert not poses_look_off(0.5 * POSE_CHECK_DEGREES, 0.5 * POSE_CHECK_DEGREES)      # too small
+    assert poses_look_off(0.1, 0.1) and poses_look_off(0.1, 0.08)                      # settled or growing
+    assert not poses_look_off(0.11, 0.11 / (POSE_CHECK_SETTLED - 0.1))                 # fading
+    assert poses_look_off(0.1, None)  # not recorded (a resumed older run): the size alone
