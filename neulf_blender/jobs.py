@@ -210,6 +210,7 @@ class TrainJob(ProcessJob):
             state["pass_limit"] = event.get("steps")
         elif kind == "pose_check":  # Refine Poses on Auto: the first steps' verdict on the poses
             state["message"] = event.get("message", "")
+            state["pose_check"] = bool(event.get("refining"))
         elif kind == "poses":  # Refine Poses: the corrections it found
             state["poses"] = {k: event.get(k) for k in ("median_degrees", "max_degrees", "median_shift", "max_shift")}
         elif kind in ("finished", "cancelled"):
@@ -419,6 +420,8 @@ def job_status_text(state: dict) -> str:
         text += "; with the multi-view losses (few photos)"
     if state.get("appearance") is not None:
         text += f"; a colour transform per photo (exposures differ by {state['appearance']:.2f} stops)"
+    if state.get("pose_check") is False:  # (refined: pose_text shows the corrections)
+        text += "; camera poses checked, not refined"
     if state["status"] == "finished" and state.get("pass_limit") and state.get("step", 0) >= state["pass_limit"]:
         text += "; stopped before the time was up: more training would only memorise so few photos"
     return text + pose_text(state.get("poses"))

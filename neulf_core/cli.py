@@ -404,9 +404,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="learn a colour transform per photo, for captures whose exposure or white balance changes "
                         "(default: on when neighbouring photos differ in exposure by 0.1 stops or more): docs/STABILITY.md")
     p.add_argument("--refine-poses", action=argparse.BooleanOptionalAction, default=None,
-                   help="learn a small correction of each photo's camera pose (default: learned for the first "
-                        "steps, then kept only where the corrections found say the poses are off, and dropped where "
-                        "they agree with the photos; docs/STABILITY.md)")
+                   help="learn a small correction of each photo's camera pose (default: learned for the first 100 "
+                        "steps, then kept only where the corrections found are large enough and have settled, the "
+                        "poses being off; dropped where they are small or fade; budgets under 200 steps train "
+                        "without it; docs/STABILITY.md)")
     p.add_argument("--sweep-teacher", action=argparse.BooleanOptionalAction, default=None,
                    help="pull the early depth toward the classic plane sweep's (default: the preset's choice; on "
                         "for fast): better depth maps and refocus, docs/DEPTH.md")

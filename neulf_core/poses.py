@@ -51,8 +51,9 @@ RIG_WIDE_START = 0.2
 # are off it recovers most of what the error costs.  Measured at step 100 of 1000-step budgets
 # (docs/STABILITY.md, "The pose check"):
 # - right poses: 0.011-0.039 degrees on every capture of the study at every share of its
-#   photos; up to 0.054 with few photos or exposures that differ (the colour transform not yet
-#   learned, the corrections take up some of the difference);
+#   photos; up to 0.051 with few photos or exposures that differ (the colour transform not yet
+#   learned, the corrections take up some of the difference), 0.067-0.074 where the photos'
+#   exposures differ and the colour transform is forced off;
 # - 0.1 degrees of centred noise 0.090-0.106, and more noise more; 0.05 degrees 0.040-0.061,
 #   which it cannot tell from right poses;
 # - Statue's COLMAP poses 0.099-0.137: as large as 0.1 degrees of noise, but fading, 0.55-0.72
@@ -68,7 +69,8 @@ POSE_CHECK_SETTLED = 0.8
 
 def poses_look_off(degrees: float, halfway_degrees: float | None) -> bool:
     """The pose check's verdict from its statistic at POSE_CHECK_STEP and at half of it (None
-    when not recorded: a run resumed from a checkpoint saved before the check recorded it)."""
+    when not recorded: a minutes budget that ended before half of POSE_CHECK_STEP, checked at
+    its end)."""
     if degrees < POSE_CHECK_DEGREES:
         return False
     return halfway_degrees is None or degrees >= POSE_CHECK_SETTLED * halfway_degrees

@@ -174,11 +174,13 @@ def test_train_job_parses_events(ext):
                   {"event": "passes", "train_views": 7, "steps": 20, "message": "7 photos: training stops at ..."},
                   {"event": "appearance", "train_views": 7, "exposure_difference_stops": 0.31, "message": "..."},
                   {"event": "poses", "median_degrees": 0.08, "max_degrees": 0.13, "median_shift": 0.01, "max_shift": 0.02},
-                  {"event": "pose_check", "refining": True, "median_degrees": 0.09, "halfway_degrees": 0.08, "step": 100,
-                   "message": "the camera poses look off (...): refining them"}]:
+                  {"event": "pose_check", "refining": False, "median_degrees": 0.03, "halfway_degrees": 0.05, "step": 100,
+                   "message": "the camera poses agree with the photos (...): not refining them"}]:
         job.on_stdout(json.dumps(event))
+    assert job.state["message"].startswith("the camera poses agree")  # the pose check's verdict, until the next step
+    job.on_stdout(json.dumps({"event": "step", "step": 20, "elapsed": 4.0, "loss": 0.01, "fraction": 0.5}))
     job.on_stdout("not json")
-    assert job.state["message"].startswith("the camera poses look off")  # the pose check's verdict, while training
+    assert "camera poses checked, not refined" in ext.jobs.job_status_text({**job.state, "status": "finished"})
     assert job.state["step"] == 20 and job.state["fraction"] == 0.5 and job.state["val_psnr"] == 21.5
     assert job.state["device"].startswith("cpu") and job.state["warnings"] == ["careful"]
     assert job.state["poses"]["max_degrees"] == 0.13

@@ -242,19 +242,22 @@ def test_a_run_stopped_before_the_pose_check_checks_when_resumed(tiny_scene, tmp
     from neulf_core.train import TrainConfig, train
 
     monkeypatch.setattr(train_module, "POSE_CHECK_STEP", 8)
-    monkeypatch.setattr(poses_module, "POSE_CHECK_DEGREES", 90.0)
+    monkeypatch.setattr(poses_module, "POSE_CHECK_DEGREES", 0.0)  # the verdict rests on the halfway record alone
+    monkeypatch.setattr(poses_module, "POSE_CHECK_SETTLED", 1e9)
     steps = iter(range(1000))
     first = []
     result = train(tiny_scene, tmp_path / "m", TrainConfig(steps=20, batch_size=512, teacher=False), progress=first.append,
-                   should_stop=lambda: next(steps) >= 4)  # cancelled at step 4
+                   should_stop=lambda: next(steps) >= 6)  # cancelled at step 6, past halfway (4)
     saved = load_checkpoint(tmp_path / "m")
     assert result.status == "cancelled" and not _check_events(first)
     assert saved["train_config"]["refine_poses"] is None and saved["poses"] is not None  # undecided, corrections kept
+    assert saved["pose_check"]["halfway_step"] == 4
     assert not [e for e in first if e["event"] == "poses"] and "pose_corrections" not in saved  # nor reported yet
     more = []
     train(tiny_scene, tmp_path / "m", TrainConfig(steps=20), resume=True, progress=more.append)
     (check,) = _check_events(more)
-    assert check["step"] == 8 and not check["refining"]
+    assert check["step"] == 8 and not check["refining"]  # fading by the impossible standard: the record was used
+    assert check["halfway_degrees"] == saved["pose_check"]["halfway_degrees"]  # restored, not measured again
     assert load_checkpoint(tmp_path / "m")["poses"] is None
 
 
@@ -332,4 +335,4 @@ def test_the_pose_check_keeps_refining_only_corrections_that_have_settled():
     assert not poses_look_off(0.5 * POSE_CHECK_DEGREES, 0.5 * POSE_CHECK_DEGREES)      # too small
     assert poses_look_off(0.1, 0.1) and poses_look_off(0.1, 0.08)                      # settled or growing
     assert not poses_look_off(0.11, 0.11 / (POSE_CHECK_SETTLED - 0.1))                 # fading
-    assert poses_look_off(0.1, None)  # not recorded (a resumed older run): the size alone
+    assert poses_look_off(0.1, None)  # not recorded (a budget that ended before halfway): the size alone
