@@ -350,7 +350,7 @@ def run_story(setup: dict) -> None:  # noqa: C901 - one story, told in order
         stopped = before["step"]
         assert before["status"] == "cancelled" and stopped == ctx["cancelled_step"], (before, ctx["cancelled_step"])
         shown = props.last_status  # what the panel shows after Cancel
-        assert shown == f"cancelled at step {stopped}; Train continues it", shown
+        assert shown.startswith(f"cancelled at step {stopped}; Train continues it"), shown  # (+ the pose check's verdict)
         props.model_dir = str(cancel_model)
         try:
             report = reports_of(lambda: bpy.ops.neulf.train(steps=10))
@@ -360,7 +360,7 @@ def run_story(setup: dict) -> None:  # noqa: C901 - one story, told in order
             assert after["status"] == "finished" and after["step"] == stopped + 10, after
             assert after["history"][:len(before["history"])] == before["history"]  # nothing of it lost
             assert f"finished at step {stopped + 10} (continued from step {stopped})" in report, report
-            assert props.last_status == f"finished at step {stopped + 10} (continued from step {stopped})", \
+            assert props.last_status.startswith(f"finished at step {stopped + 10} (continued from step {stopped})"), \
                 props.last_status
         finally:
             props.model_dir = saved
@@ -694,7 +694,7 @@ def run_story(setup: dict) -> None:  # noqa: C901 - one story, told in order
             b = child("reopen_b", blend=str(blend), train=how == "kill")
             assert b["model_dir"].startswith("//") and Path(b["resolved"]) == quit_model.resolve(), b
             expected = f"stopped at step {found['step']} (checkpoint saved); Train continues it"
-            assert b["status_on_open"] == expected, (b["status_on_open"], expected)
+            assert b["status_on_open"].startswith(expected), (b["status_on_open"], expected)
             saved.add(a["saved_status"])
             gone.append(f"{how} at step {a['step']} -> checkpoint at step {found['step']}")
             opened = b["status_on_open"]
@@ -704,7 +704,8 @@ def run_story(setup: dict) -> None:  # noqa: C901 - one story, told in order
         assert b["progress"]["status"] == "finished" and b["progress"]["step"] == found["step"] + 10, b
         assert b["progress"]["history"][:len(found["history"])] == found["history"]
         resumed = f"finished at step {found['step'] + 10} (continued from step {found['step']})"
-        assert resumed in b["report"] and b["last_status"] == resumed, (b["report"], b["last_status"])
+        # (a short run that ends before the pose check is checked at its end: the status says so)
+        assert resumed in b["report"] and b["last_status"].startswith(resumed), (b["report"], b["last_status"])
         return (f"Blender {', '.join(gone)} (the .blend, saved while training, says '{', '.join(saved)}'); reopened, "
                 f"the panel reads the model folder: '{opened}'; Train: {resumed}")
 
