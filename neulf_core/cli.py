@@ -292,12 +292,15 @@ def cmd_eval(args) -> int:
     from .evaluate import evaluate_model
 
     report = evaluate_model(args.model_dir, args.scene, images_dir=args.images, out_dir=args.out,
-                            views=_names(args.views), device=args.device)
+                            views=_names(args.views), device=args.device, fit_poses=args.fit_poses)
     perceptual = "mean_lpips" in report
     print(f"{'view':<24}{'PSNR':>9}{'SSIM':>8}" + (f"{'LPIPS':>8}" if perceptual else ""))
     for row in report["views"]:
         print(f"{row['view']:<24}{row['psnr']:9.3f}{row['ssim']:8.4f}" + (f"{row['lpips']:8.4f}" if perceptual else ""))
     print(f"{'mean':<24}{report['mean_psnr']:9.3f}{report['mean_ssim']:8.4f}" + (f"{report['mean_lpips']:8.4f}" if perceptual else ""))
+    if args.fit_poses:
+        turns = ", ".join(f"{row['view']} {row['pose_fit_degrees']:.3f} deg" for row in report["views"])
+        print(f"PSNR with each view's pose fitted to its photo: {report['mean_psnr_pose_fitted']:.3f} (turned: {turns})")
     print(f"(mean-colour image: {report['mean_colour_psnr']:.2f} dB; written {report['written']})")
     if not perceptual:
         print("(LPIPS: not reported until its weights are fetched once: python -m neulf_core fetch-lpips)")
@@ -449,6 +452,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--images")
     p.add_argument("--views", help="views to evaluate (default: the model's held-out views)")
     p.add_argument("--out", help="folder for eval.json, eval.csv and the renders (default: MODEL_DIR/eval)")
+    p.add_argument("--fit-poses", action="store_true",
+                   help="also score each view after fitting its pose to its photo, the light field frozen (BARF's "
+                        "protocol): a reconstruction's held-out cameras carry its error too; docs/STABILITY.md")
     p.add_argument("--device")
     p.set_defaults(run=cmd_eval)
 

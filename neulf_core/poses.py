@@ -105,8 +105,9 @@ def own_part_projector(positions: np.ndarray) -> np.ndarray:
 class PoseRefinement(nn.Module):
     """Learned corrections of the training cameras, applied to their rays' (u, v, s, t)."""
 
-    def __init__(self, slab: Slab, centres_world: np.ndarray):
+    def __init__(self, slab: Slab, centres_world: np.ndarray, centred: bool = True):
         super().__init__()
+        self.centred = centred  # False: each camera on its own (fitting one held-out camera, fit_view_pose)
         centres = slab.to_slab(np.asarray(centres_world, dtype=np.float64))
         spacing = float(np.median(camera_gaps(centres).min(axis=1))) if len(centres) > 1 else 1.0
         self.slab = slab
@@ -127,6 +128,8 @@ class PoseRefinement(nn.Module):
 
     def corrections(self) -> tuple[torch.Tensor, torch.Tensor]:
         """Centred per-view (axis-angle radians, shift in scene units), slab frame."""
+        if not self.centred:
+            return self.rotation, self.shift * self.spacing
         if self.own_part_only:
             return self.own_part @ self.rotation, (self.own_part @ self.shift) * self.spacing
         return self.rotation - self.rotation.mean(0), (self.shift - self.shift.mean(0)) * self.spacing
@@ -160,3 +163,59 @@ class PoseRefinement(nn.Module):
         spacings = shift.norm(dim=1) / self.spacing
         return {"median_degrees": float(degrees.median()), "max_degrees": float(degrees.max()),
                 "median_shift": float(spacings.median()), "max_shift": float(spacings.max())}
+
+
+def fit_view_pose(light_field, view, scale: float, spacing: float, steps: int = 300, batch: int = 8192, seed: int = 0):
+    """`view` with its pose fitted to its photo, the light field frozen: a rotation about its
+    centre and a shift, learned by the photometric loss (as BARF and NeRF-- score held-out
+    views).  A capture's held-out cameras come from the same reconstruction as its training
+    cameras and carry its error too; scored as given, a sharp field loses to a blurred one
+    wherever a held-out camera is off (docs/STABILITY.md, the nineteenth session: Statue's
+    held-out cameras moved 0.06-0.26 degrees to fit).  `spacing`: the training cameras'
+    spacing (the unit of the shift).  Returns (fitted view, degrees turned, shift as a share
+    of the spacing)."""
+    from dataclasses import replace
+
+    from .dataset import view_uvst
+
+    uvst, valid = view_uvst(view, light_field.slab, scale)
+    device = light_field.device
+    photo = torch.from_numpy(view.load_image(scale).reshape(-1, 3).astype(np.float32) / 255.0)
+    rays = torch.nonzero(valid)[:, 0]
+    if len(rays) == 0:
+        return view, 0.0, 0.0
+    uvst, photo = uvst[rays].to(device), photo[rays].to(device)
+    correction = PoseRefinement(light_field.slab, view.center[None], centred=False).to(device)
+    correction.spacing = spacing
+    optimizer = torch.optim.Adam(correction.parameters(), lr=1e-3)
+    generator = torch.Generator().manual_seed(seed)
+    field = light_field.field
+    frozen = [p.requires_grad for p in field.parameters()]
+    for p in field.parameters():
+        p.requires_grad_(False)
+    try:
+        for step in range(steps):
+            for group in optimizer.param_groups:  # 1e-3 down to 1e-4
+                group["lr"] = 1e-3 * 0.1 ** (step / steps)
+            pick = torch.randint(len(uvst), (min(batch, len(uvst)),), generator=generator).to(device)
+            rgb, _ = field(correction(uvst[pick], torch.zeros(len(pick), dtype=torch.long, device=device)))
+            loss = ((rgb.float() - photo[pick]) ** 2).mean()
+            optimizer.zero_grad(set_to_none=True)
+            loss.backward()
+            optimizer.step()
+    finally:
+        for p, wanted in zip(field.parameters(), frozen):
+            p.requires_grad_(wanted)
+    # The slab-frame correction as a world-frame pose: x -> C + W (x - C) + m, with W and m
+    # the turn and shift brought out of the slab frame; the camera's rays turn with it.
+    with torch.no_grad():
+        rotation, shift = correction.corrections()
+        turn = rotation_matrices(rotation.double().cpu())[0].numpy()
+        slab_rotation = light_field.slab.rotation
+        turn_world = slab_rotation.T @ turn @ slab_rotation
+        shift_world = slab_rotation.T @ shift.double().cpu().numpy()[0]
+        degrees = float(rotation.norm()) * 180.0 / math.pi
+        moved = float(shift.norm()) / spacing
+    R = view.R @ turn_world.T
+    centre = view.center + shift_world
+    return replace(view, R=R, t=-R @ centre), degrees, moved

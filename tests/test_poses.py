@@ -336,3 +336,42 @@ def test_the_pose_check_keeps_refining_only_corrections_that_have_settled():
     assert poses_look_off(0.1, 0.1) and poses_look_off(0.1, 0.08)                      # settled or growing
     assert not poses_look_off(0.11, 0.11 / (POSE_CHECK_SETTLED - 0.1))                 # fading
     assert poses_look_off(0.1, None)  # not recorded (a budget that ended before halfway): the size alone
+
+
+def test_a_held_out_cameras_pose_is_fitted_to_its_photo(tiny_scene, tmp_path, capsys):
+    """`eval --fit-poses`: a held-out camera turned by a degree (the tiny scene's pixels are
+    about a degree wide) is turned back to within a twentieth of a degree, and scores as its
+    exact pose does; the CLI reports the fitted score beside the plain one."""
+    import sys
+    from dataclasses import replace
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+    import stability
+    from neulf_core.cli import main
+    from neulf_core.evaluate import _rig_spacing
+    from neulf_core.metrics import psnr
+    from neulf_core.poses import fit_view_pose
+    from neulf_core.render import LightField
+    from neulf_core.scene import load_scene
+    from neulf_core.train import TrainConfig, train
+
+    train(tiny_scene, tmp_path / "m", TrainConfig(steps=300, batch_size=2048, teacher=False))
+    light_field = LightField.load(tmp_path / "m", "cpu", precision="full")
+    view = load_scene(tiny_scene).view(light_field.meta["scene"]["held_out"][0])
+    scale = light_field.trained_scale
+    photo = view.load_image(scale).astype(np.float32) / 255.0
+    turn = stability.rotation_about(np.array([0.3, 1.0, 0.2]), 1.0)
+    R = view.R @ turn.T
+    off = replace(view, R=R, t=-R @ view.center)
+
+    fitted, degrees, _ = fit_view_pose(light_field, off, scale, _rig_spacing(light_field))
+    left = np.degrees(np.arccos(np.clip((np.trace(fitted.R @ view.R.T) - 1) / 2, -1, 1)))
+    assert degrees == pytest.approx(1.0, abs=0.1) and left < 0.05, (degrees, left)
+    score = lambda v: psnr(light_field.render_view(v, scale, depth=False).rgb, photo)
+    assert score(off) < score(view) - 10 and score(fitted) > score(view) - 0.3
+
+    assert main(["eval", str(tmp_path / "m"), "--scene", str(tiny_scene), "--fit-poses"]) == 0
+    report = json.loads((tmp_path / "m" / "eval" / "eval.json").read_text())
+    assert report["mean_psnr_pose_fitted"] > report["mean_psnr"] - 0.3  # right poses: fitting changes little
+    assert "pose fitted to its photo" in capsys.readouterr().out
