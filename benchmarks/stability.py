@@ -61,7 +61,7 @@ sys.path.insert(0, str(REPO))
 from neulf_core.metrics import psnr, ssim  # noqa: E402
 from neulf_core.poses import POSE_CHECK_DEGREES, POSE_CHECK_SETTLED, POSE_CHECK_STEP  # noqa: E402
 from neulf_core.render import LightField  # noqa: E402
-from neulf_core.scene import Scene, View, camera_gaps, find_model_dir, load_scene, split_views  # noqa: E402
+from neulf_core.scene import Scene, View, camera_spacing, find_model_dir, load_scene, split_views  # noqa: E402
 from neulf_core.train import (COARSE_TO_FINE_MAX_VIEWS, CONSISTENCY_MAX_VIEWS, LOSSES_MIN_PASSES,  # noqa: E402
                               SHALLOW_CONSISTENCY_MAX_VIEWS, SHALLOW_LOSSES_MIN_PASSES, TrainConfig,
                               losses_by_default, train)
@@ -196,7 +196,7 @@ def spread_subset(views: list[View], count: int) -> list[View]:
 
 def rig_spacing(views: list[View]) -> float:
     """Median distance from a camera to its nearest neighbour."""
-    return float(np.median(camera_gaps(np.array([v.center for v in views])).min(axis=1)))
+    return camera_spacing(np.array([v.center for v in views]))
 
 
 def rotation_about(axis: np.ndarray, degrees: float) -> np.ndarray:

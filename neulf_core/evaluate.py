@@ -15,7 +15,7 @@ from .lpips import load_lpips, lpips_distance
 from .metrics import psnr, ssim
 from .render import LightField
 from .poses import fit_view_pose
-from .scene import camera_gaps, load_scene
+from .scene import camera_spacing, load_scene
 
 
 def evaluate_model(model_dir, scene_dir, *, images_dir=None, out_dir=None, views=None, device=None,
@@ -45,7 +45,8 @@ def evaluate_model(model_dir, scene_dir, *, images_dir=None, out_dir=None, views
         if perceptual is not None:
             rows[-1]["lpips"] = lpips_distance(perceptual, rendering.rgb, target)
         if fit_poses:
-            fitted, degrees, moved = fit_view_pose(light_field, view, scale, _rig_spacing(light_field))
+            spacing = camera_spacing(np.asarray(light_field.meta["rig"]["centres"]))  # the training rig's
+            fitted, degrees, moved = fit_view_pose(light_field, view, scale, spacing)
             rows[-1].update(psnr_pose_fitted=psnr(light_field.render_view(fitted, scale, depth=False).rgb, target),
                             pose_fit_degrees=degrees, pose_fit_shift=moved)
         baseline.append(psnr(np.broadcast_to(mean_colour, target.shape), target))
@@ -68,9 +69,3 @@ def evaluate_model(model_dir, scene_dir, *, images_dir=None, out_dir=None, views
         writer.writerows(rows)
     report["written"] = str(out / "eval.json")
     return report
-
-
-def _rig_spacing(light_field) -> float:
-    """The training cameras' median nearest-neighbour distance (the unit of a pose fit's shift)."""
-    centres = light_field.slab.to_slab(np.asarray(light_field.meta["rig"]["centres"], dtype=np.float64))
-    return float(np.median(camera_gaps(centres).min(axis=1))) if len(centres) > 1 else 1.0

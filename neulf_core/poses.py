@@ -32,12 +32,14 @@ docs/STABILITY.md, "Pose refinement").
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import numpy as np
 import torch
 from torch import nn
 
-from .scene import camera_gaps
+from .scene import camera_spacing
+from .dataset import view_uvst
 from .slab import Slab
 
 # Share of the budget during which the corrections have no rig-wide part (see above).
@@ -105,11 +107,11 @@ def own_part_projector(positions: np.ndarray) -> np.ndarray:
 class PoseRefinement(nn.Module):
     """Learned corrections of the training cameras, applied to their rays' (u, v, s, t)."""
 
-    def __init__(self, slab: Slab, centres_world: np.ndarray, centred: bool = True):
+    def __init__(self, slab: Slab, centres_world: np.ndarray, centred: bool = True, spacing: float | None = None):
         super().__init__()
         self.centred = centred  # False: each camera on its own (fitting one held-out camera, fit_view_pose)
         centres = slab.to_slab(np.asarray(centres_world, dtype=np.float64))
-        spacing = float(np.median(camera_gaps(centres).min(axis=1))) if len(centres) > 1 else 1.0
+        spacing = camera_spacing(centres) if spacing is None else spacing  # (default: these cameras')
         self.slab = slab
         self.register_buffer("centres", torch.as_tensor(centres, dtype=torch.float32))
         # Shifts are learned in units of the camera spacing, so one learning rate suits every
@@ -174,10 +176,6 @@ def fit_view_pose(light_field, view, scale: float, spacing: float, steps: int = 
     held-out cameras moved 0.06-0.26 degrees to fit).  `spacing`: the training cameras'
     spacing (the unit of the shift).  Returns (fitted view, degrees turned, shift as a share
     of the spacing)."""
-    from dataclasses import replace
-
-    from .dataset import view_uvst
-
     uvst, valid = view_uvst(view, light_field.slab, scale)
     device = light_field.device
     photo = torch.from_numpy(view.load_image(scale).reshape(-1, 3).astype(np.float32) / 255.0)
@@ -185,8 +183,8 @@ def fit_view_pose(light_field, view, scale: float, spacing: float, steps: int = 
     if len(rays) == 0:
         return view, 0.0, 0.0
     uvst, photo = uvst[rays].to(device), photo[rays].to(device)
-    correction = PoseRefinement(light_field.slab, view.center[None], centred=False).to(device)
-    correction.spacing = spacing
+    correction = PoseRefinement(light_field.slab, view.center[None], centred=False, spacing=spacing).to(device)
+    first_view = torch.zeros(min(batch, len(uvst)), dtype=torch.long, device=device)
     optimizer = torch.optim.Adam(correction.parameters(), lr=1e-3)
     generator = torch.Generator().manual_seed(seed)
     field = light_field.field
@@ -197,8 +195,8 @@ def fit_view_pose(light_field, view, scale: float, spacing: float, steps: int = 
         for step in range(steps):
             for group in optimizer.param_groups:  # 1e-3 down to 1e-4
                 group["lr"] = 1e-3 * 0.1 ** (step / steps)
-            pick = torch.randint(len(uvst), (min(batch, len(uvst)),), generator=generator).to(device)
-            rgb, _ = field(correction(uvst[pick], torch.zeros(len(pick), dtype=torch.long, device=device)))
+            pick = torch.randint(len(uvst), (len(first_view),), generator=generator).to(device)
+            rgb, _ = field(correction(uvst[pick], first_view))
             loss = ((rgb.float() - photo[pick]) ** 2).mean()
             optimizer.zero_grad(set_to_none=True)
             loss.backward()

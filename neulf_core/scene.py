@@ -96,6 +96,12 @@ def scaled_size(size: tuple[int, int], scale: float) -> tuple[int, int]:
 # ----------------------------------------------------------------------------- finding the model
 
 
+def camera_spacing(centres: np.ndarray) -> float:
+    """The rig's camera spacing: the median distance from a camera to its nearest neighbour
+    (1.0 for a single camera); the unit pose corrections and pose noise are measured in."""
+    return float(np.median(camera_gaps(centres).min(axis=1))) if len(centres) > 1 else 1.0
+
+
 def camera_gaps(centres: np.ndarray) -> np.ndarray:
     """(V, V) distances between camera centres, infinite on the diagonal: a camera is not its
     own neighbour (nearest cameras: argmin / min along axis 1)."""

@@ -349,11 +349,10 @@ def test_a_held_out_cameras_pose_is_fitted_to_its_photo(tiny_scene, tmp_path, ca
     sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
     import stability
     from neulf_core.cli import main
-    from neulf_core.evaluate import _rig_spacing
     from neulf_core.metrics import psnr
     from neulf_core.poses import fit_view_pose
     from neulf_core.render import LightField
-    from neulf_core.scene import load_scene
+    from neulf_core.scene import camera_spacing, load_scene
     from neulf_core.train import TrainConfig, train
 
     train(tiny_scene, tmp_path / "m", TrainConfig(steps=300, batch_size=2048, teacher=False))
@@ -365,7 +364,7 @@ def test_a_held_out_cameras_pose_is_fitted_to_its_photo(tiny_scene, tmp_path, ca
     R = view.R @ turn.T
     off = replace(view, R=R, t=-R @ view.center)
 
-    fitted, degrees, _ = fit_view_pose(light_field, off, scale, _rig_spacing(light_field))
+    fitted, degrees, _ = fit_view_pose(light_field, off, scale, camera_spacing(np.asarray(light_field.meta["rig"]["centres"])))
     left = np.degrees(np.arccos(np.clip((np.trace(fitted.R @ view.R.T) - 1) / 2, -1, 1)))
     assert degrees == pytest.approx(1.0, abs=0.1) and left < 0.05, (degrees, left)
     score = lambda v: psnr(light_field.render_view(v, scale, depth=False).rgb, photo)
