@@ -278,6 +278,7 @@ def score_views(model_dir: Path, held: list[View], scale: float) -> dict:
             "pose_check_refining": light_field.meta.get("pose_check", {}).get("refining"),
             "pose_check_degrees": light_field.meta.get("pose_check", {}).get("median_degrees"),
             "pose_check_halfway": light_field.meta.get("pose_check", {}).get("halfway_degrees"),
+            "field_restarted": "field_restart" in light_field.meta,  # far-off poses (train.FAR_OFF_POSE_DEGREES)
             "appearance_default": light_field.meta.get("appearance_default"),
             "exposure_difference_stops": light_field.meta.get("exposure_difference_stops")}
 
@@ -791,7 +792,7 @@ def update_markdown(path: Path, tables: str) -> None:
 
 CSV_COLUMNS = ["scene", "preset", "fraction", "pose_degrees", "appearance", "refine_poses", "consistency", "minutes",
                "coarse_to_fine", "coarse_to_fine_used", "appearance_used", "appearance_default", "exposure_difference_stops",
-               "pose_check_refining", "pose_check_degrees", "pose_check_halfway",
+               "pose_check_refining", "pose_check_degrees", "pose_check_halfway", "field_restarted",
                "deep_scene", "multiview_losses", "seed", "status", "psnr", "ssim",
                "psnr_matched", "psnr_half_fit", "psnr_per_view", "train_views", "held_out", "steps", "steps_done", "train_seconds",
                "wall_seconds", "warnings", "warning_text", "nonfinite_pixels", "error", "scale", "path", "truth"]

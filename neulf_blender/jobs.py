@@ -211,6 +211,9 @@ class TrainJob(ProcessJob):
         elif kind == "pose_check":  # Refine Poses on Auto: the first steps' verdict on the poses
             state["message"] = event.get("message", "")
             state["pose_check"] = bool(event.get("refining"))
+        elif kind == "field_restart":  # the poses are far off: the field starts again, smoother
+            state["message"] = event.get("message", "")
+            state["field_restart"] = True
         elif kind == "poses":  # Refine Poses: the corrections it found
             state["poses"] = {k: event.get(k) for k in ("median_degrees", "max_degrees", "median_shift", "max_shift")}
         elif kind in ("finished", "cancelled"):
@@ -422,6 +425,8 @@ def job_status_text(state: dict) -> str:
         text += f"; a colour transform per photo (exposures differ by {state['appearance']:.2f} stops)"
     if state.get("pose_check") is False:  # (refined: pose_text shows the corrections)
         text += "; camera poses checked, not refined"
+    if state.get("field_restart"):
+        text += "; camera poses far off: restarted with smoother geometry at the pose check"
     if state["status"] == "finished" and state.get("pass_limit") and state.get("step", 0) >= state["pass_limit"]:
         text += "; stopped before the time was up: more training would only memorise so few photos"
     return text + pose_text(state.get("poses"))

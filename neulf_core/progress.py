@@ -91,7 +91,7 @@ class Bar:
         elif kind in ("finished", "cancelled"):
             val = f", held-out PSNR {event['val_psnr']:.2f} dB (ray sample)" if event.get("val_psnr") is not None else ""
             self._line(f"{kind} after {event['step']} steps, {event['elapsed']:.0f} s{val}; model in {event['model_dir']}")
-        elif kind in ("stage", "losses", "passes", "appearance", "pose_check"):
+        elif kind in ("stage", "losses", "passes", "appearance", "pose_check", "field_restart"):
             self._line(event.get("message", ""))
 
     def _line(self, text: str) -> None:

@@ -190,6 +190,11 @@ def test_train_job_parses_events(ext):
     assert "a colour transform per photo (exposures differ by 0.31 stops)" in ext.jobs.job_status_text(job.state)
     job.state["step"] = 19
     assert "memorise" not in ext.jobs.job_status_text(job.state)
+    assert "restarted" not in ext.jobs.job_status_text(job.state)
+    job.on_stdout(json.dumps({"event": "field_restart", "step": 100, "median_degrees": 1.7,
+                              "message": "the camera poses are far off (...): the light field starts again ..."}))
+    assert job.state["message"].startswith("the camera poses are far off")
+    assert "camera poses far off: restarted with smoother geometry" in ext.jobs.job_status_text(job.state)
 
 
 def test_train_job_passes_the_sweep_teacher_only_to_a_new_model(ext, tmp_path):

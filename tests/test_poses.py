@@ -374,3 +374,66 @@ def test_a_held_out_cameras_pose_is_fitted_to_its_photo(tiny_scene, tmp_path, ca
     report = json.loads((tmp_path / "m" / "eval" / "eval.json").read_text())
     assert report["mean_psnr_pose_fitted"] > report["mean_psnr"] - 0.3  # right poses: fitting changes little
     assert "pose fitted to its photo" in capsys.readouterr().out
+
+
+# ----------------------------------------------------------------------------- far-off poses restart the field
+
+
+@pytest.mark.parametrize("threshold, deep, restarts", [(0.0, False, True), (90.0, False, False), (0.0, True, False)])
+def test_far_off_poses_restart_the_field_with_smoother_geometry(tiny_scene, tmp_path, monkeypatch, threshold, deep,
+                                                                restarts):
+    """At the pose check's step, corrections of at least FAR_OFF_POSE_DEGREES on a shallow
+    scene start the field again (a fresh start, its optimizer state gone) with geometry planes
+    FAR_OFF_GEOMETRY_TV times smoother; the corrections go on.  Saved with the model, so a
+    resumed run keeps the smoother geometry and does not restart again.  Deep scenes and
+    smaller corrections train on as they were."""
+    import neulf_core.train as train_module
+    from neulf_core.checkpoint import load_checkpoint
+    from neulf_core.fields import build_field, make_config
+    from neulf_core.slab import Slab
+    from neulf_core.train import FAR_OFF_GEOMETRY_TV, TrainConfig, train
+
+    monkeypatch.setattr(train_module, "POSE_CHECK_STEP", 5)
+    monkeypatch.setattr(train_module, "FAR_OFF_POSE_DEGREES", threshold)
+    monkeypatch.setattr(Slab, "is_deep", property(lambda self: deep))
+    real, seen = train_module._restart_for_far_off_poses, {}
+
+    def watched(field_module, optimizer, poses, meta, progress, step, seed):
+        before = {k: v.clone() for k, v in field_module.state_dict().items()}
+        seen["tv_before"] = field_module.config.tv_weight
+        poses_before = poses.rotation.detach().clone()
+        real(field_module, optimizer, poses, meta, progress, step, seed)
+        seen.update(seed=seed, before=before, after={k: v.clone() for k, v in field_module.state_dict().items()}, step=step, poses_before=poses_before,
+                    poses_after=poses.rotation.detach().clone(), state=[optimizer.state.get(p) for p in field_module.parameters()],
+                    config=dict(field_module.field_config))
+
+    monkeypatch.setattr(train_module, "_restart_for_far_off_poses", watched)
+    events = []
+    train(tiny_scene, tmp_path / "m", TrainConfig(steps=12, batch_size=512, refine_poses=True, teacher=False),
+          progress=events.append)
+    restart_events = [e for e in events if e["event"] == "field_restart"]
+    meta = json.loads((tmp_path / "m" / "model.json").read_text())
+    assert bool(restart_events) is restarts and ("field_restart" in meta) is restarts
+    assert bool(seen) is (not deep)  # (deep scenes are not even measured)
+    if not restarts:
+        assert meta["field_config"]["tv_weight"] == seen.get("tv_before", meta["field_config"]["tv_weight"])
+        return
+    (event,) = restart_events
+    assert event["step"] == seen["step"] == 5 and event["message"].startswith("the camera poses are far off")
+    with torch.random.fork_rng(devices=[]):
+        torch.manual_seed(seen["seed"] + 1)
+        fresh = build_field("disparity", make_config("disparity", seen["config"])).state_dict()
+    texture = "textures.0"
+    assert not torch.equal(seen["before"][texture], seen["after"][texture])  # started again ...
+    assert all(torch.equal(seen["after"][k], fresh[k]) for k in fresh)  # ... from a fresh start
+    assert all(state in (None, {}) for state in seen["state"])  # without the old field's Adam moments
+    assert torch.equal(seen["poses_before"], seen["poses_after"])  # the corrections are kept
+    assert meta["field_config"]["tv_weight"] == pytest.approx(FAR_OFF_GEOMETRY_TV * seen["tv_before"])
+    assert meta["field_restart"]["step"] == 5
+    more = []
+    train(tiny_scene, tmp_path / "m", TrainConfig(steps=20), resume=True, progress=more.append)
+    assert not [e for e in more if e["event"] == "field_restart"]  # once
+    resumed = json.loads((tmp_path / "m" / "model.json").read_text())
+    assert resumed["field_config"]["tv_weight"] == pytest.approx(FAR_OFF_GEOMETRY_TV * seen["tv_before"])
+    assert resumed["field_restart"] == meta["field_restart"]
+    assert load_checkpoint(tmp_path / "m")["progress"]["step"] == 20

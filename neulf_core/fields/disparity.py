@@ -282,6 +282,14 @@ class DisparityField(nn.Module):
             per_scale.append(product.t())
         return _rows(per_scale)
 
+    def set_geometry_tv(self, weight: float) -> None:
+        """The geometry planes' total-variation weight from now on (the trainer raises it when
+        it restarts the field for far-off poses); kept in the config, so a model resumed
+        later trains on with it."""
+        self.config.tv_weight = weight
+        self.geometry.config.tv_weight = weight
+        self.field_config["tv_weight"] = weight
+
     def regularisation(self) -> torch.Tensor:
         total = self.geometry.regularisation()
         if self.config.geometry_layers and self.config.geometry_layer_tv:
