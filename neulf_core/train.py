@@ -43,13 +43,13 @@ POSE_LR = 3e-4
 
 # Poses far off on a shallow scene: at the pose check's step, where the corrections found so
 # far (the check's statistic, PoseRefinement.own_part_degrees) reach FAR_OFF_POSE_DEGREES and
-# the scene is not deep (Slab.is_deep), the field starts again from a fresh start with its
-# geometry planes FAR_OFF_GEOMETRY_TV times smoother, while the corrections keep what they
+# the scene is not deep (Slab.is_deep), the field starts again from a new random start with
+# its geometry planes FAR_OFF_GEOMETRY_TV times smoother, while the corrections keep what they
 # have found.  Why: a field whose geometry may vary from camera to camera bends each photo's
 # depth until the photo fits where its wrong pose puts it, and then nothing pulls the pose
 # back (CanClip, 2 degrees of noise, seed 0: the corrections stalled 0.39 degrees off from
 # step 500 on, and with the field frozen a training camera's pose fitted to its photo did not
-# move at all).  Smoother geometry from the first step let them finish (24.53 -> 27.97 dB);
+# move at all).  Smoother geometry from the first step let them go on (24.53 -> 27.97 dB);
 # from the check on, without the restart, the bent field kept most of the loss.  The check's
 # first 100 steps are the poses' largest moves.  Study, three seeds at 1000 steps
 # (docs/STABILITY.md, "far-off poses"): CanClip 0.5 / 1 / 2 degrees 33.23 / 30.12 / 25.12 ->
