@@ -53,8 +53,8 @@ POSE_LR = 3e-4
 # from the check on, without the restart, the bent field kept most of the loss.  The check's
 # first 100 steps are the poses' largest moves.  Study, three seeds at 1000 steps
 # (docs/STABILITY.md, "far-off poses"): CanClip 0.5 / 1 / 2 degrees 33.23 / 30.12 / 25.12 ->
-# 33.25 / 31.46 / 28.69 dB, the spread at 2 degrees 1.56 -> 0.20 dB.  Exploratory, seed 0:
-# HCI 1 / 2 degrees +0.40 / +3.09, Statue +0.62 at 2 degrees and -0.29 at 1 (seed 1: -0.04).
+# 33.25 / 31.46 / 28.69 dB, the spread at 2 degrees 1.56 -> 0.20 dB; Statue 1 / 2 degrees
+# -0.27 / +0.71 dB, HCI +0.51 / +2.40 (three seeds each, outside the study).
 # Not on deep scenes, whose geometry must vary with the viewpoint (the synthetic scene at
 # 0.5 / 1 / 2 degrees: -0.68 / -0.48 / +0.46 dB), nor under 0.4 degrees (0.25 degrees of
 # noise measures 0.22-0.25), where the refinement already recovers nearly everything and
