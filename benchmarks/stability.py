@@ -62,8 +62,8 @@ from neulf_core.metrics import psnr, ssim  # noqa: E402
 from neulf_core.poses import POSE_CHECK_DEGREES, POSE_CHECK_SETTLED, POSE_CHECK_STEP  # noqa: E402
 from neulf_core.render import LightField  # noqa: E402
 from neulf_core.scene import Scene, View, camera_spacing, find_model_dir, load_scene, split_views  # noqa: E402
-from neulf_core.train import (COARSE_TO_FINE_MAX_VIEWS, CONSISTENCY_MAX_VIEWS, LOSSES_MIN_PASSES,  # noqa: E402
-                              SHALLOW_CONSISTENCY_MAX_VIEWS, SHALLOW_LOSSES_MIN_PASSES, TrainConfig,
+from neulf_core.train import (COARSE_TO_FINE_MAX_VIEWS, CONSISTENCY_MAX_VIEWS, FAR_OFF_POSE_DEGREES,  # noqa: E402
+                              LOSSES_MIN_PASSES, SHALLOW_CONSISTENCY_MAX_VIEWS, SHALLOW_LOSSES_MIN_PASSES, TrainConfig,
                               losses_by_default, train)
 
 DOCS = REPO / "docs"
@@ -567,7 +567,7 @@ def cost_text(reference: list[dict], rows: list[dict], column: str) -> str:
 def pose_table(rows: list[dict]) -> list[str]:
     lines = ["| pose noise | " + " | ".join(f"{d:g}° / {SHIFT_PER_DEGREE * d:.0%}" for d in POSE_DEGREES) + " |",
              "|---|" + "---|" * len(POSE_DEGREES)]
-    kept = []
+    kept, restarted = [], []
     for scene in ("lambertian", "canclip"):
         for refine in POSE_SETTINGS:
             cells = [group(rows, **base(scene, "fast", pose_degrees=d, refine_poses=refine)) for d in POSE_DEGREES]
@@ -575,10 +575,15 @@ def pose_table(rows: list[dict]) -> list[str]:
                 lines.append(f"| {POSE_SETTING_LABELS[refine]}, {scene} | " + " | ".join(cell(c) for c in cells) + " |")
             if refine is None and any(cells):
                 kept.append(f"{scene} " + ", ".join(f"{d:g}° {pose_check_kept(c)}" for d, c in zip(POSE_DEGREES, cells) if c))
+                restarted.append(f"{scene} " + ", ".join(f"{d:g}° {sum(bool(r.get('field_restarted')) for r in c)} of {len(c)}"
+                                                         for d, c in zip(POSE_DEGREES, cells) if c))
     if kept:
         lines += ["", "Runs in which the default's pose check kept refining (after "
                       f"{POSE_CHECK_STEP} steps, median correction at least {POSE_CHECK_DEGREES:g}° and at least "
                       f"{POSE_CHECK_SETTLED:g} times the one after {POSE_CHECK_STEP // 2}): " + "; ".join(kept) + "."]
+        lines += ["", "Runs in which the default then started the field again with smoother geometry (median correction "
+                      f"at least {FAR_OFF_POSE_DEGREES:g}° on a scene that is not deep; rows logged before the rule: 0): "
+                      + "; ".join(restarted) + "."]
     exact, refined = group(rows, **base("canclip", "fast", refine_poses=False)), group(rows, **base("canclip", "fast", refine_poses=True))
     if refined:
         lines += ["", f"CanClip (COLMAP's own poses, all views): {cell(exact)} dB without refinement, {cell(refined)} dB "
