@@ -676,8 +676,8 @@ def _restart_for_far_off_poses(field_module, optimizer, poses: PoseRefinement, m
     field_module.load_state_dict(fresh.state_dict())
     for parameter in field_module.parameters():
         optimizer.state.pop(parameter, None)
-    field_module.set_geometry_tv(FAR_OFF_GEOMETRY_TV * field_module.config.tv_weight)
-    meta["field_config"] = field_module.field_config
+    field_module.set_geometry_tv(FAR_OFF_GEOMETRY_TV * field_module.config.tv_weight)  # (meta holds the field's
+    # own field_config record, which this updates, so the saved model carries the weight)
     meta["field_restart"] = {"step": step, "median_degrees": round(found, 4), "geometry_tv": field_module.config.tv_weight}
     _emit(progress, event="field_restart", step=step, median_degrees=found,
           message=f"the camera poses are far off (median correction {found:.2f} deg after {step} steps): the light field "

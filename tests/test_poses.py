@@ -403,8 +403,10 @@ def test_far_off_poses_restart_the_field_with_smoother_geometry(tiny_scene, tmp_
         seen["tv_before"] = field_module.config.tv_weight
         poses_before = poses.rotation.detach().clone()
         real(field_module, optimizer, poses, meta, progress, step, seed)
-        seen.update(seed=seed, before=before, after={k: v.clone() for k, v in field_module.state_dict().items()}, step=step, poses_before=poses_before,
-                    poses_after=poses.rotation.detach().clone(), state=[optimizer.state.get(p) for p in field_module.parameters()],
+        after = {k: v.clone() for k, v in field_module.state_dict().items()}
+        seen.update(seed=seed, before=before, after=after, step=step, poses_before=poses_before,
+                    poses_after=poses.rotation.detach().clone(),
+                    state=[optimizer.state.get(p) for p in field_module.parameters()],
                     config=dict(field_module.field_config))
 
     monkeypatch.setattr(train_module, "_restart_for_far_off_poses", watched)
