@@ -59,7 +59,7 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 from neulf_core.metrics import psnr, ssim  # noqa: E402
-from neulf_core.poses import POSE_CHECK_DEGREES, POSE_CHECK_SETTLED, POSE_CHECK_STEP  # noqa: E402
+from neulf_core.poses import POSE_CHECK_DEGREES, POSE_CHECK_SETTLED, POSE_CHECK_STEP, fit_view_pose  # noqa: E402
 from neulf_core.render import LightField  # noqa: E402
 from neulf_core.scene import Scene, View, camera_spacing, find_model_dir, load_scene, split_views  # noqa: E402
 from neulf_core.train import (COARSE_TO_FINE_MAX_VIEWS, CONSISTENCY_MAX_VIEWS, FAR_OFF_POSE_DEGREES,  # noqa: E402
@@ -80,6 +80,10 @@ LOSSES_PLAN = {"lambertian": (1.0, 0.5, 0.25), "fern": (1.0, 0.5, 0.25), "cancli
 COARSE_PLAN = {"canclip": (0.5, 0.25), "lambertian": (0.75, 0.5, 0.25)}
 DEFAULT_CACHE = Path(tempfile.gettempdir()) / "neulf_stability"
 FRACTIONS = (1.0, 0.75, 0.5, 0.25)
+POSE_SCENES = ("lambertian", "canclip")
+# Few photos with pose noise (twenty-first session): the default alone on a quarter of the
+# training views, where the refinement has the fewest photos to tell pose from depth.
+POSE_FEW_VIEWS = 0.25
 POSE_DEGREES = (0.0, 0.1, 0.25, 0.5, 1.0, 2.0)
 # Translation noise per degree of rotation noise, as a fraction of the rig's camera spacing:
 # 1 degree turns a 320-pixel-wide, 40-degree view by ~8 px; 10% of the spacing shifts the
@@ -256,9 +260,12 @@ def prepare(job: Job) -> tuple[Scene, list[View], list[View]]:
 # ----------------------------------------------------------------------------- one run
 
 
-def score_views(model_dir: Path, held: list[View], scale: float) -> dict:
+def score_views(model_dir: Path, held: list[View], scale: float, fit_poses: bool = False) -> dict:
+    """Held-out scores; with `fit_poses` also after fitting each held-out camera's pose to its
+    photo with the field frozen (poses.fit_view_pose, BARF's protocol for pose-refined models)."""
     light_field = LightField.load(model_dir, "cpu", precision="full")
     psnrs, ssims, matched, half_fit, nonfinite = [], [], [], [], 0
+    fitted_psnrs, fitted_degrees = [], []
     for view in held:
         target = view.load_image(scale).astype(np.float32) / 255.0
         image = light_field.render_view(view, scale, depth=False).rgb
@@ -268,8 +275,16 @@ def score_views(model_dir: Path, held: list[View], scale: float) -> dict:
         ssims.append(ssim(image, target))
         matched.append(psnr(colour_matched(image, target), target))
         half_fit.append(psnr_right_half_after_left_fit(image, target))
+        if fit_poses:
+            spacing = camera_spacing(np.asarray(light_field.meta["rig"]["centres"]))  # the training rig's
+            fitted, degrees, _ = fit_view_pose(light_field, view, scale, spacing)
+            fitted_image = np.nan_to_num(light_field.render_view(fitted, scale, depth=False).rgb, nan=0.0)
+            fitted_psnrs.append(psnr(fitted_image, target))
+            fitted_degrees.append(degrees)
+    fitted = {"psnr_pose_fitted": float(np.mean(fitted_psnrs)),
+              "pose_fit_degrees": ";".join(f"{d:.3f}" for d in fitted_degrees)} if fit_poses else {}
     return {"psnr": float(np.mean(psnrs)), "ssim": float(np.mean(ssims)), "psnr_matched": float(np.mean(matched)),
-            "psnr_half_fit": float(np.mean(half_fit)),
+            "psnr_half_fit": float(np.mean(half_fit)), **fitted,
             "psnr_per_view": ";".join(f"{view.stem}={p:.2f}" for view, p in zip(held, psnrs)),
             "nonfinite_pixels": nonfinite, "deep_scene": bool(light_field.slab.is_deep),
             "multiview_losses": light_field.meta.get("multiview_losses"),
@@ -302,6 +317,14 @@ def psnr_right_half_after_left_fit(image: np.ndarray, target: np.ndarray) -> flo
     half = image.shape[1] // 2
     matched = colour_matched(image, target, slice(0, half))
     return psnr(matched[:, half:], target[:, half:])
+
+
+def in_pose_study(job: Job) -> bool:
+    """Whether `job` is one of the pose study's runs (its 0° runs are shared with the other
+    studies' baselines), which are scored with the held-out poses fitted as well."""
+    return (job.scene in POSE_SCENES and job.preset == "fast" and job.fraction in (1.0, POSE_FEW_VIEWS)
+            and job.appearance is False
+            and job.consistency is None and not job.minutes and job.coarse_to_fine is None)
 
 
 def train_config(job: Job, held: list[View]) -> TrainConfig:
@@ -339,7 +362,7 @@ def run_job(job: Job, threads: int = 1) -> dict:
         with tempfile.TemporaryDirectory(prefix="neulf_stability_") as model_dir:
             result = train(scene, model_dir, train_config(job, held), progress=progress)
             row.update(steps_done=result.step, train_seconds=round(result.elapsed, 2))
-            row.update(score_views(Path(model_dir), held, job.scale))
+            row.update(score_views(Path(model_dir), held, job.scale, fit_poses=in_pose_study(job)))
         row["status"] = result.status
     except Exception as exc:  # recorded and reported; the study goes on
         row["error"] = f"{type(exc).__name__}: {exc}"
@@ -442,11 +465,13 @@ def plan(args, scenes: dict[str, Path]) -> list[Job]:
     if "pose" in studies:
         # The default (its pose check), and refinement forced on and off; on CanClip, a real
         # capture, 0° is COLMAP's own poses.
-        for scene, scale in (("lambertian", synth), ("canclip", args.canclip_scale)):
+        for scene in POSE_SCENES:
             if scene in scenes:
+                scale = synth if scene == "lambertian" else args.canclip_scale
                 for degrees in POSE_DEGREES:
                     for refine in POSE_SETTINGS:
                         add(scene, "fast", scale, pose_degrees=degrees, refine_poses=refine)
+                    add(scene, "fast", scale, fraction=POSE_FEW_VIEWS, pose_degrees=degrees)
     if "losses" in studies:
         scales = {"lambertian": synth, "fern": args.fern_scale, "canclip": args.canclip_scale}
         losses_seeds = [int(s) for s in args.losses_seeds.split(",")]
@@ -568,15 +593,15 @@ def pose_table(rows: list[dict]) -> list[str]:
     lines = ["| pose noise | " + " | ".join(f"{d:g}° / {SHIFT_PER_DEGREE * d:.0%}" for d in POSE_DEGREES) + " |",
              "|---|" + "---|" * len(POSE_DEGREES)]
     kept, restarted = [], []
-    for scene in ("lambertian", "canclip"):
-        for refine in POSE_SETTINGS:
-            cells = [group(rows, **base(scene, "fast", pose_degrees=d, refine_poses=refine)) for d in POSE_DEGREES]
-            if any(cells[1:]):
-                lines.append(f"| {POSE_SETTING_LABELS[refine]}, {scene} | " + " | ".join(cell(c) for c in cells) + " |")
-            if refine is None and any(cells):
-                kept.append(f"{scene} " + ", ".join(f"{d:g}° {pose_check_kept(c)}" for d, c in zip(POSE_DEGREES, cells) if c))
-                restarted.append(f"{scene} " + ", ".join(f"{d:g}° {sum(bool(r.get('field_restarted')) for r in c)} of {len(c)}"
-                                                         for d, c in zip(POSE_DEGREES, cells) if c))
+    for label, scene, fraction, refine in pose_settings():
+        cells = pose_cells(rows, scene, fraction, refine)
+        if any(cells[1:]):
+            lines.append(f"| {label} | " + " | ".join(cell(c) for c in cells) + " |")
+        if refine is None and any(cells):
+            name = scene if fraction == 1.0 else f"{scene} ({fraction:.0%} of the views)"
+            kept.append(f"{name} " + ", ".join(f"{d:g}° {pose_check_kept(c)}" for d, c in zip(POSE_DEGREES, cells) if c))
+            restarted.append(f"{name} " + ", ".join(f"{d:g}° {sum(bool(r.get('field_restarted')) for r in c)} of {len(c)}"
+                                                    for d, c in zip(POSE_DEGREES, cells) if c))
     if kept:
         lines += ["", "Runs in which the default's pose check kept refining (after "
                       f"{POSE_CHECK_STEP} steps, median correction at least {POSE_CHECK_DEGREES:g}° and at least "
@@ -584,12 +609,63 @@ def pose_table(rows: list[dict]) -> list[str]:
         lines += ["", "Runs in which the default then started the field again with smoother geometry (median correction "
                       f"at least {FAR_OFF_POSE_DEGREES:g}° on a scene that is not deep; rows logged before the rule: 0): "
                       + "; ".join(restarted) + "."]
+    fitted = pose_fitted_table(rows)
+    if fitted:
+        lines += ["", "Scored with each held-out camera's pose first fitted to its photo, the field frozen (BARF's "
+                      "protocol; `evaluate --fit-poses`): what is left is the field's error, not the frame it "
+                      "puts the scene in. The noise's isotropic fanning of the rig, which to a light field is a "
+                      "change of depth, cannot be seen in the photos; with exact held-out poses it decides part of "
+                      "the score above.", "", *fitted]
     exact, refined = group(rows, **base("canclip", "fast", refine_poses=False)), group(rows, **base("canclip", "fast", refine_poses=True))
     if refined:
         lines += ["", f"CanClip (COLMAP's own poses, all views): {cell(exact)} dB without refinement, {cell(refined)} dB "
                       f"with `--refine-poses` ({cost_text(exact, refined, 'psnr')} lost), "
                       f"{cell(group(rows, **base('canclip', 'fast')))} dB by default."]
     return lines
+
+
+def pose_settings() -> list[tuple[str, str, float, bool | None]]:
+    """The pose tables' rows: (label, scene, share of the training views, refinement setting)."""
+    out = []
+    for scene in POSE_SCENES:
+        out += [(f"{POSE_SETTING_LABELS[refine]}, {scene}", scene, 1.0, refine) for refine in POSE_SETTINGS]
+        out.append((f"{POSE_SETTING_LABELS[None]}, {scene}, {POSE_FEW_VIEWS:.0%} of the views", scene, POSE_FEW_VIEWS, None))
+    return out
+
+
+def pose_cells(rows: list[dict], scene: str, fraction: float, refine: bool | None) -> list[list[dict]]:
+    """One pose-table row's runs, one list per noise level."""
+    return [group(rows, **base(scene, "fast", fraction=fraction, pose_degrees=d, refine_poses=refine)) for d in POSE_DEGREES]
+
+
+def pose_fitted_table(rows: list[dict]) -> list[str]:
+    """The pose table's cells scored with the held-out poses fitted (rows logged before that
+    score existed read 'not scored')."""
+    lines = []
+    for label, scene, fraction, refine in pose_settings():
+        cells = pose_cells(rows, scene, fraction, refine)
+        if any(r.get("psnr_pose_fitted") is not None for c in cells[1:] for r in c):
+            texts = [cell(c, "psnr_pose_fitted") if any(r.get("psnr_pose_fitted") is not None for r in c)
+                     else "not scored" for c in cells]
+            lines.append(f"| {label} | " + " | ".join(texts) + " |")
+    header = ["| pose noise, held-out poses fitted | " + " | ".join(f"{d:g}° / {SHIFT_PER_DEGREE * d:.0%}" for d in POSE_DEGREES)
+              + " |", "|---|" + "---|" * len(POSE_DEGREES)]
+    return header + lines if lines else []
+
+
+def pose_fitted_spreads(rows: list[dict]) -> list[tuple[float, dict]]:
+    """(spread over seeds, configuration) of the pose study's default runs, scored with the
+    held-out poses fitted."""
+    out = []
+    for _, scene, fraction, refine in pose_settings():
+        if refine is not None:
+            continue
+        for degrees in POSE_DEGREES:
+            match = base(scene, "fast", fraction=fraction, pose_degrees=degrees)
+            s = stats(group(rows, **match), "psnr_pose_fitted")
+            if s and s["n"] >= 2:
+                out.append((s["spread"], match))
+    return out
 
 
 def pose_check_kept(rows: list[dict]) -> str:
@@ -678,6 +754,12 @@ def targets(rows: list[dict]) -> list[str]:
                    f"{within} of {len(spreads)} configurations within 0.2 dB (target ≤ 0.2): "
                    f"{'met' if worst[0] <= 0.2 else 'MISSED'}")
         out += [f"  - {line}" for line in spread_by_setting(spreads)]
+        fitted = pose_fitted_spreads(rows)
+        if fitted:
+            within = sum(s <= 0.2 for s, _ in fitted)
+            widest = "; ".join(f"{describe(m)}: {s:.2f}" for s, m in sorted(fitted, key=lambda x: -x[0])[:3] if s > 0.2)
+            out.append(f"  - the default's pose-noise configurations scored with the held-out poses fitted (BARF's "
+                       f"protocol): {within} of {len(fitted)} within 0.2 dB" + (f" (widest: {widest})" if widest else ""))
     nominal = stats(group(rows, **base("lambertian", "fast")))
     comp = stats(group(rows, **base("jitter1", "fast", appearance=None)))
     plain = stats(group(rows, **base("jitter1", "fast")))
@@ -771,7 +853,7 @@ def tables_markdown(rows: list[dict], meta: dict) -> str:
         "", "### View-dependent effects and fine texture (synthetic scene, all training views)", "", *variants_table(rows),
         "", "### Exposure (fast; synthetic scene, held-out views scored against the nominal-exposure render)", "",
         *exposure_table(rows),
-        "", "### Pose noise (fast; the synthetic Lambertian scene and CanClip, all training views; rotation / translation as a share of the camera spacing)", "",
+        "", "### Pose noise (fast; the synthetic Lambertian scene and CanClip, all training views, and the default on a quarter of them; rotation / translation as a share of the camera spacing)", "",
         *pose_table(rows),
         "", f"### The paper's multi-view losses with fewer views (fast; equal time, {meta.get('losses_minutes', 1.0):g} min "
         f"per run; seeds {meta.get('losses_seeds', '0,1')}; the default turns them on for deep scenes with at most "
@@ -799,7 +881,7 @@ CSV_COLUMNS = ["scene", "preset", "fraction", "pose_degrees", "appearance", "ref
                "coarse_to_fine", "coarse_to_fine_used", "appearance_used", "appearance_default", "exposure_difference_stops",
                "pose_check_refining", "pose_check_degrees", "pose_check_halfway", "field_restarted",
                "deep_scene", "multiview_losses", "seed", "status", "psnr", "ssim",
-               "psnr_matched", "psnr_half_fit", "psnr_per_view", "train_views", "held_out", "steps", "steps_done", "train_seconds",
+               "psnr_matched", "psnr_half_fit", "psnr_pose_fitted", "pose_fit_degrees", "psnr_per_view", "train_views", "held_out", "steps", "steps_done", "train_seconds",
                "wall_seconds", "warnings", "warning_text", "nonfinite_pixels", "error", "scale", "path", "truth"]
 
 
@@ -858,12 +940,22 @@ def chart(rows: list[dict], path: Path) -> None:
         points = [(d, s) for d, s in points if s]
         if points:
             errorbar(axes[2], points, fmt, colour, label)
+    for scene, fraction, column, fmt, colour, label in (
+            ("lambertian", 1.0, "psnr_pose_fitted", ":s", "C4", "lambertian, default, held-out poses fitted"),
+            ("canclip", 1.0, "psnr_pose_fitted", ":s", "C5", "canclip, default, held-out poses fitted"),
+            ("lambertian", POSE_FEW_VIEWS, "psnr", "-x", "C7", f"lambertian, default, {POSE_FEW_VIEWS:.0%} of the views"),
+            ("canclip", POSE_FEW_VIEWS, "psnr", "--x", "C8", f"canclip, default, {POSE_FEW_VIEWS:.0%} of the views")):
+        points = [(d, stats(group(rows, **base(scene, "fast", fraction=fraction, pose_degrees=d)), column))
+                  for d in POSE_DEGREES]
+        points = [(d, s) for d, s in points if s]
+        if len(points) > 1:
+            errorbar(axes[2], points, fmt, colour, label)
     axes[2].set(xlabel=f"pose noise (degrees; shift {SHIFT_PER_DEGREE:.0%} of the spacing per degree)",
                 ylabel="held-out PSNR (dB)", title="Pose noise")
     for axis in axes:
         axis.grid(alpha=0.3)
         if axis.get_legend_handles_labels()[0]:
-            axis.legend(fontsize=8)
+            axis.legend(fontsize=7)
     fig.suptitle("Stability: held-out PSNR, mean of seeds, bars = max-min spread")
     fig.tight_layout()
     fig.savefig(path, dpi=110)
@@ -897,6 +989,33 @@ def machine() -> str:
     except (OSError, StopIteration):
         pass
     return f"{cpu}, {os.cpu_count()} cores, torch {torch.__version__}, 1 torch thread per run"
+
+
+def csv_value(text: str):
+    """A value of docs/stability.csv as it was logged: '' is None, then bool, int, float, text."""
+    if text == "":
+        return None
+    if text in ("True", "False"):
+        return text == "True"
+    for kind in (int, float):
+        try:
+            return kind(text)
+        except ValueError:
+            pass
+    return text
+
+
+def seed_log_from_csv(log: Path, table: Path) -> int:
+    """Start a missing run log from the committed CSV (one row per run, every field a Job is
+    keyed by): the log lives in the temp folder, which a fresh machine does not have, and
+    without it the study would train all its runs again.  Returns the rows written."""
+    if log.is_file() or not table.is_file():
+        return 0
+    with open(table, newline="") as handle:
+        rows = [{k: csv_value(v) for k, v in row.items()} for row in csv.DictReader(handle)]
+    log.parent.mkdir(parents=True, exist_ok=True)
+    log.write_text("".join(json.dumps(row) + "\n" for row in rows))
+    return len(rows)
 
 
 def load_log(log: Path) -> dict:
@@ -957,6 +1076,8 @@ def main(argv=None) -> None:
         print("note: TrainConfig has no 'appearance' option yet; those runs are marked unavailable", flush=True)
     jobs = plan(args, scenes)
     log = args.cache / "runs.jsonl"
+    if not args.fresh and (seeded := seed_log_from_csv(log, args.docs / "stability.csv")):
+        print(f"no run log in {args.cache}: started it from {args.docs / 'stability.csv'} ({seeded} runs)", flush=True)
     done = {} if args.fresh else load_log(log)
     if args.report_only:
         rows = [done[j.key] for j in jobs if j.key in done]

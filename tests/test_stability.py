@@ -61,7 +61,8 @@ def test_prepare_edits_only_training_views(stability, tiny_scene):
     assert len(scene.views) == len(train_views) + len(held)
 
 
-def test_study_runs_end_to_end(stability, tiny_scene, tmp_path):
+def test_study_runs_end_to_end(stability, tiny_scene, tmp_path, monkeypatch):
+    monkeypatch.setattr(stability, "POSE_SCENES", ("tiny",))  # its runs scored with the held-out poses fitted too
     jobs = [stability.Job("tiny", str(tiny_scene), str(tiny_scene), 1.0, "fast", 3, seed, fraction=fraction)
             for fraction in (1.0, 0.5) for seed in (0, 1)]
     jobs.append(stability.Job("tiny", str(tiny_scene), str(tiny_scene), 1.0, "fast", 3, 0, pose_degrees=1.0))
@@ -89,6 +90,17 @@ def test_study_runs_end_to_end(stability, tiny_scene, tmp_path):
         for column in ("psnr", "ssim", "psnr_matched", "train_seconds"):
             assert math.isfinite(float(row[column])), (column, row)
     assert (tmp_path / "docs" / "stability.png").stat().st_size > 0
+    fitted = [r for r in rows if r.get("psnr_pose_fitted") is not None]
+    assert len(fitted) == 4 and all(not r["minutes"] and r["coarse_to_fine"] is None and r["fraction"] == 1.0 for r in fitted)
+    assert all(math.isfinite(r["psnr_pose_fitted"]) and len(r["pose_fit_degrees"].split(";")) == 2 for r in fitted)
+    assert "held-out poses fitted" in tables and "| fast + `--refine-poses`, tiny |" in tables
+    few = stability.Job("tiny", str(tiny_scene), str(tiny_scene), 1.0, "fast", 3, 0, fraction=stability.POSE_FEW_VIEWS)
+    assert stability.in_pose_study(few) and not stability.in_pose_study(stability.replace(few, fraction=0.5))
+    # A fresh machine has no run log: it starts from the committed CSV, and every run is found again.
+    fresh_log = tmp_path / "fresh" / "runs.jsonl"
+    assert stability.seed_log_from_csv(fresh_log, tmp_path / "docs" / "stability.csv") == len(jobs)
+    assert set(stability.load_log(fresh_log)) == {job.key for job in jobs}
+    assert stability.seed_log_from_csv(fresh_log, tmp_path / "docs" / "stability.csv") == 0  # never overwritten
     markdown = (tmp_path / "docs" / "STABILITY.md").read_text()
     assert stability.MARKER_BEGIN in markdown and tables in markdown
     timed = [r for r in rows if r["minutes"]]
