@@ -900,7 +900,7 @@ def chart(rows: list[dict], path: Path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, axes = plt.subplots(1, 3, figsize=(15, 4.2))
+    fig, axes = plt.subplots(1, 3, figsize=(18, 4.4), gridspec_kw={"width_ratios": [1, 1, 1.1]})
     style = {"fast": "-o", "paper": "--s"}
     for scene, colour in zip(FEWER_VIEWS_SCENES, ("C0", "C2", "C1")):
         for preset in ("fast", "paper"):
@@ -955,7 +955,8 @@ def chart(rows: list[dict], path: Path) -> None:
     for axis in axes:
         axis.grid(alpha=0.3)
         if axis.get_legend_handles_labels()[0]:
-            axis.legend(fontsize=7)
+            # (the pose panel's ten lines: the legend beside it, not over them)
+            axis.legend(fontsize=7, **({"loc": "upper left", "bbox_to_anchor": (1.02, 1.0)} if axis is axes[2] else {}))
     fig.suptitle("Stability: held-out PSNR, mean of seeds, bars = max-min spread")
     fig.tight_layout()
     fig.savefig(path, dpi=110)
