@@ -66,6 +66,19 @@ POSE_LR = 3e-4
 # the smoother geometry cost the synthetic scene 0.54 dB.
 FAR_OFF_POSE_DEGREES = 0.4
 FAR_OFF_GEOMETRY_TV = 10.0
+# ... and with at most FEW_PHOTOS_TEXTURE_MAX_VIEWS photos, the restarted field's texture
+# sharpens coarse to fine: its finer levels fade in over the next FEW_PHOTOS_TEXTURE_COARSE_TO_FINE
+# of the budget (DisparityConfig.texture_coarse_to_fine), as BARF fades in its encoding.  With
+# few photos the refinement did not find the poses against a sharp texture (CanClip's 6 photos,
+# 1 degree: each camera's own turn 0.73-0.77 degrees left of about 0.95); against the blurred
+# one it does (0.21-0.27, fading from the first step on a patched copy).  Study, three seeds
+# at 1000 steps, from the restart on (docs/STABILITY.md, twenty-first session): held-out PSNR
+# with their poses fitted at 0.25 / 0.5 / 1 / 2 degrees 33.10 / 31.90 / 26.94 / 23.80 ->
+# 32.73 / 32.51 / 31.62 / 23.88 dB, as given 28.73 / 25.35 / 20.85 / 17.38 -> 29.83 / 24.85 /
+# 21.95 / 18.28.  From the first step it cost right poses 0.7 dB, and all 26 photos at 1 degree
+# 0.7 dB fitted, hence only here.
+FEW_PHOTOS_TEXTURE_MAX_VIEWS = 6
+FEW_PHOTOS_TEXTURE_COARSE_TO_FINE = 0.6
 
 
 # Rays per step that get the multi-view losses: 512 of the 8192 (a step costs ~1.4 times one
@@ -566,7 +579,8 @@ def _train(scene, model_dir: Path, config: TrainConfig, images_dir, resume: bool
         if restart_pending and step >= POSE_CHECK_STEP:
             restart_pending = False
             if poses is not None:
-                _restart_for_far_off_poses(field_module, optimizer, poses, meta, progress, step, config.seed)
+                _restart_for_far_off_poses(field_module, optimizer, poses, meta, progress, step, config.seed,
+                                           fraction=fraction, n_train_views=len(train_views))
         if poses is not None:
             poses.set_training_progress(fraction)
             uvst = poses(uvst, view_index)
@@ -662,7 +676,7 @@ def _pose_check(poses: PoseRefinement, optimizer, meta: dict, progress, step: in
 
 
 def _restart_for_far_off_poses(field_module, optimizer, poses: PoseRefinement, meta: dict, progress, step: int,
-                               seed: int) -> None:
+                               seed: int, fraction: float = 0.0, n_train_views: int = 0) -> None:
     """Where the poses are far off (FAR_OFF_POSE_DEGREES), start the field again with
     smoother geometry, so it cannot bend its depth around their error; the corrections and
     their optimizer state go on.  Recorded in the model (meta["field_restart"], and the
@@ -679,9 +693,16 @@ def _restart_for_far_off_poses(field_module, optimizer, poses: PoseRefinement, m
     field_module.set_geometry_tv(FAR_OFF_GEOMETRY_TV * field_module.config.tv_weight)  # (meta holds the field's
     # own field_config record, which this updates, so the saved model carries the weight)
     meta["field_restart"] = {"step": step, "median_degrees": round(found, 4), "geometry_tv": field_module.config.tv_weight}
+    texture = ""
+    if n_train_views <= FEW_PHOTOS_TEXTURE_MAX_VIEWS and hasattr(field_module, "start_texture_coarse_to_fine"):
+        # (done before the budget ends, even where the check falls late in a short one)
+        ramp = min(FEW_PHOTOS_TEXTURE_COARSE_TO_FINE, 0.9 * (1.0 - fraction))
+        field_module.start_texture_coarse_to_fine(fraction, ramp)
+        meta["field_restart"]["texture_coarse_to_fine"] = round(ramp, 4)
+        texture = ", its texture sharpening coarse to fine (few photos)"
     _emit(progress, event="field_restart", step=step, median_degrees=found,
           message=f"the camera poses are far off (median correction {found:.2f} deg after {step} steps): the light field "
-                  "starts again with smoother geometry while they are corrected (docs/STABILITY.md)")
+                  f"starts again with smoother geometry{texture} while they are corrected (docs/STABILITY.md)")
 
 
 def _fill_unseen(field_module, train_rays: RaySet, chunk: int = 1 << 15) -> float:

@@ -379,14 +379,16 @@ def test_a_held_out_cameras_pose_is_fitted_to_its_photo(tiny_scene, tmp_path, ca
 # ----------------------------------------------------------------------------- far-off poses restart the field
 
 
-@pytest.mark.parametrize("threshold, deep, restarts", [(0.0, False, True), (90.0, False, False), (0.0, True, False)])
+@pytest.mark.parametrize("threshold, deep, restarts, few", [(0.0, False, True, False), (0.0, False, True, True),
+                                                           (90.0, False, False, False), (0.0, True, False, False)])
 def test_far_off_poses_restart_the_field_with_smoother_geometry(tiny_scene, tmp_path, monkeypatch, threshold, deep,
-                                                                restarts):
+                                                                restarts, few):
     """At the pose check's step, corrections of at least FAR_OFF_POSE_DEGREES on a shallow
     scene start the field again (a fresh start, its optimizer state gone) with geometry planes
     FAR_OFF_GEOMETRY_TV times smoother; the corrections go on.  Saved with the model, so a
     resumed run keeps the smoother geometry and does not restart again.  Deep scenes and
-    smaller corrections train on as they were."""
+    smaller corrections train on as they were.  With few photos (`few`: the tiny scene's 7
+    counted as few) the restarted texture also sharpens coarse to fine from the check on."""
     import neulf_core.train as train_module
     from neulf_core.checkpoint import load_checkpoint
     from neulf_core.fields import build_field, make_config
@@ -396,13 +398,14 @@ def test_far_off_poses_restart_the_field_with_smoother_geometry(tiny_scene, tmp_
     monkeypatch.setattr(train_module, "POSE_CHECK_STEP", 5)
     monkeypatch.setattr(train_module, "FAR_OFF_POSE_DEGREES", threshold)
     monkeypatch.setattr(Slab, "is_deep", property(lambda self: deep))
+    monkeypatch.setattr(train_module, "FEW_PHOTOS_TEXTURE_MAX_VIEWS", 7 if few else 6)
     real, seen = train_module._restart_for_far_off_poses, {}
 
-    def watched(field_module, optimizer, poses, meta, progress, step, seed):
+    def watched(field_module, optimizer, poses, meta, progress, step, seed, **kwargs):
         before = {k: v.clone() for k, v in field_module.state_dict().items()}
         seen["tv_before"] = field_module.config.tv_weight
         poses_before = poses.rotation.detach().clone()
-        real(field_module, optimizer, poses, meta, progress, step, seed)
+        real(field_module, optimizer, poses, meta, progress, step, seed, **kwargs)
         after = {k: v.clone() for k, v in field_module.state_dict().items()}
         seen.update(seed=seed, before=before, after=after, step=step, poses_before=poses_before,
                     poses_after=poses.rotation.detach().clone(),
@@ -432,6 +435,14 @@ def test_far_off_poses_restart_the_field_with_smoother_geometry(tiny_scene, tmp_
     assert torch.equal(seen["poses_before"], seen["poses_after"])  # the corrections are kept
     assert meta["field_config"]["tv_weight"] == pytest.approx(FAR_OFF_GEOMETRY_TV * seen["tv_before"])
     assert meta["field_restart"]["step"] == 5
+    texture_ramp = meta["field_config"]["texture_coarse_to_fine"]
+    if few:  # the coarsest level alone at the check, the finer ones fading in; saved with the model
+        assert "coarse to fine" in event["message"] and meta["field_restart"]["texture_coarse_to_fine"] == pytest.approx(texture_ramp)
+        assert texture_ramp == pytest.approx(0.9 * (1 - 5 / 12))  # the check late in a short budget: done before its end
+        assert meta["field_config"]["texture_ramp_start"] == pytest.approx(5 / 12)
+        assert seen["after"]["texture_level_weights"].tolist() == [0.0, 0.0, 0.0, 1.0]
+    else:
+        assert texture_ramp == 0 and "texture_coarse_to_fine" not in meta["field_restart"]
     more = []
     train(tiny_scene, tmp_path / "m", TrainConfig(steps=20), resume=True, progress=more.append)
     assert not [e for e in more if e["event"] == "field_restart"]  # once
@@ -439,3 +450,7 @@ def test_far_off_poses_restart_the_field_with_smoother_geometry(tiny_scene, tmp_
     assert resumed["field_config"]["tv_weight"] == pytest.approx(FAR_OFF_GEOMETRY_TV * seen["tv_before"])
     assert resumed["field_restart"] == meta["field_restart"]
     assert load_checkpoint(tmp_path / "m")["progress"]["step"] == 20
+    if few:  # sharp by the end of the budget, and the saved model renders so
+        from neulf_core.render import LightField
+        assert load_checkpoint(tmp_path / "m")["state_dict"]["texture_level_weights"].tolist() == [1.0] * 4
+        assert LightField.load(tmp_path / "m", "cpu").field.texture_level_weights.tolist() == [1.0] * 4

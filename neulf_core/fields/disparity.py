@@ -82,6 +82,13 @@ class DisparityConfig:
     # (0: all from the start); the trainer sets it for captures of few photos
     # (train.default_coarse_to_fine).
     geometry_coarse_to_fine: float = 0.0
+    # Texture coarse to fine: the texture's finer levels fade in, coarse to fine, over this
+    # share of the training budget from `texture_ramp_start` on (0: all from the start), as
+    # BARF fades in its encoding so that poses can be registered against a blurred scene
+    # first.  The trainer sets it where it restarts the field for far-off poses with few
+    # photos (train.FEW_PHOTOS_TEXTURE_COARSE_TO_FINE; start_texture_coarse_to_fine).
+    texture_coarse_to_fine: float = 0.0
+    texture_ramp_start: float = 0.0
     # Slab geometry in normalised units, set by the trainer from the slab (see slab_geometry()).
     uv_half: list[float] = field(default_factory=lambda: [1.0, 1.0])
     uv_centre: list[float] = field(default_factory=lambda: [0.0, 0.0])
@@ -151,6 +158,8 @@ class DisparityField(nn.Module):
             # it was trained with, and a resumed one continues from them.
             self.register_buffer("geometry_scale_weights", _fade_in_weights(len(config.geometry_spatial_res), 0.0))
         self._ramp_done = False  # every weight at 1: the trainer's calls need no more copies
+        if config.texture_coarse_to_fine > 0:  # (persistent, as the geometry's weights)
+            self.register_buffer("texture_level_weights", self._texture_weights(config.texture_ramp_start))
         decoder_in = config.texture_channels * config.texture_levels + (2 if config.view_dependence else 0)
         self.decoder = nn.Sequential(nn.Linear(decoder_in, config.hidden), nn.ReLU(), nn.Linear(config.hidden, 3))
         for layer in (*self.geometry.decoder, *self.decoder):
@@ -173,6 +182,9 @@ class DisparityField(nn.Module):
         then settles on the broad shapes they agree on before finer cells can bend it toward
         one photo's noise (docs/STABILITY.md).  A weight never drops: a model resumed with a
         larger budget (a smaller fraction) keeps the scales it has."""
+        if self.config.texture_coarse_to_fine > 0:
+            torch.maximum(self.texture_level_weights, self._texture_weights(fraction).to(self.texture_level_weights.device),
+                          out=self.texture_level_weights)
         ramp = self.config.geometry_coarse_to_fine
         if ramp <= 0 or self._ramp_done:
             return
@@ -180,6 +192,24 @@ class DisparityField(nn.Module):
         torch.maximum(self.geometry_scale_weights, weights.to(self.geometry_scale_weights.device),
                       out=self.geometry_scale_weights)
         self._ramp_done = bool((weights == 1).all())
+
+    def _texture_weights(self, fraction: float) -> torch.Tensor:
+        """(levels,) weights of the texture's levels, finest first, at `fraction` of the budget."""
+        c = self.config
+        return _fade_in_weights(c.texture_levels, (fraction - c.texture_ramp_start) / c.texture_coarse_to_fine).flip(0)
+
+    @torch.no_grad()
+    def start_texture_coarse_to_fine(self, fraction: float, ramp: float) -> None:
+        """From `fraction` of the budget on, only the coarsest texture level counts, the finer
+        ones fading in over the next `ramp` of it; kept in the config (and the model's
+        field_config), so a resumed or saved model reads the texture as it was trained."""
+        self.config.texture_coarse_to_fine, self.config.texture_ramp_start = ramp, fraction
+        self.field_config.update(texture_coarse_to_fine=ramp, texture_ramp_start=fraction)
+        weights = self._texture_weights(fraction).to(self.textures[0].device)
+        if hasattr(self, "texture_level_weights"):
+            self.texture_level_weights.copy_(weights)
+        else:
+            self.register_buffer("texture_level_weights", weights)
 
     def disparity(self, unit: torch.Tensor) -> torch.Tensor:
         c = self.config
@@ -189,6 +219,8 @@ class DisparityField(nn.Module):
     def forward(self, uvst: torch.Tensor):
         grid, unit = self.sheared(uvst)
         features = [_features_at(texture, grid) for texture in self.textures]
+        if self.config.texture_coarse_to_fine > 0:
+            features = [f * w for f, w in zip(features, self.texture_level_weights)]
         if self.config.view_dependence:
             features.append(uvst[:, :2])
         return self._colour(_rows(features)), unit
