@@ -266,6 +266,7 @@ def score_views(model_dir: Path, held: list[View], scale: float, fit_poses: bool
     light_field = LightField.load(model_dir, "cpu", precision="full")
     psnrs, ssims, matched, half_fit, nonfinite = [], [], [], [], 0
     fitted_psnrs, fitted_degrees = [], []
+    spacing = camera_spacing(np.asarray(light_field.meta["rig"]["centres"]))  # the training rig's (pose fits)
     for view in held:
         target = view.load_image(scale).astype(np.float32) / 255.0
         image = light_field.render_view(view, scale, depth=False).rgb
@@ -276,7 +277,6 @@ def score_views(model_dir: Path, held: list[View], scale: float, fit_poses: bool
         matched.append(psnr(colour_matched(image, target), target))
         half_fit.append(psnr_right_half_after_left_fit(image, target))
         if fit_poses:
-            spacing = camera_spacing(np.asarray(light_field.meta["rig"]["centres"]))  # the training rig's
             fitted, degrees, _ = fit_view_pose(light_field, view, scale, spacing)
             fitted_image = np.nan_to_num(light_field.render_view(fitted, scale, depth=False).rgb, nan=0.0)
             fitted_psnrs.append(psnr(fitted_image, target))

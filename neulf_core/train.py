@@ -676,7 +676,7 @@ def _pose_check(poses: PoseRefinement, optimizer, meta: dict, progress, step: in
 
 
 def _restart_for_far_off_poses(field_module, optimizer, poses: PoseRefinement, meta: dict, progress, step: int,
-                               seed: int, fraction: float = 0.0, n_train_views: int = 0) -> None:
+                               seed: int, *, fraction: float, n_train_views: int) -> None:
     """Where the poses are far off (FAR_OFF_POSE_DEGREES), start the field again with
     smoother geometry, so it cannot bend its depth around their error; the corrections and
     their optimizer state go on.  Recorded in the model (meta["field_restart"], and the

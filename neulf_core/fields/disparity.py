@@ -205,11 +205,7 @@ class DisparityField(nn.Module):
         field_config), so a resumed or saved model reads the texture as it was trained."""
         self.config.texture_coarse_to_fine, self.config.texture_ramp_start = ramp, fraction
         self.field_config.update(texture_coarse_to_fine=ramp, texture_ramp_start=fraction)
-        weights = self._texture_weights(fraction).to(self.textures[0].device)
-        if hasattr(self, "texture_level_weights"):
-            self.texture_level_weights.copy_(weights)
-        else:
-            self.register_buffer("texture_level_weights", weights)
+        self.register_buffer("texture_level_weights", self._texture_weights(fraction).to(self.textures[0].device))
 
     def disparity(self, unit: torch.Tensor) -> torch.Tensor:
         c = self.config
