@@ -500,3 +500,42 @@ def test_a_time_budget_ends_at_the_pass_limit_and_resume_can_lift_it(tiny_scene,
     assert "100 passes" in limit["message"] and out[-1]["event"] == "finished" and out[-1]["step"] == limit["steps"]
     assert main(args[:2] + ["--out", str(tmp_path / "bad"), "--max-passes", "-1"]) != 0
     assert "--max-passes" in capsys.readouterr().err
+
+
+def test_linear_view_dependence_starts_view_independent_and_stays_affine_in_uv():
+    """`view_dependence_linear`: the decoder reads the texture only and returns the colour's
+    logit and its (u, v) slope, which starts at zero -- the same surface point has one colour
+    from every viewpoint at the start (the (u, v)-input decoder's start gives it a random
+    function of the viewpoint), and once trained its logit changes linearly between them."""
+    options = {"texture_size": [16, 16], "texture_channels": 4, "hidden": 32}
+    torch.manual_seed(0)
+    linear = build_field("disparity", make_config("disparity", {**options, "view_dependence_linear": True}))
+    torch.manual_seed(0)
+    default = build_field("disparity", make_config("disparity", options))
+    assert linear.decoder[0].in_features == 16 and linear.decoder[-1].out_features == 9
+    assert default.decoder[0].in_features == 18 and default.decoder[-1].out_features == 3
+    texture = torch.randn(1, 16).expand(5, 16)
+    uv = torch.tensor([[-1.0, -1.0], [-0.5, 0.2], [0.0, 0.0], [0.5, -0.2], [1.0, 1.0]])
+    features = torch.cat([texture, uv], dim=1)
+    with torch.no_grad():
+        assert torch.allclose(linear._colour(features), linear._colour(features)[:1].expand(5, 3))
+        assert float((default._colour(features) - default._colour(features)[:1]).abs().max()) > 1e-4
+        linear.decoder[-1].weight[3:].normal_(0, 0.3)  # a trained slope
+        logit = torch.logit(linear._colour(features).double())
+    assert float((logit[0] - logit[-1]).abs().max()) > 1e-3
+    assert torch.allclose(logit[2], (logit[0] + logit[-1]) / 2, atol=1e-5)
+    assert torch.allclose(logit[1] + logit[3], 2 * logit[2], atol=1e-5)
+
+
+def test_linear_view_dependence_decodes_the_same_in_render_sized_chunks():
+    """A CPU render decodes in DECODE_ROWS pieces; the slope's (u, v) must stay with its rows."""
+    from neulf_core.fields.disparity import DECODE_ROWS
+    field = build_field("disparity", make_config("disparity", {"texture_size": [8, 8], "texture_channels": 4,
+                                                               "hidden": 16, "view_dependence_linear": True}))
+    with torch.no_grad():
+        field.decoder[-1].weight[3:].normal_(0, 0.3)
+        features = torch.randn(DECODE_ROWS + 37, 18)
+        chunked = field._colour(features)
+        whole = torch.sigmoid(field.decoder(features[:, :-2])[:, :3]
+                              + (field.decoder(features[:, :-2])[:, 3:].unflatten(1, (3, 2)) * features[:, None, -2:]).sum(-1))
+    assert torch.allclose(chunked, whole, atol=1e-6)
