@@ -38,7 +38,14 @@ class Preset:
 # docs/BENCHMARKS.md, "Colour decoder width").  Models saved before keep their 64.
 # Its depth detail (DisparityConfig.depth_detail_shift): a depth correction stored over the
 # texture's coordinates at a quarter of its size, shared by every viewpoint.
-FAST_FIELD = {"texture_channels": 4, "geometry_channels": 4, "hidden": 128, "depth_detail_shift": 2}
+# Its colour decoder returns a colour and its linear change across the uv plane per surface
+# point (`view_dependence_linear`, starting view-independent) instead of reading (u, v) as an
+# input: at the stability study's 1000 steps CanClip +0.39-0.46 dB, HCI +1.15-1.19 dB, the
+# synthetic scenes within -0.17..+0.25; at the product's 1.5 minutes (side by side, seeds 0 / 1)
+# CanClip +0.17 / +0.16 dB, HCI +1.07 / +0.75, Statue +0.24 / -0.28, fern -0.18 / -0.06
+# (docs/BENCHMARKS.md, "Linear view dependence"; docs/STABILITY.md, twenty-third session).
+FAST_FIELD = {"texture_channels": 4, "geometry_channels": 4, "hidden": 128, "depth_detail_shift": 2,
+              "view_dependence_linear": True}
 # Its learning rate: a cosine from 2e-3 down to 1 % over the budget instead of an exponential
 # decay to 10 %.  Same cost per step; the field learns longer at a high rate, then settles.
 # Stability study's setting (1000 steps, three seeds, mean / spread of held-out PSNR):

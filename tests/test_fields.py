@@ -516,12 +516,12 @@ def test_linear_view_dependence_starts_view_independent_and_stays_affine_in_uv()
     assert default.decoder[0].in_features == 18 and default.decoder[-1].out_features == 3
     texture = torch.randn(1, 16).expand(5, 16)
     uv = torch.tensor([[-1.0, -1.0], [-0.5, 0.2], [0.0, 0.0], [0.5, -0.2], [1.0, 1.0]])
-    features = torch.cat([texture, uv], dim=1)
     with torch.no_grad():
-        assert torch.allclose(linear._colour(features), linear._colour(features)[:1].expand(5, 3))
-        assert float((default._colour(features) - default._colour(features)[:1]).abs().max()) > 1e-4
+        assert torch.allclose(linear._colour(texture, uv), linear._colour(texture, uv)[:1].expand(5, 3))
+        default_colour = default._colour(torch.cat([texture, uv], dim=1), uv)
+        assert float((default_colour - default_colour[:1]).abs().max()) > 1e-4
         linear.decoder[-1].weight[3:].normal_(0, 0.3)  # a trained slope
-        logit = torch.logit(linear._colour(features).double())
+        logit = torch.logit(linear._colour(texture, uv).double())
     assert float((logit[0] - logit[-1]).abs().max()) > 1e-3
     assert torch.allclose(logit[2], (logit[0] + logit[-1]) / 2, atol=1e-5)
     assert torch.allclose(logit[1] + logit[3], 2 * logit[2], atol=1e-5)
@@ -534,8 +534,8 @@ def test_linear_view_dependence_decodes_the_same_in_render_sized_chunks():
                                                                "hidden": 16, "view_dependence_linear": True}))
     with torch.no_grad():
         field.decoder[-1].weight[3:].normal_(0, 0.3)
-        features = torch.randn(DECODE_ROWS + 37, 18)
-        chunked = field._colour(features)
-        whole = torch.sigmoid(field.decoder(features[:, :-2])[:, :3]
-                              + (field.decoder(features[:, :-2])[:, 3:].unflatten(1, (3, 2)) * features[:, None, -2:]).sum(-1))
+        features, uv = torch.randn(DECODE_ROWS + 37, 16), torch.rand(DECODE_ROWS + 37, 2) * 2 - 1
+        chunked = field._colour(features, uv)
+        out = field.decoder(features)
+        whole = torch.sigmoid(out[:, :3] + out[:, 3:6] * uv[:, :1] + out[:, 6:] * uv[:, 1:])
     assert torch.allclose(chunked, whole, atol=1e-6)

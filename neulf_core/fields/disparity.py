@@ -10,8 +10,9 @@ st plane at
 per-ray disparity with a small factorised-planes network, shears (s, t) by it, and reads
 the colour from one high-resolution texture over (s', t') that *every* camera observes --
 the angular axes, which only as many cameras sample, carry only the smooth disparity.  The
-depth output comes for free: z = z_st / (1 + delta).  A small (u, v) input to the colour
-decoder leaves room for view-dependent effects.  With delta = 0 at the start the field is
+depth output comes for free: z = z_st / (1 + delta).  The colour decoder leaves room for
+view-dependent effects: with (u, v) as an input, or (the fast preset's) as a colour that
+changes linearly across the uv plane per surface point.  With delta = 0 at the start the field is
 exactly classic single-focal-plane light field rendering.
 """
 
@@ -48,13 +49,8 @@ class DisparityConfig:
     # Linear view dependence: the colour decoder reads the texture only and returns, besides
     # the colour's logit, its slope in (u, v) at that surface point, starting at zero, so the
     # field starts view-independent and its change of colour between viewpoints is a plane
-    # fitted per point, not a ReLU network's random function of (u, v).  Stability study's
-    # setting (1000 steps, seeds 0-2, CanClip's 6 photos 0-4; docs/STABILITY.md, twenty-third
-    # session), against the (u, v)-input decoder: CanClip 6 photos 34.14 +- 0.63 -> 34.53 +- 0.55 dB,
-    # 26 photos 35.07 +- 0.21 -> 35.53 +- 0.10, HCI 18 views 45.84 -> 47.03, 70 views 46.22 -> 47.37;
-    # the synthetic scenes lose a little (14 photos 29.96 -> 29.85, shiny 29.78 -> 29.61, fine
-    # texture 29.29 -> 29.24) and gain at 4 photos (28.54 +- 0.38 -> 28.79 +- 0.04).
-    # Models saved before read as they were (the field's config is saved with them).
+    # fitted per point, not a ReLU network's random function of (u, v).  On in the fast preset
+    # (presets.FAST_FIELD, with the numbers); off here, so models saved before read as they were.
     view_dependence_linear: bool = False
     # Depth layers for the geometry (`train --depth-layers N`): feature planes at N disparities
     # spread evenly between near and far, each read where the ray crosses its depth as seen
@@ -174,7 +170,7 @@ class DisparityField(nn.Module):
         self.linear_view_dependence = config.view_dependence and config.view_dependence_linear
         decoder_in = config.texture_channels * config.texture_levels
         decoder_in += 2 if config.view_dependence and not self.linear_view_dependence else 0
-        decoder_out = 3 + (6 if self.linear_view_dependence else 0)  # colour logit, then its (u, v) slope
+        decoder_out = 3 + (6 if self.linear_view_dependence else 0)  # colour logit, its slope along u, along v
         self.decoder = nn.Sequential(nn.Linear(decoder_in, config.hidden), nn.ReLU(), nn.Linear(config.hidden, decoder_out))
         if self.linear_view_dependence:
             with torch.no_grad():  # zero slope: the colour starts the same from every viewpoint
@@ -235,25 +231,26 @@ class DisparityField(nn.Module):
         features = [_features_at(texture, grid) for texture in self.textures]
         if self.config.texture_coarse_to_fine > 0:
             features = [f * w for f, w in zip(features, self.texture_level_weights)]
-        if self.config.view_dependence:
-            features.append(uvst[:, :2])  # the last two columns: the decoder's input, or the slope's (u, v)
-        return self._colour(_rows(features)), unit
+        uv = uvst[:, :2]
+        if self.config.view_dependence and not self.linear_view_dependence:
+            features.append(uv)
+        return self._colour(_rows(features), uv), unit
 
-    def _colour(self, features: torch.Tensor) -> torch.Tensor:
+    def _colour(self, features: torch.Tensor, uv: torch.Tensor) -> torch.Tensor:
         if torch.is_grad_enabled() or features.device.type != "cpu" or features.shape[0] <= DECODE_ROWS:
-            return self._decode(features)
+            return self._decode(features, uv)
         # Rendering on a CPU: a 32k-ray chunk's hidden layer (32k x 128 floats, 16 MB) falls out
         # of the cache between the decoder's steps; 8k rows at a time decode in 4.2 instead of
         # 6.6 ms per 32k rays (docs/BENCHMARKS.md, "Colour decoder width").
-        return torch.cat([self._decode(rows) for rows in features.split(DECODE_ROWS)])
+        return torch.cat([self._decode(rows, uv_rows) for rows, uv_rows in zip(features.split(DECODE_ROWS), uv.split(DECODE_ROWS))])
 
-    def _decode(self, features: torch.Tensor) -> torch.Tensor:
+    def _decode(self, features: torch.Tensor, uv: torch.Tensor) -> torch.Tensor:
+        out = self.decoder(features)
         if not self.linear_view_dependence:
-            return torch.sigmoid(self.decoder(features))
-        texture, uv = features[:, :-2], features[:, -2:]
-        out = self.decoder(texture)
-        slope = out[:, 3:].unflatten(1, (3, 2))
-        return torch.sigmoid(out[:, :3] + (slope * uv[:, None, :]).sum(-1))
+            return torch.sigmoid(out)
+        # The colour's logit plus its slope along u, then along v: two fused multiply-adds.
+        logit = torch.addcmul(out[:, :3], out[:, 3:6], uv[:, :1])
+        return torch.sigmoid(torch.addcmul(logit, out[:, 6:], uv[:, 1:]))
 
     def sheared(self, uvst: torch.Tensor, detail_reads: list | None = None) -> tuple[torch.Tensor, torch.Tensor]:
         """Where rays (N, 4) read the texture, (N, 2) in [-1, 1], and their depth unit (N, 1).
