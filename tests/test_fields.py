@@ -352,6 +352,17 @@ def test_appearance_captures_get_eight_geometry_channels_and_resume_keeps_the_sa
     result = train(tiny_scene, tmp_path / "flat", TrainConfig(steps=4, **quick), resume=True)
     assert result.step == 4 and not hasattr(LightField.load(tmp_path / "flat", "cpu").field, "depth_detail")
 
+    linear = LightField.load(tmp_path / "plain", "cpu").field  # the default: a colour and its (u, v) slope
+    assert presets.FAST_FIELD["view_dependence_linear"] and linear.linear_view_dependence
+    assert linear.decoder[-1].out_features == 9
+    monkeypatch.delitem(presets.FAST_FIELD, "view_dependence_linear")  # a model saved before it
+    train(tiny_scene, tmp_path / "uv_input", TrainConfig(steps=2, **quick))
+    monkeypatch.setitem(presets.FAST_FIELD, "view_dependence_linear", True)
+    result = train(tiny_scene, tmp_path / "uv_input", TrainConfig(steps=4, **quick), resume=True)
+    uv_input = LightField.load(tmp_path / "uv_input", "cpu").field
+    assert result.step == 4 and not uv_input.linear_view_dependence
+    assert uv_input.decoder[-1].out_features == 3 and uv_input.decoder[0].in_features == linear.decoder[0].in_features + 2
+
 
 def test_fast_preset_learning_rate_falls_along_a_cosine_to_one_percent(tiny_scene, tmp_path):
     """The default's schedule (docs/STABILITY.md, "Learning-rate schedule"): a cosine from the
