@@ -49,7 +49,7 @@ def reference_forward(self, uvst):
     features = [F.grid_sample(texture, grid, mode="bilinear", padding_mode="border", align_corners=True)
                 .view(texture.shape[1], -1) for texture in self.textures]
     decoder_in = torch.cat(features, 0).t()
-    if self.config.view_dependence and not self.linear_view_dependence:
+    if self.uv_input:
         decoder_in = torch.cat([decoder_in, uvst[:, :2]], 1)
     return self._decode(decoder_in, uvst[:, :2]), unit  # (the sigmoid, and the linear (u, v) slope where on)
 

@@ -40,10 +40,11 @@ class Preset:
 # texture's coordinates at a quarter of its size, shared by every viewpoint.
 # Its colour decoder returns a colour and its linear change across the uv plane per surface
 # point (`view_dependence_linear`, starting view-independent) instead of reading (u, v) as an
-# input: at the stability study's 1000 steps CanClip +0.39-0.46 dB, HCI +1.15-1.19 dB, the
-# synthetic scenes within -0.17..+0.25; at the product's 1.5 minutes (side by side, seeds 0 / 1)
-# CanClip +0.17 / +0.16 dB, HCI +1.07 / +0.75, Statue +0.24 / -0.28, fern -0.18 / -0.06
-# (docs/BENCHMARKS.md, "Linear view dependence"; docs/STABILITY.md, twenty-third session).
+# input: at the stability study's 1000 steps (three seeds, every share of the views) CanClip
+# +0.39-0.47 dB, HCI +1.10-1.18 dB, the synthetic scene -0.17..+0.22; at the product's 1.5
+# minutes (side by side, seeds 0 / 1) CanClip +0.17 / +0.16 dB, HCI +1.07 / +0.75, Statue
+# +0.24 / -0.28, fern -0.18 / -0.06 (docs/BENCHMARKS.md and docs/STABILITY.md, "Linear view
+# dependence").
 FAST_FIELD = {"texture_channels": 4, "geometry_channels": 4, "hidden": 128, "depth_detail_shift": 2,
               "view_dependence_linear": True}
 # Its learning rate: a cosine from 2e-3 down to 1 % over the budget instead of an exponential

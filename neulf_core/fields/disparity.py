@@ -168,8 +168,8 @@ class DisparityField(nn.Module):
         if config.texture_coarse_to_fine > 0:  # (persistent, as the geometry's weights)
             self.register_buffer("texture_level_weights", self._texture_weights(config.texture_ramp_start))
         self.linear_view_dependence = config.view_dependence and config.view_dependence_linear
-        decoder_in = config.texture_channels * config.texture_levels
-        decoder_in += 2 if config.view_dependence and not self.linear_view_dependence else 0
+        self.uv_input = config.view_dependence and not self.linear_view_dependence  # (u, v) as two decoder columns
+        decoder_in = config.texture_channels * config.texture_levels + (2 if self.uv_input else 0)
         decoder_out = 3 + (6 if self.linear_view_dependence else 0)  # colour logit, its slope along u, along v
         self.decoder = nn.Sequential(nn.Linear(decoder_in, config.hidden), nn.ReLU(), nn.Linear(config.hidden, decoder_out))
         if self.linear_view_dependence:
@@ -232,7 +232,7 @@ class DisparityField(nn.Module):
         if self.config.texture_coarse_to_fine > 0:
             features = [f * w for f, w in zip(features, self.texture_level_weights)]
         uv = uvst[:, :2]
-        if self.config.view_dependence and not self.linear_view_dependence:
+        if self.uv_input:
             features.append(uv)
         return self._colour(_rows(features), uv), unit
 
