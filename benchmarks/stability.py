@@ -60,8 +60,9 @@ sys.path.insert(0, str(REPO))
 
 from neulf_core.metrics import psnr, ssim  # noqa: E402
 from neulf_core.poses import POSE_CHECK_DEGREES, POSE_CHECK_SETTLED, POSE_CHECK_STEP, fit_view_pose  # noqa: E402
+from neulf_core.presets import get_preset  # noqa: E402
 from neulf_core.render import LightField  # noqa: E402
-from neulf_core.scene import Scene, View, camera_spacing, find_model_dir, load_scene, split_views  # noqa: E402
+from neulf_core.scene import Scene, View, camera_spacing, find_model_dir, load_scene, scaled_size, split_views  # noqa: E402
 from neulf_core.train import (COARSE_TO_FINE_MAX_VIEWS, CONSISTENCY_MAX_VIEWS, FAR_OFF_POSE_DEGREES,  # noqa: E402
                               LOSSES_MIN_PASSES, SHALLOW_CONSISTENCY_MAX_VIEWS, SHALLOW_LOSSES_MIN_PASSES, TrainConfig,
                               losses_by_default, train)
@@ -675,9 +676,11 @@ def pose_check_kept(rows: list[dict]) -> str:
 
 
 def losses_table(rows: list[dict]) -> list[str]:
-    lines = ["| scene | training views | off | on (the paper's losses) | gain | steps off / on (mean) | the default |",
-             "|---|---|---|---|---|---|---|"]
+    lines = ["| scene | training views | off | on (the paper's losses) | gain | steps off / on (mean) "
+             "| passes with them on | the default at that rate |",
+             "|---|---|---|---|---|---|---|---|"]
     timed = [r for r in rows if r.get("minutes") and r.get("consistency") is not None]
+    batch = get_preset("fast").batch_size
     for scene in dict.fromkeys([*LOSSES_PLAN, *(r["scene"] for r in timed)]):
         for fraction in sorted({r["fraction"] for r in timed if r["scene"] == scene}, reverse=True):
             minutes = next(r["minutes"] for r in timed if r["scene"] == scene)
@@ -691,10 +694,21 @@ def losses_table(rows: list[dict]) -> list[str]:
                              for c in (off, on))
             views = next((r.get("train_views") for r in off + on if r.get("train_views")), "?")
             deep = next((r["deep_scene"] for r in off + on if "deep_scene" in r), None)
-            default = "?" if deep is None or not isinstance(views, int) else (
-                "on" if losses_by_default(deep, views) else "off")
-            lines.append(f"| {scene} | {views} | {cell(off)} | {cell(on)} | {gain} | {steps} | {default} |")
+            done_on = [r["steps_done"] for r in on if r.get("status") == "finished"]
+            passes = (np.mean(done_on) * batch / (views * image_pixels(on[0]["path"], on[0]["scale"]))
+                      if done_on and isinstance(views, int) else None)
+            # What the default decides when its minutes buy the steps these runs made (train.default_consistency).
+            default = "?" if deep is None or passes is None else (
+                "on" if losses_by_default(deep, views, passes) else "off")
+            passes_text = "-" if passes is None else f"{passes:.0f}"
+            lines.append(f"| {scene} | {views} | {cell(off)} | {cell(on)} | {gain} | {steps} | {passes_text} | {default} |")
     return lines
+
+
+def image_pixels(path: str, scale: float) -> int:
+    """Pixels of one training photo of the scene at `path` at `scale` (its photos share a size)."""
+    width, height = scaled_size(load_any(path).views[0].size, scale)
+    return width * height
 
 
 def coarse_table(rows: list[dict]) -> list[str]:
@@ -858,7 +872,8 @@ def tables_markdown(rows: list[dict], meta: dict) -> str:
         "", f"### The paper's multi-view losses with fewer views (fast; equal time, {meta.get('losses_minutes', 1.0):g} min "
         f"per run; seeds {meta.get('losses_seeds', '0,1')}; the default turns them on for deep scenes with at most "
         f"{CONSISTENCY_MAX_VIEWS} training views when the budget passes over their pixels at least {LOSSES_MIN_PASSES:g} "
-        f"times, for shallow ones with at most {SHALLOW_CONSISTENCY_MAX_VIEWS} at {SHALLOW_LOSSES_MIN_PASSES:g})", "", *losses_table(rows),
+        f"times, for shallow ones with at most {SHALLOW_CONSISTENCY_MAX_VIEWS} at {SHALLOW_LOSSES_MIN_PASSES:g}, the passes "
+        "counted at the step rate the run measures)", "", *losses_table(rows),
         "", f"### Coarse to fine with fewer views (fast; the default turns it on with at most {COARSE_TO_FINE_MAX_VIEWS} "
         "training views)", "", *coarse_table(rows),
         "", "### Runs", "", *runs_table(rows),

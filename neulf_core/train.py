@@ -198,11 +198,16 @@ CONSISTENCY_MAX_VIEWS = 20
 # 0.267 / 0.296 (seed 1: -0.10 / +0.02 dB); 3 minutes (~15 passes) 21.25 / 21.39 dB, 0.262 /
 # 0.272; 5 minutes (~25 passes) 21.01 / 21.46 dB, 0.266 / 0.256 -- without the losses fern
 # gets worse as training goes on.  At 252x189 for 1 minute (~20 passes) +0.23 dB.  A minutes
-# budget counts as LOSSES_STEPS_PER_MINUTE steps, about what the slowest machine measured
-# (2-core Intel Xeon, one torch thread) does with the losses on: a faster machine makes more
-# passes than counted, so the rule errs towards leaving them off there.
+# budget's passes depend on the machine, so they are counted at the rate the run measures:
+# it trains its first LOSSES_DECISION_STEP steps without the losses, times the ones after
+# LOSSES_RATE_FROM_STEP (the first warm up), and divides that rate by the losses' cost per
+# step.  Counted at a fixed 2000 steps a minute (the rule until the twenty-fifth session, the
+# Intel Xeon's rate) the AMD EPYC, at half that, turned them on for fern's 17 views at 1
+# minute, where they cost 0.13 dB (9 passes; docs/STABILITY.md, the losses study).
 LOSSES_MIN_PASSES = 20.0
-LOSSES_STEPS_PER_MINUTE = 2000
+LOSSES_RATE_FROM_STEP = 10
+LOSSES_DECISION_STEP = 30
+LOSSES_STEP_COST = 1.4   # time per step with the losses on / off (the losses study: 1.36-1.49)
 # Shallow scenes (far/near at most 3) gain only with the fewest photos and a longer budget.
 # Side by side, seeds 0 / 1, off -> on, at 240x135 (seventeenth session; docs/STABILITY.md):
 # CanClip with 6 views at 0.5 / 1 / 2 minutes (~42 / 84 / 169 passes as counted above) -0.44 /
@@ -213,12 +218,16 @@ SHALLOW_CONSISTENCY_MAX_VIEWS = 6
 SHALLOW_LOSSES_MIN_PASSES = 80.0
 
 
-def budget_passes(config: TrainConfig, batch: int, train_pixels: int) -> float:
-    """How many times the budget (steps, or minutes at LOSSES_STEPS_PER_MINUTE) passes over
-    the training pixels; whichever budget ends training first counts."""
+def budget_passes(config: TrainConfig, batch: int, train_pixels: int,
+                  steps_per_minute: float | None = None) -> float | None:
+    """How many times the budget (steps, or minutes at `steps_per_minute`) passes over the
+    training pixels; whichever budget ends training first counts.  None: a minutes budget
+    and no measured rate yet."""
     budgets = [config.steps] if config.steps else []
     if config.minutes:
-        budgets.append(config.minutes * LOSSES_STEPS_PER_MINUTE)
+        if steps_per_minute is None:
+            return None
+        budgets.append(config.minutes * steps_per_minute)
     return min(budgets, default=0) * batch / max(train_pixels, 1)
 
 
@@ -322,10 +331,22 @@ def announce_pass_limit(progress, config: TrainConfig, field_name: str, n_train_
           message=f"{n_train_views} photos: {when}{why}")
 
 
-def default_consistency(slab: Slab, train_views, config: TrainConfig) -> bool:
+def default_consistency(slab: Slab, train_views, config: TrainConfig, steps_per_minute: float | None = None) -> bool | None:
+    """Whether the default trains with the multi-view losses; None: it depends on how many
+    steps the minutes budget buys on this machine, which the run has not measured yet
+    (`steps_per_minute`: its rate with the losses on)."""
+    if not losses_by_default(slab.is_deep, len(train_views)):
+        return False  # whatever the budget
     batch = config.batch_size or get_preset(config.preset).batch_size
     pixels = sum(math.prod(scaled_size(v.size, config.scale)) for v in train_views)
-    return losses_by_default(slab.is_deep, len(train_views), budget_passes(config, batch, pixels))
+    passes = budget_passes(config, batch, pixels, steps_per_minute)
+    return None if passes is None else losses_by_default(slab.is_deep, len(train_views), passes)
+
+
+def measured_steps_per_minute(seconds: float) -> float:
+    """The rate with the losses on, from the seconds the steps LOSSES_RATE_FROM_STEP to
+    LOSSES_DECISION_STEP took without them."""
+    return 60.0 * (LOSSES_DECISION_STEP - LOSSES_RATE_FROM_STEP) / max(seconds, 1e-9) / LOSSES_STEP_COST
 
 
 def announce_default_losses(progress, n_train_views: int) -> None:
@@ -491,10 +512,13 @@ def _train(scene, model_dir: Path, config: TrainConfig, images_dir, resume: bool
     if poses is not None and resumed and resumed.get("poses"):
         poses.load_state_dict(resumed["poses"])
     use_consistency = config.consistency if config.consistency is not None else preset.consistency
+    losses_pending = False  # the default waits for the measured rate (LOSSES_DECISION_STEP)
     if use_consistency is None:
-        # A resumed model keeps what it was trained with (models saved before the rule: off).
-        use_consistency = (bool(resumed.get("multiview_losses", False)) if resumed
-                           else default_consistency(slab, train_views, config))
+        # A resumed model keeps what it was trained with (models saved before the rule: off;
+        # None: saved before the run had decided, which it then does as a new one).
+        saved = resumed.get("multiview_losses", False) if resumed else None
+        decided = bool(saved) if saved is not None else default_consistency(slab, train_views, config)
+        losses_pending, use_consistency = decided is None, bool(decided)
         if use_consistency:
             announce_default_losses(progress, len(train_views))
     consistency = _consistency_inputs(train_views, slab, config, device) if use_consistency else None
@@ -523,7 +547,8 @@ def _train(scene, model_dir: Path, config: TrainConfig, images_dir, resume: bool
             "mean_colour": mean_colour(train_rays).tolist(),
         },
         "train_config": asdict(config),
-        "multiview_losses": bool(use_consistency),  # what the default decided, when train_config.consistency is None
+        # What the default decided, when train_config.consistency is None (None: not yet).
+        "multiview_losses": None if losses_pending else bool(use_consistency),
         # How far neighbouring photos' exposures differ (stops), and whether that turns the
         # per-photo colour transform on by default (train_config.appearance says what ran).
         "exposure_difference_stops": round(exposure_stops, 4),
@@ -555,6 +580,7 @@ def _train(scene, model_dir: Path, config: TrainConfig, images_dir, resume: bool
     elapsed = elapsed_before
     val = history[-1]["val_psnr"] if history else None
     lr_scale, bad_steps, skipped = 1.0, 0, 0
+    first_step, rate_mark = step, elapsed
     status = "finished"
     loss_value = float("nan")
     while budget.budget_fraction(step, elapsed) < 1.0:
@@ -607,6 +633,11 @@ def _train(scene, model_dir: Path, config: TrainConfig, images_dir, resume: bool
         loss_value = float(loss.detach())
         now = time.monotonic()
         elapsed = elapsed_before + (now - start_time)
+        if losses_pending and step - first_step == LOSSES_RATE_FROM_STEP:
+            rate_mark = elapsed
+        if losses_pending and step - first_step >= LOSSES_DECISION_STEP:
+            losses_pending = False
+            consistency = _decide_losses_at_measured_rate(slab, train_views, config, elapsed - rate_mark, device, meta, progress)
         if now - last_validation >= config.validate_seconds or budget.budget_fraction(step, elapsed) >= 1.0:
             val = validation_psnr(field_module, val_rays) if val_rays is not None else None
             record = {"step": step, "elapsed": round(elapsed, 2), "loss": loss_value,
@@ -626,6 +657,8 @@ def _train(scene, model_dir: Path, config: TrainConfig, images_dir, resume: bool
         _emit(progress, event="warning", message=f"{skipped} training steps had a non-finite loss and were skipped")
     if pose_check_pending and status == "finished":  # the budget ended before the check (a short --minutes)
         poses = _pose_check(poses, optimizer, meta, progress, step)
+    if losses_pending and status == "finished":  # ... or before the rate was measured: too short for them
+        meta["multiview_losses"] = False
     if poses is not None and not pose_check_pending:  # (stopped before the check: provisional, not reported)
         meta["pose_corrections"] = poses.summary()
         _emit(progress, event="poses", **meta["pose_corrections"])
@@ -713,6 +746,21 @@ def _fill_unseen(field_module, train_rays: RaySet, chunk: int = 1 << 15) -> floa
     started = time.monotonic()
     field_module.fill_unseen_texels(train_rays.uvst[i:i + chunk].float() for i in range(0, len(train_rays), chunk))
     return time.monotonic() - started
+
+
+def _decide_losses_at_measured_rate(slab: Slab, train_views, config: TrainConfig, seconds: float, device, meta: dict,
+                                    progress):
+    """The default's multi-view losses for a minutes budget, once the first steps have been
+    timed (`seconds` for the steps LOSSES_RATE_FROM_STEP to LOSSES_DECISION_STEP): the
+    consistency inputs from now on, or None.  Recorded in the model's metadata."""
+    steps_per_minute = measured_steps_per_minute(seconds)
+    on = bool(default_consistency(slab, train_views, config, steps_per_minute))
+    meta["multiview_losses"] = on
+    meta["losses_steps_per_minute"] = round(steps_per_minute)
+    if not on:
+        return None
+    announce_default_losses(progress, len(train_views))
+    return _consistency_inputs(train_views, slab, config, device)
 
 
 def _consistency_inputs(train_views, slab: Slab, config: TrainConfig, device):
