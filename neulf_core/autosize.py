@@ -10,6 +10,7 @@ TrainConfig with more views excluded and a texture-size override.
 
 from __future__ import annotations
 
+import json
 import tempfile
 import time
 from dataclasses import asdict, dataclass, replace
@@ -17,15 +18,15 @@ from pathlib import Path
 
 import numpy as np
 
-from .checkpoint import MODEL_NAME, checkpoint_path, load_checkpoint, save_checkpoint
+from .checkpoint import METADATA_NAME, MODEL_NAME, checkpoint_path, load_checkpoint, save_checkpoint
 from .errors import NeulfError
 from .fields.disparity import texture_size_for
 from .metrics import psnr
 from .render import LightField
 from .scene import Scene, load_scene, scaled_size, split_views
 from .slab import fit_slab
-from .train import (TrainConfig, TrainResult, _emit, announce_default_losses, default_coarse_to_fine, default_consistency,
-                    default_depth_detail_reads, default_geometry_tv, default_max_passes, train)
+from .train import (LOSSES_DECISION_STEP, TrainConfig, TrainResult, _emit, announce_default_losses, default_coarse_to_fine,
+                    default_consistency, default_depth_detail_reads, default_geometry_tv, default_max_passes, train)
 
 PRESET = "auto"
 FACTORS = (1.0, 0.7, 0.5)    # finest texture size / the default (~1 texel per pixel); area 1, 1/2, 1/4
@@ -147,10 +148,23 @@ def _final_model_defaults(scene: Scene, config: TrainConfig, progress) -> TrainC
     if config.consistency is None:
         slab = fit_slab(scene, train_views, scale=config.scale, st_depth=config.st_depth, uv_depth=config.uv_depth,
                         near=config.near, far=config.far)
-        config = replace(config, consistency=default_consistency(slab, train_views, config))
+        decided = default_consistency(slab, train_views, config)
+        if decided is None:  # a minutes budget: how many steps it buys is measured, as train() does
+            decided = default_consistency(slab, train_views, config, _steps_per_minute(scene, config))
+        config = replace(config, consistency=decided)
         if config.consistency:
             announce_default_losses(progress, len(train_views))
     return config
+
+
+def _steps_per_minute(scene: Scene, config: TrainConfig) -> float:
+    """The step rate with the multi-view losses on that train() counts a minutes budget at
+    (train.measured_steps_per_minute), from a run of its first steps in a scratch folder."""
+    probe = replace(config, steps=LOSSES_DECISION_STEP + 1, consistency=None, teacher=False, refine_poses=False,
+                    checkpoint_seconds=1e9, validate_seconds=1e9)
+    with tempfile.TemporaryDirectory(prefix="neulf-auto-rate-") as folder:
+        train(scene, folder, probe)
+        return float(json.loads((Path(folder) / METADATA_NAME).read_text())["losses_steps_per_minute"])
 
 
 def _search(scene: Scene, config: TrainConfig, factors, progress, should_stop):

@@ -211,6 +211,35 @@ def test_auto_decides_the_losses_once_for_its_search_and_its_model(tiny_scene, t
     assert json.loads((tmp_path / "auto" / METADATA_NAME).read_text())["multiview_losses"] is expected
 
 
+@pytest.mark.parametrize("rate, expected", [(None, True), (0.0, False)])
+def test_auto_with_a_time_budget_decides_the_losses_once_at_the_measured_rate(tiny_scene, tmp_path, monkeypatch,
+                                                                              rate, expected):
+    """A minutes budget: the step rate is measured once, before the search, and the losses'
+    verdict at that rate holds for every candidate and the final model."""
+    import neulf_core.autosize as autosize_module
+    import neulf_core.train as train_module
+
+    monkeypatch.setattr(train_module, "LOSSES_MIN_PASSES", 1e-9)
+    measured = []
+    real_rate = autosize_module._steps_per_minute
+
+    def rate_probe(*args):
+        measured.append(real_rate(*args) if rate is None else rate)
+        return measured[-1]
+
+    monkeypatch.setattr(autosize_module, "_steps_per_minute", rate_probe)
+    runs = []
+    real_train = autosize_module.train
+    monkeypatch.setattr(autosize_module, "train", lambda scene, folder, config, **k: runs.append(config.consistency)
+                        or real_train(scene, folder, config, **k))
+    train_auto(tiny_scene, tmp_path / "auto", fast_config(None, preset="auto", minutes=0.05, near=1.0, far=6.0,
+                                                         consistency_rays=32, teacher=False))
+    assert len(measured) == 1 and measured[0] >= 0
+    probe = [None] if rate is None else []  # the measuring run leaves the losses to the default
+    assert runs == probe + [expected] * 4  # then the 3 candidates and the final run
+    assert json.loads((tmp_path / "auto" / METADATA_NAME).read_text())["multiview_losses"] is expected
+
+
 @pytest.mark.parametrize("max_views, expected", [(13, True), (6, False)])
 def test_auto_decides_coarse_to_fine_once_for_its_search_and_its_model(tiny_scene, tmp_path, monkeypatch, max_views, expected):
     """As with the losses: 7 training views, 6 in the search runs; with the threshold between
