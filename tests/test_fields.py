@@ -6,6 +6,7 @@ import json
 import math
 
 import numpy as np
+import pytest
 import torch
 
 from neulf_core.fields import build_field, count_parameters, make_config
@@ -362,6 +363,42 @@ def test_appearance_captures_get_eight_geometry_channels_and_resume_keeps_the_sa
     uv_input = LightField.load(tmp_path / "uv_input", "cpu").field
     assert result.step == 4 and not uv_input.linear_view_dependence
     assert uv_input.decoder[-1].out_features == 3 and uv_input.decoder[0].in_features == linear.decoder[0].in_features + 2
+
+
+def test_fast_decoders_learn_at_the_factor_of_the_preset_rate_and_old_models_keep_theirs(tiny_scene, tmp_path, monkeypatch):
+    """The fast field's decoders learn at `decoder_lr_factor` times the preset's rate, the
+    feature grids at 10 times it; a model saved before the factor (no key: 1) resumes with
+    its decoders at the preset's rate."""
+    from neulf_core import presets
+    from neulf_core.checkpoint import load_checkpoint
+    import neulf_core.train as train_module
+    from neulf_core.fields.disparity import DisparityConfig, DisparityField
+    from neulf_core.train import TrainConfig, train
+
+    def group_rates(model):
+        saved = load_checkpoint(model)["optimizer"]["param_groups"]
+        return {g["name"]: g["initial_lr"] for g in saved if g.get("name")}
+
+    lr = presets.get_preset("fast").lr
+    factor = presets.FAST_FIELD["decoder_lr_factor"]
+    groups = {g["name"]: g["lr"] for g in DisparityField(DisparityConfig(decoder_lr_factor=factor)).param_groups(lr)}
+    assert groups == {"texture": 10 * lr, "geometry planes": 10 * lr, "decoders": factor * lr}
+
+    quick = dict(batch_size=256, teacher=False, validate_seconds=1e9, checkpoint_seconds=1e9)
+    train(tiny_scene, tmp_path / "now", TrainConfig(steps=2, **quick))
+    assert group_rates(tmp_path / "now")["decoders"] == pytest.approx(factor * lr)
+    monkeypatch.delitem(presets.FAST_FIELD, "decoder_lr_factor")  # a model saved before the factor
+    train(tiny_scene, tmp_path / "before", TrainConfig(steps=2, **quick))
+    monkeypatch.setitem(presets.FAST_FIELD, "decoder_lr_factor", factor)
+    result = train(tiny_scene, tmp_path / "before", TrainConfig(steps=4, **quick), resume=True)
+    assert result.step == 4 and load_checkpoint(tmp_path / "before")["field_config"].get("decoder_lr_factor", 1.0) == 1.0
+    assert group_rates(tmp_path / "before")["decoders"] == pytest.approx(lr)
+
+    # The fewest photos keep the preset's rate (train.default_decoder_lr_factor).
+    assert train_module.default_decoder_lr_factor(5, 10.0) == 10.0 and train_module.default_decoder_lr_factor(4, 10.0) == 1.0
+    monkeypatch.setattr(train_module, "FEWEST_PHOTOS_MAX_VIEWS", 7)  # the tiny scene trains on 7
+    train(tiny_scene, tmp_path / "fewest", TrainConfig(steps=2, **quick))
+    assert group_rates(tmp_path / "fewest")["decoders"] == pytest.approx(lr)
 
 
 def test_fast_preset_learning_rate_falls_along_a_cosine_to_one_percent(tiny_scene, tmp_path):

@@ -52,6 +52,12 @@ class DisparityConfig:
     # fitted per point, not a ReLU network's random function of (u, v).  On in the fast preset
     # (presets.FAST_FIELD, with the numbers); off here, so models saved before read as they were.
     view_dependence_linear: bool = False
+    # The decoders' learning rate as a multiple of the preset's (the feature grids learn at 10
+    # times it).  The fast preset's is 10, every part at one rate as grid fields are commonly
+    # trained (Instant-NGP): the decoders then move far from their random start, which with
+    # few photos otherwise decides part of the result (presets.FAST_FIELD, with the numbers).
+    # 1 here, so models saved before resume as they trained.
+    decoder_lr_factor: float = 1.0
     # Depth layers for the geometry (`train --depth-layers N`): feature planes at N disparities
     # spread evenly between near and far, each read where the ray crosses its depth as seen
     # from the slab origin, so a depth edge near one of them stays put as the camera moves.
@@ -356,7 +362,7 @@ class DisparityField(nn.Module):
         return [
             {"params": list(self.textures.parameters()), "lr": lr * 10.0, "name": "texture"},
             {"params": grids, "lr": lr * 10.0, "name": "geometry planes"},
-            {"params": decoders, "lr": lr, "name": "decoders"},
+            {"params": decoders, "lr": lr * self.config.decoder_lr_factor, "name": "decoders"},
         ]
 
 
