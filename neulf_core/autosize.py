@@ -137,8 +137,9 @@ def train_auto(scene: Scene | str | Path, model_dir: str | Path, config: TrainCo
 def _final_model_defaults(scene: Scene, config: TrainConfig, progress) -> TrainConfig:
     """`config` with the view-count rules left to the default (train.default_consistency,
     train.default_coarse_to_fine, train.default_depth_detail_reads, train.default_geometry_tv,
-    train.default_decoder_lr_factor, train.default_max_passes) decided once, for the final model's training views: the search
-    runs (fewer views: the validation views are carved out) train as the model will."""
+    train.default_decoder_lr_factor, train.default_max_passes) decided once, for the final
+    model's training views: the search runs (fewer views: the validation views are carved
+    out) train as the model will."""
     train_views, _ = split_views(scene, config.holdout_every, config.exclude)
     if config.coarse_to_fine is None:
         config = replace(config, coarse_to_fine=default_coarse_to_fine(len(train_views)))
