@@ -163,12 +163,14 @@ def _final_model_defaults(scene: Scene, config: TrainConfig, progress) -> TrainC
 
 def _steps_per_minute(scene: Scene, config: TrainConfig) -> float:
     """The step rate with the multi-view losses on that train() counts a minutes budget at
-    (train.measured_steps_per_minute), from a run of its first steps in a scratch folder."""
-    probe = replace(config, steps=LOSSES_DECISION_STEP + 1, consistency=None, teacher=False, refine_poses=False,
-                    checkpoint_seconds=1e9, validate_seconds=1e9)
+    (train.measured_steps_per_minute), from a run of its first steps in a scratch folder (its
+    steps end it; a minute at least, so that a short budget on a busy machine still gets
+    there, and 0 if it did not)."""
+    probe = replace(config, steps=LOSSES_DECISION_STEP + 1, minutes=max(config.minutes, 1.0), consistency=None,
+                    teacher=False, refine_poses=False, checkpoint_seconds=1e9, validate_seconds=1e9)
     with tempfile.TemporaryDirectory(prefix="neulf-auto-rate-") as folder:
         train(scene, folder, probe)
-        return float(json.loads((Path(folder) / METADATA_NAME).read_text())["losses_steps_per_minute"])
+        return float(json.loads((Path(folder) / METADATA_NAME).read_text()).get("losses_steps_per_minute", 0.0))
 
 
 def _search(scene: Scene, config: TrainConfig, factors, progress, should_stop):

@@ -241,6 +241,18 @@ def test_auto_with_a_time_budget_decides_the_losses_once_at_the_measured_rate(ti
     assert json.loads((tmp_path / "auto" / METADATA_NAME).read_text())["multiview_losses"] is expected
 
 
+def test_auto_rate_probe_that_cannot_measure_counts_no_steps(tiny_scene, monkeypatch):
+    """A probe whose run ends before the rate is measured says 0 steps a minute (the losses
+    then stay off), not a missing key."""
+    import neulf_core.autosize as autosize_module
+    import neulf_core.train as train_module
+
+    config = fast_config(None, preset="auto", minutes=0.05, near=1.0, far=6.0, teacher=False)
+    assert autosize_module._steps_per_minute(tiny_scene, config) > 0
+    monkeypatch.setattr(train_module, "LOSSES_DECISION_STEP", 10_000)  # never reached in the probe's steps
+    assert autosize_module._steps_per_minute(tiny_scene, config) == 0.0
+
+
 @pytest.mark.parametrize("max_views, expected", [(13, True), (6, False)])
 def test_auto_decides_coarse_to_fine_once_for_its_search_and_its_model(tiny_scene, tmp_path, monkeypatch, max_views, expected):
     """As with the losses: 7 training views, 6 in the search runs; with the threshold between
