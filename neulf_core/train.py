@@ -275,8 +275,9 @@ def default_depth_detail_reads(n_train_views: int) -> int:
 FEW_VIEWS_GEOMETRY_TV = 3e-3
 
 
-# The fast preset's decoders learn at ten times its rate (presets.FAST_FIELD), except with the
-# fewest photos, where they learn at its rate: at 1000 steps, seeds 0 / 1 / 2, the synthetic
+# Where a preset's decoders learn faster than its rate (`decoder_lr_factor` above 1; the fast
+# preset's is 1, presets.FAST_FIELD says why), with the fewest photos they learn at its rate:
+# at ten times it, 1000 steps, seeds 0 / 1 / 2, the synthetic
 # scene's 4 views 28.75 ± 0.17 dB at its rate against 28.52 ± 0.71 at ten times it, while 7
 # of them gained +0.18 dB and 6 of CanClip's +0.59 (docs/STABILITY.md, "Decoders at the grids'
 # rate").

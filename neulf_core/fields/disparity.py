@@ -53,10 +53,9 @@ class DisparityConfig:
     # (presets.FAST_FIELD, with the numbers); off here, so models saved before read as they were.
     view_dependence_linear: bool = False
     # The decoders' learning rate as a multiple of the preset's (the feature grids learn at 10
-    # times it).  The fast preset's is 10, every part at one rate as grid fields are commonly
-    # trained (Instant-NGP): the decoders then move far from their random start, which with
-    # few photos otherwise decides part of the result (presets.FAST_FIELD, with the numbers).
-    # 1 here, so models saved before resume as they trained.
+    # times it).  10 puts every part at one rate, as grid fields are commonly trained
+    # (Instant-NGP), and gained on the real captures, but the fast preset keeps 1: it broke
+    # two stability targets (presets.FAST_FIELD, with the numbers).
     decoder_lr_factor: float = 1.0
     # Depth layers for the geometry (`train --depth-layers N`): feature planes at N disparities
     # spread evenly between near and far, each read where the ray crosses its depth as seen
