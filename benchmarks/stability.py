@@ -37,6 +37,7 @@ from __future__ import annotations
 
 import argparse
 import csv
+import functools
 import json
 import math
 import os
@@ -705,8 +706,10 @@ def losses_table(rows: list[dict]) -> list[str]:
     return lines
 
 
+@functools.lru_cache(maxsize=None)
 def image_pixels(path: str, scale: float) -> int:
-    """Pixels of one training photo of the scene at `path` at `scale` (its photos share a size)."""
+    """Pixels of one training photo of the scene at `path` at `scale` (its photos share a size).
+    Cached: the losses table asks once per row, and each ask would read the COLMAP model again."""
     width, height = scaled_size(load_any(path).views[0].size, scale)
     return width * height
 

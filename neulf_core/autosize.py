@@ -22,12 +22,11 @@ from .checkpoint import METADATA_NAME, MODEL_NAME, checkpoint_path, load_checkpo
 from .errors import NeulfError
 from .fields.disparity import texture_size_for
 from .metrics import psnr
-from .presets import get_preset
 from .render import LightField
 from .scene import Scene, load_scene, scaled_size, split_views
 from .slab import fit_slab
 from .train import (LOSSES_DECISION_STEP, TrainConfig, TrainResult, _emit, announce_default_losses, default_coarse_to_fine,
-                    default_consistency, default_decoder_lr_factor, default_depth_detail_reads, default_geometry_tv,
+                    default_consistency, default_depth_detail_reads, default_geometry_tv,
                     default_max_passes, train)
 
 PRESET = "auto"
@@ -137,7 +136,7 @@ def train_auto(scene: Scene | str | Path, model_dir: str | Path, config: TrainCo
 def _final_model_defaults(scene: Scene, config: TrainConfig, progress) -> TrainConfig:
     """`config` with the view-count rules left to the default (train.default_consistency,
     train.default_coarse_to_fine, train.default_depth_detail_reads, train.default_geometry_tv,
-    train.default_decoder_lr_factor, train.default_max_passes) decided once, for the final
+    train.default_max_passes) decided once, for the final
     model's training views: the search runs (fewer views: the validation views are carved
     out) train as the model will."""
     train_views, _ = split_views(scene, config.holdout_every, config.exclude)
@@ -145,8 +144,7 @@ def _final_model_defaults(scene: Scene, config: TrainConfig, progress) -> TrainC
         config = replace(config, coarse_to_fine=default_coarse_to_fine(len(train_views)))
     if config.max_passes is None:
         config = replace(config, max_passes=default_max_passes(len(train_views)))
-    rules = {"depth_detail_reads": default_depth_detail_reads, "tv_weight": default_geometry_tv,
-             "decoder_lr_factor": lambda n: default_decoder_lr_factor(n, get_preset(PRESET).field_config["decoder_lr_factor"])}
+    rules = {"depth_detail_reads": default_depth_detail_reads, "tv_weight": default_geometry_tv}
     chosen = {name: rule(len(train_views)) for name, rule in rules.items() if name not in config.field_overrides}
     config = replace(config, field_overrides={**config.field_overrides, **chosen})
     if config.consistency is None:

@@ -275,19 +275,6 @@ def default_depth_detail_reads(n_train_views: int) -> int:
 FEW_VIEWS_GEOMETRY_TV = 3e-3
 
 
-# Where a preset's decoders learn faster than its rate (`decoder_lr_factor` above 1; the fast
-# preset's is 1, presets.FAST_FIELD says why), with the fewest photos they learn at its rate:
-# at ten times it, 1000 steps, seeds 0 / 1 / 2, the synthetic
-# scene's 4 views 28.75 ± 0.17 dB at its rate against 28.52 ± 0.71 at ten times it, while 7
-# of them gained +0.18 dB and 6 of CanClip's +0.59 (docs/STABILITY.md, "Decoders at the grids'
-# rate").
-FEWEST_PHOTOS_MAX_VIEWS = 4
-
-
-def default_decoder_lr_factor(n_train_views: int, preset_factor: float) -> float:
-    return 1.0 if n_train_views <= FEWEST_PHOTOS_MAX_VIEWS else preset_factor
-
-
 def default_geometry_tv(n_train_views: int) -> float:
     """The geometry planes' total-variation weight for this many training views (above the
     few-photo count, the field's own: 1e-3)."""
@@ -395,8 +382,6 @@ def _build_field(preset_name: str, overrides: dict, train_views, slab: Slab, sca
         options["geometry_coarse_to_fine"] = COARSE_TO_FINE if use_ramp else 0.0
         options["depth_detail_reads"] = default_depth_detail_reads(n_train_views)
         options["tv_weight"] = default_geometry_tv(n_train_views)
-        if "decoder_lr_factor" in options:
-            options["decoder_lr_factor"] = default_decoder_lr_factor(n_train_views, options["decoder_lr_factor"])
         if appearance:
             options.update(APPEARANCE_GEOMETRY)
     options.update(overrides)

@@ -371,7 +371,6 @@ def test_fast_decoders_learn_at_the_factor_of_the_preset_rate_and_old_models_kee
     its decoders at the preset's rate."""
     from neulf_core import presets
     from neulf_core.checkpoint import load_checkpoint
-    import neulf_core.train as train_module
     from neulf_core.fields.disparity import DisparityConfig, DisparityField
     from neulf_core.train import TrainConfig, train
 
@@ -394,11 +393,6 @@ def test_fast_decoders_learn_at_the_factor_of_the_preset_rate_and_old_models_kee
     assert result.step == 4 and load_checkpoint(tmp_path / "before")["field_config"].get("decoder_lr_factor", 1.0) == 1.0
     assert group_rates(tmp_path / "before")["decoders"] == pytest.approx(lr)
 
-    # The fewest photos keep the preset's rate (train.default_decoder_lr_factor).
-    assert train_module.default_decoder_lr_factor(5, 10.0) == 10.0 and train_module.default_decoder_lr_factor(4, 10.0) == 1.0
-    monkeypatch.setattr(train_module, "FEWEST_PHOTOS_MAX_VIEWS", 7)  # the tiny scene trains on 7
-    train(tiny_scene, tmp_path / "fewest", TrainConfig(steps=2, **quick))
-    assert group_rates(tmp_path / "fewest")["decoders"] == pytest.approx(lr)
 
 
 def test_fast_preset_learning_rate_falls_along_a_cosine_to_one_percent(tiny_scene, tmp_path):

@@ -272,12 +272,11 @@ def test_auto_decides_coarse_to_fine_once_for_its_search_and_its_model(tiny_scen
 @pytest.mark.parametrize("max_views, expected", [(7, 2), (6, 1)])
 def test_auto_decides_the_depth_detail_reads_once_for_its_search_and_its_model(tiny_scene, tmp_path, monkeypatch,
                                                                                max_views, expected):
-    """The same for reading the depth detail twice, the geometry's smoothness prior, the pass
-    limit and the decoders' learning rate: 7 training views, 6 in the search runs."""
+    """The same for reading the depth detail twice, the geometry's smoothness prior and the pass
+    limit: 7 training views, 6 in the search runs; the decoders learn at the preset's factor."""
     import neulf_core.train as train_module
 
     monkeypatch.setattr(train_module, "FEW_PHOTOS_MAX_VIEWS", max_views)
-    monkeypatch.setattr(train_module, "FEWEST_PHOTOS_MAX_VIEWS", max_views)
     reads, passes = [], []
     real = train_module._build_field
     real_limit = train_module.pass_step_limit
@@ -292,7 +291,6 @@ def test_auto_decides_the_depth_detail_reads_once_for_its_search_and_its_model(t
     monkeypatch.setattr(train_module, "_build_field", recording)
     train_auto(tiny_scene, tmp_path / "auto", fast_config(8, preset="auto", teacher=False))
     tv = train_module.FEW_VIEWS_GEOMETRY_TV if expected == 2 else 1e-3
-    decoder_rate = 1.0 if expected == 2 else FAST_FIELD["decoder_lr_factor"]
-    assert reads == [(expected, tv, decoder_rate)] * 4  # 3 candidates and the final run
+    assert reads == [(expected, tv, FAST_FIELD["decoder_lr_factor"])] * 4  # 3 candidates and the final run
     assert passes == [train_module.FEW_PHOTOS_MAX_PASSES if expected == 2 else 0.0] * 4
     assert json.loads((tmp_path / "auto" / METADATA_NAME).read_text())["field_config"]["depth_detail_reads"] == expected

@@ -53,9 +53,8 @@ class DisparityConfig:
     # (presets.FAST_FIELD, with the numbers); off here, so models saved before read as they were.
     view_dependence_linear: bool = False
     # The decoders' learning rate as a multiple of the preset's (the feature grids learn at 10
-    # times it).  10 puts every part at one rate, as grid fields are commonly trained
-    # (Instant-NGP), and gained on the real captures, but the fast preset keeps 1: it broke
-    # two stability targets (presets.FAST_FIELD, with the numbers).
+    # times it).  The fast preset's is 3 (presets.FAST_FIELD, with the numbers); 1 here, so
+    # models saved before the factor resume as they were trained.
     decoder_lr_factor: float = 1.0
     # Depth layers for the geometry (`train --depth-layers N`): feature planes at N disparities
     # spread evenly between near and far, each read where the ray crosses its depth as seen
