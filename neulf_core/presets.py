@@ -54,7 +54,7 @@ class Preset:
 # gained more on the real captures but lost 0.23 dB on the synthetic scene's 4 photos and
 # broke two of issue 4's targets (docs/STABILITY.md, "Decoders at the grids' rate").
 FAST_FIELD = {"texture_channels": 4, "geometry_channels": 4, "hidden": 128, "depth_detail_shift": 2,
-              "view_dependence_linear": True, "decoder_lr_factor": 3.0}
+              "view_dependence_linear": True, "decoder_lr_factor": 3.0, "colour_start": "statue_v1"}
 # Its learning rate: a cosine from 2e-3 down to 1 % over the budget instead of an exponential
 # decay to 10 %.  Same cost per step; the field learns longer at a high rate, then settles.
 # Stability study's setting (1000 steps, three seeds, mean / spread of held-out PSNR):

@@ -143,7 +143,8 @@ def check_zip_contents(extension_zip: Path) -> None:
 
     names = set(zipfile.ZipFile(extension_zip).namelist())
     assert {"blender_manifest.toml", "__init__.py", "neulf_blender/operators.py", "neulf_blender/focus.py",
-            "neulf_core/worker.py", "neulf_core/render.py"} <= names
+            "neulf_core/worker.py", "neulf_core/render.py",
+            "neulf_core/fields/starts/statue_v1.npz"} <= names  # the fast field's learned colour start
     for excluded in ("tests/", "neulf_synth/", "benchmarks/", "scripts/", ".venv/", ".ci/", "docs/"):
         assert not any(n.startswith(excluded) for n in names), excluded
     assert not any(n.endswith((".sh", ".pyc")) or n == "pyproject.toml" for n in names)

@@ -581,3 +581,75 @@ def test_linear_view_dependence_decodes_the_same_in_render_sized_chunks():
         out = field.decoder(features)
         whole = torch.sigmoid(out[:, :3] + out[:, 3:6] * uv[:, :1] + out[:, 6:] * uv[:, 1:])
     assert torch.allclose(chunked, whole, atol=1e-6)
+
+
+def test_fast_colour_decoder_starts_from_the_packaged_learned_start_for_every_seed():
+    """The fast preset's colour decoder starts from neulf_core/fields/starts/<colour_start>.npz,
+    not from the seed: a seed then only draws the texture's and geometry's small starts and
+    the ray order (docs/STABILITY.md: the decoder's draw was most of the dense captures' seed
+    spread).  The colour slopes start at zero, so the field starts view-independent."""
+    from neulf_core.fields.disparity import colour_start_path
+    from neulf_core.presets import FAST_FIELD
+
+    start = np.load(colour_start_path(FAST_FIELD["colour_start"]))
+    fields = []
+    for seed in (0, 1):
+        torch.manual_seed(seed)
+        fields.append(build_field("disparity", make_config("disparity", {**FAST_FIELD, "texture_size": [16, 16]})))
+    for name, value in fields[0].decoder.named_parameters():
+        assert torch.equal(value, dict(fields[1].decoder.named_parameters())[name])
+        assert np.array_equal(value.detach().numpy(), start[name]), name
+    assert not fields[0].decoder[-1].weight[3:].any() and not fields[0].decoder[-1].bias[3:].any()
+    assert not torch.equal(fields[0].textures[0], fields[1].textures[0])  # the seed still draws the texture
+
+
+def test_a_decoder_of_another_shape_keeps_its_random_start_and_a_missing_start_says_so():
+    from neulf_core.errors import NeulfError
+    from neulf_core.presets import FAST_FIELD
+
+    decoders = []
+    for seed in (0, 1):
+        torch.manual_seed(seed)
+        options = {**FAST_FIELD, "texture_size": [16, 16], "hidden": 32}  # the start has 128 hidden units
+        decoders.append(build_field("disparity", make_config("disparity", options)).decoder[0].weight)
+    assert not torch.equal(*decoders)
+    with pytest.raises(NeulfError, match="reinstall"):
+        build_field("disparity", make_config("disparity", {"texture_size": [16, 16], "colour_start": "no_such_start"}))
+
+
+def test_fields_saved_before_the_learned_start_keep_the_random_one():
+    """DisparityConfig's own default is no start: a model saved before reads as it was built."""
+    torch.manual_seed(0)
+    a = build_field("disparity", make_config("disparity", {"texture_size": [16, 16]})).decoder[0].weight
+    torch.manual_seed(1)
+    b = build_field("disparity", make_config("disparity", {"texture_size": [16, 16]})).decoder[0].weight
+    assert not torch.equal(a, b)
+
+
+def test_the_colour_start_script_keeps_the_decoder_with_its_slopes_zeroed(tiny_scene, tmp_path, monkeypatch):
+    """scripts/learn_colour_start.py on the tiny scene: a start of the fast decoder's shape, its
+    colour slopes zero, that a fast field then starts from; a second scene starts from the first's."""
+    import importlib.util
+
+    from neulf_core.fields import disparity
+
+    from pathlib import Path
+
+    from neulf_core.presets import FAST_FIELD
+
+    script_path = Path(__file__).resolve().parents[1] / "scripts" / "learn_colour_start.py"
+    spec = importlib.util.spec_from_file_location("learn_colour_start", script_path)
+    script = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(script)
+    monkeypatch.setattr(disparity, "STARTS", tmp_path / "starts")
+    monkeypatch.setattr(script, "colour_start_path", disparity.colour_start_path)
+    out = script.learn([tiny_scene], "tiny_v1", steps=20, scale=1.0)
+    start = np.load(out)
+    assert start["0.weight"].shape == (128, 16) and start["2.weight"].shape == (9, 128)
+    assert not start["2.weight"][3:].any() and not start["2.bias"][3:].any()
+    assert json.loads(str(start["meta"]))["scenes"][0]["steps"] == 20
+    field = build_field("disparity", make_config("disparity", {**FAST_FIELD, "texture_size": [16, 16], "colour_start": "tiny_v1"}))
+    assert np.array_equal(field.decoder[0].weight.detach().numpy(), start["0.weight"])
+    again = np.load(script.learn([tiny_scene, tiny_scene], "tiny_v2", steps=20, scale=1.0))
+    assert json.loads(str(again["meta"]))["scenes"][1]["steps"] == 20
+    assert not np.array_equal(again["0.weight"], start["0.weight"])  # the second scene trained on from the first's

@@ -178,3 +178,36 @@ def test_rows_logged_since_the_pose_check_are_read_as_logged(stability, tmp_path
                                "pose_check_refining": None}) + "\n")
     done = stability.load_log(log)
     assert forced_off.key in done and stability.replace(forced_off, refine_poses=None).key not in done
+
+
+def test_a_new_default_colour_start_re_runs_the_default_and_old_rows_stand_until_then(stability, tmp_path):
+    """The colour decoder's start is part of a run's key: rows logged before the learned start
+    (no `colour_start`) read as the random start, the study trains the default again, and until
+    it has, the report falls back to the old row and says how many there are.  A job with the
+    random start trains with it (the override), the preset's own start needs none."""
+    job = stability.Job("tiny", "a", "a", 1.0, "fast", 1000, 0, colour_start=stability.preset_colour_start("fast"))
+    assert job.colour_start != "random"
+    old = {k: v for k, v in stability.asdict(job).items() if k != "colour_start"}
+    log = tmp_path / "runs.jsonl"
+    log.write_text(json.dumps({**old, "status": "finished", "psnr": 30.0}) + "\n")
+    done = stability.load_log(log)
+    assert job.key not in done and stability.replace(job, colour_start="random").key in done
+    [row] = stability.report_rows(done, [job])
+    assert row["psnr"] == 30.0 and row["colour_start"] == "random"
+    # seed 1 re-run with the new start, seed 0 not yet: the configuration reports both old rows
+    other = stability.replace(job, seed=1)
+    log.write_text("".join(json.dumps({**stability.asdict(j), **extra, "status": "finished", "psnr": psnr}) + "\n"
+                           for j, extra, psnr in ((job, {"colour_start": "random"}, 30.0),
+                                                  (other, {"colour_start": "random"}, 31.0), (other, {}, 32.0))))
+    done = stability.load_log(log)
+    assert sorted(r["psnr"] for r in stability.report_rows(done, [job, other])) == [30.0, 31.0]
+    log.write_text(log.read_text() + json.dumps({**stability.asdict(job), "status": "finished", "psnr": 33.0}) + "\n")
+    assert sorted(r["psnr"] for r in stability.report_rows(stability.load_log(log), [job, other])) == [32.0, 33.0]
+    note = " ".join(stability.random_start_note([row]))
+    assert "1 of the default's 1 runs" in note
+    assert stability.random_start_note([{**row, "colour_start": job.colour_start}]) == []
+    held = []
+    assert stability.train_config(job, held).field_overrides == {}
+    assert stability.train_config(stability.replace(job, colour_start="random"), held).field_overrides == {"colour_start": ""}
+    paper = stability.Job("tiny", "a", "a", 1.0, "paper", 100, 0, colour_start=stability.preset_colour_start("paper"))
+    assert paper.colour_start == "random" and stability.train_config(paper, held).field_overrides == {}

@@ -19,12 +19,15 @@ exactly classic single-focal-plane light field rendering.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from pathlib import Path
 
+import numpy as np
 import torch
 import torch.nn.functional as F
 from torch import nn
 
 from ..device import HALF_DEVICES
+from ..errors import NeulfError
 from . import register
 from .planes import ANGULAR, PAIRS, PlanesConfig, PlanesField, total_variation
 
@@ -100,6 +103,14 @@ class DisparityConfig:
     # photos (train.FEW_PHOTOS_TEXTURE_COARSE_TO_FINE; start_texture_coarse_to_fine).
     texture_coarse_to_fine: float = 0.0
     texture_ramp_start: float = 0.0
+    # The colour decoder's start: the name of a packaged start (neulf_core/fields/starts/<name>.npz,
+    # learned by scripts/learn_colour_start.py) or "" for PyTorch's random initialisation.  With a
+    # learned start no seed draws the decoder, and it was the decoder's random start that spread
+    # the seeds on the dense captures (docs/STABILITY.md, "Twenty-eighth session"): CanClip 26
+    # views 0.23 -> 0.05 dB, HCI 70 views 0.36 -> 0.02 at 1000 steps.  Used only where the
+    # decoder's shape is the start's (the fast preset's); otherwise the random start.  The fast
+    # preset names one (presets.FAST_FIELD); "" here, so models saved before read as they were.
+    colour_start: str = ""
     # Slab geometry in normalised units, set by the trainer from the slab (see slab_geometry()).
     uv_half: list[float] = field(default_factory=lambda: [1.0, 1.0])
     uv_centre: list[float] = field(default_factory=lambda: [0.0, 0.0])
@@ -114,6 +125,7 @@ class DisparityConfig:
 # (CanClip at 480x270 needs 202,800 texels: 1.6 MB with the depth layers, 8-bit grids; more
 # texels or channels at this budget were measured not to pay, docs/BENCHMARKS.md).
 MAX_TEXELS = 220_000
+STARTS = Path(__file__).resolve().parent / "starts"  # the packaged colour-decoder starts (load_colour_start)
 DECODE_ROWS = 8192  # rays per colour-decoder call when rendering on a CPU (DisparityField._colour)
 
 
@@ -125,6 +137,28 @@ def texture_size_for(image_size: tuple[int, int], margin: float = 0.25) -> list[
     rows, cols = height * (1 + margin), width * (1 + margin)
     shrink = min(1.0, (MAX_TEXELS / (rows * cols)) ** 0.5)
     return [int(round(rows * shrink)), int(round(cols * shrink))]
+
+
+def colour_start_path(name: str) -> Path:
+    return STARTS / f"{name}.npz"
+
+
+def load_colour_start(decoder: nn.Sequential, name: str) -> bool:
+    """Copy the packaged start `name` into `decoder` where every weight has the start's shape;
+    returns whether it did (a decoder of another shape keeps its random start)."""
+    path = colour_start_path(name)
+    if not path.is_file():
+        raise NeulfError(f"the colour decoder's start '{name}' is not in {STARTS}: the installation is incomplete; "
+                         "reinstall neulf (or pass --field colour_start= to train without it).")
+    with np.load(path) as start:
+        weights = {key: torch.from_numpy(start[key]) for key in start.files if not key.startswith("meta")}
+    own = dict(decoder.named_parameters())
+    if set(weights) != set(own) or any(weights[k].shape != own[k].shape for k in own):
+        return False
+    with torch.no_grad():
+        for key, value in weights.items():
+            own[key].copy_(value)
+    return True
 
 
 def slab_geometry(slab) -> dict:
@@ -176,6 +210,8 @@ class DisparityField(nn.Module):
         decoder_in = config.texture_channels * config.texture_levels + (2 if self.uv_input else 0)
         decoder_out = 3 + (6 if self.linear_view_dependence else 0)  # colour logit, its slope along u, along v
         self.decoder = nn.Sequential(nn.Linear(decoder_in, config.hidden), nn.ReLU(), nn.Linear(config.hidden, decoder_out))
+        if config.colour_start:
+            load_colour_start(self.decoder, config.colour_start)
         if self.linear_view_dependence:
             with torch.no_grad():  # zero slope: the colour starts the same from every viewpoint
                 self.decoder[-1].weight[3:] = 0.0
