@@ -613,7 +613,7 @@ def test_a_decoder_of_another_shape_keeps_its_random_start_and_a_missing_start_s
         options = {**FAST_FIELD, "texture_size": [16, 16], "hidden": 32}  # the start has 128 hidden units
         decoders.append(build_field("disparity", make_config("disparity", options)).decoder[0].weight)
     assert not torch.equal(*decoders)
-    with pytest.raises(NeulfError, match="reinstall"):
+    with pytest.raises(NeulfError, match="install it again"):
         build_field("disparity", make_config("disparity", {"texture_size": [16, 16], "colour_start": "no_such_start"}))
 
 

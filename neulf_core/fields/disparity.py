@@ -148,8 +148,8 @@ def load_colour_start(decoder: nn.Sequential, name: str) -> bool:
     returns whether it did (a decoder of another shape keeps its random start)."""
     path = colour_start_path(name)
     if not path.is_file():
-        raise NeulfError(f"the colour decoder's start '{name}' is not in {STARTS}: the installation is incomplete; "
-                         "reinstall neulf (or pass --field colour_start= to train without it).")
+        raise NeulfError(f"the colour decoder's start '{name}' is not in {STARTS}: this installation of neulf is "
+                         "incomplete; install it again (pip install -e . in the project, or the Blender extension's zip).")
     with np.load(path) as start:
         weights = {key: torch.from_numpy(start[key]) for key in start.files if not key.startswith("meta")}
     own = dict(decoder.named_parameters())
