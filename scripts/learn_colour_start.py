@@ -18,6 +18,7 @@ or benchmark scores the start on -- Statue is in none of the stability study's.
 from __future__ import annotations
 
 import argparse
+import io
 import json
 import sys
 import tempfile
@@ -30,7 +31,7 @@ import torch
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from neulf_core.checkpoint import load_checkpoint  # noqa: E402
+from neulf_core.checkpoint import atomic_write_bytes, load_checkpoint  # noqa: E402
 from neulf_core.fields.disparity import colour_start_path  # noqa: E402
 from neulf_core.train import TrainConfig, train  # noqa: E402
 
@@ -38,20 +39,18 @@ STATUE = REPO.parent / "shared" / "data" / "statue"
 
 
 def decoder_weights(model_dir: Path) -> dict[str, np.ndarray]:
-    """The trained colour decoder's weights, its colour slopes (outputs 3-8) zeroed."""
+    """The trained colour decoder's weights (Linear "0", ReLU, Linear "2"), its colour slopes
+    (outputs 3-8 of the last layer) zeroed."""
     state = load_checkpoint(model_dir)["state_dict"]
     weights = {key[len("decoder."):]: value.float().numpy().copy() for key, value in state.items()
                if key.startswith("decoder.")}
-    last = max(weights, key=lambda k: int(k.split(".")[0]))  # "2.weight" / "2.bias": the output layer
-    index = last.split(".")[0]
-    weights[f"{index}.weight"][3:] = 0.0
-    weights[f"{index}.bias"][3:] = 0.0
+    weights["2.weight"][3:] = 0.0
+    weights["2.bias"][3:] = 0.0
     return weights
 
 
 def learn(scenes: list[Path], name: str, steps: int, scale: float) -> Path:
     out = colour_start_path(name)
-    out.parent.mkdir(parents=True, exist_ok=True)
     history = []
     for i, scene in enumerate(scenes):
         start = name if i else ""  # each later scene from the decoder the one before left
@@ -65,9 +64,9 @@ def learn(scenes: list[Path], name: str, steps: int, scale: float) -> Path:
         print(f"{scene.name}: {result.step} steps, held-out PSNR {result.val_psnr or float('nan'):.2f} dB", flush=True)
         meta = {"learned_by": "scripts/learn_colour_start.py", "date": date.today().isoformat(),
                 "torch": torch.__version__, "scenes": history}
-        tmp = out.with_suffix(".tmp.npz")
-        np.savez(tmp, **weights, meta=np.array(json.dumps(meta)))
-        tmp.replace(out)  # atomic: a half-written start never replaces a whole one
+        buffer = io.BytesIO()
+        np.savez(buffer, **weights, meta=np.array(json.dumps(meta)))
+        atomic_write_bytes(out, buffer.getvalue())  # a half-written start never replaces a whole one
     shapes = ", ".join(f"{k} {tuple(v.shape)}" for k, v in weights.items())
     print(f"wrote {out} ({shapes})")
     return out

@@ -630,11 +630,9 @@ def test_the_colour_start_script_keeps_the_decoder_with_its_slopes_zeroed(tiny_s
     """scripts/learn_colour_start.py on the tiny scene: a start of the fast decoder's shape, its
     colour slopes zero, that a fast field then starts from; a second scene starts from the first's."""
     import importlib.util
-
-    from neulf_core.fields import disparity
-
     from pathlib import Path
 
+    from neulf_core.fields import disparity
     from neulf_core.presets import FAST_FIELD
 
     script_path = Path(__file__).resolve().parents[1] / "scripts" / "learn_colour_start.py"
@@ -642,7 +640,6 @@ def test_the_colour_start_script_keeps_the_decoder_with_its_slopes_zeroed(tiny_s
     script = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(script)
     monkeypatch.setattr(disparity, "STARTS", tmp_path / "starts")
-    monkeypatch.setattr(script, "colour_start_path", disparity.colour_start_path)
     out = script.learn([tiny_scene], "tiny_v1", steps=20, scale=1.0)
     start = np.load(out)
     assert start["0.weight"].shape == (128, 16) and start["2.weight"].shape == (9, 128)

@@ -19,6 +19,7 @@ exactly classic single-focal-plane light field rendering.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from functools import lru_cache
 from pathlib import Path
 
 import numpy as np
@@ -143,15 +144,21 @@ def colour_start_path(name: str) -> Path:
     return STARTS / f"{name}.npz"
 
 
+@lru_cache(maxsize=None)
+def _read_colour_start(path: Path) -> dict[str, torch.Tensor]:
+    """The start's weights, read once per process (every field built, a loaded model's too, asks)."""
+    if not path.is_file():
+        raise NeulfError(f"the colour decoder's start '{path.stem}' is not in {path.parent}: this installation of "
+                         "neulf is incomplete; install it again (pip install -e . in the project, or the Blender "
+                         "extension's zip).")
+    with np.load(path) as start:
+        return {key: torch.from_numpy(start[key]) for key in start.files if not key.startswith("meta")}
+
+
 def load_colour_start(decoder: nn.Sequential, name: str) -> bool:
     """Copy the packaged start `name` into `decoder` where every weight has the start's shape;
     returns whether it did (a decoder of another shape keeps its random start)."""
-    path = colour_start_path(name)
-    if not path.is_file():
-        raise NeulfError(f"the colour decoder's start '{name}' is not in {STARTS}: this installation of neulf is "
-                         "incomplete; install it again (pip install -e . in the project, or the Blender extension's zip).")
-    with np.load(path) as start:
-        weights = {key: torch.from_numpy(start[key]) for key in start.files if not key.startswith("meta")}
+    weights = _read_colour_start(colour_start_path(name))
     own = dict(decoder.named_parameters())
     if set(weights) != set(own) or any(weights[k].shape != own[k].shape for k in own):
         return False
