@@ -27,7 +27,9 @@ by side, one core each), and its runs stay out of the seed-spread target. Synthe
 `<cache>/runs.jsonl` and reused on the next call (`--fresh` ignores them). A run's key is its
 configuration, not the code: after a change of the default's rules (depth layers, the
 multi-view losses, coarse to fine, which each row records as `multiview_losses` and
-`coarse_to_fine_used`), delete the rows it affects.
+`coarse_to_fine_used`), delete the rows it affects.  The one exception: a row whose sweep pull
+faded otherwise than teacher.teacher_fade now gives its photo count (`sweep_fade`) is run again
+by itself.
 
 Writes docs/stability.csv (one row per run), docs/stability.png and the generated tables in
 docs/STABILITY.md (between the `stability tables` markers; the prose around them is kept).
@@ -64,6 +66,7 @@ from neulf_core.poses import POSE_CHECK_DEGREES, POSE_CHECK_SETTLED, POSE_CHECK_
 from neulf_core.presets import get_preset  # noqa: E402
 from neulf_core.render import LightField  # noqa: E402
 from neulf_core.scene import Scene, View, camera_spacing, find_model_dir, load_scene, scaled_size, split_views  # noqa: E402
+from neulf_core.teacher import TEACHER_FADE, teacher_fade  # noqa: E402
 from neulf_core.train import (COARSE_TO_FINE_MAX_VIEWS, CONSISTENCY_MAX_VIEWS, FAR_OFF_POSE_DEGREES,  # noqa: E402
                               LOSSES_MIN_PASSES, SHALLOW_CONSISTENCY_MAX_VIEWS, SHALLOW_LOSSES_MIN_PASSES, TrainConfig,
                               losses_by_default, train)
@@ -354,6 +357,24 @@ def train_config(job: Job, held: list[View]) -> TrainConfig:
     return TrainConfig(**options)
 
 
+def sweep_fade(preset: str, n_train_views: int) -> float | None:
+    """The share of the budget over which the sweep's depth pull fades for this many training
+    photos (teacher.teacher_fade); None for a preset without the sweep."""
+    return teacher_fade(n_train_views) if get_preset(preset).teacher else None
+
+
+def trained_with_another_fade(row: dict) -> bool:
+    """Whether a logged run's sweep pull faded otherwise than the code now fades it for its
+    photo count (rows logged before the fade depended on it faded over TEACHER_FADE): the
+    study runs it again instead of reporting a default that no longer exists."""
+    if not row.get("train_views"):
+        return False
+    logged = row.get("sweep_fade")  # None too where the committed CSV started the log
+    if logged is None and get_preset(row["preset"]).teacher:
+        logged = TEACHER_FADE
+    return logged != sweep_fade(row["preset"], row["train_views"])
+
+
 def run_job(job: Job, threads: int = 1) -> dict:
     """Train and score one configuration; never raises (a crash is a result too)."""
     torch.set_num_threads(threads)
@@ -370,7 +391,7 @@ def run_job(job: Job, threads: int = 1) -> dict:
 
     try:
         scene, train_views, held = prepare(job)
-        row.update(train_views=len(train_views), held_out=len(held))
+        row.update(train_views=len(train_views), held_out=len(held), sweep_fade=sweep_fade(job.preset, len(train_views)))
         with tempfile.TemporaryDirectory(prefix="neulf_stability_") as model_dir:
             result = train(scene, model_dir, train_config(job, held), progress=progress)
             row.update(steps_done=result.step, train_seconds=round(result.elapsed, 2))
@@ -923,7 +944,7 @@ def update_markdown(path: Path, tables: str) -> None:
 CSV_COLUMNS = ["scene", "preset", "fraction", "pose_degrees", "appearance", "refine_poses", "consistency", "minutes",
                "coarse_to_fine", "colour_start", "coarse_to_fine_used", "appearance_used", "appearance_default", "exposure_difference_stops",
                "pose_check_refining", "pose_check_degrees", "pose_check_halfway", "field_restarted",
-               "deep_scene", "multiview_losses", "seed", "status", "psnr", "ssim",
+               "sweep_fade", "deep_scene", "multiview_losses", "seed", "status", "psnr", "ssim",
                "psnr_matched", "psnr_half_fit", "psnr_pose_fitted", "pose_fit_degrees", "psnr_per_view", "train_views", "held_out", "steps", "steps_done", "train_seconds",
                "wall_seconds", "warnings", "warning_text", "nonfinite_pixels", "error", "scale", "path", "truth"]
 
@@ -1067,7 +1088,7 @@ def load_log(log: Path) -> dict:
     if log.is_file():
         for line in log.read_text().splitlines():
             row = json.loads(line)
-            if row.get("status") in ("finished", "crashed"):
+            if row.get("status") in ("finished", "crashed") and not trained_with_another_fade(row):
                 if "pose_check_refining" not in row:  # logged before the pose check: trained without refinement
                     row.setdefault("refine_poses", False)  # unless it says so
                     if row["refine_poses"] is False and not row.get("minutes") and row["steps"] < 2 * POSE_CHECK_STEP:

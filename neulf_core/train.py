@@ -31,7 +31,7 @@ from .poses import POSE_CHECK_STEP, PoseRefinement
 from .presets import APPEARANCE_ADAM_BETA2, APPEARANCE_GEOMETRY, DEFAULT_PRESET, get_preset
 from .scene import Scene, load_scene, scaled_size, split_views
 from .slab import Slab, fit_slab
-from .teacher import TEACHER_FADE, strong_pull, sweep_depth_targets, teacher_loss, teacher_weight
+from .teacher import strong_pull, sweep_depth_targets, teacher_fade, teacher_loss, teacher_weight
 
 VALIDATION_RAYS = 1 << 16
 # The paper's loss weights: L = L_p + 0.5 L_mp + 0.1 L_d.
@@ -776,7 +776,7 @@ def _teacher_inputs(train_views, slab: Slab, config: TrainConfig, preset, device
     wanted = preset.teacher if config.teacher is None else config.teacher
     if not wanted or len(train_views) < 2:
         return None, 0.0
-    if resumed and config.budget_fraction(resumed["progress"]["step"], resumed["progress"]["elapsed"]) >= TEACHER_FADE:
+    if resumed and config.budget_fraction(resumed["progress"]["step"], resumed["progress"]["elapsed"]) >= teacher_fade(len(train_views)):
         return None, 0.0
     started = time.monotonic()
     targets = sweep_depth_targets(train_views, slab, config.scale, device,

@@ -211,3 +211,24 @@ def test_a_new_default_colour_start_re_runs_the_default_and_old_rows_stand_until
     assert stability.train_config(stability.replace(job, colour_start="random"), held).field_overrides == {"colour_start": ""}
     paper = stability.Job("tiny", "a", "a", 1.0, "paper", 100, 0, colour_start=stability.preset_colour_start("paper"))
     assert paper.colour_start == "random" and stability.train_config(paper, held).field_overrides == {}
+
+
+def test_a_run_whose_sweep_faded_otherwise_than_now_is_run_again(stability, tmp_path):
+    """Rows logged before the fade depended on the photo count faded over TEACHER_FADE: a
+    run of few photos is trained again, one of more photos and the paper's network (no sweep)
+    stand, whether the row came from the log or from the committed CSV (no value: '')."""
+    from neulf_core.teacher import TEACHER_FADE, TEACHER_FEW_VIEWS, teacher_fade
+
+    few, more = TEACHER_FEW_VIEWS, TEACHER_FEW_VIEWS + 1
+    assert teacher_fade(few) != TEACHER_FADE == teacher_fade(more)
+    jobs = {(preset, n): stability.Job(f"tiny{n}", "a", "a", 1.0, preset, 1000, 0) for preset in ("fast", "paper") for n in (few, more)}
+    log = tmp_path / "runs.jsonl"
+    for fade in ({}, {"sweep_fade": None}):  # logged before the field, or read back from the CSV
+        log.write_text("".join(json.dumps({**stability.asdict(job), "train_views": n, "status": "finished", "psnr": 30.0, **fade}) + "\n"
+                               for (_, n), job in jobs.items()))
+        done = stability.load_log(log)
+        assert {key for key, job in jobs.items() if job.key in done} == {("fast", more), ("paper", few), ("paper", more)}
+    assert stability.sweep_fade("fast", few) == teacher_fade(few) and stability.sweep_fade("paper", few) is None
+    log.write_text(json.dumps({**stability.asdict(jobs["fast", few]), "train_views": few, "status": "finished",
+                               "sweep_fade": teacher_fade(few)}) + "\n")  # trained since: stands
+    assert jobs["fast", few].key in stability.load_log(log)

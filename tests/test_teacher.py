@@ -14,7 +14,8 @@ from neulf_core.rays import view_rays
 from neulf_core.scene import load_scene, split_views
 from neulf_core.slab import fit_slab
 from neulf_core import teacher
-from neulf_core.teacher import TEACHER_FADE, TEACHER_FULL_VIEWS, sweep_depth_targets, teacher_weight
+from neulf_core.teacher import (TEACHER_FADE, TEACHER_FADE_FEW, TEACHER_FEW_VIEWS, TEACHER_FULL_VIEWS, sweep_depth_targets,
+                                teacher_fade, teacher_weight)
 from neulf_core.train import TrainConfig, train
 
 
@@ -52,7 +53,34 @@ def test_the_pull_fades_out_halfway():
 def test_the_pull_strengthens_for_sparse_captures_only():
     assert teacher_weight(0.0, 4) == pytest.approx(teacher_weight(0.0) * TEACHER_FULL_VIEWS / 4)
     assert teacher_weight(0.0, TEACHER_FULL_VIEWS) == teacher_weight(0.0, 80) == teacher_weight(0.0)
-    assert teacher_weight(TEACHER_FADE, 4) == 0
+    assert teacher_weight(TEACHER_FADE_FEW, 4) == 0
+
+
+def test_the_pull_lasts_longer_for_the_fewest_photos():
+    assert TEACHER_FADE_FEW > TEACHER_FADE
+    few, more = TEACHER_FEW_VIEWS, TEACHER_FEW_VIEWS + 1
+    assert teacher_fade(few) == TEACHER_FADE_FEW and teacher_fade(2) == TEACHER_FADE_FEW
+    assert teacher_fade(more) == teacher_fade(80) == TEACHER_FADE
+    assert teacher_weight(TEACHER_FADE, few) > 0 and teacher_weight(TEACHER_FADE, more) == 0
+    for strong in (False, True):  # halfway through its own fade, either pull is at half its start
+        assert teacher_weight(TEACHER_FADE_FEW / 2, few, strong) == pytest.approx(teacher_weight(0.0, few, strong) / 2)
+
+
+def test_a_resumed_run_sweeps_again_while_its_own_fade_lasts(tiny_scene, tmp_path, monkeypatch):
+    """Resumed at a third of its budget, a run of at most TEACHER_FEW_VIEWS photos is still in
+    its pull's part of the budget and sweeps again; one with more photos is past it."""
+    monkeypatch.setattr(teacher, "SWEEP_SCALE", 1.0)
+    names = sorted(p.name for p in (tiny_scene / "images").iterdir())
+    for kept, sweeps in ((TEACHER_FEW_VIEWS, True), (TEACHER_FEW_VIEWS + 1, False)):
+        exclude = names[kept:]  # the last views: the held-out rule then leaves `kept` to train on
+        out, events = tmp_path / f"m{kept}", []
+        options = dict(batch_size=256, teacher=True, exclude=exclude, validate_seconds=1e9, checkpoint_seconds=1e9)
+        train(tiny_scene, out, TrainConfig(steps=10, **options))
+        train(tiny_scene, out, TrainConfig(steps=30, **options), resume=True, progress=events.append)
+        swept = [e for e in events if "sweep depth of" in e.get("message", "")]
+        assert bool(swept) == sweeps, kept
+        if swept:
+            assert swept[-1]["total"] == kept
 
 
 def test_the_strong_pull_unless_dense_or_exposures_differ():
