@@ -10,11 +10,12 @@ import bpy
 import numpy as np
 from bpy.props import FloatProperty, IntProperty, StringProperty
 
-from . import capture, jobs, tasks
+from . import capture, handlers, jobs, tasks
 from .jobs import job_status_text, pose_text
 from .preferences import get_core, get_prefs, worker_python
 from .properties import CHOICE_OPTION
 from ..neulf_core.errors import NeulfError
+from ..neulf_core.lock import training_holder
 
 RENDER_IMAGE = "NeuLF Render"
 DEPTH_IMAGE = "NeuLF Depth"
@@ -70,6 +71,14 @@ def model_status(meta: dict) -> str:
     return progress_text(meta.get("progress", {})) + pose_text(meta.get("pose_corrections"))
 
 
+def trained_elsewhere_text(owner: dict, progress: dict) -> str:
+    """The panel's line while another process (a training an earlier Blender started, or one
+    from a terminal) trains the model folder: Train would be refused until it stops."""
+    at = f" at step {progress['step']}" if "step" in progress else ""
+    return (f"being trained by another process (pid {owner['pid']} on {owner['host']}){at}; "
+            "when it stops, Train continues it")
+
+
 def refresh_model_status(scene) -> str:
     """The scene's `last_status` (shown in the panel) from its model folder, e.g. when a .blend
     is opened after Blender quit during training: the folder, not the .blend, knows how far
@@ -85,6 +94,11 @@ def refresh_model_status(scene) -> str:
         props.last_status = f"model folder not found: {path}; move it back or use Load Model"
         return props.last_status
     meta = read_model_json(path)
+    owner = training_holder(path)
+    if owner is not None:  # e.g. the .blend reopened while the training Blender left behind saves
+        props.last_status = trained_elsewhere_text(owner, meta.get("progress", {}))
+        handlers.watch_other_trainings()  # the panel follows it and says when it has stopped
+        return props.last_status
     if not meta or not (Path(path) / "checkpoint.pt").is_file():
         props.last_status = f"no checkpoint in {path} yet; Train starts the model"
         return props.last_status
@@ -251,6 +265,11 @@ def start_training(context, *, minutes=None, steps=None):
     if not scene_dir:
         raise NeulfError("import a capture first (NeuLF > Import), then train.")
     out = abspath(props.model_dir) or str(Path(scene_dir) / "neulf_model")
+    owner = training_holder(out)
+    if owner is not None:  # its checkpoints would overwrite ours, and the step to continue from is not known yet
+        raise NeulfError(f"{out} is still being trained by process {owner['pid']} on {owner['host']} (started before, "
+                         "perhaps by a Blender that closed): wait until the panel says it stopped, then press Train "
+                         "to continue it.")
     resume = (Path(out) / "checkpoint.pt").is_file()
     resumed_from = None
     if resume:  # budgets count from the start of training: add to what is done

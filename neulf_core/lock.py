@@ -54,6 +54,13 @@ def _holder(path: Path) -> dict | None:
     return owner if _process_alive(pid) else None
 
 
+def training_holder(model_dir: Path) -> dict | None:
+    """The process training MODEL_DIR now ({"pid", "host", "started"}), or None.  Lets a caller
+    (Blender reopened after a crash) say that a training still runs before it starts one."""
+    path = Path(model_dir) / LOCK_NAME
+    return _holder(path) if path.is_file() else None
+
+
 def _try_create(path: Path) -> bool:
     try:
         fd = os.open(path, os.O_CREAT | os.O_EXCL | os.O_WRONLY)

@@ -99,10 +99,7 @@ CASES = [
         f"{CKPT}::test_cancel_then_resume_equals_straight_training"]),
     Case("Blender quit while training, then reopened: the model and its progress are found again", [
         f"{STORY}[quit_while_training]", f"{REL}::test_reader_of_progress_goes_away",
-        f"{REL}::test_a_second_training_of_the_same_model_folder_is_refused"],
-        gap="the story reopens the .blend after the orphaned training process has ended (it saves within a step of "
-            "Blender going away); a second training of a folder still being trained is refused (training.lock, "
-            "tested in the core), but not pressed from a reopened Blender"),
+        f"{REL}::test_a_second_training_of_the_same_model_folder_is_refused"]),
     Case("A render much larger than memory allows: chunking keeps peak memory bounded", [
         f"{REL}::test_large_render_has_bounded_peak_memory"]),
     Case("The .blend saved and reopened elsewhere: model paths are relative and resolve", [

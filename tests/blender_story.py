@@ -672,6 +672,26 @@ def run_story(setup: dict) -> None:  # noqa: C901 - one story, told in order
                 f"'{result['status']}', render equal within {diff * 255:.1f}/255; without the model folder: "
                 f"{missing.strip()}")
 
+    def reopened_while_trained_elsewhere(blend: Path, folder: Path) -> str:
+        # The .blend opened while another process still trains its model folder (as the training
+        # a crashed Blender leaves behind does until it has saved; here one started from a
+        # terminal, which runs until stopped): the panel says so and follows it, Train is refused
+        # in one line instead of a second training overwriting the first's checkpoints, and once
+        # that process has stopped the panel says Train continues the model.
+        busy = child("reopen_busy", blend=str(blend), scene_dir=str(scene_dir), model=str(folder))
+        pid = busy["other_pid"]
+        assert busy["status_on_open"].startswith(f"being trained by another process (pid {pid} on "), busy
+        assert busy["status_on_open"].endswith("when it stops, Train continues it"), busy["status_on_open"]
+        refused = busy["refused"]
+        assert refused.startswith("Error:") and f"still being trained by process {pid}" in refused, refused
+        assert "Traceback" not in refused and refused.strip().count("\n") == 0, refused
+        assert busy["tick_while_busy"] == mod("handlers").WATCH_INTERVAL and busy["tick_after"] is None, busy
+        assert busy["steps_followed"][1] > busy["steps_followed"][0], busy["steps_followed"]  # the panel follows it
+        stopped = json.loads((folder / "model.json").read_text())["progress"]
+        assert busy["status_after"].startswith(f"stopped at step {stopped['step']} (checkpoint saved)"), busy
+        return (f"reopened while process {pid} trained the folder: '{busy['status_on_open']}'; Train: "
+                f"{refused.strip()}; once it stopped: '{busy['status_after']}'")
+
     @story.step("quit_while_training", "install")
     def _():
         # Blender started, a capture imported and saved, Train pressed (the UI's timer path), the
@@ -689,6 +709,8 @@ def run_story(setup: dict) -> None:  # noqa: C901 - one story, told in order
             assert (a["exit"] == 0) if how == "quit" else (a["exit"] != 0), (how, a["exit"])
             assert wait_gone(a["worker_pid"], 120), \
                 f"the training process {a['worker_pid']} still runs 120 s after Blender went away"
+            if how == "kill":
+                busy_text = reopened_while_trained_elsewhere(blend, quit_model)
             found = json.loads((quit_model / "model.json").read_text())["progress"]
             assert found["step"] >= a["step"], (found, a["step"])  # no step that Blender saw is lost
             b = child("reopen_b", blend=str(blend), train=how == "kill")
@@ -707,7 +729,7 @@ def run_story(setup: dict) -> None:  # noqa: C901 - one story, told in order
         # (a short run that ends before the pose check is checked at its end: the status says so)
         assert resumed in b["report"] and b["last_status"].startswith(resumed), (b["report"], b["last_status"])
         return (f"Blender {', '.join(gone)} (the .blend, saved while training, says '{', '.join(saved)}'); reopened, "
-                f"the panel reads the model folder: '{opened}'; Train: {resumed}")
+                f"the panel reads the model folder: '{opened}'; Train: {resumed}; {busy_text}")
 
     @story.step("reconstruct_photos", "install")
     def _():
@@ -895,11 +917,56 @@ def run_session(setup: dict) -> dict:
                 result["report"] = reports_of(lambda: bpy.ops.neulf.train(steps=10))  # Train pressed again
                 result.update(argv=mod("tasks").get("train").argv, last_status=props.last_status,
                               progress=json.loads((Path(result["resolved"]) / "model.json").read_text())["progress"])
+        elif session == "reopen_busy":
+            result.update(reopen_while_trained_elsewhere(setup, mod))
         else:
             raise ValueError(f"unknown session {session}")
     except BaseException:  # noqa: BLE001 - reported to the story's step
         result["error"] = traceback.format_exc()
     out.write_text(json.dumps(result, default=str))
+    return result
+
+
+def reopen_while_trained_elsewhere(setup: dict, mod) -> dict:
+    """Session: another process trains the model folder (started here, so that this process can
+    stop and reap it) while the .blend is opened and Train pressed; then it is stopped."""
+    import re
+    import signal
+    import subprocess
+
+    import bpy
+
+    log = Path(setup["out"]).with_suffix(".train.log")
+    with log.open("w") as out:
+        other = subprocess.Popen(
+            [setup.get("worker_python") or sys.executable, "-m", "neulf_core", "train", setup["scene_dir"],
+             "--out", setup["model"], "--resume", "--steps", "1000000", "--progress", "json", "--checkpoint-seconds", "2"],
+            env=mod("jobs").core_environment(), stdout=out, stderr=subprocess.STDOUT)
+    try:
+        def steps_logged():
+            return [int(n) for n in re.findall(r'"step": (\d+)', log.read_text())]
+
+        deadline = time.monotonic() + 180
+        while len(steps_logged()) < 2 and other.poll() is None and time.monotonic() < deadline:
+            time.sleep(0.1)
+        assert len(steps_logged()) >= 2, log.read_text()[-2000:]  # it trains: it holds the lock
+        bpy.ops.wm.open_mainfile(filepath=setup["blend"])
+        props = bpy.context.scene.neulf
+        result = {"other_pid": other.pid, "status_on_open": props.last_status}
+        result["refused"] = error_of(lambda: bpy.ops.neulf.train(steps=10))
+        first = json.loads((Path(setup["model"]) / "model.json").read_text())["progress"]["step"]
+        deadline = time.monotonic() + 60  # its next periodic checkpoint (every 2 s here)
+        while (json.loads((Path(setup["model"]) / "model.json").read_text())["progress"]["step"] == first
+               and time.monotonic() < deadline):
+            time.sleep(0.5)
+        result["tick_while_busy"] = mod("handlers").other_training_tick()  # what the panel's timer runs
+        later = int(re.search(r"at step (\d+)", props.last_status).group(1))
+        result["steps_followed"] = [first, later]
+    finally:
+        other.send_signal(signal.SIGTERM)  # the user stops it (Ctrl-C in its terminal): it saves and exits
+        other.wait(120)
+    result["tick_after"] = mod("handlers").other_training_tick()
+    result["status_after"] = props.last_status
     return result
 
 

@@ -649,7 +649,7 @@ def test_a_second_training_of_the_same_model_folder_is_refused(tiny_scene, tmp_p
     """Two processes must not write one checkpoint: the second is refused and names the first;
     a lock left by a process that no longer exists is taken over."""
     from neulf_core.errors import NeulfError
-    from neulf_core.lock import LOCK_NAME, training_lock
+    from neulf_core.lock import LOCK_NAME, training_holder, training_lock
     from neulf_core.train import TrainConfig, train
 
     model = tmp_path / "m"
@@ -659,11 +659,13 @@ def test_a_second_training_of_the_same_model_folder_is_refused(tiny_scene, tmp_p
     try:
         model.mkdir()
         (model / LOCK_NAME).write_text(json.dumps({"pid": sleeper.pid, "host": platform.node()}))
+        assert training_holder(model)["pid"] == sleeper.pid  # what Blender asks before it starts one
         with pytest.raises(NeulfError, match=f"being trained by process {sleeper.pid}"):
             train(tiny_scene, model, config)
     finally:
         sleeper.kill()
         sleeper.wait()
+    assert training_holder(model) is None  # a lock whose process is gone holds nothing
     result = train(tiny_scene, model, config)  # the holder is gone: its lock is taken over
     assert result.step == 2 and not (model / LOCK_NAME).exists()
     with training_lock(tmp_path / "held"):
