@@ -44,6 +44,7 @@ import json
 import math
 import os
 import platform
+import re
 import subprocess
 import sys
 import tempfile
@@ -1056,6 +1057,15 @@ def machine() -> str:
     return f"{cpu}, {os.cpu_count()} cores, torch {torch.__version__}, 1 torch thread per run"
 
 
+def previous_generation(markdown: Path) -> dict | None:
+    """The date and machine of the tables' last training run, from their header in `markdown`."""
+    try:
+        found = re.search(r"^Generated (\S+) on (.+?); fast: ", markdown.read_text(), re.MULTILINE)
+    except OSError:
+        return None
+    return {"date": found.group(1), "machine": found.group(2)} if found else None
+
+
 def csv_value(text: str):
     """A value of docs/stability.csv as it was logged: '' is None, then bool, int, float, text."""
     if text == "":
@@ -1163,7 +1173,10 @@ def main(argv=None) -> None:
         rows = report_rows(done, jobs)
     else:
         rows = run_jobs(jobs, args.workers, done, log)
-    meta = {"date": date.today().isoformat(), "machine": machine(), "fast_steps": args.fast_steps,
+    generated = {"date": date.today().isoformat(), "machine": machine()}
+    if args.report_only:  # nothing trained here: the header keeps the machine and date the runs came from
+        generated = previous_generation(args.docs / "STABILITY.md") or generated
+    meta = {**generated, "fast_steps": args.fast_steps,
             "paper_steps": args.paper_steps, "seeds": args.seeds, "losses_minutes": args.losses_minutes,
             "losses_seeds": args.losses_seeds}
     print(write_outputs(rows, args.docs, meta))

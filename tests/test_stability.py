@@ -103,6 +103,9 @@ def test_study_runs_end_to_end(stability, tiny_scene, tmp_path, monkeypatch):
     assert stability.seed_log_from_csv(fresh_log, tmp_path / "docs" / "stability.csv") == 0  # never overwritten
     markdown = (tmp_path / "docs" / "STABILITY.md").read_text()
     assert stability.MARKER_BEGIN in markdown and tables in markdown
+    # --report-only trains nothing: its header keeps the machine and date the runs came from.
+    assert stability.previous_generation(tmp_path / "docs" / "STABILITY.md") == {"date": "2026-11-21", "machine": "test"}
+    assert stability.previous_generation(tmp_path / "no_such.md") is None
     timed = [r for r in rows if r["minutes"]]
     # Each ran for its 3 seconds, or stopped earlier after 100 passes over its 4 small photos.
     from conftest import TINY_HEIGHT, TINY_WIDTH
