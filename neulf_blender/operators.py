@@ -15,7 +15,7 @@ from .jobs import job_status_text, pose_text
 from .preferences import get_core, get_prefs, worker_python
 from .properties import CHOICE_OPTION
 from ..neulf_core.errors import NeulfError
-from ..neulf_core.lock import training_holder
+from ..neulf_core.lock import being_trained_message, training_holder
 
 RENDER_IMAGE = "NeuLF Render"
 DEPTH_IMAGE = "NeuLF Depth"
@@ -267,9 +267,9 @@ def start_training(context, *, minutes=None, steps=None):
     out = abspath(props.model_dir) or str(Path(scene_dir) / "neulf_model")
     owner = training_holder(out)
     if owner is not None:  # its checkpoints would overwrite ours, and the step to continue from is not known yet
-        raise NeulfError(f"{out} is still being trained by process {owner['pid']} on {owner['host']} (started before, "
-                         "perhaps by a Blender that closed): wait until the panel says it stopped, then press Train "
-                         "to continue it.")
+        raise NeulfError(being_trained_message(out, owner, "it was started before, perhaps by a Blender that closed: "
+                                                             "wait until the panel says it stopped, then press Train "
+                                                             "to continue it"))
     resume = (Path(out) / "checkpoint.pt").is_file()
     resumed_from = None
     if resume:  # budgets count from the start of training: add to what is done

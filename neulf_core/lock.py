@@ -61,6 +61,14 @@ def training_holder(model_dir: Path) -> dict | None:
     return _holder(path) if path.is_file() else None
 
 
+def being_trained_message(model_dir: Path, owner: dict, what_next: str) -> str:
+    """One line: who trains MODEL_DIR, `what_next` to do, and, where the owner runs on another
+    machine (a shared folder: its process cannot be checked), how to free a lock it left."""
+    path = Path(model_dir) / LOCK_NAME
+    gone = f" (if that process is gone, delete {path})" if owner["host"] != platform.node() else ""
+    return f"{model_dir} is being trained by process {owner['pid']} on {owner['host']}; {what_next}{gone}."
+
+
 def _try_create(path: Path) -> bool:
     try:
         fd = os.open(path, os.O_CREAT | os.O_EXCL | os.O_WRONLY)
@@ -83,9 +91,7 @@ def training_lock(model_dir: Path):
         while not _try_create(path):
             owner = _holder(path)
             if owner is not None:
-                raise NeulfError(
-                    f"{model_dir} is being trained by process {owner['pid']} on {owner['host']}; wait for it to finish "
-                    f"or stop it, then resume (if that process is gone, delete {path}).")
+                raise NeulfError(being_trained_message(model_dir, owner, "wait for it to finish or stop it, then resume"))
             with contextlib.suppress(FileNotFoundError):
                 path.unlink()  # stale: its process is gone
         try:

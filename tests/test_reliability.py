@@ -15,6 +15,7 @@ import ast
 import json
 import os
 import platform
+import re
 import shutil
 import signal
 import socket
@@ -666,6 +667,12 @@ def test_a_second_training_of_the_same_model_folder_is_refused(tiny_scene, tmp_p
         sleeper.kill()
         sleeper.wait()
     assert training_holder(model) is None  # a lock whose process is gone holds nothing
+    # A lock from another machine (a shared folder) cannot be checked: it holds, and the
+    # message says which file to delete if that machine no longer trains the folder.
+    (model / LOCK_NAME).write_text(json.dumps({"pid": 1, "host": "another-machine"}))
+    with pytest.raises(NeulfError, match=f"on another-machine; .* delete {re.escape(str(model / LOCK_NAME))}"):
+        train(tiny_scene, model, config)
+    (model / LOCK_NAME).unlink()
     result = train(tiny_scene, model, config)  # the holder is gone: its lock is taken over
     assert result.step == 2 and not (model / LOCK_NAME).exists()
     with training_lock(tmp_path / "held"):
