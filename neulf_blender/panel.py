@@ -1,8 +1,27 @@
 """The N-panel (3D viewport > sidebar > NeuLF): capture, training, rendering."""
 
+import textwrap
+
 import bpy
 
 from . import tasks
+
+CHARS_PER_PIXEL = 1 / 7.0  # the UI font's average advance at 1x scale, for wrapping labels
+
+
+def wrapped_lines(text: str, width_px: float, ui_scale: float = 1.0) -> list[str]:
+    """`text` cut into lines that fit a panel `width_px` wide (a label does not wrap by itself,
+    and the status lines -- pose corrections, another process training the folder -- are long)."""
+    chars = max(20, int((width_px - 30) * CHARS_PER_PIXEL / max(ui_scale, 0.1)))
+    return textwrap.wrap(text, chars) or [""]
+
+
+def _wrapped_label(layout, context, text: str, icon: str = "NONE"):
+    region = context.region
+    width = region.width if region is not None else 300
+    column = layout.column(align=True)
+    for number, line in enumerate(wrapped_lines(text, width, context.preferences.system.ui_scale)):
+        column.label(text=line, icon=icon if number == 0 else "BLANK1")
 
 
 def _job_box(layout, job, label: str, cancel_op: str | None = None):
@@ -39,7 +58,7 @@ class NEULF_PT_main(bpy.types.Panel):
         if recon is not None and recon.running:
             _job_box(layout, recon, "Reconstructing")
         elif recon is not None and recon.state["status"] == "failed":
-            layout.label(text=f"Reconstruction failed: {recon.state['error']}"[:120], icon="ERROR")
+            _wrapped_label(layout, context, f"Reconstruction failed: {recon.state['error']}", icon="ERROR")
         if props.scene_dir:
             layout.label(text=bpy.path.basename(props.scene_dir.rstrip("/\\")) or props.scene_dir, icon="FILE_FOLDER")
         layout.operator("neulf.use_capture_camera", icon="VIEW_CAMERA")
@@ -66,10 +85,12 @@ class NEULF_PT_main(bpy.types.Panel):
             label = "Continue Training" if props.model_dir else "Train NeuLF"
             layout.operator("neulf.train", text=label, icon="PLAY")
             if train is not None and train.state["status"] == "failed":
-                layout.label(text=f"Failed: {train.state['error']}"[:120], icon="ERROR")
+                _wrapped_label(layout, context, f"Failed: {train.state['error']}", icon="ERROR")
         if props.last_status:
             psnr = f", val {props.last_psnr:.2f} dB" if props.last_psnr else ""
-            layout.label(text=f"Last: {props.last_status}{psnr}")
+            elsewhere = props.last_status.startswith("being trained by another process")
+            _wrapped_label(layout, context, f"{'' if elsewhere else 'Last: '}{props.last_status}{psnr}",
+                           icon="TIME" if elsewhere else "NONE")
 
         layout.separator()
         col = layout.column(align=True)

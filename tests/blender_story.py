@@ -682,6 +682,8 @@ def run_story(setup: dict) -> None:  # noqa: C901 - one story, told in order
         pid = busy["other_pid"]
         assert busy["status_on_open"].startswith(f"being trained by another process (pid {pid} on "), busy
         assert busy["status_on_open"].endswith("when it stops, Train continues it"), busy["status_on_open"]
+        lines = busy["panel_lines"]  # the panel wraps the long line instead of cutting it off
+        assert len(lines) > 1 and " ".join(lines) == busy["status_on_open"] and max(map(len, lines)) <= 38, lines
         refused = busy["refused"]
         assert refused.startswith("Error:") and f"is being trained by process {pid}" in refused, refused
         assert "Traceback" not in refused and refused.strip().count("\n") == 0, refused
@@ -952,7 +954,8 @@ def reopen_while_trained_elsewhere(setup: dict, mod) -> dict:
         assert len(steps_logged()) >= 2, log.read_text()[-2000:]  # it trains: it holds the lock
         bpy.ops.wm.open_mainfile(filepath=setup["blend"])
         props = bpy.context.scene.neulf
-        result = {"other_pid": other.pid, "status_on_open": props.last_status}
+        result = {"other_pid": other.pid, "status_on_open": props.last_status,
+                  "panel_lines": mod("panel").wrapped_lines(props.last_status, 300)}  # a narrow N-panel
         result["refused"] = error_of(lambda: bpy.ops.neulf.train(steps=10))
         first = json.loads((Path(setup["model"]) / "model.json").read_text())["progress"]["step"]
         deadline = time.monotonic() + 60  # its next periodic checkpoint (every 2 s here)
