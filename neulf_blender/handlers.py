@@ -27,13 +27,13 @@ WATCH_INTERVAL = 2.0
 def other_training_tick():
     """Timer: re-read the status of every scene whose model folder another process trains; the
     panel follows that training and, once it has stopped, says that Train continues it."""
-    from .operators import refresh_model_status
+    from .operators import TRAINED_ELSEWHERE, refresh_model_status
 
     busy = False
     for scene in bpy.data.scenes:
         try:
             if scene.neulf.model_dir:
-                busy |= refresh_model_status(scene).startswith("being trained by another process")
+                busy |= refresh_model_status(scene).startswith(TRAINED_ELSEWHERE)
         except Exception as exc:  # noqa: BLE001 - a timer must not raise
             print(f"NeuLF: cannot read the model status of scene {scene.name!r}: {exc}")
     for window in bpy.context.window_manager.windows:

@@ -71,12 +71,14 @@ def model_status(meta: dict) -> str:
     return progress_text(meta.get("progress", {})) + pose_text(meta.get("pose_corrections"))
 
 
+TRAINED_ELSEWHERE = "being trained by another process"  # how the panel's line starts (see below)
+
+
 def trained_elsewhere_text(owner: dict, progress: dict) -> str:
     """The panel's line while another process (a training an earlier Blender started, or one
     from a terminal) trains the model folder: Train would be refused until it stops."""
     at = f" at step {progress['step']}" if "step" in progress else ""
-    return (f"being trained by another process (pid {owner['pid']} on {owner['host']}){at}; "
-            "when it stops, Train continues it")
+    return f"{TRAINED_ELSEWHERE} (pid {owner['pid']} on {owner['host']}){at}; when it stops, Train continues it"
 
 
 def refresh_model_status(scene) -> str:

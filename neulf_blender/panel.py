@@ -5,6 +5,7 @@ import textwrap
 import bpy
 
 from . import tasks
+from .operators import TRAINED_ELSEWHERE
 
 CHARS_PER_PIXEL = 1 / 7.0  # the UI font's average advance at 1x scale, for wrapping labels
 
@@ -88,7 +89,7 @@ class NEULF_PT_main(bpy.types.Panel):
                 _wrapped_label(layout, context, f"Failed: {train.state['error']}", icon="ERROR")
         if props.last_status:
             psnr = f", val {props.last_psnr:.2f} dB" if props.last_psnr else ""
-            elsewhere = props.last_status.startswith("being trained by another process")
+            elsewhere = props.last_status.startswith(TRAINED_ELSEWHERE)
             _wrapped_label(layout, context, f"{'' if elsewhere else 'Last: '}{props.last_status}{psnr}",
                            icon="TIME" if elsewhere else "NONE")
 

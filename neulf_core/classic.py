@@ -86,7 +86,7 @@ class ClassicLightField:
         """Colours (k, 3, N) and visibility (k, N) of world points (N, 3) in photos `index`
         (`photos`: those photos as floats in [0, 1], converted once per render, not per depth).
         Channels first, as grid_sample writes them: the sweep's arithmetic then runs along the
-        N contiguous pixels (with (k, N, 3) views it took 2.5 times as long)."""
+        N contiguous pixels (with (k, N, 3) views the whole sweep took a third longer)."""
         cam = torch.einsum("kij,nj->kni", self.R[index], points) + self.t[index][:, None]
         z = cam[..., 2].clamp_min(1e-6)
         pix = torch.einsum("kij,knj->kni", self.K[index], cam / z[..., None])[..., :2]
