@@ -23,6 +23,8 @@ import tempfile
 from datetime import date
 from pathlib import Path
 
+import torch
+
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO / "benchmarks"))
 
@@ -79,8 +81,6 @@ def main(argv=None) -> None:
     medians = {v: statistics.median(r["ms_per_step"] for r in rows if r["variant"] == v) for v in VARIANTS}
     print(f"median ms per step: fused {medians['fused']:.1f}, loop {medians['loop']:.1f} "
           f"(fused / loop {medians['fused'] / medians['loop']:.3f})")
-    import torch
-
     torch.set_num_threads(args.threads)  # what each run had, for the description
     machine = hardware(torch.device("cpu"))
     args.out.parent.mkdir(parents=True, exist_ok=True)
