@@ -77,8 +77,20 @@ class Slab:
         return self.to_world(corners)
 
     def _tensors(self, device, dtype):
-        as_t = lambda a: torch.as_tensor(np.asarray(a, dtype=np.float64), device=device, dtype=dtype)  # noqa: E731
-        return as_t(self.rotation), as_t(self.origin), as_t((self.lo + self.hi) / 2), as_t((self.hi - self.lo) / 2)
+        """The slab's rotation, origin, centre and half-extent as tensors on `device`.
+
+        Kept per device, dtype and values: on a GPU each copy from host memory waits for the
+        GPU's queue to drain, and a training step asks for these several times."""
+        # (Tensors made under inference mode cannot be saved for a backward pass: kept apart.)
+        key = (str(device), dtype, torch.is_inference_mode_enabled(),
+               *(np.asarray(a, dtype=np.float64).tobytes() for a in (self.rotation, self.origin, self.lo, self.hi)))
+        cache = self.__dict__.setdefault("_tensor_cache", {})
+        if key not in cache:
+            as_t = lambda a: torch.as_tensor(np.asarray(a, dtype=np.float64), device=device, dtype=dtype)  # noqa: E731
+            if len(cache) >= 8:  # the slab's values were changed: the old entries are not asked for again
+                cache.clear()
+            cache[key] = (as_t(self.rotation), as_t(self.origin), as_t((self.lo + self.hi) / 2), as_t((self.hi - self.lo) / 2))
+        return cache[key]
 
     def rays_to_uvst(self, origins: torch.Tensor, directions: torch.Tensor, normalise: bool = True):
         """World rays -> (N, 4) (u, v, s, t) and (N,) bool: the ray crosses the planes forwards.
