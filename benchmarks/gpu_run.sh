@@ -9,7 +9,10 @@
 #    and the run stops here if any of it fails;
 # 2. issue 5's GPU quality target: the default and larger ray batches, the authors' network and
 #    the plane sweep, each given one minute at 960x540 (benchmarks/speed_accuracy.py);
-# 3. issue 5's GPU frame-rate target at 1008x567 (benchmarks/render_fps.py).
+# 3. issue 5's GPU frame-rate target at 1008x567 (benchmarks/render_fps.py);
+# 4. where a training step and a frame spend their time (benchmarks/gpu_profile.py), and the
+#    frame rate with larger render chunks.
+# STAGES picks among smoke, bench, fps, profile (default: the first three).
 # Python packages the machine lacks (pycolmap) travel as wheels in .whl/; the scene in
 # .gpu_data/ (both ignored by git, carried by the device tool).
 set -u
@@ -18,6 +21,7 @@ OUT=${OUT:-/tmp/gpu_out}
 SCENE=${SCENE:-.gpu_data/canclip}
 DEVICE=${DEVICE:-cuda}
 MINUTES=${MINUTES:-1}
+STAGES=${STAGES:-smoke,bench,fps}
 METHODS=${METHODS:-fast,fast@65536,authors,classic-sweep}
 mkdir -p "$OUT"
 WHEELS=${WHEELS:-.whl}
@@ -47,17 +51,33 @@ smoke() {
     python3 -m neulf_core eval /tmp/smoke --scene "$SCENE" --device "$DEVICE" --fit-poses
     python3 -m neulf_core render /tmp/smoke3 --scene "$SCENE" --views held-out --out /tmp/smoke_render3 --device "$DEVICE"
 }
-( smoke ) 2>&1 | tee "$OUT/smoke.log"
-[ "${PIPESTATUS[0]}" -eq 0 ] || { echo "SMOKE FAILED: the benchmarks were not run"; exit 2; }
+has() { [[ ",$STAGES," == *",$1,"* ]]; }
+if has smoke; then
+    ( smoke ) 2>&1 | tee "$OUT/smoke.log"
+    [ "${PIPESTATUS[0]}" -eq 0 ] || { echo "SMOKE FAILED: the benchmarks were not run"; exit 2; }
+fi
 
+if has bench; then
 step "speed against accuracy, $MINUTES min per method, 960x540"
 python3 benchmarks/speed_accuracy.py --scene "$SCENE" --scale 1 --minutes "$MINUTES" --every 5 --device "$DEVICE" \
     --methods "$METHODS" --name canclip_gpu --keep-models /tmp/models 2>&1 | tee "$OUT/speed_accuracy.log"
 cp docs/bench_canclip_gpu.csv docs/bench_canclip_gpu.png "$OUT"/ 2>/dev/null
+fi
 
+if has profile; then
+    step "profile: training steps and frames"
+    python3 benchmarks/gpu_profile.py --scene "$SCENE" --scale 1 --steps 600 --device "$DEVICE" --out "$OUT" \
+        --model-out /tmp/models/profile/fast 2>&1 | grep -v USDT
+    step "frames per second at 1008x567 by render chunk"
+    python3 benchmarks/render_fps.py --scene "$SCENE" --model fast=/tmp/models/profile/fast --width 1008 --height 567 \
+        --device "$DEVICE" --precision auto,full --chunks 262144,1048576 --repeats 30 --out "$OUT/render_fps_chunks.csv" 2>&1
+fi
+
+if has fps; then
 step "frames per second at 1008x567"
 models=()
 for dir in /tmp/models/canclip_gpu/*; do [ -f "$dir/model.pt" ] && models+=(--model "$(basename "$dir")=$dir"); done
 python3 benchmarks/render_fps.py --scene "$SCENE" "${models[@]}" --width 1008 --height 567 --device "$DEVICE" \
     --precision auto,full --repeats 30 --out "$OUT/render_fps.csv" 2>&1 | tee "$OUT/render_fps.log"
+fi
 step "done"

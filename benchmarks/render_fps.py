@@ -50,14 +50,14 @@ def synchronise(device: torch.device) -> None:
 
 
 def time_variants(variants: dict, camera_args: tuple, repeats: int, device: torch.device) -> dict[str, list[float]]:
-    """Seconds per frame of each variant; every repeat renders each variant once, in turn."""
+    """Seconds per frame of each variant (light field, with depth, rays per chunk or None); every repeat renders each variant once, in turn."""
     K, width, height, R, t = camera_args
     times = {label: [] for label in variants}
     for repeat in range(WARM_UP + repeats):
-        for label, (light_field, depth) in variants.items():
+        for label, (light_field, depth, chunk) in variants.items():
             synchronise(device)
             started = time.perf_counter()
-            light_field.render(K, width, height, R, t, depth=depth)
+            light_field.render(K, width, height, R, t, depth=depth, chunk=chunk)
             synchronise(device)
             if repeat >= WARM_UP:
                 times[label].append(time.perf_counter() - started)
@@ -73,6 +73,7 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--height", type=int, default=567)
     parser.add_argument("--device")
     parser.add_argument("--precision", default="auto,full", help="comma-separated: auto, half, full")
+    parser.add_argument("--chunks", default="", help="comma-separated rays per chunk to compare (default: the renderer's)")
     parser.add_argument("--repeats", type=int, default=30)
     parser.add_argument("--threads", type=int, default=0, help="torch CPU threads (0: torch's default)")
     parser.add_argument("--out", help="CSV to append to (default: docs/render_fps.csv)")
@@ -87,8 +88,10 @@ def main(argv: list[str] | None = None) -> None:
         for precision in args.precision.split(","):
             light_field = LightField.load(folder, str(device), precision=precision)
             shown = "half" if light_field.half else "full"
-            for depth in (False, True):
-                variants[f"{name}, {precision} ({shown}), {'rgb+depth' if depth else 'rgb'}"] = (light_field, depth)
+            for chunk in [int(c) for c in args.chunks.split(",") if c] or [None]:
+                for depth in (False, True):
+                    label = f"{name}, {precision} ({shown}), {'rgb+depth' if depth else 'rgb'}"
+                    variants[label + (f", chunk {chunk}" if chunk else "")] = (light_field, depth, chunk)
     if device.type == "cuda":
         torch.cuda.reset_peak_memory_stats(device)
     times = time_variants(variants, camera_args, args.repeats, device)
