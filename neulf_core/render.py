@@ -29,9 +29,15 @@ from .slab import Slab
 # Rays per chunk.  On a CPU a chunk's intermediates (a few MB) stay in cache and are reused
 # by the allocator: with 1 thread, 16k-32k rays rendered the default field about 10% faster
 # than 8k or 64k (docs/BENCHMARKS.md); more threads want the larger.  A GPU wants large
-# chunks: fewer kernel launches.
+# chunks: a frame's time there is mostly kernel launches and host work, not arithmetic.  On an
+# H200 at 1008x567 (571,536 rays) the default field rendered 4.8 ms per frame with 2^20 rays
+# per chunk against 9.2 ms with 2^18 (5.8 / 10.8 ms with depth), peak GPU memory 438 MiB
+# (benchmarks/render_fps.py --chunks, docs/BENCHMARKS.md).  A chunk the device has no memory
+# for is retried in halves (`in_chunks`), so small GPUs render too.
 DEFAULT_CHUNK = 1 << 15
-ACCELERATOR_CHUNK = 1 << 18
+ACCELERATOR_CHUNK = 1 << 20
+# What torch raises when a device runs out of memory (older torch: only the CUDA class).
+OUT_OF_MEMORY = getattr(torch, "OutOfMemoryError", torch.cuda.OutOfMemoryError)
 # Rays whose (u, v, s, t) lie this far outside the trained range are extrapolation.
 EXTRAPOLATION_MARGIN = 0.1
 # Field evaluation precision.  "half" runs the field's matrix products in float16 under
@@ -53,6 +59,27 @@ def half_precision(precision: str, device: torch.device) -> bool:
         raise NeulfError(f"half precision renders on CUDA (or on the CPU, to check it), not on {device.type}; "
                          "use --precision full or auto.")
     return precision == "half" or (precision == "auto" and device.type == "cuda")
+
+
+def in_chunks(total: int, size: int, run) -> None:
+    """Call `run(start, stop)` over [0, total) in pieces of `size`; stop early when it returns
+    False.  A piece the device has no memory for is tried again in halves (down to one), and
+    the smaller size is kept for the rest: peak memory follows what the device has free."""
+    start = 0
+    while start < total:
+        stop = min(total, start + size)
+        try:
+            carry_on = run(start, stop)
+        except OUT_OF_MEMORY:
+            if size == 1:
+                raise
+            size = max(1, size // 2)
+            if torch.cuda.is_available():
+                torch.cuda.empty_cache()  # give the failed piece's blocks back before the smaller try
+            continue
+        if carry_on is False:
+            return
+        start = stop
 
 
 @dataclass
@@ -152,24 +179,26 @@ class LightField:
         rgb_out = np.empty((height, width, 3), np.float32)
         depth_out = np.empty((height, width), np.float32) if depth else None
         valid_out = np.empty((height, width), bool)
-        outside = 0
-        for top in range(0, height, rows_per_chunk):
-            rows = slice(top, min(height, top + rows_per_chunk))
+        outside = np.zeros(height, np.int64)  # per row: a band retried after running out of memory counts once
+
+        def render_rows(top: int, bottom: int):
+            rows = slice(top, bottom)
             origin, directions = pinhole_rays(K, R, t, width, height, self.device, self.geometry_dtype, rows)
             rgb, slab_depth, valid, uvst = self.query(origin, directions, depth)
             if lens is not None:
                 rgb = self._refocused_colour(origin, directions, R, focus_distance, aperture, lens)
-            band = rows.stop - rows.start
+            band = bottom - top
             rgb_out[rows] = rgb.reshape(band, width, 3).cpu().numpy()
             valid_out[rows] = valid.reshape(band, width).cpu().numpy()
-            outside += int((uvst.abs() > 1 + EXTRAPOLATION_MARGIN).any(dim=1).logical_and(valid).sum())
+            outside[rows] = (uvst.abs() > 1 + EXTRAPOLATION_MARGIN).any(dim=1).logical_and(valid).reshape(band, width).sum(1).cpu().numpy()
             if depth:
                 axis = self._axis_depth(origin, directions, slab_depth, forward)
                 axis = torch.where(valid, axis, torch.full_like(axis, math.nan))
                 depth_out[rows] = axis.reshape(band, width).float().cpu().numpy()
-            if on_chunk is not None and on_chunk(rows.stop, height) is False:
-                break
-        return Rendering(rgb_out, depth_out, valid_out, self._camera_warnings(R, t, valid_out, outside))
+            return on_chunk(bottom, height) if on_chunk is not None else None
+
+        in_chunks(height, rows_per_chunk, render_rows)
+        return Rendering(rgb_out, depth_out, valid_out, self._camera_warnings(R, t, valid_out, int(outside.sum())))
 
     def _lens_plan(self, K, focus_distance, aperture: float, max_samples: int):
         """Lens sample points for a refocused render, or None for a pinhole one."""
@@ -226,18 +255,23 @@ class LightField:
         origin, directions = view_rays(camera, view.R, view.t)
         origin_t = torch.as_tensor(origin, device=self.device, dtype=self.geometry_dtype)
         forward = torch.as_tensor(view.R[2], device=self.device, dtype=self.geometry_dtype)
-        rgb_parts, depth_parts, valid_parts = [], [], []
-        for start in range(0, len(directions), chunk):
-            d = torch.as_tensor(directions[start:start + chunk], device=self.device, dtype=self.geometry_dtype)
-            rgb, slab_depth, valid, _ = self.query(origin_t, d, depth)
-            rgb_parts.append(rgb.cpu().numpy())
-            valid_parts.append(valid.cpu().numpy())
+        rgb_out = np.empty((len(directions), 3), np.float32)
+        valid = np.empty(len(directions), bool)
+        depth_map = np.empty(len(directions), np.float32) if depth else None
+
+        def render_rays(start: int, stop: int):
+            d = torch.as_tensor(directions[start:stop], device=self.device, dtype=self.geometry_dtype)
+            rgb, slab_depth, ok, _ = self.query(origin_t, d, depth)
+            rgb_out[start:stop] = rgb.cpu().numpy()
+            valid[start:stop] = ok.cpu().numpy()
             if depth:
-                depth_parts.append(self._axis_depth(origin_t, d, slab_depth, forward).float().cpu().numpy())
-        valid = np.concatenate(valid_parts).reshape(height, width)
-        depth_map = np.concatenate(depth_parts).reshape(height, width) if depth else None
+                depth_map[start:stop] = self._axis_depth(origin_t, d, slab_depth, forward).float().cpu().numpy()
+
+        in_chunks(len(directions), chunk, render_rays)
+        valid = valid.reshape(height, width)
         if depth_map is not None:
+            depth_map = depth_map.reshape(height, width)
             depth_map[~valid] = np.nan
-        return Rendering(np.concatenate(rgb_parts).reshape(height, width, 3).astype(np.float32), depth_map, valid)
+        return Rendering(rgb_out.reshape(height, width, 3), depth_map, valid)
 
 

@@ -1,0 +1,74 @@
+"""Rendering in chunks (render.in_chunks): a GPU renders a frame in large chunks, and a chunk the
+device has no memory for is tried again in halves.  CPU-only here: the device's refusal is
+played by a field that raises torch's out-of-memory error for chunks above a size, which is
+what CUDA raises; the frame must come out the same as one rendered in small chunks."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from neulf_core.render import OUT_OF_MEMORY, LightField, in_chunks
+from neulf_core.scene import load_scene
+from neulf_core.train import TrainConfig, train
+
+
+def test_in_chunks_covers_everything_once_and_halves_on_out_of_memory():
+    seen, sizes = [], []
+
+    def run(start, stop):
+        sizes.append(stop - start)
+        if stop - start > 3:
+            raise OUT_OF_MEMORY("no room")
+        seen.extend(range(start, stop))
+
+    in_chunks(20, 16, run)
+    assert seen == list(range(20))
+    assert sizes[:3] == [16, 8, 4] and max(sizes[3:]) == 2  # the smaller size is kept from then on
+
+
+def test_in_chunks_stops_when_asked_and_gives_up_at_one():
+    calls = []
+    in_chunks(10, 3, lambda a, b: calls.append((a, b)) or (len(calls) < 2))
+    assert calls == [(0, 3), (3, 6)]
+
+    def never(start, stop):
+        raise OUT_OF_MEMORY("none at all")
+
+    with pytest.raises(OUT_OF_MEMORY):
+        in_chunks(4, 4, never)
+
+
+@pytest.fixture(scope="module")
+def light_field(tiny_scene, tmp_path_factory):
+    model_dir = tmp_path_factory.mktemp("chunks")
+    train(tiny_scene, model_dir, TrainConfig(steps=30, batch_size=512, seed=0, validate_seconds=1e9,
+                                             checkpoint_seconds=1e9, device="cpu"))
+    return LightField.load(model_dir, "cpu")
+
+
+def _refusing_big_chunks(light_field, limit: int):
+    """The light field's query, raising the out-of-memory error for more than `limit` rays."""
+    query = light_field.query
+
+    def refusing(origins, directions, want_depth=True):
+        if len(directions) > limit:
+            raise OUT_OF_MEMORY(f"{len(directions)} rays do not fit")
+        return query(origins, directions, want_depth)
+    return refusing
+
+
+def test_frame_rendered_after_out_of_memory_matches_small_chunks(light_field, tiny_scene, monkeypatch):
+    view = load_scene(tiny_scene).views[0]
+    camera = view.scaled_camera(1.0)
+    K, width, height = camera.calibration_matrix(), int(camera.width), int(camera.height)
+    small = light_field.render(K, width, height, view.R, view.t, depth=True, chunk=width * 2)
+    small_view = light_field.render_view(view, depth=True, chunk=97)
+    monkeypatch.setattr(light_field, "query", _refusing_big_chunks(light_field, width * 3))
+    big = light_field.render(K, width, height, view.R, view.t, depth=True, chunk=width * height)
+    big_view = light_field.render_view(view, depth=True, chunk=width * height)
+    for a, b in ((small, big), (small_view, big_view)):
+        assert np.array_equal(a.valid, b.valid)
+        assert np.allclose(a.rgb, b.rgb, atol=1e-6)
+        assert np.allclose(a.depth, b.depth, atol=1e-6, equal_nan=True)
+    assert small.warnings == big.warnings
