@@ -14,7 +14,13 @@
 #    frame rate with larger render chunks.
 # STAGES picks among smoke, bench, fps, profile (default: the first three).
 # Python packages the machine lacks (pycolmap) travel as wheels in .whl/; the scene in
-# .gpu_data/ (both ignored by git, carried by the device tool).
+# .gpu_data/ (both ignored by git, carried by the device tool).  To prepare them, on a machine
+# with the network (the GPU machine's Python was 3.12):
+#   pip download --no-deps --only-binary=:all: --python-version 3.12 --implementation cp \
+#       --platform manylinux_2_28_x86_64 -d .whl pycolmap==4.2.1
+#   cp -r ../shared/data/canclip .gpu_data/
+# A machine that has pycolmap runs it with WHEELS=none.  Results: docs/BENCHMARKS.md, "The GPU
+# targets on an NVIDIA H200".
 set -u
 export PYTHONUNBUFFERED=1
 OUT=${OUT:-/tmp/gpu_out}

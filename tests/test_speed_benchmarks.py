@@ -40,3 +40,39 @@ def test_sweep_time_appends_labelled_runs_with_one_checksum(tiny_scene, tmp_path
     assert [r["label"] for r in rows] == ["a", "a", "b"] and all(float(r["seconds"]) > 0 for r in rows)
     assert len({r["checksum"] for r in rows}) == 1  # the same targets every time
     assert "median" in capsys.readouterr().out
+
+
+def test_render_fps_times_every_variant_and_appends(tiny_scene, tmp_path, capsys):
+    from neulf_core.train import TrainConfig, train
+
+    model = tmp_path / "model"
+    train(tiny_scene, model, TrainConfig(steps=5, batch_size=256, validate_seconds=1e9, checkpoint_seconds=1e9, device="cpu"))
+    bench = load("render_fps")
+    out = tmp_path / "fps.csv"
+    common = ["--scene", str(tiny_scene), "--model", f"m={model}", "--width", "40", "--height", "30",
+              "--device", "cpu", "--repeats", "2", "--out", str(out)]
+    bench.main([*common, "--precision", "full", "--chunks", "64,4096"])
+    bench.main([*common, "--precision", "half"])
+    rows = list(csv.DictReader(open(out)))
+    assert [r["variant"] for r in rows] == [
+        "m, full (full), rgb, chunk 64", "m, full (full), rgb+depth, chunk 64",
+        "m, full (full), rgb, chunk 4096", "m, full (full), rgb+depth, chunk 4096",
+        "m, half (half), rgb", "m, half (half), rgb+depth"]
+    assert all(r["resolution"] == "40x30" and float(r["fps"]) > 0 for r in rows)
+    assert "frames per second" in capsys.readouterr().out
+
+
+def test_gpu_profile_writes_both_tables(tiny_scene, tmp_path, capsys):
+    bench = load("gpu_profile")
+    bench.main(["--scene", str(tiny_scene), "--scale", "1", "--steps", "12", "--device", "cpu", "--width", "40",
+                "--height", "30", "--frames", "2", "--out", str(tmp_path)])
+    train_text = (tmp_path / "profile_train.txt").read_text()
+    assert train_text.startswith("6 steps,") and "by self CPU time" in train_text
+    assert "aten::" in (tmp_path / "profile_render.txt").read_text()
+    assert "ms per step" in capsys.readouterr().out
+
+
+def test_speed_accuracy_reads_a_batch_from_the_method_name():
+    bench = load("speed_accuracy")
+    assert bench.split_method("fast@65536") == ("fast", 65536)
+    assert bench.split_method("authors") == ("authors", None)
