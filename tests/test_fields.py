@@ -650,3 +650,21 @@ def test_the_colour_start_script_keeps_the_decoder_with_its_slopes_zeroed(tiny_s
     again = np.load(script.learn([tiny_scene, tiny_scene], "tiny_v2", steps=20, scale=1.0))
     assert json.loads(str(again["meta"]))["scenes"][1]["steps"] == 20
     assert not np.array_equal(again["0.weight"], start["0.weight"])  # the second scene trained on from the first's
+
+
+def test_plane_smoothness_taken_in_groups_is_the_sum_over_planes():
+    """PlanesField.regularisation stacks planes of one shape and weight: the same value and
+    gradients as the total variation of each plane, weighted and summed."""
+    from neulf_core.fields.planes import ANGULAR, PAIRS, total_variation
+
+    torch.manual_seed(0)
+    field = build_field("planes", make_config("planes", {"tv_weight_spatial": 2e-4}))
+    for plane in field.parameters():
+        plane.data.normal_()
+    planes = list(field.scales.parameters())
+    expected = sum((field.config.tv_weight if (a in ANGULAR or b in ANGULAR) else field.config.tv_weight_spatial)
+                   * total_variation(plane) for scale in field.scales for plane, (a, b) in zip(scale, PAIRS))
+    grouped = field.regularisation()
+    assert torch.allclose(grouped, expected, rtol=1e-6)
+    for mine, theirs in zip(torch.autograd.grad(grouped, planes), torch.autograd.grad(expected, planes)):
+        assert torch.allclose(mine, theirs, rtol=1e-5, atol=1e-12)
