@@ -668,3 +668,18 @@ def test_plane_smoothness_taken_in_groups_is_the_sum_over_planes():
     assert torch.allclose(grouped, expected, rtol=1e-6)
     for mine, theirs in zip(torch.autograd.grad(grouped, planes), torch.autograd.grad(expected, planes)):
         assert torch.allclose(mine, theirs, rtol=1e-5, atol=1e-12)
+
+
+def test_total_variation_gradient_is_autograds():
+    """planes.total_variation writes its gradient out; it must be the one autograd derives."""
+    from neulf_core.fields.planes import total_variation
+
+    torch.manual_seed(1)
+    planes = torch.randn(3, 2, 9, 17, dtype=torch.float64, requires_grad=True)
+    by_hand = total_variation(planes)
+    reference = ((planes[..., 1:, :] - planes[..., :-1, :]) ** 2).mean() + ((planes[..., :, 1:] - planes[..., :, :-1]) ** 2).mean()
+    assert torch.allclose(by_hand, reference)
+    assert torch.autograd.gradcheck(total_variation, (planes,))
+    mine, = torch.autograd.grad(by_hand * 3.0, planes)
+    theirs, = torch.autograd.grad(reference * 3.0, planes)
+    assert torch.allclose(mine, theirs)
