@@ -15,7 +15,6 @@ model folder instead of training one.
 from __future__ import annotations
 
 import argparse
-import csv
 import sys
 import tempfile
 import time
@@ -25,6 +24,9 @@ import numpy as np
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from speed_accuracy import append_rows  # noqa: E402
 
 from neulf_core.autosize import texture_overrides  # noqa: E402
 from neulf_core.checkpoint import CHECKPOINT_NAME, load_checkpoint, save_render_model  # noqa: E402
@@ -106,13 +108,7 @@ def main() -> None:
     for row in rows:
         row.update(scene=Path(args.scene).name, scale=args.scale, seed=args.seed)
     if args.out:
-        out = Path(args.out)
-        new = not out.is_file()
-        with open(out, "a", newline="") as handle:
-            writer = csv.DictWriter(handle, fieldnames=list(rows[0]))
-            if new:
-                writer.writeheader()
-            writer.writerows(rows)
+        append_rows(Path(args.out), rows)
     print("| variant | texture | channels | float32 PSNR | model.pt PSNR | model.pt (MB) | checkpoint (MB) |\n|---|---|---|---|---|---|---|")
     for r in rows:
         print(f"| {r['variant']} | {r['texture_size']} x {r['levels']} levels | {r['channels']} | {r['psnr_float32']:.3f} | "

@@ -15,7 +15,6 @@ prints a markdown table.
 from __future__ import annotations
 
 import argparse
-import csv
 import sys
 import time
 from datetime import date
@@ -27,7 +26,7 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from speed_accuracy import hardware  # noqa: E402
+from speed_accuracy import append_rows, hardware  # noqa: E402
 from neulf_core.device import pick_device  # noqa: E402
 from neulf_core.render import LightField  # noqa: E402
 from neulf_core.scene import load_scene, split_views  # noqa: E402
@@ -102,14 +101,7 @@ def main(argv: list[str] | None = None) -> None:
              "median_ms": round(float(np.median(seconds)) * 1000, 2), "min_ms": round(min(seconds) * 1000, 2),
              "fps": round(1.0 / float(np.median(seconds)), 1),
              "peak_gpu_mib": round(peak, 1) if peak is not None else ""} for label, seconds in times.items()]
-    path = Path(args.out) if args.out else DOCS / "render_fps.csv"
-    path.parent.mkdir(parents=True, exist_ok=True)
-    new = not path.is_file()
-    with open(path, "a", newline="") as handle:
-        writer = csv.DictWriter(handle, fieldnames=list(rows[0]))
-        if new:
-            writer.writeheader()
-        writer.writerows(rows)
+    append_rows(Path(args.out) if args.out else DOCS / "render_fps.csv", rows)
     print(f"\n{args.width}x{args.height}, {machine}, {args.repeats} frames each after {WARM_UP} warm-up"
           + (f", peak GPU memory {peak:.0f} MiB" if peak is not None else "") + "\n")
     print("| variant | median (ms/frame) | min (ms) | frames per second |\n|---|---|---|---|")

@@ -65,6 +65,19 @@ def hardware(device) -> str:
     return f"{cpu}, {os.cpu_count()} cores, torch {torch.__version__}, {describe_device(device)}"
 
 
+def append_rows(path: Path, rows: list[dict], columns: list[str] | None = None) -> None:
+    """Add rows to a CSV, with a header when the file is new (the benchmarks that keep adding
+    runs to one file share this)."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    new_file = not path.is_file()
+    with open(path, "a", newline="") as handle:
+        writer = csv.DictWriter(handle, fieldnames=columns or list(rows[0]))
+        if new_file:
+            writer.writeheader()
+        writer.writerows(rows)
+
+
 def score(render_fn, views, scale) -> dict:
     """Held-out PSNR, SSIM and -- once its weights were fetched (`python -m neulf_core
     fetch-lpips`) -- LPIPS (AlexNet); median render time per frame."""

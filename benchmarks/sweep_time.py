@@ -14,7 +14,6 @@ targets: two versions that agree to the bit print the same one.
 from __future__ import annotations
 
 import argparse
-import csv
 import hashlib
 import statistics
 import sys
@@ -31,7 +30,7 @@ sys.path.insert(0, str(REPO / "benchmarks"))
 from neulf_core.scene import load_scene, split_views  # noqa: E402
 from neulf_core.slab import fit_slab  # noqa: E402
 from neulf_core.teacher import sweep_depth_targets  # noqa: E402
-from speed_accuracy import hardware  # noqa: E402
+from speed_accuracy import append_rows, hardware  # noqa: E402
 
 COLUMNS = ["date", "machine", "label", "scene", "scale", "train_views", "repeat", "seconds", "checksum"]
 
@@ -63,13 +62,7 @@ def main(argv=None) -> None:
         print(f"repeat {repeat}: {seconds:.2f} s, targets {checksum}", flush=True)
     print(f"median {statistics.median(r['seconds'] for r in rows):.2f} s over {args.repeats} sweeps of "
           f"{len(train_views)} views ({args.label or 'no label'})")
-    new_file = not args.out.is_file()
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    with open(args.out, "a", newline="") as handle:
-        writer = csv.DictWriter(handle, COLUMNS)
-        if new_file:
-            writer.writeheader()
-        writer.writerows(rows)
+    append_rows(args.out, rows, COLUMNS)
     print(f"wrote {args.out}")
 
 
