@@ -76,6 +76,10 @@ class Slab:
         corners = np.array([[x0, y0, z], [x1, y0, z], [x1, y1, z], [x0, y1, z]])
         return self.to_world(corners)
 
+    def __getstate__(self) -> dict:
+        """Pickled and copied without the tensors `_tensors` keeps (GPU memory among them)."""
+        return {k: v for k, v in self.__dict__.items() if k != "_tensor_cache"}
+
     def _tensors(self, device, dtype):
         """The slab's rotation, origin, centre and half-extent as tensors on `device`.
 

@@ -417,3 +417,28 @@ def test_render_view_depth_through_a_distorted_camera():
     bearings = np.column_stack([bearings, np.ones(len(bearings))])
     expected = plane_axis_depth(slab, slab_depth, view.R, view.t, bearings).reshape(height, width)
     np.testing.assert_allclose(rendering.depth, expected, rtol=1e-5)
+
+
+def test_slab_keeps_its_tensors_but_follows_changed_values_and_leaves_them_out_of_pickles():
+    """Slab._tensors keeps its tensors per device and dtype (no host copy per training step);
+    a changed value gives new ones, inference-mode tensors never reach a backward pass, and a
+    pickled or copied slab carries none of them."""
+    import copy
+    import pickle
+
+    slab = Slab(rotation=np.eye(3), origin=np.zeros(3), z_uv=0.0, z_st=1.0, z_near=0.5, z_far=2.0,
+                lo=np.array([-1.0, -1, -2, -2]), hi=np.array([1.0, 1, 2, 2]))
+    first = slab._tensors(torch.device("cpu"), torch.float32)
+    assert slab._tensors(torch.device("cpu"), torch.float32) is first
+    slab.origin = np.array([0.0, 0.0, -0.5])
+    moved = slab._tensors(torch.device("cpu"), torch.float32)
+    assert moved is not first and torch.equal(moved[1], torch.tensor([0.0, 0.0, -0.5]))
+    slab.origin = np.array([0.0, 0.0, -0.25])  # values no tensor was made for yet: made under inference mode
+    with torch.inference_mode():
+        slab.rays_to_uvst(torch.zeros(3), torch.tensor([[0.0, 0.0, 1.0]]))
+    origins = torch.zeros(1, 3, requires_grad=True)
+    uvst, _ = slab.rays_to_uvst(origins, torch.tensor([[0.1, 0.0, 1.0]]))
+    uvst.sum().backward()  # (an inference-mode tensor here would refuse the backward pass)
+    assert origins.grad is not None
+    for other in (pickle.loads(pickle.dumps(slab)), copy.deepcopy(slab)):
+        assert "_tensor_cache" not in other.__dict__ and np.array_equal(other.origin, slab.origin)
