@@ -25,13 +25,17 @@ from torch.profiler import ProfilerActivity, profile
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from render_fps import stretched_intrinsics, synchronise  # noqa: E402
+from render_fps import stretched_intrinsics, synchronise, time_variants  # noqa: E402
 from neulf_core.device import pick_device  # noqa: E402
 from neulf_core.render import LightField  # noqa: E402
 from neulf_core.scene import load_scene, split_views  # noqa: E402
 from neulf_core.train import TrainConfig, train  # noqa: E402
 
 TOP = 30
+
+
+def activities(device: torch.device) -> list:
+    return [ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if device.type == "cuda" else [])
 
 
 def tables(prof, device: torch.device) -> str:
@@ -47,8 +51,7 @@ class StepWindow:
 
     def __init__(self, first: int, last: int, device: torch.device):
         self.first, self.last, self.device = first, last, device
-        activities = [ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if device.type == "cuda" else [])
-        self.profiler = profile(activities=activities)
+        self.profiler = profile(activities=activities(device))
         self.started = self.seconds = None
 
     def __call__(self, event: dict) -> None:
@@ -91,21 +94,12 @@ def main(argv: list[str] | None = None) -> None:
 
     light_field = LightField.load(model_dir, str(device))
     view = split_views(scene)[1][0]
-    K = stretched_intrinsics(view.scaled_camera(1.0), args.width, args.height)
-    render = lambda: light_field.render(K, args.width, args.height, view.R, view.t, depth=False)  # noqa: E731
-    seconds = []
-    for i in range(3 + args.frames):
-        synchronise(device)
-        started = time.perf_counter()
-        render()
-        synchronise(device)
-        if i >= 3:
-            seconds.append(time.perf_counter() - started)
+    camera = (stretched_intrinsics(view.scaled_camera(1.0), args.width, args.height), args.width, args.height, view.R, view.t)
+    seconds = time_variants({"frame": (light_field, False, None)}, camera, args.frames, device)["frame"]
     frame_ms = float(np.median(seconds)) * 1000
-    activities = [ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if device.type == "cuda" else [])
-    with profile(activities=activities) as prof:
+    with profile(activities=activities(device)) as prof:
         for _ in range(5):
-            render()
+            light_field.render(*camera, depth=False)
     (args.out / "profile_render.txt").write_text(
         f"{args.width}x{args.height}, precision {'half' if light_field.half else 'full'}, median {frame_ms:.2f} ms per frame "
         f"(unprofiled); 5 frames profiled\n\n" + tables(prof, device))
