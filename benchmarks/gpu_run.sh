@@ -12,7 +12,9 @@
 # 3. issue 5's GPU frame-rate target at 1008x567 (benchmarks/render_fps.py);
 # 4. where a training step and a frame spend their time (benchmarks/gpu_profile.py), and the
 #    frame rate with larger render chunks.
-# STAGES picks among smoke, bench, fps, profile (default: the first three).
+# 5. stability: issue 4's seed spread for the default at a longer budget (STAB_STEPS, default
+#    3000), its scenes packed by `python benchmarks/stability.py --pack .gpu_data/stab`.
+# STAGES picks among smoke, bench, fps, profile, stability (default: the first three).
 # Python packages the machine lacks (pycolmap) travel as wheels in .whl/; the scene in
 # .gpu_data/ (both ignored by git, carried by the device tool).  To prepare them, on a machine
 # with the network (the GPU machine's Python was 3.12):
@@ -85,5 +87,24 @@ models=()
 for dir in /tmp/models/canclip_gpu/*; do [ -f "$dir/model.pt" ] && models+=(--model "$(basename "$dir")=$dir"); done
 python3 benchmarks/render_fps.py --scene "$SCENE" "${models[@]}" --width 1008 --height 567 --device "$DEVICE" \
     --precision auto,full --repeats 30 --out "$OUT/render_fps.csv" 2>&1 | tee "$OUT/render_fps.log"
+fi
+if has stability; then
+    # Issue 4's seed spread at a longer budget: the default's 35 configurations, three seeds,
+    # STAB_STEPS steps, many runs side by side on the one GPU (a step is launch-bound, so the
+    # GPU has room).  The scenes travel packed (python benchmarks/stability.py --pack
+    # .gpu_data/stab, here with Blender); the run log comes back in $OUT/stability even when the
+    # time limit cuts the study short, and the report covers whole configurations.
+    STAB_PACK=${STAB_PACK:-.gpu_data/stab}
+    STAB_ARGS=(--cache "$OUT/stability" --canclip "$STAB_PACK/canclip" --canclip-scale 1 --hci "$STAB_PACK/hci"
+               --hci-scale 1 --fern /nonexistent --only "${STAB_ONLY:-views,variants,exposure,pose}" --defaults-only
+               --fast-steps "${STAB_STEPS:-3000}" --docs "$OUT/stability/docs")
+    mkdir -p "$OUT/stability"
+    ln -sfn "$PWD/$STAB_PACK/scenes" "$OUT/stability/scenes"
+    step "stability: the default's configurations at ${STAB_STEPS:-3000} steps, ${STAB_WORKERS:-15} side by side"
+    timeout "${STAB_SECONDS:-500}" python3 benchmarks/stability.py "${STAB_ARGS[@]}" --by-configuration \
+        --workers "${STAB_WORKERS:-15}" 2>&1 | grep -v "^rendering" | tee "$OUT/stability.log"
+    pkill -f "multiprocessing.spawn" 2>/dev/null
+    python3 benchmarks/stability.py "${STAB_ARGS[@]}" --report-only > "$OUT/stability/report.md" 2>&1
+    rm -f "$OUT/stability/scenes"
 fi
 step "done"

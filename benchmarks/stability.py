@@ -45,6 +45,7 @@ import math
 import os
 import platform
 import re
+import shutil
 import subprocess
 import sys
 import tempfile
@@ -62,6 +63,7 @@ import torch
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
+from neulf_core.images import save_rgb  # noqa: E402
 from neulf_core.metrics import psnr, ssim  # noqa: E402
 from neulf_core.poses import POSE_CHECK_DEGREES, POSE_CHECK_SETTLED, POSE_CHECK_STEP, fit_view_pose  # noqa: E402
 from neulf_core.presets import get_preset  # noqa: E402
@@ -406,11 +408,16 @@ def run_job(job: Job, threads: int = 1) -> dict:
     return row
 
 
-def run_jobs(jobs: list[Job], workers: int = 2, done: dict | None = None, log: Path | None = None) -> list[dict]:
+def run_jobs(jobs: list[Job], workers: int = 2, done: dict | None = None, log: Path | None = None,
+             by_configuration: bool = False) -> list[dict]:
     """Run the jobs not in `done` (key -> row), at most `workers` at a time, appending each
-    finished row to `log` at once so an interrupted study keeps what it finished."""
+    finished row to `log` at once so an interrupted study keeps what it finished.  In
+    run_order, or with `by_configuration` one configuration's seeds after another (a study cut
+    short by a time limit then has whole configurations)."""
     done = dict(done or {})
-    todo = sorted((job for job in jobs if job.key not in done), key=lambda job: run_order(job, jobs))
+    order = (lambda job: jobs.index(replace(job, seed=min(j.seed for j in jobs)))) if by_configuration \
+        else (lambda job: run_order(job, jobs))
+    todo = sorted((job for job in jobs if job.key not in done), key=lambda job: (order(job), job.seed))
 
     def record(row: dict) -> None:
         done[Job(**{f.name: row[f.name] for f in fields(Job)}).key] = row
@@ -523,7 +530,19 @@ def plan(args, scenes: dict[str, Path]) -> list[Job]:
                 for fraction in shares:
                     add(scene, "fast", args.canclip_scale if scene == "canclip" else synth, fraction=fraction,
                         coarse_to_fine=False)
-    return list({job.key: job for job in jobs}.values())  # shared baselines run once
+    jobs = list({job.key: job for job in jobs}.values())  # shared baselines run once
+    if args.defaults_only:
+        jobs = [job for job in jobs if is_default_run(job)]
+    return jobs
+
+
+def is_default_run(job: Job) -> bool:
+    """Whether `job` trains the default as a user runs it: the fast preset with every rule
+    left to decide (the nominal captures' colour transform is forced off, which is what its
+    rule decides there; the jittered photos' is the rule's), no rule forced on or off."""
+    forced = (job.refine_poses is not None or job.consistency is not None or job.coarse_to_fine is not None
+              or job.minutes or (job.scene.startswith("jitter") and job.appearance is not None) or job.appearance)
+    return job.preset == "fast" and not forced
 
 
 # ----------------------------------------------------------------------------- summaries
@@ -1143,9 +1162,47 @@ def parse_args(argv=None) -> argparse.Namespace:
     parser.add_argument("--losses-minutes", type=float, default=1.0, help="the losses study's equal wall-clock budget")
     parser.add_argument("--losses-seeds", default="0,1")
     parser.add_argument("--only", default="views,variants,exposure,pose,losses,coarse")
+    parser.add_argument("--defaults-only", action="store_true",
+                        help="only the default as a user runs it (no paper network, no rule forced on or off)")
+    parser.add_argument("--by-configuration", action="store_true",
+                        help="run one configuration's seeds after another (a run cut short keeps whole configurations)")
+    parser.add_argument("--pack", type=Path, metavar="DIR",
+                        help="write the study's scenes at their training scale into DIR (to run it on another machine, "
+                             "e.g. a GPU one without Blender), print the arguments that use them, and stop")
     parser.add_argument("--fresh", action="store_true", help="ignore the runs already in the cache's log")
     parser.add_argument("--report-only", action="store_true", help="rewrite the docs from the log, train nothing")
     return parser.parse_args(argv)
+
+
+def pack(args, scenes: dict[str, Path], out: Path) -> str:
+    """Copy what the study reads of its scenes into `out`, the real captures' photos already
+    at their training scale (the same box filter load_rgb applies; the model's intrinsics
+    are rescaled to the files' size at load) and the synthetic renders as they are (their
+    depth maps left out).  Returns the arguments that run the study on the copy."""
+    out = out.resolve()
+    for name in ("lambertian", "shiny", "fine", "jitter1"):
+        source = scenes[name]
+        target = out / "scenes" / source.name
+        for part in ("images", "sparse_gt"):
+            shutil.copytree(source / part, target / part, dirs_exist_ok=True)
+        (target / "ground_truth").mkdir(parents=True, exist_ok=True)
+        shutil.copy2(source / "ground_truth" / "cameras.json", target / "ground_truth" / "cameras.json")
+        shutil.copy2(source / "summary.json", target / "summary.json")
+    arguments = [f"--cache {out}"]
+    for name, scale in (("canclip", args.canclip_scale), ("hci", args.hci_scale)):
+        if name not in scenes:
+            continue
+        scene = load_scene(scenes[name])
+        target = out / name
+        model = find_model_dir(scenes[name])
+        shutil.copytree(model, target / "sparse" / "0", dirs_exist_ok=True)
+        (target / "images").mkdir(parents=True, exist_ok=True)
+        for view in scene.views:
+            if view.image_path.suffix.lower() != ".png":  # a lossy copy would not be the photo the study trains on
+                raise SystemExit(f"--pack copies PNG photos only; {view.image_path} is not one")
+            save_rgb(target / "images" / view.image_path.name, view.load_image(scale))
+        arguments.append(f"--{name} {target} --{name}-scale 1")
+    return " ".join(arguments)
 
 
 def main(argv=None) -> None:
@@ -1164,6 +1221,9 @@ def main(argv=None) -> None:
         scenes["fern"] = args.fern
     if not appearance_available():
         print("note: TrainConfig has no 'appearance' option yet; those runs are marked unavailable", flush=True)
+    if args.pack:
+        print(pack(args, scenes, args.pack))
+        return
     jobs = plan(args, scenes)
     log = args.cache / "runs.jsonl"
     if not args.fresh and (seeded := seed_log_from_csv(log, args.docs / "stability.csv")):
@@ -1172,7 +1232,7 @@ def main(argv=None) -> None:
     if args.report_only:
         rows = report_rows(done, jobs)
     else:
-        rows = run_jobs(jobs, args.workers, done, log)
+        rows = run_jobs(jobs, args.workers, done, log, by_configuration=args.by_configuration)
     generated = {"date": date.today().isoformat(), "machine": machine()}
     if args.report_only:  # nothing trained here: the header keeps the machine and date the runs came from
         generated = previous_generation(args.docs / "STABILITY.md") or generated
