@@ -96,7 +96,7 @@ if has stability; then
     # time limit cuts the study short, and the report covers whole configurations.
     STAB_PACK=${STAB_PACK:-.gpu_data/stab}
     STAB_ARGS=(--cache "$OUT/stability" --canclip "$STAB_PACK/canclip" --canclip-scale 1 --hci "$STAB_PACK/hci"
-               --hci-scale 1 --fern /nonexistent --only "${STAB_ONLY:-views,variants,exposure,pose}" --defaults-only
+               --hci-scale 1 --fern /nonexistent --only "${STAB_ONLY:-views,variants,exposure,pose}" ${STAB_SCENES:+--scenes "$STAB_SCENES"} --defaults-only
                --fast-steps "${STAB_STEPS:-3000}" --docs "$OUT/stability/docs")
     mkdir -p "$OUT/stability"
     ln -sfn "$PWD/$STAB_PACK/scenes" "$OUT/stability/scenes"

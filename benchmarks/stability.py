@@ -533,6 +533,8 @@ def plan(args, scenes: dict[str, Path]) -> list[Job]:
     jobs = list({job.key: job for job in jobs}.values())  # shared baselines run once
     if args.defaults_only:
         jobs = [job for job in jobs if is_default_run(job)]
+    if args.scenes:
+        jobs = [job for job in jobs if job.scene in args.scenes.split(",")]
     return jobs
 
 
@@ -1164,6 +1166,7 @@ def parse_args(argv=None) -> argparse.Namespace:
     parser.add_argument("--only", default="views,variants,exposure,pose,losses,coarse")
     parser.add_argument("--defaults-only", action="store_true",
                         help="only the default as a user runs it (no paper network, no rule forced on or off)")
+    parser.add_argument("--scenes", help="only these scenes (comma-separated labels: canclip, hci, lambertian, ...)")
     parser.add_argument("--by-configuration", action="store_true",
                         help="run one configuration's seeds after another (a run cut short keeps whole configurations)")
     parser.add_argument("--pack", type=Path, metavar="DIR",
