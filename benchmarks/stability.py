@@ -1075,7 +1075,8 @@ def machine() -> str:
                    if line.startswith("model name"))
     except (OSError, StopIteration):
         pass
-    return f"{cpu}, {os.cpu_count()} cores, torch {torch.__version__}, 1 torch thread per run"
+    trained_on = f"{torch.cuda.get_device_name(0)} (training; scoring on the CPU), " if torch.cuda.is_available() else ""
+    return f"{trained_on}{cpu}, {os.cpu_count()} cores, torch {torch.__version__}, 1 torch thread per run"
 
 
 def previous_generation(markdown: Path) -> dict | None:
