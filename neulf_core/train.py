@@ -619,6 +619,8 @@ def _train(scene, model_dir: Path, config: TrainConfig, images_dir, resume: bool
                 step_consistency = (consistency[0], consistency[1].with_centres(poses.corrected_centres()))
         loss, objective = _objective(field_module, uvst, target, view_index, appearance, step_consistency, config,
                                      depth_teacher)
+        if poses is not None:
+            objective = objective + poses.depth_like_prior()
         optimizer.zero_grad(set_to_none=True)
         if not torch.isfinite(objective):
             # A NaN/inf step is skipped; repeated ones halve the learning rate (reported).

@@ -100,6 +100,73 @@ def test_the_rig_wide_part_of_the_corrections_joins_after_a_fifth_of_the_budget(
     assert "own_part" not in poses.state_dict()  # follows from the centres; older models load
 
 
+def _mean_st_move(poses, centres):
+    """(V, 2): how far each camera's rays' st crossings move under the corrections, on average."""
+    moves = []
+    for index, centre in enumerate(centres):
+        origin, directions = camera_rays(centre, seed=index)
+        uvst, _ = SLAB.rays_to_uvst(origin, directions)
+        moved = poses(uvst.float(), torch.full((len(uvst),), index, dtype=torch.long))
+        moves.append((moved - uvst.float())[:, 2:].mean(0))
+    return torch.stack(moves).detach().double().numpy()
+
+
+def test_the_depth_like_prior_holds_the_fanning_and_nothing_the_photos_can_see():
+    """The prior's fanning turns each camera so that its view shifts by one factor times the
+    camera's position, in u and in v alike -- what a uniform change of the scene's inverse
+    depth does to a light field, so the photos cannot pin it.  Each camera's own part and
+    the rig's twists, which the photos do show, cost nothing."""
+    centres = np.array([[x * 0.2, y * 0.2, -0.5] for x in (-1, 0, 1) for y in (-1, 0, 1)])
+    position = centres[:, :2] - centres[:, :2].mean(0)
+    poses = PoseRefinement(SLAB, centres)
+    poses.set_training_progress(1.0)
+    with torch.no_grad():
+        poses.rotation[:] = 0.02 * poses.fanning
+    moves = _mean_st_move(poses, centres)
+    factor = (moves * position).sum() / (position ** 2).sum()  # one factor for both axes
+    assert abs(factor) > 1e-3
+    assert np.abs(moves - factor * position).max() < 0.02 * np.abs(moves).max()
+    fanning_prior = float(poses.depth_like_prior().detach())
+    assert fanning_prior > 0
+
+    # The baseline's growth: every camera shifted outward in proportion to its position.
+    with torch.no_grad():
+        poses.rotation.zero_()
+        poses.shift[:] = 0.5 * poses.baseline
+    assert float(poses.depth_like_prior().detach()) > 0
+
+    rng = np.random.default_rng(0)
+    own_part = torch.tensor(own_part_projector(position) @ rng.normal(size=(9, 3)) * 0.01, dtype=torch.float32)
+    zero = np.zeros(9)
+    twist = torch.tensor(np.column_stack([zero, 0.01 * position[:, 1], 0.01 * position[:, 0]]), dtype=torch.float32)
+    shear = torch.tensor(np.column_stack([position[:, 1], position[:, 0], zero]), dtype=torch.float32)
+    for rotation, shift in ((own_part, own_part), (twist, shear)):
+        with torch.no_grad():
+            poses.rotation[:], poses.shift[:] = rotation, shift
+        assert float(poses.depth_like_prior().detach()) < 1e-6 * fanning_prior
+    with torch.no_grad():
+        poses.shift.zero_()
+    # ... and the twist is no change of depth: the view shifts along u in proportion to v.
+    moves = _mean_st_move(poses, centres)
+    assert np.abs(moves - ((moves * position).sum() / (position ** 2).sum()) * position).max() > 0.5 * np.abs(moves).max()
+
+
+def test_the_depth_like_prior_waits_for_the_rig_wide_part_and_spares_a_lone_camera():
+    centres = np.array([[x * 0.2, y * 0.2, -0.5] for x in (-1, 0, 1) for y in (-1, 0, 1)])
+    poses = PoseRefinement(SLAB, centres)
+    with torch.no_grad():
+        poses.rotation[:] = 0.02 * poses.fanning
+    poses.set_training_progress(0.0)  # the rig-wide part has not joined: nothing to hold
+    assert float(poses.depth_like_prior()) == 0.0
+    poses.set_training_progress(1.0)
+    prior = poses.depth_like_prior()
+    assert prior > 0 and prior.requires_grad  # a loss term: its gradient pulls the fanning back
+    prior.backward()
+    assert float((poses.rotation.grad * poses.fanning).sum()) > 0
+    lone = PoseRefinement(SLAB, centres[:1], centred=False, spacing=0.2)  # fitting one held-out camera
+    assert float(lone.depth_like_prior()) == 0.0
+
+
 def test_the_photometric_gradient_finds_a_known_pose_error():
     """A smooth light field seen by a camera whose pose is off by 0.3 degrees: fitting only the
     corrections to the true colours turns the camera back (the sign and size of the error)."""
