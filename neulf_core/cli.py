@@ -410,7 +410,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="learn a small correction of each photo's camera pose (default: learned for the first 100 "
                         "steps, then kept only where the corrections found are large enough and have settled, the "
                         "poses being off; dropped where they are small or fade; budgets under 200 steps train "
-                        "without it; docs/STABILITY.md)")
+                        "without it; the rig fanning out and its baseline growing, which a light field cannot tell from "
+                        "a change of depth, are held at zero by a weak prior; docs/STABILITY.md)")
     p.add_argument("--sweep-teacher", action=argparse.BooleanOptionalAction, default=None,
                    help="pull the early depth toward the classic plane sweep's (default: the preset's choice; on "
                         "for fast): better depth maps and refocus, docs/DEPTH.md")
