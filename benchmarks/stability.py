@@ -415,9 +415,7 @@ def run_jobs(jobs: list[Job], workers: int = 2, done: dict | None = None, log: P
     run_order, or with `by_configuration` one configuration's seeds after another (a study cut
     short by a time limit then has whole configurations)."""
     done = dict(done or {})
-    order = (lambda job: jobs.index(replace(job, seed=min(j.seed for j in jobs)))) if by_configuration \
-        else (lambda job: run_order(job, jobs))
-    todo = sorted((job for job in jobs if job.key not in done), key=lambda job: (order(job), job.seed))
+    todo = sorted((job for job in jobs if job.key not in done), key=job_order(jobs, by_configuration))
 
     def record(row: dict) -> None:
         done[Job(**{f.name: row[f.name] for f in fields(Job)}).key] = row
@@ -438,6 +436,17 @@ def run_jobs(jobs: list[Job], workers: int = 2, done: dict | None = None, log: P
                 except Exception as exc:  # the worker process itself died
                     record({**asdict(futures[future]), "status": "crashed", "error": f"worker died: {exc!r}"})
     return [done[job.key] for job in jobs]
+
+
+def job_order(jobs: list[Job], by_configuration: bool = False):
+    """The sort key run_jobs runs `jobs` by: run_order, or with `by_configuration` the plan's
+    order of configurations, each one's seeds together."""
+    if not by_configuration:
+        return lambda job: (run_order(job, jobs), job.seed)
+    first = {}
+    for index, job in enumerate(jobs):
+        first.setdefault(replace(job, seed=0).key, index)
+    return lambda job: (first[replace(job, seed=0).key], job.seed)
 
 
 def run_order(job: Job, jobs: list[Job]) -> tuple:

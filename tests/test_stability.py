@@ -235,3 +235,54 @@ def test_a_run_whose_sweep_faded_otherwise_than_now_is_run_again(stability, tmp_
     log.write_text(json.dumps({**stability.asdict(jobs["fast", few]), "train_views": few, "status": "finished",
                                "sweep_fade": teacher_fade(few)}) + "\n")  # trained since: stands
     assert jobs["fast", few].key in stability.load_log(log)
+
+
+def test_the_default_only_plan_is_the_35_configurations_a_user_runs_in_their_order(stability, tmp_path):
+    """--defaults-only keeps the fast preset with no rule forced (the paper's network, forced
+    pose refinement and the forced-off colour transforms of the jittered photos go), three
+    seeds each; --by-configuration runs each configuration's seeds together; --scenes keeps
+    the named scenes only."""
+    args = stability.parse_args(["--defaults-only", "--only", "views,variants,exposure,pose"])
+    scenes = {name: tmp_path / name for name in ("lambertian", "shiny", "fine", "jitter1", "canclip", "hci")}
+    jobs = stability.plan(args, scenes)
+    configurations = {stability.replace(job, seed=0).key for job in jobs}
+    assert len(configurations) == 35 and len(jobs) == 105
+    assert all(job.preset == "fast" and job.refine_poses is None for job in jobs)
+    assert [job.appearance for job in jobs if job.scene == "jitter1"] == [None] * 3  # the rule's choice only
+    everything = stability.plan(stability.parse_args(["--only", "views,variants,exposure,pose"]), scenes)
+    assert {job.key for job in jobs} == {job.key for job in everything if stability.is_default_run(job)}
+
+    order = sorted(jobs, key=stability.job_order(jobs, by_configuration=True))
+    for start in range(0, len(order), 3):  # one configuration's three seeds, then the next
+        group = order[start:start + 3]
+        assert [job.seed for job in group] == [0, 1, 2]
+        assert len({stability.replace(job, seed=0).key for job in group}) == 1
+    seed_first = sorted(jobs, key=stability.job_order(jobs))
+    assert {job.seed for job in seed_first[:35]} == {0}  # the study's own order: every configuration once first
+
+    only = stability.plan(stability.parse_args(["--defaults-only", "--only", "pose", "--scenes", "canclip"]), scenes)
+    assert {job.scene for job in only} == {"canclip"} and len(only) == 12 * 3
+
+
+def test_pack_copies_the_real_captures_at_their_training_scale(stability, tiny_scene, tmp_path, monkeypatch):
+    """--pack: photos resized as training resizes them, so the copy at scale 1 trains on the
+    same pixels and intrinsics as the original at the study's scale."""
+    from neulf_core.scene import load_scene
+
+    for name in ("lambertian", "shiny", "fine", "lambertian_jitter1"):  # stand-ins for the renders
+        (tmp_path / "synth" / name / "ground_truth").mkdir(parents=True)
+        for part in ("images", "sparse_gt"):
+            (tmp_path / "synth" / name / part).mkdir()
+        (tmp_path / "synth" / name / "ground_truth" / "cameras.json").write_text("{}")
+        (tmp_path / "synth" / name / "summary.json").write_text("{}")
+    scenes = {name: tmp_path / "synth" / folder for name, folder in
+              (("lambertian", "lambertian"), ("shiny", "shiny"), ("fine", "fine"), ("jitter1", "lambertian_jitter1"))}
+    scenes["canclip"] = tiny_scene
+    args = stability.parse_args(["--canclip-scale", "0.5"])
+    printed = stability.pack(args, scenes, tmp_path / "packed")
+    assert f"--canclip {tmp_path / 'packed' / 'canclip'} --canclip-scale 1" in printed
+    original, packed = load_scene(tiny_scene), load_scene(tmp_path / "packed" / "canclip")
+    for a, b in zip(original.views, packed.views):
+        assert np.array_equal(a.load_image(0.5), b.load_image(1.0))
+        assert np.allclose(a.scaled_camera(0.5).calibration_matrix(), b.scaled_camera(1.0).calibration_matrix())
+    assert (tmp_path / "packed" / "scenes" / "lambertian_jitter1" / "ground_truth" / "cameras.json").is_file()
