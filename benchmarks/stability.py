@@ -140,6 +140,11 @@ class Job:
     def key(self) -> str:
         return json.dumps(asdict(self), sort_keys=True)
 
+    @property
+    def configuration(self) -> str:
+        """The key of everything but the seed: the runs whose spread is one cell."""
+        return replace(self, seed=0).key
+
 
 def appearance_available() -> bool:
     return "appearance" in TrainConfig.__dataclass_fields__
@@ -445,8 +450,8 @@ def job_order(jobs: list[Job], by_configuration: bool = False):
         return lambda job: (run_order(job, jobs), job.seed)
     first = {}
     for index, job in enumerate(jobs):
-        first.setdefault(replace(job, seed=0).key, index)
-    return lambda job: (first[replace(job, seed=0).key], job.seed)
+        first.setdefault(job.configuration, index)
+    return lambda job: (first[job.configuration], job.seed)
 
 
 def run_order(job: Job, jobs: list[Job]) -> tuple:
@@ -1146,7 +1151,7 @@ def report_rows(done: dict, jobs: list[Job]) -> list[dict]:
     before; the tables say how many), so no spread mixes the two starts."""
     configs: dict[str, list[Job]] = {}
     for job in jobs:
-        configs.setdefault(replace(job, seed=0).key, []).append(job)
+        configs.setdefault(job.configuration, []).append(job)
     rows = []
     for runs in configs.values():
         if not all(job.key in done for job in runs):

@@ -175,10 +175,16 @@ class PoseRefinement(nn.Module):
         b = centre + torch.bmm(turn, (p_st - centre).unsqueeze(-1)).squeeze(-1) + moved
         return self.slab.slab_rays_to_uvst(a, b - a)[0]
 
+    @property
+    def holds_depth_like_part(self) -> bool:
+        """Whether depth_like_prior has anything to hold: not before the rig-wide part joins,
+        nor for a lone camera (the trainer skips the term, and its kernels, until then)."""
+        return bool(DEPTH_LIKE_PRIOR) and not self.own_part_only and self.centred
+
     def depth_like_prior(self) -> torch.Tensor:
         """The loss term that holds the corrections' fanning and baseline growth at zero
-        (DEPTH_LIKE_PRIOR); nothing before the rig-wide part joins, nor for a lone camera."""
-        if not DEPTH_LIKE_PRIOR or self.own_part_only or not self.centred:
+        (DEPTH_LIKE_PRIOR); zero where holds_depth_like_part is False."""
+        if not self.holds_depth_like_part:
             return self.rotation.new_zeros(())
         fanning = ((self.rotation * (180.0 / math.pi)) * self.fanning).sum()  # degrees, over all views
         baseline = ((self.shift / 0.1) * self.baseline).sum()  # tenths of the spacing

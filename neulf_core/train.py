@@ -619,7 +619,7 @@ def _train(scene, model_dir: Path, config: TrainConfig, images_dir, resume: bool
                 step_consistency = (consistency[0], consistency[1].with_centres(poses.corrected_centres()))
         loss, objective = _objective(field_module, uvst, target, view_index, appearance, step_consistency, config,
                                      depth_teacher)
-        if poses is not None:
+        if poses is not None and poses.holds_depth_like_part:
             objective = objective + poses.depth_like_prior()
         optimizer.zero_grad(set_to_none=True)
         if not torch.isfinite(objective):
