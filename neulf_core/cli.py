@@ -408,8 +408,8 @@ def build_parser() -> argparse.ArgumentParser:
                         "(default: on when neighbouring photos differ in exposure by 0.1 stops or more): docs/STABILITY.md")
     p.add_argument("--refine-poses", action=argparse.BooleanOptionalAction, default=None,
                    help="learn a small correction of each photo's camera pose (default: learned for the first 100 "
-                        "steps, then kept only where the corrections found are large enough and have settled, the "
-                        "poses being off; dropped where they are small or fade; budgets under 200 steps train "
+                        "steps, then kept only where the corrections found are at least 0.06 degrees, the poses "
+                        "being off; dropped where they are smaller; budgets under 200 steps train "
                         "without it; the rig fanning out and its baseline growing, which a light field cannot tell from "
                         "a change of depth, are held at zero by a weak prior; docs/STABILITY.md)")
     p.add_argument("--sweep-teacher", action=argparse.BooleanOptionalAction, default=None,

@@ -692,16 +692,14 @@ def _pose_check(poses: PoseRefinement, optimizer, meta: dict, progress, step: in
     resumed run keeps it."""
     found = poses.own_part_degrees()
     record = meta.get("pose_check", {})
-    halfway = record.get("halfway_degrees")
-    keep = poses_module.poses_look_off(found, halfway)
+    halfway = record.get("halfway_degrees")  # for the record: whether the corrections were still growing
+    keep = poses_module.poses_look_off(found)
     meta["train_config"]["refine_poses"] = keep
     meta["pose_check"] = {**record, "step": step, "median_degrees": round(found, 4), "refining": keep}
     seen = f"median correction {found:.3f} deg after {step} steps" + (
         f", {halfway:.3f} after {record['halfway_step']}" if halfway is not None else "")
     if keep:
         message = f"the camera poses look off ({seen}): refining them (--no-refine-poses turns it off; docs/STABILITY.md)"
-    elif found >= poses_module.POSE_CHECK_DEGREES:
-        message = f"the pose corrections fade as the light field sharpens ({seen}): not refining the poses"
     else:
         message = f"the camera poses agree with the photos ({seen}): not refining them"
     _emit(progress, event="pose_check", refining=keep, median_degrees=found, halfway_degrees=halfway, step=step,
