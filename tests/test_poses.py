@@ -309,7 +309,7 @@ def test_a_run_stopped_before_the_pose_check_checks_when_resumed(tiny_scene, tmp
     from neulf_core.train import TrainConfig, train
 
     monkeypatch.setattr(train_module, "POSE_CHECK_STEP", 8)
-    monkeypatch.setattr(poses_module, "POSE_CHECK_DEGREES", 1e9)  # a verdict no correction reaches
+    monkeypatch.setattr(poses_module, "POSE_CHECK_DEGREES", 0.0)  # any correction: off
     steps = iter(range(1000))
     first = []
     result = train(tiny_scene, tmp_path / "m", TrainConfig(steps=20, batch_size=512, teacher=False), progress=first.append,
@@ -322,9 +322,9 @@ def test_a_run_stopped_before_the_pose_check_checks_when_resumed(tiny_scene, tmp
     more = []
     train(tiny_scene, tmp_path / "m", TrainConfig(steps=20), resume=True, progress=more.append)
     (check,) = _check_events(more)
-    assert check["step"] == 8 and not check["refining"]
+    assert check["step"] == 8 and check["refining"]
     assert check["halfway_degrees"] == saved["pose_check"]["halfway_degrees"]  # restored, not measured again
-    assert load_checkpoint(tmp_path / "m")["poses"] is None
+    assert load_checkpoint(tmp_path / "m")["poses"] is not None  # the corrections carried on
 
 
 def test_a_budget_too_short_for_the_pose_check_trains_without_refinement(tiny_scene, tmp_path):
