@@ -27,7 +27,7 @@ from .fields import build_field, count_parameters, make_config
 from .fields.disparity import DisparityConfig, slab_geometry, texture_size_for
 from .lock import training_lock
 from . import poses as poses_module
-from .poses import POSE_CHECK_STEP, PoseRefinement
+from .poses import POSE_CHECK_STEP, POSE_SECOND_LOOK_STEP, PoseRefinement
 from .presets import APPEARANCE_ADAM_BETA2, APPEARANCE_GEOMETRY, DEFAULT_PRESET, get_preset
 from .scene import Scene, load_scene, scaled_size, split_views
 from .slab import Slab, fit_slab
@@ -603,9 +603,8 @@ def _train(scene, model_dir: Path, config: TrainConfig, images_dir, resume: bool
         step_consistency = consistency
         if pose_check_pending and POSE_CHECK_STEP // 2 <= step < POSE_CHECK_STEP and "halfway_degrees" not in meta.get("pose_check", {}):
             meta["pose_check"] = {"halfway_step": step, "halfway_degrees": round(poses.own_part_degrees(), 4)}
-        if pose_check_pending and step >= POSE_CHECK_STEP:
-            pose_check_pending = False
-            poses = _pose_check(poses, optimizer, meta, progress, step)
+        if pose_check_pending and step >= _pose_look_step(meta):
+            poses, pose_check_pending = _pose_check(poses, optimizer, meta, progress, step)
         if restart_pending and step >= POSE_CHECK_STEP:
             restart_pending = False
             if poses is not None:
@@ -662,7 +661,7 @@ def _train(scene, model_dir: Path, config: TrainConfig, images_dir, resume: bool
     if skipped:
         _emit(progress, event="warning", message=f"{skipped} training steps had a non-finite loss and were skipped")
     if pose_check_pending and status == "finished":  # the budget ended before the check (a short --minutes)
-        poses = _pose_check(poses, optimizer, meta, progress, step)
+        poses, pose_check_pending = _pose_check(poses, optimizer, meta, progress, step, last=True)
     if losses_pending and status == "finished":  # ... or before the rate was measured: too short for them
         meta["multiview_losses"] = False
     if poses is not None and not pose_check_pending:  # (stopped before the check: provisional, not reported)
@@ -685,18 +684,35 @@ def _pose_check_possible(config: TrainConfig, step_limit: int | None, resumed: d
     return steps >= 2 * POSE_CHECK_STEP
 
 
-def _pose_check(poses: PoseRefinement, optimizer, meta: dict, progress, step: int) -> PoseRefinement | None:
+def _pose_look_step(meta: dict) -> int:
+    """The step of the pose check's next look: POSE_CHECK_STEP, or after an unsure first look
+    POSE_SECOND_LOOK_STEP (poses.poses_look_off)."""
+    return POSE_SECOND_LOOK_STEP if "unsure_step" in meta.get("pose_check", {}) else POSE_CHECK_STEP
+
+
+def _pose_check(poses: PoseRefinement, optimizer, meta: dict, progress, step: int,
+                last: bool = False) -> tuple[PoseRefinement | None, bool]:
     """The default's verdict on the poses (poses.py, poses_look_off): keep refining where
     the corrections found so far say the poses are off; elsewhere drop the corrections, which
-    would only drift, and their optimizer state.  The verdict is saved with the model, so a
-    resumed run keeps it."""
+    would only drift, and their optimizer state.  Returns the corrections (None once dropped)
+    and whether the check is still pending: an unsure first look refines on and looks again
+    (unless it is the `last` look, at the end of training: then unsure is right).  The record
+    and verdict are saved with the model, so a resumed run keeps them."""
     found = poses.own_part_degrees()
     record = meta.get("pose_check", {})
+    second_look = "unsure_step" in record
+    keep = poses_module.poses_look_off(found, second_look)
+    if keep is None and not last:
+        meta["pose_check"] = {**record, "unsure_step": step, "unsure_degrees": round(found, 4)}
+        _emit(progress, event="stage", message=f"the pose corrections are small but not negligible (median "
+              f"{found:.3f} deg after {step} steps): refining on, looking again after {POSE_SECOND_LOOK_STEP} steps")
+        return poses, True
+    keep = bool(keep)
     halfway = record.get("halfway_degrees")  # for the record: whether the corrections were still growing
-    keep = poses_module.poses_look_off(found)
     meta["train_config"]["refine_poses"] = keep
     meta["pose_check"] = {**record, "step": step, "median_degrees": round(found, 4), "refining": keep}
     seen = f"median correction {found:.3f} deg after {step} steps" + (
+        f", {record['unsure_degrees']:.3f} after {record['unsure_step']}" if second_look else
         f", {halfway:.3f} after {record['halfway_step']}" if halfway is not None else "")
     if keep:
         message = f"the camera poses look off ({seen}): refining them (--no-refine-poses turns it off; docs/STABILITY.md)"
@@ -705,11 +721,11 @@ def _pose_check(poses: PoseRefinement, optimizer, meta: dict, progress, step: in
     _emit(progress, event="pose_check", refining=keep, median_degrees=found, halfway_degrees=halfway, step=step,
           message=message)
     if keep:
-        return poses
+        return poses, False
     optimizer.param_groups[:] = [group for group in optimizer.param_groups if group.get("name") != "poses"]
     for parameter in poses.parameters():
         optimizer.state.pop(parameter, None)
-    return None
+    return None, False
 
 
 def _restart_for_far_off_poses(field_module, optimizer, poses: PoseRefinement, meta: dict, progress, step: int,

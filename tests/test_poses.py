@@ -280,6 +280,7 @@ def test_the_pose_check_keeps_or_drops_the_refinement_and_saves_its_verdict(tiny
 
     monkeypatch.setattr(train_module, "POSE_CHECK_STEP", 5)
     monkeypatch.setattr(poses_module, "POSE_CHECK_DEGREES", threshold)
+    monkeypatch.setattr(poses_module, "POSE_CHECK_UNSURE_DEGREES", threshold)  # no second look here
     events = []
     train(tiny_scene, tmp_path / "m", TrainConfig(steps=12, batch_size=512, teacher=False), progress=events.append)
     (check,) = _check_events(events)
@@ -392,15 +393,56 @@ def test_the_pose_check_measures_each_cameras_own_part():
     assert poses.own_part_degrees() == pytest.approx(math.degrees(1e-3), rel=0.2)
 
 
-def test_the_pose_check_goes_by_the_size_of_the_corrections_alone():
-    """At least POSE_CHECK_DEGREES after POSE_CHECK_STEP steps, growing or shrinking since:
-    corrections that shrank dropped real errors (the synthetic scene with 0.1 degrees of noise,
-    one seed of three) and, with the depth-like prior, refining Statue's shrinking ones no
-    longer costs (docs/STABILITY.md, thirty-fifth session)."""
-    from neulf_core.poses import POSE_CHECK_DEGREES, poses_look_off
+def test_the_pose_check_goes_by_the_size_of_the_corrections_and_looks_again_when_unsure():
+    """At least POSE_CHECK_DEGREES after POSE_CHECK_STEP steps, growing or shrinking since,
+    the poses are off; under POSE_CHECK_UNSURE_DEGREES they are right; between, the check looks
+    again at POSE_SECOND_LOOK_STEP against POSE_SECOND_LOOK_DEGREES, where few photos with
+    0.1 degrees of noise and right poses part (docs/STABILITY.md, thirty-fifth session)."""
+    from neulf_core.poses import (POSE_CHECK_DEGREES, POSE_CHECK_UNSURE_DEGREES, POSE_SECOND_LOOK_DEGREES,
+                                  POSE_SECOND_LOOK_STEP, POSE_CHECK_STEP, poses_look_off)
 
-    assert not poses_look_off(0.5 * POSE_CHECK_DEGREES)  # drift
-    assert poses_look_off(POSE_CHECK_DEGREES) and poses_look_off(0.1)
+    assert poses_look_off(POSE_CHECK_DEGREES) is True and poses_look_off(0.1) is True
+    assert poses_look_off(0.5 * POSE_CHECK_UNSURE_DEGREES) is False  # drift
+    assert poses_look_off((POSE_CHECK_UNSURE_DEGREES + POSE_CHECK_DEGREES) / 2) is None  # unsure
+    assert poses_look_off(POSE_SECOND_LOOK_DEGREES, second_look=True) is True
+    assert poses_look_off(0.9 * POSE_SECOND_LOOK_DEGREES, second_look=True) is False
+    assert POSE_CHECK_UNSURE_DEGREES < POSE_SECOND_LOOK_DEGREES < POSE_CHECK_DEGREES
+    assert POSE_SECOND_LOOK_STEP > POSE_CHECK_STEP
+
+
+@pytest.mark.parametrize("second_threshold, refining", [(90.0, False), (0.0, True)])
+def test_an_unsure_pose_check_refines_on_and_decides_at_its_second_look(tiny_scene, tmp_path, monkeypatch,
+                                                                        second_threshold, refining):
+    """Unsure at the first look: the corrections go on moving (nothing reported yet, the run
+    still undecided in its checkpoint), and the second look decides.  A run stopped between
+    the two looks resumes undecided and looks again at the second look's step."""
+    import neulf_core.poses as poses_module
+    import neulf_core.train as train_module
+    from neulf_core.checkpoint import load_checkpoint
+    from neulf_core.train import TrainConfig, train
+
+    monkeypatch.setattr(train_module, "POSE_CHECK_STEP", 5)
+    monkeypatch.setattr(train_module, "POSE_SECOND_LOOK_STEP", 9)
+    monkeypatch.setattr(poses_module, "POSE_CHECK_DEGREES", 1e9)
+    monkeypatch.setattr(poses_module, "POSE_CHECK_UNSURE_DEGREES", 0.0)  # every first look unsure
+    monkeypatch.setattr(poses_module, "POSE_SECOND_LOOK_DEGREES", second_threshold)
+    steps = iter(range(1000))
+    first = []
+    train(tiny_scene, tmp_path / "m", TrainConfig(steps=14, batch_size=512, teacher=False), progress=first.append,
+          should_stop=lambda: next(steps) >= 7)  # stopped at step 7, between the looks
+    (unsure,) = [e for e in first if e["event"] == "stage" and "looking again" in e["message"]]
+    assert not _check_events(first) and not [e for e in first if e["event"] == "poses"]
+    saved = load_checkpoint(tmp_path / "m")
+    assert saved["train_config"]["refine_poses"] is None and saved["poses"] is not None  # undecided, corrections kept
+    assert saved["pose_check"]["unsure_step"] == 5 and "refining" not in saved["pose_check"]
+    more = []
+    train(tiny_scene, tmp_path / "m", TrainConfig(steps=14), resume=True, progress=more.append)
+    (check,) = _check_events(more)
+    assert check["step"] == 9 and check["refining"] is refining
+    assert f"after {saved['pose_check']['unsure_step']}" in check["message"]  # the first look, restored
+    final = load_checkpoint(tmp_path / "m")
+    assert final["train_config"]["refine_poses"] is refining and (final["poses"] is not None) is refining
+    assert final["pose_check"]["step"] == 9 and final["pose_check"]["unsure_step"] == 5
 
 
 def test_a_held_out_cameras_pose_is_fitted_to_its_photo(tiny_scene, tmp_path, capsys):
