@@ -65,7 +65,8 @@ sys.path.insert(0, str(REPO))
 
 from neulf_core.images import save_rgb  # noqa: E402
 from neulf_core.metrics import psnr, ssim  # noqa: E402
-from neulf_core.poses import POSE_CHECK_DEGREES, POSE_CHECK_STEP, fit_view_pose  # noqa: E402
+from neulf_core.poses import (POSE_CHECK_DEGREES, POSE_CHECK_STEP, POSE_CHECK_UNSURE_DEGREES,  # noqa: E402
+                              POSE_SECOND_LOOK_DEGREES, POSE_SECOND_LOOK_STEP, fit_view_pose)
 from neulf_core.presets import get_preset  # noqa: E402
 from neulf_core.render import LightField  # noqa: E402
 from neulf_core.scene import Scene, View, camera_spacing, find_model_dir, load_scene, scaled_size, split_views  # noqa: E402
@@ -674,8 +675,9 @@ def pose_table(rows: list[dict]) -> list[str]:
                                                     for d, c in zip(POSE_DEGREES, cells) if c))
     if kept:
         lines += ["", "Runs in which the default's pose check kept refining (after "
-                      f"{POSE_CHECK_STEP} steps, median correction at least {POSE_CHECK_DEGREES:g}°): "
-                      + "; ".join(kept) + "."]
+                      f"{POSE_CHECK_STEP} steps, median correction at least {POSE_CHECK_DEGREES:g}°, or "
+                      f"{POSE_CHECK_UNSURE_DEGREES:g}-{POSE_CHECK_DEGREES:g}° and at least {POSE_SECOND_LOOK_DEGREES:g}° "
+                      f"after {POSE_SECOND_LOOK_STEP}): " + "; ".join(kept) + "."]
         lines += ["", "Runs in which the default then started the field again with smoother geometry (median correction "
                       f"at least {FAR_OFF_POSE_DEGREES:g}° on a scene that is not deep; rows logged before the rule: 0): "
                       + "; ".join(restarted) + "."]
