@@ -25,7 +25,7 @@ APPEARANCE_CHOICES = [
     ("ON", "On", "Always learn a colour correction per photo"),
     ("OFF", "Off", "Never: every photo has the same exposure and white balance"),
 ]
-# "Refine Poses": likewise (Auto: the trainer refines for its first 100 steps and keeps refining
+# "Refine Poses": likewise (Auto: the trainer refines for its first 100 steps, 200 where unsure, and keeps refining
 # only where the corrections say the poses are off).
 POSE_CHOICES = [
     ("AUTO", "Auto", "Refine the camera poses only where the first training steps find them off"),
