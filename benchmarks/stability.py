@@ -1104,6 +1104,18 @@ def previous_generation(markdown: Path) -> dict | None:
     return {"date": found.group(1), "machine": found.group(2)} if found else None
 
 
+def generation(args) -> dict:
+    """The date and machine for the tables' header: today and this machine; with
+    --report-only (nothing trained here) the header's as it was; --machine names them
+    where the runs came from more than one (a GPU's and a CPU's, say)."""
+    generated = {"date": date.today().isoformat(), "machine": machine()}
+    if args.report_only:
+        generated = previous_generation(args.docs / "STABILITY.md") or generated
+    if args.machine:
+        generated = {**generated, "machine": args.machine}
+    return generated
+
+
 def csv_value(text: str):
     """A value of docs/stability.csv as it was logged: '' is None, then bool, int, float, text."""
     if text == "":
@@ -1191,6 +1203,8 @@ def parse_args(argv=None) -> argparse.Namespace:
                              "e.g. a GPU one without Blender), print the arguments that use them, and stop")
     parser.add_argument("--fresh", action="store_true", help="ignore the runs already in the cache's log")
     parser.add_argument("--report-only", action="store_true", help="rewrite the docs from the log, train nothing")
+    parser.add_argument("--machine", help="the machines the runs came from, for the tables' header (default: this "
+                                          "one; with --report-only, the header's as it was)")
     return parser.parse_args(argv)
 
 
@@ -1253,10 +1267,7 @@ def main(argv=None) -> None:
         rows = report_rows(done, jobs)
     else:
         rows = run_jobs(jobs, args.workers, done, log, by_configuration=args.by_configuration)
-    generated = {"date": date.today().isoformat(), "machine": machine()}
-    if args.report_only:  # nothing trained here: the header keeps the machine and date the runs came from
-        generated = previous_generation(args.docs / "STABILITY.md") or generated
-    meta = {**generated, "fast_steps": args.fast_steps,
+    meta = {**generation(args), "fast_steps": args.fast_steps,
             "paper_steps": args.paper_steps, "seeds": args.seeds, "losses_minutes": args.losses_minutes,
             "losses_seeds": args.losses_seeds}
     print(write_outputs(rows, args.docs, meta))

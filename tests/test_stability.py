@@ -106,6 +106,10 @@ def test_study_runs_end_to_end(stability, tiny_scene, tmp_path, monkeypatch):
     # --report-only trains nothing: its header keeps the machine and date the runs came from.
     assert stability.previous_generation(tmp_path / "docs" / "STABILITY.md") == {"date": "2026-11-21", "machine": "test"}
     assert stability.previous_generation(tmp_path / "no_such.md") is None
+    report = stability.parse_args(["--report-only", "--docs", str(tmp_path / "docs")])
+    assert stability.generation(report) == {"date": "2026-11-21", "machine": "test"}
+    named = stability.parse_args(["--report-only", "--docs", str(tmp_path / "docs"), "--machine", "a GPU and a CPU"])
+    assert stability.generation(named) == {"date": "2026-11-21", "machine": "a GPU and a CPU"}
     timed = [r for r in rows if r["minutes"]]
     # Each ran for its 3 seconds, or stopped earlier after 100 passes over its 4 small photos.
     from conftest import TINY_HEIGHT, TINY_WIDTH
