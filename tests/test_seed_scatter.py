@@ -1,0 +1,58 @@
+"""benchmarks/seed_scatter.py: the seed scatter's jobs are the stability study's, and its summary."""
+
+import importlib.util
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+BENCHMARKS = Path(__file__).resolve().parent.parent / "benchmarks"
+
+
+@pytest.fixture(scope="module")
+def scatter():
+    sys.path.insert(0, str(BENCHMARKS))
+    spec = importlib.util.spec_from_file_location("seed_scatter", BENCHMARKS / "seed_scatter.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_seeds_parse_as_ranges_and_lists(scatter):
+    assert scatter.parse_seeds("0-7") == list(range(8))
+    assert scatter.parse_seeds("0,1,2") == [0, 1, 2]
+    assert scatter.parse_seeds("0-2,5") == [0, 1, 2, 5]
+
+
+def test_summary_counts_the_triples_inside_the_target(scatter):
+    s = scatter.summary([30.0, 30.1, 30.15, 30.5])
+    assert s["n"] == 4 and s["triples"] == 4
+    assert s["triples_inside"] == 1  # only (30.0, 30.1, 30.15): every other triple holds 30.5
+    assert s["range"] == pytest.approx(0.5) and s["mean"] == pytest.approx(30.1875)
+    assert s["sd"] == pytest.approx(np.std([30.0, 30.1, 30.15, 30.5], ddof=1))
+
+
+def test_chance_inside_matches_draws_of_a_normal_scatter(scatter):
+    rng = np.random.default_rng(0)
+    for sd in (0.05, 0.1, 0.2):
+        draws = rng.normal(0.0, sd, size=(200_000, 3))
+        simulated = float(np.mean(draws.max(1) - draws.min(1) <= scatter.TARGET_DB))
+        assert scatter.chance_inside(sd) == pytest.approx(simulated, abs=0.005)
+    assert scatter.chance_inside(0.0) == 1.0
+
+
+def test_jobs_are_the_stability_studys_and_the_table_reads_their_rows(scatter):
+    stability = scatter.stability
+    scenes = {"lambertian": Path("/scenes/lambertian"), "canclip": Path("/data/canclip")}
+    scales = {"lambertian": 0.5, "canclip": 0.25}
+    jobs = scatter.plan(["synthetic-0.1deg", "canclip-6-photos"], [0, 1, 2, 3], 1000, scenes, scales)
+    study_job = stability.Job("lambertian", "/scenes/lambertian", "/scenes/lambertian", 0.5, "fast", 1000, 2,
+                              pose_degrees=0.1, colour_start=stability.preset_colour_start("fast"))
+    assert jobs["synthetic-0.1deg"][2].key == study_job.key  # the very run the study logs
+    assert [job.fraction for job in jobs["canclip-6-photos"]] == [0.25] * 4
+    done = {job.key: {"status": "finished", "psnr": 30.0 + 0.05 * job.seed} for job in jobs["synthetic-0.1deg"]}
+    lines = scatter.table(done, jobs).splitlines()
+    assert lines[2].startswith("| synthetic-0.1deg | 30.00 30.05 30.10 30.15 | 30.07 |")
+    assert "| 4 of 4 |" in lines[2]
+    assert lines[3] == "| canclip-6-photos | 0 of 4 finished | | | | | |"
