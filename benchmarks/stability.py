@@ -969,14 +969,15 @@ def random_start_note(rows: list[dict]) -> list[str]:
                 f"(`colour_start` random in docs/stability.csv: {where}); their rows stand until the study re-runs them.**"]
 
 
-def update_markdown(path: Path, tables: str) -> None:
-    """Replace the generated block in `path`, keeping the hand-written text around it."""
-    text = path.read_text() if path.is_file() else f"# Stability study\n\n{MARKER_BEGIN}\n{MARKER_END}\n"
-    if MARKER_BEGIN not in text:
-        text += f"\n{MARKER_BEGIN}\n{MARKER_END}\n"
-    head, rest = text.split(MARKER_BEGIN, 1)
-    tail = rest.split(MARKER_END, 1)[1] if MARKER_END in rest else ""
-    path.write_text(f"{head}{MARKER_BEGIN}\n{tables}\n{MARKER_END}{tail}")
+def update_markdown(path: Path, tables: str, begin: str = MARKER_BEGIN, end: str = MARKER_END) -> None:
+    """Replace the generated block (between `begin` and `end`) in `path`, keeping the
+    hand-written text around it."""
+    text = path.read_text() if path.is_file() else f"# Stability study\n\n{begin}\n{end}\n"
+    if begin not in text:
+        text += f"\n{begin}\n{end}\n"
+    head, rest = text.split(begin, 1)
+    tail = rest.split(end, 1)[1] if end in rest else ""
+    path.write_text(f"{head}{begin}\n{tables}\n{end}{tail}")
 
 
 CSV_COLUMNS = ["scene", "preset", "fraction", "pose_degrees", "appearance", "refine_poses", "consistency", "minutes",

@@ -56,3 +56,26 @@ def test_jobs_are_the_stability_studys_and_the_table_reads_their_rows(scatter):
     assert lines[2].startswith("| synthetic-0.1deg | 30.00 30.05 30.10 30.15 | 30.07 |")
     assert "| 4 of 4 |" in lines[2]
     assert lines[3] == "| canclip-6-photos | 0 of 4 finished | | | | | |"
+
+
+def test_report_only_rewrites_the_generated_block_and_keeps_the_text_around_it(scatter, tmp_path):
+    import json
+    from dataclasses import asdict
+
+    capture = tmp_path / "canclip"
+    capture.mkdir()
+    jobs = scatter.plan(["canclip"], [0, 1, 2], 1000, {"canclip": capture}, {"canclip": 0.25})
+    cache = tmp_path / "cache"
+    cache.mkdir()
+    with open(cache / "runs.jsonl", "w") as log:
+        for job in jobs["canclip"]:
+            log.write(json.dumps({**asdict(job), "status": "finished", "psnr": 36.2 + 0.01 * job.seed}) + "\n")
+    docs = tmp_path / "docs"
+    docs.mkdir()
+    (docs / "SEED_SCATTER.md").write_text(f"# By hand\n\n{scatter.MARKER_BEGIN}\nold\n{scatter.MARKER_END}\n\nAfter.\n")
+    scatter.main(["--configurations", "canclip", "--seeds", "0-2", "--canclip", str(capture), "--cache", str(cache),
+                  "--docs", str(docs), "--report-only"])
+    text = (docs / "SEED_SCATTER.md").read_text()
+    assert text.startswith("# By hand\n") and text.endswith("\nAfter.\n") and "old" not in text
+    assert "| canclip | 36.20 36.21 36.22 | 36.21 | 0.010 | 0.02 | 1 of 1 | 100 % |" in text
+    assert len((docs / "seed_scatter.csv").read_text().splitlines()) == 1 + 3
