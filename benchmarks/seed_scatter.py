@@ -146,9 +146,8 @@ def main(argv=None) -> None:
     args.cache.mkdir(parents=True, exist_ok=True)
     log = args.cache / "runs.jsonl"
     done = stability.load_log(log)
-    if not args.report_only:
-        stability.run_jobs(every, args.workers, done, log)
-        done = stability.load_log(log)
+    if not args.report_only:  # run_jobs returns every job's row, in order, the logged ones included
+        done = {job.key: row for job, row in zip(every, stability.run_jobs(every, args.workers, done, log))}
     stability.write_csv([done[job.key] for job in every if job.key in done], args.docs / "seed_scatter.csv")
     header = (f"Generated {date.today().isoformat()} on {stability.machine()}; fast: {args.steps} steps; seeds "
               f"{args.seeds}; a configuration's PSNRs in seed order.")

@@ -687,7 +687,12 @@ def _pose_check_possible(config: TrainConfig, step_limit: int | None, resumed: d
 def _pose_look_step(meta: dict) -> int:
     """The step of the pose check's next look: POSE_CHECK_STEP, or after an unsure first look
     POSE_SECOND_LOOK_STEP (poses.poses_look_off)."""
-    return POSE_SECOND_LOOK_STEP if "unsure_step" in meta.get("pose_check", {}) else POSE_CHECK_STEP
+    return POSE_SECOND_LOOK_STEP if _first_look_unsure(meta.get("pose_check", {})) else POSE_CHECK_STEP
+
+
+def _first_look_unsure(record: dict) -> bool:
+    """Whether the pose check's record (model.json "pose_check") holds an unsure first look."""
+    return "unsure_step" in record
 
 
 def _pose_check(poses: PoseRefinement, optimizer, meta: dict, progress, step: int,
@@ -700,7 +705,7 @@ def _pose_check(poses: PoseRefinement, optimizer, meta: dict, progress, step: in
     and verdict are saved with the model, so a resumed run keeps them."""
     found = poses.own_part_degrees()
     record = meta.get("pose_check", {})
-    second_look = "unsure_step" in record
+    second_look = _first_look_unsure(record)
     keep = poses_module.poses_look_off(found, second_look)
     if keep is None and not last:
         meta["pose_check"] = {**record, "unsure_step": step, "unsure_degrees": round(found, 4)}
