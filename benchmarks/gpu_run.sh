@@ -14,7 +14,9 @@
 #    frame rate with larger render chunks.
 # 5. stability: issue 4's seed spread for the default at a longer budget (STAB_STEPS, default
 #    3000), its scenes packed by `python benchmarks/stability.py --pack .gpu_data/stab`.
-# STAGES picks among smoke, bench, fps, profile, stability (default: the first three).
+# 6. scatter: how wide three seeds fall by chance at that budget (benchmarks/seed_scatter.py,
+#    SCATTER_SEEDS, default 0-7, at STAB_STEPS), on the same packed scenes.
+# STAGES picks among smoke, bench, fps, profile, stability, scatter (default: the first three).
 # Python packages the machine lacks (pycolmap) travel as wheels in .whl/; the scene in
 # .gpu_data/ (both ignored by git, carried by the device tool).  To prepare them, on a machine
 # with the network (the GPU machine's Python was 3.12):
@@ -106,5 +108,18 @@ if has stability; then
     pkill -f "multiprocessing.spawn" 2>/dev/null
     python3 benchmarks/stability.py "${STAB_ARGS[@]}" --report-only > "$OUT/stability/report.md" 2>&1
     rm -f "$OUT/stability/scenes"
+fi
+if has scatter; then
+    STAB_PACK=${STAB_PACK:-.gpu_data/stab}
+    mkdir -p "$OUT/scatter/docs"
+    cp docs/SEED_SCATTER.md "$OUT/scatter/docs/"
+    SCATTER_ARGS=(--cache "$OUT/scatter" --scenes-cache "$STAB_PACK" --canclip "$STAB_PACK/canclip" --canclip-scale 1
+                  --steps "${STAB_STEPS:-3000}" --seeds "${SCATTER_SEEDS:-0-7}" --docs "$OUT/scatter/docs"
+                  ${SCATTER_CONFIGURATIONS:+--configurations "$SCATTER_CONFIGURATIONS"})
+    step "seed scatter at ${STAB_STEPS:-3000} steps, ${STAB_WORKERS:-15} side by side"
+    timeout "${STAB_SECONDS:-500}" python3 benchmarks/seed_scatter.py "${SCATTER_ARGS[@]}" --workers "${STAB_WORKERS:-15}" 2>&1 \
+        | grep -v "^rendering" | tee "$OUT/scatter.log"
+    pkill -f "multiprocessing.spawn" 2>/dev/null
+    python3 benchmarks/seed_scatter.py "${SCATTER_ARGS[@]}" --report-only > "$OUT/scatter/report.md" 2>&1
 fi
 step "done"
