@@ -79,3 +79,30 @@ def test_report_only_rewrites_the_generated_block_and_keeps_the_text_around_it(s
     assert text.startswith("# By hand\n") and text.endswith("\nAfter.\n") and "old" not in text
     assert "| canclip | 36.20 36.21 36.22 | 36.21 | 0.010 | 0.02 | 1 of 1 | 100 % |" in text
     assert len((docs / "seed_scatter.csv").read_text().splitlines()) == 1 + 3
+
+
+def test_another_budget_writes_its_own_block_and_csv_beside_the_studys(scatter, tmp_path):
+    import json
+    from dataclasses import asdict
+
+    capture = tmp_path / "canclip"
+    capture.mkdir()
+    cache = tmp_path / "cache"
+    cache.mkdir()
+    with open(cache / "runs.jsonl", "w") as log:
+        for steps in (1000, 3000):
+            for job in scatter.plan(["canclip"], [0, 1, 2], steps, {"canclip": capture}, {"canclip": 0.25})["canclip"]:
+                log.write(json.dumps({**asdict(job), "status": "finished", "psnr": steps / 100 + 0.01 * job.seed}) + "\n")
+    docs = tmp_path / "docs"
+    docs.mkdir()
+    (docs / "SEED_SCATTER.md").write_text("# By hand\n")
+    common = ["--configurations", "canclip", "--seeds", "0-2", "--canclip", str(capture), "--cache", str(cache),
+              "--docs", str(docs), "--report-only"]
+    scatter.main(common)
+    scatter.main(common + ["--steps", "3000", "--machine", "an H100 and a CPU"])
+    scatter.main(common)  # the study's block again: the other budget's stays
+    text = (docs / "SEED_SCATTER.md").read_text()
+    assert text.count("| canclip | 10.00 10.01 10.02 |") == 1 and text.count("| canclip | 30.00 30.01 30.02 |") == 1
+    assert "on an H100 and a CPU; fast: 3000 steps" in text
+    assert (docs / "seed_scatter.csv").is_file() and (docs / "seed_scatter_3000.csv").is_file()
+    assert scatter.outputs_for(1000)[1] == scatter.MARKER_BEGIN
