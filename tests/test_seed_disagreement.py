@@ -32,7 +32,7 @@ def test_depth_edges_lie_along_the_silhouette_only(disagreement):
     assert edges[10, 20] and edges[29, 20] and edges[20, 9] and edges[20, 30]  # both sides of each side
     assert edges[20, 7] and not edges[20, 6]  # the pixel beside the jump and two more, no further
     assert not edges[20, 20] and not edges[2, 2]  # inside the square, and the background
-    smooth = np.linspace(0.2, 1.0, 40)[None, :].repeat(40, 0)  # a slanted plane: no jump anywhere
+    smooth = np.linspace(0.5, 1.0, 40)[None, :].repeat(40, 0)  # a slanted plane: 3 % steps at most
     assert not disagreement.depth_edges(smooth).any()
 
 
@@ -70,3 +70,12 @@ def test_a_finished_model_of_the_same_job_is_kept(disagreement, tmp_path):
     other = stability.Job("lambertian", "/nowhere", "/nowhere", 0.5, "fast", 3000, 0,
                           colour_start=stability.preset_colour_start("fast"))
     assert disagreement.model_dir(tmp_path, other) != out
+
+
+def test_image_edges_are_the_share_of_pixels_where_the_colour_changes_most(disagreement):
+    image = np.zeros((40, 40, 3))
+    image[:, 20:] = 1.0  # one vertical edge
+    image += np.random.default_rng(1).uniform(0, 1e-3, image.shape)  # ties broken
+    edges = disagreement.image_edges(image, share=0.05)
+    assert edges.mean() == pytest.approx(0.05, abs=0.01)
+    assert edges[:, 19:21].mean() > 0.9 and not edges[:, :17].any() and not edges[:, 23:].any()
