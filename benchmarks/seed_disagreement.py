@@ -192,18 +192,8 @@ def figure(shown: dict[str, dict], path: Path) -> None:
 
 def parse_args(argv=None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--configurations", default=DEFAULT_CONFIGURATIONS,
-                        help=f"comma-separated, of: {', '.join(seed_scatter.CONFIGURATIONS)}")
-    parser.add_argument("--seeds", default="0-2")
-    parser.add_argument("--steps", type=int, default=1000)
-    parser.add_argument("--workers", type=int, default=2, help="trainings side by side (each uses 1 torch thread)")
+    seed_scatter.add_plan_arguments(parser, DEFAULT_CONFIGURATIONS, "0-2")
     parser.add_argument("--models", type=Path, default=DEFAULT_MODELS, help="where the models are kept (reused)")
-    parser.add_argument("--scenes-cache", type=Path, default=stability.DEFAULT_CACHE,
-                        help="where the stability study renders its synthetic scenes (rendered there if missing)")
-    parser.add_argument("--canclip", type=Path, default=stability.CANCLIP)
-    parser.add_argument("--canclip-scale", type=float, default=0.25)
-    parser.add_argument("--synth-scale", type=float, default=0.5)
-    parser.add_argument("--docs", type=Path, default=stability.DOCS)
     return parser.parse_args(argv)
 
 

@@ -113,20 +113,26 @@ def table(done: dict, jobs: dict[str, list]) -> str:
     return "\n".join(lines)
 
 
-def parse_args(argv=None) -> argparse.Namespace:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--configurations", default=",".join(CONFIGURATIONS),
+def add_plan_arguments(parser: argparse.ArgumentParser, configurations: str, seeds: str) -> None:
+    """The options plan_for reads (which configurations, seeds, budget and scenes), and the
+    runs side by side and the docs folder; also benchmarks/seed_disagreement.py's."""
+    parser.add_argument("--configurations", default=configurations,
                         help=f"comma-separated, of: {', '.join(CONFIGURATIONS)}")
-    parser.add_argument("--seeds", default="0-7")
-    parser.add_argument("--steps", type=int, default=1000)
+    parser.add_argument("--seeds", default=seeds)
+    parser.add_argument("--steps", type=int, default=STUDY_STEPS)
     parser.add_argument("--workers", type=int, default=2, help="runs side by side (each uses 1 torch thread)")
-    parser.add_argument("--cache", type=Path, default=DEFAULT_CACHE, help="the run log")
     parser.add_argument("--scenes-cache", type=Path, default=stability.DEFAULT_CACHE,
                         help="where the stability study renders its synthetic scenes (rendered there if missing)")
     parser.add_argument("--canclip", type=Path, default=stability.CANCLIP)
     parser.add_argument("--canclip-scale", type=float, default=0.25)
     parser.add_argument("--synth-scale", type=float, default=0.5)
     parser.add_argument("--docs", type=Path, default=DOCS)
+
+
+def parse_args(argv=None) -> argparse.Namespace:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    add_plan_arguments(parser, ",".join(CONFIGURATIONS), "0-7")
+    parser.add_argument("--cache", type=Path, default=DEFAULT_CACHE, help="the run log")
     parser.add_argument("--report-only", action="store_true", help="rewrite the docs from the log, train nothing")
     parser.add_argument("--machine", help="the machines the runs came from, for the table's header (default: this one)")
     return parser.parse_args(argv)

@@ -9,7 +9,9 @@ plane's centre, plus 3D points sampled on the plane (they give the slab its dept
 
 from __future__ import annotations
 
+import importlib.util
 import os
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -168,3 +170,20 @@ def tiny_scene(tmp_path_factory) -> Path:
 @pytest.fixture(scope="session")
 def tiny_scene_factory():
     return make_tiny_scene
+
+
+@pytest.fixture(scope="session")
+def benchmark_script():
+    """Load a script of benchmarks/ as a module, with that folder on sys.path as the scripts
+    import each other (seed_scatter imports stability)."""
+    folder = Path(__file__).resolve().parents[1] / "benchmarks"
+    if str(folder) not in sys.path:
+        sys.path.insert(0, str(folder))
+
+    def load(name: str):
+        spec = importlib.util.spec_from_file_location(name, folder / f"{name}.py")
+        module = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(module)
+        return module
+
+    return load

@@ -1,23 +1,13 @@
 """benchmarks/seed_disagreement.py: depth edges from a render's depth, and the split of the
 seeds' difference between the edges and the rest."""
 
-import importlib.util
-import sys
-from pathlib import Path
-
 import numpy as np
 import pytest
 
-BENCHMARKS = Path(__file__).resolve().parent.parent / "benchmarks"
-
 
 @pytest.fixture(scope="module")
-def disagreement():
-    sys.path.insert(0, str(BENCHMARKS))
-    spec = importlib.util.spec_from_file_location("seed_disagreement", BENCHMARKS / "seed_disagreement.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+def disagreement(benchmark_script):
+    return benchmark_script("seed_disagreement")
 
 
 def a_near_square(size=40, near=1.0, far=0.25):

@@ -1,22 +1,14 @@
 """benchmarks/seed_scatter.py: the seed scatter's jobs are the stability study's, and its summary."""
 
-import importlib.util
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-BENCHMARKS = Path(__file__).resolve().parent.parent / "benchmarks"
-
 
 @pytest.fixture(scope="module")
-def scatter():
-    sys.path.insert(0, str(BENCHMARKS))
-    spec = importlib.util.spec_from_file_location("seed_scatter", BENCHMARKS / "seed_scatter.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+def scatter(benchmark_script):
+    return benchmark_script("seed_scatter")
 
 
 def test_seeds_parse_as_ranges_and_lists(scatter):
