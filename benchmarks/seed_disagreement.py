@@ -185,7 +185,7 @@ def figure(shown: dict[str, dict], path: Path) -> None:
         for axis in row:
             axis.set_axis_off()
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    fig.savefig(path, dpi=60)
     plt.close(fig)
 
 
