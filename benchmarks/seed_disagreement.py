@@ -143,14 +143,14 @@ def analyse(label: str, jobs: list[stability.Job], models: Path) -> tuple[list[d
         renders = [field.render_view(view, jobs[0].scale, depth=True) for field in fields]
         images = np.stack([np.nan_to_num(r.rgb, nan=0.0) for r in renders])
         inverse = np.nanmean(np.stack([1.0 / r.depth for r in renders]), 0)
-        edges = depth_edges(inverse)
-        on_image_edges = attribute(images, target, image_edges(target))
+        edges, sharp = depth_edges(inverse), image_edges(target)
+        on_image_edges = attribute(images, target, sharp)
         rows.append({"configuration": label, "view": view.stem, "seeds": " ".join(str(j.seed) for j in jobs),
                      "steps": jobs[0].steps, **attribute(images, target, edges),
                      "gap_on_image_edges": on_image_edges["gap_on_edges"],
                      "variance_on_image_edges": on_image_edges["variance_on_edges"]})
         if not shown or rows[-1]["gap_mse"] > shown["gap_mse"]:  # the figure shows the view the seeds split most
-            shown = {"target": target, "std": images.std(0).mean(-1), "edges": edges, "image_edges": image_edges(target),
+            shown = {"target": target, "std": images.std(0).mean(-1), "edges": edges, "image_edges": sharp,
                      "view": view.stem, "gap_mse": rows[-1]["gap_mse"]}
     return rows, shown
 
