@@ -46,6 +46,7 @@ CONFIGURATIONS = {
     "canclip-0.5deg": {"scene": "canclip", "pose_degrees": 0.5},
     "synthetic": {"scene": "lambertian"},
     "synthetic-7-photos": {"scene": "lambertian", "fraction": 0.5},
+    "synthetic-4-photos": {"scene": "lambertian", "fraction": 0.25},
     "synthetic-0.1deg": {"scene": "lambertian", "pose_degrees": 0.1},
     "shiny": {"scene": "shiny"},
     "fine": {"scene": "fine"},

@@ -315,6 +315,16 @@ def score_views(model_dir: Path, held: list[View], scale: float, fit_poses: bool
             "exposure_difference_stops": light_field.meta.get("exposure_difference_stops")}
 
 
+def starts_cost(model_dir: Path) -> tuple[str | None, int, float]:
+    """Which start a model kept where it trained two (neulf_core/starts.py), and the steps and
+    seconds of the one it discarded (counted in the run's time: they are the user's wait)."""
+    starts = json.loads((model_dir / "model.json").read_text()).get("starts", {})
+    if "second_loss" not in starts:  # one start
+        return None, 0, 0.0
+    discarded = "second_seconds" if starts["kept"] == "first" else "first_seconds"
+    return starts["kept"], int(starts["decision_step"]), float(starts.get(discarded, 0.0))
+
+
 def colour_matched(image: np.ndarray, target: np.ndarray, fit_columns: slice = slice(None)) -> np.ndarray:
     """`image` after the per-channel gain and offset that best fit `target` (least squares) on
     `fit_columns`: a diagnostic that separates a global colour/exposure offset from errors in
@@ -403,7 +413,9 @@ def run_job(job: Job, threads: int = 1) -> dict:
         row.update(train_views=len(train_views), held_out=len(held), sweep_fade=sweep_fade(job.preset, len(train_views)))
         with tempfile.TemporaryDirectory(prefix="neulf_stability_") as model_dir:
             result = train(scene, model_dir, train_config(job, held), progress=progress)
-            row.update(steps_done=result.step, train_seconds=round(result.elapsed, 2))
+            kept, discarded_steps, discarded_seconds = starts_cost(Path(model_dir))
+            row.update(steps_done=result.step, train_seconds=round(result.elapsed + discarded_seconds, 2),
+                       start_kept=kept, discarded_steps=discarded_steps)
             row.update(score_views(Path(model_dir), held, job.scale, fit_poses=in_pose_study(job)))
         row["status"] = result.status
     except Exception as exc:  # recorded and reported; the study goes on
@@ -982,7 +994,7 @@ def update_markdown(path: Path, tables: str, begin: str = MARKER_BEGIN, end: str
 
 CSV_COLUMNS = ["scene", "preset", "fraction", "pose_degrees", "appearance", "refine_poses", "consistency", "minutes",
                "coarse_to_fine", "colour_start", "coarse_to_fine_used", "appearance_used", "appearance_default", "exposure_difference_stops",
-               "pose_check_refining", "pose_check_degrees", "pose_check_halfway", "field_restarted",
+               "pose_check_refining", "pose_check_degrees", "pose_check_halfway", "field_restarted", "start_kept", "discarded_steps",
                "sweep_fade", "deep_scene", "multiview_losses", "seed", "status", "psnr", "ssim",
                "psnr_matched", "psnr_half_fit", "psnr_pose_fitted", "pose_fit_degrees", "psnr_per_view", "train_views", "held_out", "steps", "steps_done", "train_seconds",
                "wall_seconds", "warnings", "warning_text", "nonfinite_pixels", "error", "scale", "path", "truth"]

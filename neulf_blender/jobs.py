@@ -197,7 +197,7 @@ class TrainJob(ProcessJob):
         elif kind in ("step", "validate"):
             state.update(step=event.get("step", state["step"]), elapsed=event.get("elapsed", state["elapsed"]),
                          fraction=event.get("fraction", state["fraction"]), loss=event.get("loss"),
-                         message=f"step {event.get('step')}")
+                         message=f"{'second start, ' if event.get('start') == 2 else ''}step {event.get('step')}")
             if kind == "validate" and event.get("val_psnr") is not None:
                 state["val_psnr"] = event["val_psnr"]
         elif kind == "warning":
@@ -208,6 +208,10 @@ class TrainJob(ProcessJob):
             state["appearance"] = event.get("exposure_difference_stops")
         elif kind == "passes":  # few photos: training ends at this step at the latest
             state["pass_limit"] = event.get("steps")
+        elif kind == "stage":  # e.g. few photos: a second start, the better one kept
+            state["message"] = event.get("message", "")
+            if event.get("kept"):
+                state["start_kept"] = event["kept"]
         elif kind == "pose_check":  # Refine Poses on Auto: the first steps' verdict on the poses
             state["message"] = event.get("message", "")
             state["pose_check"] = bool(event.get("refining"))
@@ -427,6 +431,8 @@ def job_status_text(state: dict) -> str:
         text += "; camera poses checked, not refined"
     if state.get("field_restart"):
         text += "; camera poses far off: restarted with smoother geometry at the pose check"
+    if state.get("start_kept"):
+        text += f"; the {state['start_kept']} of two random starts kept (few photos: the better fit)"
     if state["status"] == "finished" and state.get("pass_limit") and state.get("step", 0) >= state["pass_limit"]:
         text += "; stopped before the time was up: more training would only memorise so few photos"
     return text + pose_text(state.get("poses"))

@@ -165,7 +165,7 @@ def _steps_per_minute(scene: Scene, config: TrainConfig) -> float:
     steps end it; a minute at least, so that a short budget on a busy machine still gets
     there, and 0 if it did not)."""
     probe = replace(config, steps=LOSSES_DECISION_STEP + 1, minutes=max(config.minutes, 1.0), consistency=None,
-                    teacher=False, refine_poses=False, checkpoint_seconds=1e9, validate_seconds=1e9)
+                    teacher=False, refine_poses=False, checkpoint_seconds=1e9, validate_seconds=1e9, two_starts=False)
     with tempfile.TemporaryDirectory(prefix="neulf-auto-rate-") as folder:
         train(scene, folder, probe)
         return float(json.loads((Path(folder) / METADATA_NAME).read_text()).get("losses_steps_per_minute", 0.0))
@@ -182,7 +182,7 @@ def _search(scene: Scene, config: TrainConfig, factors, progress, should_stop):
     for i, candidate in enumerate(candidates):
         budget = {"steps": steps, "minutes": None} if steps else {"steps": None, "minutes": config.minutes * share}
         run = replace(config, **budget, exclude=[v.name for v in held + validation], field_overrides=candidate.overrides,
-                      checkpoint_seconds=1e9, validate_seconds=1e9)
+                      checkpoint_seconds=1e9, validate_seconds=1e9, two_starts=False)  # sizes compared from one start
         report = _rescaled(progress, i * share, share, f"x{candidate.factor:g}")
         if not _score_candidate(scene, run, candidate, validation, report, should_stop):
             return None

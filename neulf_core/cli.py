@@ -74,6 +74,7 @@ def cmd_train(args) -> int:
         st_depth=args.st_depth, near=args.near, far=args.far, device=args.device, batch_size=args.batch_size,
         consistency=args.consistency, appearance=args.appearance, teacher=args.sweep_teacher, field_overrides=overrides,
         refine_poses=args.refine_poses, coarse_to_fine=args.coarse_to_fine, max_passes=args.max_passes,
+        two_starts=args.two_starts,
     )
     stop = {"signal": None, "reader_gone": False}
 
@@ -426,6 +427,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="fast/auto presets: stop once the steps have passed over the training pixels N times, "
                         "whatever the budget (default: 100 with at most 13 training views, where more training "
                         "only memorises the photos; none with more; 0: no limit): docs/STABILITY.md")
+    p.add_argument("--two-starts", action=argparse.BooleanOptionalAction, default=None,
+                   help="where the pass limit ends training, train a second random start to 42%% of it and keep "
+                        "the one that fits the photos better (default: when the budget pays for the second "
+                        "start's steps; with few photos one run in three otherwise settles worse): docs/STABILITY.md")
     p.add_argument("--device", help="cpu, cuda, mps (default: the fastest available)")
     p.set_defaults(run=cmd_train)
 

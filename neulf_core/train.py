@@ -121,6 +121,8 @@ class TrainConfig:
     coarse_to_fine: bool | None = None  # fade the finer geometry scales in (None: on for at most 13 training views)
     max_passes: float | None = None     # stop after this many passes over the training pixels (None: the
                                         # default, FEW_PHOTOS_MAX_PASSES for few photos; 0: no limit)
+    two_starts: bool | None = None      # the better of two starts where the pass limit ends training (starts.py;
+                                        # None: when the budget pays for the second start; False: never)
 
     def budget_fraction(self, step: int, elapsed: float) -> float:
         """How far through its budget training is; whichever budget (steps or minutes) ends
@@ -453,12 +455,17 @@ def train(scene: Scene | str | Path, model_dir: str | Path, config: TrainConfig,
     model_dir = Path(model_dir).expanduser()
     if not config.steps and not config.minutes:
         raise NeulfError("give a training budget: --steps N or --minutes M.")
+    from .starts import train_two_starts  # (it runs _train, once or as two starts)
+
     with training_lock(model_dir):
         remove_stale_temporaries(model_dir)
-        return _train(scene, model_dir, config, images_dir, resume, progress, should_stop)
+        return train_two_starts(_train, scene, model_dir, config, images_dir, resume, progress, should_stop)
 
 
-def _train(scene, model_dir: Path, config: TrainConfig, images_dir, resume: bool, progress, should_stop) -> TrainResult:
+def _train(scene, model_dir: Path, config: TrainConfig, images_dir, resume: bool, progress, should_stop,
+           record: dict | None = None) -> TrainResult:
+    """One training run into `model_dir`; `record`: entries for the model's metadata (how its
+    start was chosen)."""
     if config.scale <= 0:
         raise NeulfError(f"--scale must be positive, not {config.scale}.")
     existing = checkpoint_path(model_dir).is_file()
@@ -563,6 +570,7 @@ def _train(scene, model_dir: Path, config: TrainConfig, images_dir, resume: bool
         meta["pose_check"] = resumed["pose_check"]  # the verdict of the run being continued
     if resumed and resumed.get("field_restart"):
         meta["field_restart"] = resumed["field_restart"]
+    meta.update(record or {})
     # (a run resumed past the check step has decided: its saved field config says how smooth)
     restart_pending = (poses is not None and step < POSE_CHECK_STEP and not slab.is_deep
                        and hasattr(field_module, "set_geometry_tv"))

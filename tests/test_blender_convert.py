@@ -188,6 +188,13 @@ def test_train_job_parses_events(ext):
     job.state["status"] = "finished"  # at the limit, before the panel's minutes were up: the panel says why
     assert "more training would only memorise so few photos" in ext.jobs.job_status_text(job.state)
     assert "a colour transform per photo (exposures differ by 0.31 stops)" in ext.jobs.job_status_text(job.state)
+    assert "of two random starts" not in ext.jobs.job_status_text(job.state)
+    job.on_stdout(json.dumps({"event": "step", "step": 5, "elapsed": 1.0, "loss": 0.01, "fraction": 0.3, "start": 2}))
+    assert job.state["message"] == "second start, step 5"
+    job.on_stdout(json.dumps({"event": "stage", "message": "kept the second start (seed 101); training it on",
+                              "kept": "second"}))
+    assert job.state["message"].startswith("kept the second start")
+    assert "the second of two random starts kept" in ext.jobs.job_status_text(job.state)
     job.state["step"] = 19
     assert "memorise" not in ext.jobs.job_status_text(job.state)
     assert "restarted" not in ext.jobs.job_status_text(job.state)

@@ -1,0 +1,264 @@
+"""The better of two starts: with few photos, train a second random start part-way and keep
+the one that fits the photos better.
+
+Why: with few photos one run in three can settle in a worse basin that no later step leaves
+(CanClip's 6 photos, trained to their pass limit of 2374 steps: the pliers' tip drawn at the
+background's depth, one held-out view 33.9-34.5 dB against 35.9-36.2).  Neither the random
+start nor the ray order decides it alone, but the training loss tells the basins apart by
+step 600-1000 (docs/STABILITY.md, thirty-seventh session).  So two starts (seeds s and
+s + SECOND_START_SEED_OFFSET) train to DECISION_SHARE of the pass limit; the one whose
+training loss over its last LOSS_WINDOW steps is lower trains on to the end, the other is
+deleted.  Measured on CanClip's 6 photos, eight seeds: 35.15 +- 0.215 dB (sd) -> 35.27 +-
+0.065, at 42 % more steps.  At the study's 1000 steps (the choice at step 420) it gained
+nothing, so it runs only where the pass limit ends training and the budget pays for the
+second start's steps on top of it:
+
+- a steps budget: at least the pass limit plus the decision step (the steps asked for are
+  the work done, the discarded start's included);
+- a minutes budget: the first start's time to the decision step, projected over the pass
+  limit plus a second start, fits in the minutes (the user's few-photo capture then trains
+  inside the time it was given, which the pass limit would otherwise leave unused).
+
+The state between the steps lives in STATE_NAME in the model folder, so a run cancelled or
+killed at any point resumes where it was: the first start's checkpoint is the model folder's
+own (a model to render from all along), the second start's lives in SECOND_START_DIR inside
+it until the choice.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import shutil
+from dataclasses import replace
+from pathlib import Path
+from typing import Callable
+
+from .checkpoint import (CHECKPOINT_NAME, METADATA_NAME, MODEL_NAME, atomic_write_bytes, checkpoint_path,
+                         remove_stale_temporaries)
+from .scene import Scene, load_scene
+
+STATE_NAME = "starts.json"
+SECOND_START_DIR = "second_start"
+SECOND_START_SEED_OFFSET = 100
+# Where the two starts are compared, as a share of the pass limit's steps: the measured
+# choice was at step 1000 of 2374 (the basins apart by 600-1000).
+DECISION_SHARE = 0.42
+# The training loss is compared as a mean over this many last steps (one step's loss is a
+# random batch's, noisier than the two basins' difference).
+LOSS_WINDOW = 200
+
+
+def decision_step(pass_limit: int) -> int:
+    return max(1, math.ceil(DECISION_SHARE * pass_limit))
+
+
+def steps_budget_allows(steps: int | None, pass_limit: int) -> bool:
+    """A steps budget pays for two starts when it covers the pass limit plus the second
+    start's steps to the decision."""
+    return bool(steps) and steps >= pass_limit + decision_step(pass_limit)
+
+
+def minutes_budget_allows(minutes: float | None, seconds_to_decision: float, pass_limit: int) -> bool:
+    """A minutes budget pays for two starts when the first start's pace to the decision step,
+    carried over the pass limit plus the second start's steps, fits in it."""
+    if not minutes or seconds_to_decision <= 0:
+        return False
+    projected = seconds_to_decision * (pass_limit + decision_step(pass_limit)) / decision_step(pass_limit)
+    return projected <= 60.0 * minutes
+
+
+def chosen_start(first_loss: float, second_loss: float) -> str:
+    """'first' or 'second': the lower training loss (a tie keeps the first)."""
+    return "second" if second_loss < first_loss else "first"
+
+
+def _read_state(model_dir: Path) -> dict | None:
+    path = model_dir / STATE_NAME
+    try:
+        return json.loads(path.read_text())
+    except (OSError, ValueError):
+        return None
+
+
+def _write_state(model_dir: Path, state: dict) -> None:
+    atomic_write_bytes(model_dir / STATE_NAME, json.dumps(state, indent=2).encode())
+
+
+class _Watch:
+    """Follows one start's progress events: the pass limit it announces, its step, its
+    elapsed time and its recent training losses; forwards the events with the fraction
+    rescaled into the whole run's (the pass limit plus the second start's steps)."""
+
+    def __init__(self, progress, stage: str, known_limit: int | None, user_stop=lambda: False):
+        self.progress, self.stage, self.user_stop = progress, stage, user_stop
+        self.pass_limit = known_limit
+        self.two_starts = stage != "first"  # the first start learns it at its first step
+        self.step, self.elapsed = 0, 0.0
+        self.losses: list[float] = []
+
+    def overall(self, fraction: float) -> float:
+        if not (self.pass_limit and self.two_starts):
+            return fraction
+        limit, decision = self.pass_limit, decision_step(self.pass_limit)
+        done_before = decision if self.stage != "first" else 0
+        return min(1.0, (done_before + fraction * limit) / (limit + decision))
+
+    def __call__(self, event: dict) -> None:
+        kind = event.get("event")
+        if kind == "passes":
+            self.pass_limit = int(event["steps"])
+        if kind in ("step", "validate"):
+            self.step = int(event["step"])
+            self.elapsed = float(event.get("elapsed", self.elapsed))
+            if event.get("loss") is not None and math.isfinite(event["loss"]):
+                self.losses = (self.losses + [float(event["loss"])])[-LOSS_WINDOW:]
+        if self.progress is None or self._not_the_models(kind):
+            return
+        if "fraction" in event:
+            event = {**event, "fraction": self.overall(event["fraction"])}
+        if self.stage == "second":
+            event = {**event, "start": 2}
+        self.progress(event)
+
+    def _not_the_models(self, kind: str) -> bool:
+        """A start stopped at the decision step is paused, not cancelled (only the user
+        cancels); and the second start's own start, checkpoints and pass limit are not the
+        model's."""
+        if kind == "cancelled":
+            return self.two_starts and not self.user_stop()
+        return self.stage == "second" and kind in ("start", "checkpoint", "finished", "passes")
+
+    def mean_loss(self) -> float:
+        return sum(self.losses) / len(self.losses) if self.losses else math.inf
+
+
+def train_two_starts(train_one: Callable, scene, model_dir: Path, config, images_dir, resume: bool,
+                     progress, should_stop):
+    """`train_one(scene, model_dir, config, images_dir, resume, progress, should_stop,
+    record)` is train._train; this runs it once, or as the better of two starts (module
+    docstring).  Called under the model folder's training lock."""
+    has_model = checkpoint_path(model_dir).is_file()
+    state = _read_state(model_dir) if resume and has_model else None
+    if has_model and (not resume or state is None or state.get("stage") == "decided"):
+        # a model trained with one start, or whose start is chosen: continue it (train_one
+        # refuses a model folder in use without resume)
+        return train_one(scene, model_dir, config, images_dir, resume, progress, should_stop, _record(state))
+    if not isinstance(scene, Scene):
+        scene = load_scene(scene, images_dir)
+    second_dir = model_dir / SECOND_START_DIR
+    if state is None:
+        shutil.rmtree(second_dir, ignore_errors=True)  # a discarded start left by a model deleted since
+        state = {"stage": "first", "seed": config.seed, "second_seed": config.seed + SECOND_START_SEED_OFFSET}
+
+    user_stop = should_stop or (lambda: False)
+    if state["stage"] == "first":
+        state = _first_start(train_one, scene, model_dir, config, images_dir, has_model, progress, user_stop, state)
+        if not isinstance(state, dict):
+            return state  # one start, or stopped before the choice: its result
+    if state["stage"] == "second":
+        state = _second_start(train_one, scene, second_dir, config, images_dir, progress, user_stop, state)
+        if not isinstance(state, dict):
+            return replace(state, model_dir=model_dir)  # stopped: resumes the second start
+    if state["stage"] == "moving":
+        _move_model(second_dir, model_dir)
+        state = {**state, "stage": "decided"}
+        _write_state(model_dir, state)
+    shutil.rmtree(second_dir, ignore_errors=True)
+    kept_seed = state["seed"] if state["kept"] == "first" else state["second_seed"]
+    _emit_stage(progress, f"kept the {state['kept']} start (seed {kept_seed}); training it on", kept=state["kept"])
+    return train_one(scene, model_dir, config, images_dir, True, _Watch(progress, "rest", state["pass_limit"]),
+                     should_stop, _record(state))
+
+
+def _first_start(train_one, scene, model_dir: Path, config, images_dir, resume: bool, progress, user_stop, state: dict):
+    """The first start, in the model folder: to the decision step where two starts are
+    planned (the state then says what the second needs), else to the end (its result)."""
+    watch = _Watch(progress, "first", state.get("pass_limit"), user_stop)
+
+    def stop_first() -> bool:
+        planned = watch.two_starts = _two_starts_planned(config, watch)
+        if planned and "pass_limit" not in state:  # a cancel from here on resumes with two starts
+            state["pass_limit"] = watch.pass_limit
+            _write_state(model_dir, state)
+        return user_stop() or (planned and watch.step >= decision_step(watch.pass_limit))
+
+    result = train_one(scene, model_dir, config, images_dir, resume, watch, stop_first, None)
+    if "pass_limit" not in state or user_stop():
+        return result  # one start; or stopped by the user before the choice (STATE_NAME resumes it)
+    if result.status == "finished":  # the budget ended before the decision step
+        _write_state(model_dir, {**state, "stage": "decided", "kept": "first", "why": "the budget ended first"})
+        return result
+    first_loss = watch.mean_loss() if watch.losses else _last_logged_loss(result)
+    if not (steps_budget_allows(config.steps, watch.pass_limit)
+            or minutes_budget_allows(config.minutes, watch.elapsed, watch.pass_limit)
+            or config.two_starts):
+        state = {**state, "stage": "decided", "kept": "first", "first_loss": first_loss,
+                 "why": "the minutes do not pay for a second start"}
+    else:
+        state = {**state, "stage": "second", "decision_step": decision_step(watch.pass_limit),
+                 "first_loss": first_loss, "first_seconds": round(watch.elapsed, 2)}
+    _write_state(model_dir, state)
+    return state
+
+
+def _second_start(train_one, scene, second_dir: Path, config, images_dir, progress, user_stop, state: dict):
+    """The second start, in its own folder, to the decision step; the state then says which
+    start is kept (or its result, when stopped before)."""
+    _emit_stage(progress, f"a second start (seed {state['second_seed']}) to step {state['decision_step']}: "
+                          "the one that fits the photos better trains on")
+    watch = _Watch(progress, "second", state["pass_limit"], user_stop)
+    second_dir.mkdir(exist_ok=True)
+    remove_stale_temporaries(second_dir)
+    result = train_one(scene, second_dir, replace(config, seed=state["second_seed"]), images_dir,
+                       checkpoint_path(second_dir).is_file(), watch,
+                       lambda: user_stop() or watch.step >= state["decision_step"], None)
+    if user_stop() or result.step < state["decision_step"]:
+        return result
+    second_loss = watch.mean_loss() if watch.losses else _last_logged_loss(result)
+    kept = chosen_start(state["first_loss"], second_loss)
+    state = {**state, "stage": "moving" if kept == "second" else "decided", "kept": kept,
+             "second_loss": second_loss, "second_seconds": round(watch.elapsed, 2)}
+    _write_state(second_dir.parent, state)
+    return state
+
+
+def _last_logged_loss(result) -> float:
+    """A start resumed exactly at the decision step logged no steps of its own: its last
+    validation record's training loss stands in."""
+    losses = [r["loss"] for r in result.history if r.get("loss") is not None]
+    return float(losses[-1]) if losses else math.inf
+
+
+def _two_starts_planned(config, watch: _Watch) -> bool:
+    """Whether the first start stops at the decision step: the pass limit ends training
+    (announced), two starts are not turned off, and a steps budget pays for them or a
+    minutes budget may (decided at the decision step from the pace; two_starts=True: always)."""
+    if not watch.pass_limit or config.two_starts is False:
+        return False
+    if config.steps and not config.two_starts:
+        return steps_budget_allows(config.steps, watch.pass_limit)
+    return True
+
+
+def _move_model(source: Path, target: Path) -> None:
+    """The second start's files replace the first's (checkpoint first: render_path takes the
+    newer file should this stop half-way; a rerun moves what is left)."""
+    for name in (CHECKPOINT_NAME, MODEL_NAME, METADATA_NAME):
+        if (source / name).is_file():
+            os.replace(source / name, target / name)
+
+
+def _record(state: dict | None) -> dict | None:
+    """What the model's metadata says about its starts."""
+    if not state:
+        return None
+    keys = ("kept", "seed", "second_seed", "decision_step", "first_loss", "second_loss", "first_seconds",
+            "second_seconds", "why")
+    return {"starts": {k: state[k] for k in keys if k in state}}
+
+
+def _emit_stage(progress, message: str, **fields) -> None:
+    if progress is not None:
+        progress({"event": "stage", "message": message, **fields})
