@@ -124,11 +124,13 @@ class _Watch:
 
     def _not_the_models(self, kind: str) -> bool:
         """A start stopped at the decision step is paused, not cancelled (only the user
-        cancels); and the second start's own start, checkpoints and pass limit are not the
-        model's."""
+        cancels); the second start's own start, checkpoints and pass limit are not the
+        model's; and the kept start says the pass limit again when it resumes."""
         if kind == "cancelled":
             return self.two_starts and not self.user_stop()
-        return self.stage == "second" and kind in ("start", "checkpoint", "finished", "passes")
+        if kind == "passes":  # said once, by the first start
+            return self.stage != "first"
+        return self.stage == "second" and kind in ("start", "checkpoint", "finished")
 
     def mean_loss(self) -> float:
         return sum(self.losses) / len(self.losses) if self.losses else math.inf
