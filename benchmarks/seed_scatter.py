@@ -21,6 +21,7 @@ markers of its own, so the page holds both.
 from __future__ import annotations
 
 import argparse
+import csv
 import math
 import statistics
 import sys
@@ -98,20 +99,47 @@ def summary(psnrs: list[float]) -> dict:
             "chance_inside": chance_inside(sd)}
 
 
-def table(done: dict, jobs: dict[str, list]) -> str:
-    """One line per configuration from the logged rows (`done`: key -> row)."""
+def table(done: dict, jobs: dict[str, list], earlier: dict[str, list[dict]] | None = None) -> str:
+    """One line per configuration, in CONFIGURATIONS' order: this run's from the logged rows
+    (`done`: key -> row), and those it left out from `earlier` (label -> rows of the CSV)."""
     lines = ["| configuration | held-out PSNR by seed (dB) | mean | sd | range | triples inside 0.2 dB | "
              "three draws of a normal scatter of that sd inside 0.2 dB |", "|---|---|---|---|---|---|---|"]
-    for label, runs in jobs.items():
-        rows = [done.get(job.key) for job in runs]
-        psnrs = [r["psnr"] for r in rows if r and r.get("status") == "finished" and r.get("psnr") is not None]
+    groups = {label: [done.get(job.key) for job in runs] for label, runs in jobs.items()}
+    for label, rows in (earlier or {}).items():
+        groups.setdefault(label, sorted(rows, key=lambda row: int(row["seed"])))
+    for label in sorted(groups, key=list(CONFIGURATIONS).index):
+        rows = groups[label]
+        psnrs = [float(r["psnr"]) for r in rows if r and r.get("status") == "finished" and r.get("psnr") not in (None, "")]
         if len(psnrs) < 3:
-            lines.append(f"| {label} | {len(psnrs)} of {len(runs)} finished | | | | | |")
+            lines.append(f"| {label} | {len(psnrs)} of {len(rows)} finished | | | | | |")
             continue
         s = summary(psnrs)
         lines.append(f"| {label} | {' '.join(f'{p:.2f}' for p in psnrs)} | {s['mean']:.2f} | {s['sd']:.3f} | "
                      f"{s['range']:.2f} | {s['triples_inside']} of {s['triples']} | {100 * s['chance_inside']:.0f} % |")
     return "\n".join(lines)
+
+
+def label_of(row: dict) -> str | None:
+    """The configuration a CSV row was run as (its scene, fraction and pose noise), or None."""
+    for label, fields in CONFIGURATIONS.items():
+        wanted = {"fraction": 1.0, "pose_degrees": 0.0, **fields}
+        if row.get("scene") == wanted["scene"] and all(
+                row.get(k) not in (None, "") and float(row[k]) == wanted[k] for k in ("fraction", "pose_degrees")):
+            return label
+    return None
+
+
+def earlier_rows(path: Path, labels: list[str]) -> dict[str, list[dict]]:
+    """The rows an earlier run wrote to `path` for configurations this run leaves out (label ->
+    rows), so running some configurations adds to the page instead of replacing the others."""
+    kept: dict[str, list[dict]] = {}
+    if path.is_file():
+        with open(path, newline="") as handle:
+            for row in csv.DictReader(handle):
+                label = label_of(row)
+                if label is not None and label not in labels:
+                    kept.setdefault(label, []).append(row)
+    return kept
 
 
 def add_plan_arguments(parser: argparse.ArgumentParser, configurations: str, seeds: str) -> None:
@@ -177,10 +205,13 @@ def main(argv=None) -> None:
     if not args.report_only:  # run_jobs returns every job's row, in order, the logged ones included
         done = {job.key: row for job, row in zip(every, stability.run_jobs(every, args.workers, done, log))}
     csv_name, begin, end = outputs_for(args.steps)
-    stability.write_csv([done[job.key] for job in every if job.key in done], args.docs / csv_name)
+    earlier = earlier_rows(args.docs / csv_name, labels)
+    rows = [row for runs in earlier.values() for row in runs] + [done[job.key] for job in every if job.key in done]
+    stability.write_csv(sorted(rows, key=lambda row: list(CONFIGURATIONS).index(label_of(row) or labels[0])),
+                        args.docs / csv_name)
     header = (f"Generated {date.today().isoformat()} on {args.machine or stability.machine()}; fast: {args.steps} steps; seeds "
               f"{args.seeds}; a configuration's PSNRs in seed order.")
-    text = f"{header}\n\n{table(done, jobs)}"
+    text = f"{header}\n\n{table(done, jobs, earlier)}"
     stability.update_markdown(args.docs / "SEED_SCATTER.md", text, begin, end)
     print(text)
 

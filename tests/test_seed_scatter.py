@@ -44,10 +44,10 @@ def test_jobs_are_the_stability_studys_and_the_table_reads_their_rows(scatter):
     assert jobs["synthetic-0.1deg"][2].key == study_job.key  # the very run the study logs
     assert [job.fraction for job in jobs["canclip-6-photos"]] == [0.25] * 4
     done = {job.key: {"status": "finished", "psnr": 30.0 + 0.05 * job.seed} for job in jobs["synthetic-0.1deg"]}
-    lines = scatter.table(done, jobs).splitlines()
-    assert lines[2].startswith("| synthetic-0.1deg | 30.00 30.05 30.10 30.15 | 30.07 |")
-    assert "| 4 of 4 |" in lines[2]
-    assert lines[3] == "| canclip-6-photos | 0 of 4 finished | | | | | |"
+    lines = scatter.table(done, jobs).splitlines()  # in CONFIGURATIONS' order, not the run's
+    assert lines[3].startswith("| synthetic-0.1deg | 30.00 30.05 30.10 30.15 | 30.07 |")
+    assert "| 4 of 4 |" in lines[3]
+    assert lines[2] == "| canclip-6-photos | 0 of 4 finished | | | | | |"
 
 
 def test_report_only_rewrites_the_generated_block_and_keeps_the_text_around_it(scatter, tmp_path):
@@ -98,3 +98,28 @@ def test_another_budget_writes_its_own_block_and_csv_beside_the_studys(scatter, 
     assert "on an H100 and a CPU; fast: 3000 steps" in text
     assert (docs / "seed_scatter.csv").is_file() and (docs / "seed_scatter_3000.csv").is_file()
     assert scatter.outputs_for(1000)[1] == scatter.MARKER_BEGIN
+
+
+def test_a_run_of_some_configurations_keeps_the_others_rows_and_lines(scatter, tmp_path):
+    import json
+    from dataclasses import asdict
+
+    capture = tmp_path / "canclip"
+    capture.mkdir()
+    cache = tmp_path / "cache"
+    cache.mkdir()
+    with open(cache / "runs.jsonl", "w") as log:
+        for label, base in (("canclip", 36.2), ("canclip-6-photos", 34.8)):
+            for job in scatter.plan([label], [0, 1, 2], 1000, {"canclip": capture}, {"canclip": 0.25})[label]:
+                log.write(json.dumps({**asdict(job), "status": "finished", "psnr": base + 0.01 * job.seed}) + "\n")
+    docs = tmp_path / "docs"
+    docs.mkdir()
+    common = ["--seeds", "0-2", "--canclip", str(capture), "--cache", str(cache), "--docs", str(docs), "--report-only"]
+    scatter.main(["--configurations", "canclip-6-photos"] + common)
+    scatter.main(["--configurations", "canclip"] + common)  # the 6-photo rows stay, in CONFIGURATIONS' order
+    text = (docs / "SEED_SCATTER.md").read_text()
+    assert text.index("| canclip | 36.20 36.21 36.22 |") < text.index("| canclip-6-photos | 34.80 34.81 34.82 |")
+    rows = (docs / "seed_scatter.csv").read_text().splitlines()
+    assert len(rows) == 1 + 6 and rows[1].startswith("canclip,fast,1.0,") and rows[4].startswith("canclip,fast,0.25,")
+    kept = scatter.earlier_rows(docs / "seed_scatter.csv", ["canclip"])
+    assert list(kept) == ["canclip-6-photos"] and [row["seed"] for row in kept["canclip-6-photos"]] == ["0", "1", "2"]
