@@ -37,7 +37,10 @@ HALF_MIN_ELEMENTS = 4096
 # (docs/BENCHMARKS.md), for half the bytes of float16.  Matrices (the MLP presets' layers)
 # stay float16: a rounding error there reaches every output.
 GRID_MIN_DIMS = 3
-NOT_FOR_RENDERING = ("state_dict", "optimizer", "rng")
+# The field's weights before the unseen texels were filled at the end of a run: what a
+# resumed run trains on (train._train); "state_dict" holds them filled, for rendering.
+TRAINING_STATE_KEY = "state_dict_before_fill"
+NOT_FOR_RENDERING = ("state_dict", "optimizer", "rng", TRAINING_STATE_KEY)
 
 
 def atomic_write_bytes(path: Path, data: bytes) -> None:

@@ -18,7 +18,7 @@ import torch
 
 from . import __version__
 from .appearance import ViewAppearance, appearance_by_default, exposure_difference, photo_exposures
-from .checkpoint import checkpoint_path, load_checkpoint, remove_stale_temporaries, save_checkpoint
+from .checkpoint import TRAINING_STATE_KEY, checkpoint_path, load_checkpoint, remove_stale_temporaries, save_checkpoint
 from .consistency import SlabGeometry, camera_neighbours, multiview_losses
 from .dataset import RaySet, build_rayset, mean_colour
 from .device import describe_device, pick_device
@@ -504,7 +504,7 @@ def _train(scene, model_dir: Path, config: TrainConfig, images_dir, resume: bool
         # must not change the shape of a model being continued.
         preset = get_preset(config.preset)
         field_module = build_field(resumed["field"], make_config(resumed["field"], resumed["field_config"]))
-        field_module.load_state_dict(resumed["state_dict"])
+        field_module.load_state_dict(resumed.get(TRAINING_STATE_KEY) or resumed["state_dict"])
     else:
         field_module, preset = _build_field(config.preset, config.field_overrides, train_views, slab, config.scale,
                                             config.appearance, config.coarse_to_fine)
@@ -575,8 +575,9 @@ def _train(scene, model_dir: Path, config: TrainConfig, images_dir, resume: bool
     restart_pending = (poses is not None and step < POSE_CHECK_STEP and not slab.is_deep
                        and hasattr(field_module, "set_geometry_tv"))
 
-    def save(status: str, val: float | None):
+    def save(status: str, val: float | None, before_fill: dict | None = None):
         payload = {**meta, "state_dict": field_module.state_dict(), "optimizer": optimizer.state_dict(),
+                   **({TRAINING_STATE_KEY: before_fill} if before_fill is not None else {}),
                    "appearance": appearance.state_dict() if appearance is not None else None,
                    "poses": poses.state_dict() if poses is not None else None,
                    "rng": {"torch": torch.get_rng_state(), "generator": generator.get_state()},
@@ -675,8 +676,13 @@ def _train(scene, model_dir: Path, config: TrainConfig, images_dir, resume: bool
     if poses is not None and not pose_check_pending:  # (stopped before the check: provisional, not reported)
         meta["pose_corrections"] = poses.summary()
         _emit(progress, event="poses", **meta["pose_corrections"])
-    elapsed += _fill_unseen(field_module, train_rays) if step > 0 else 0.0
-    save(status, val)
+    # The fill is for rendering: training resumes from the weights before it, since texels
+    # unseen now may be read once the geometry moves (a paused run then trains on exactly
+    # as an uninterrupted one: a cancel, or the better of two starts' pause at its choice).
+    fills = step > 0 and hasattr(field_module, "fill_unseen_texels")
+    before_fill = {k: v.detach().clone() for k, v in field_module.state_dict().items()} if fills else None
+    elapsed += _fill_unseen(field_module, train_rays) if fills else 0.0
+    save(status, val, before_fill)
     _emit(progress, event=status, step=step, elapsed=elapsed, val_psnr=val, model_dir=str(model_dir))
     return TrainResult(model_dir, status, step, elapsed, val, history)
 

@@ -29,6 +29,15 @@ def pass_limit() -> int:
     return math.ceil(PASSES * 7 * 48 * 36 / BATCH)
 
 
+def assert_same_weights(a, b):
+    import torch
+
+    sa, sb = load_checkpoint(a), load_checkpoint(b)
+    assert sa["progress"]["step"] == sb["progress"]["step"]
+    for key in sa["state_dict"]:
+        assert torch.equal(sa["state_dict"][key], sb["state_dict"][key]), f"{key} differs"
+
+
 def run(scene, folder, config, resume=False, stop_when=None):
     events = []
 
@@ -96,6 +105,11 @@ def test_the_second_start_wins_when_its_loss_is_lower(tiny_scene, tmp_path, monk
         assert meta["starts"]["kept"] == wanted
         assert meta["train_config"]["seed"] == (5 if wanted == "first" else 5 + SECOND_START_SEED_OFFSET)
         assert load_checkpoint(folder)["train_config"]["seed"] == meta["train_config"]["seed"]
+        # The kept start, paused at the decision and trained on, is the one-start run of its seed.
+        alone = tmp_path / f"{wanted}-alone"
+        run(tiny_scene, alone, fast_config(steps=limit + decision_step(limit), two_starts=False,
+                                           seed=meta["train_config"]["seed"]))
+        assert_same_weights(alone, folder)
 
 
 def test_one_start_where_the_budget_does_not_pay_or_asked(tiny_scene, tmp_path):
