@@ -289,7 +289,7 @@ def start_training(context, *, minutes=None, steps=None):
                         env=jobs.core_environment(extra), sweep_teacher=props.sweep_teacher,
                         depth_layers=props.depth_layers, appearance=CHOICE_OPTION[props.appearance],
                         refine_poses=CHOICE_OPTION[props.refine_poses],
-                        stop_early=props.stop_early)
+                        stop_early=props.stop_early, two_starts=props.two_starts)
     job.state["resumed_from"] = resumed_from
     props.model_dir = store_path(out)
     props.last_status = (f"training from step {resumed_from}" if resume else "training")

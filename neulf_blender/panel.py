@@ -78,7 +78,9 @@ class NEULF_PT_main(bpy.types.Panel):
         row.prop(props, "depth_layers")
         col.prop(props, "appearance")
         col.prop(props, "refine_poses")
-        col.prop(props, "stop_early")
+        row = col.row(align=True)
+        row.prop(props, "stop_early")
+        row.prop(props, "two_starts")
         train = tasks.get("train")
         if train is not None and train.running:
             _job_box(layout, train, "Training", "neulf.cancel_train")

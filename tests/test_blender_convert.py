@@ -257,6 +257,10 @@ def test_train_job_passes_exposure_and_pose_options_only_to_a_new_model(ext, tmp
     for options in ({}, {"resume": True}):
         trains_on = argv(stop_early=False, **options)
         assert trains_on[trains_on.index("--max-passes") + 1] == "0"
+    # "Two Starts" on is the trainer's rule; off asks for one start (a new model: a continued
+    # one keeps the start it has).
+    assert "--no-two-starts" in argv(two_starts=False) and not any("two-starts" in a for a in argv())
+    assert "--no-two-starts" not in argv(two_starts=False, resume=True)
 
 
 def test_explain_failure(ext):
