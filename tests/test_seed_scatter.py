@@ -50,23 +50,31 @@ def test_jobs_are_the_stability_studys_and_the_table_reads_their_rows(scatter):
     assert lines[2] == "| canclip-6-photos | 0 of 4 finished | | | | | |"
 
 
-def test_report_only_rewrites_the_generated_block_and_keeps_the_text_around_it(scatter, tmp_path):
+def logged_runs(scatter, tmp_path, psnr_of) -> tuple[Path, Path, Path]:
+    """A CanClip stand-in folder, a run log whose rows `psnr_of(label, steps)` lists as
+    (label, steps, base PSNR) -- seeds 0-2 each, base + 0.01 * seed -- and an empty docs
+    folder: what --report-only reads and writes."""
     import json
     from dataclasses import asdict
 
-    capture = tmp_path / "canclip"
-    capture.mkdir()
-    jobs = scatter.plan(["canclip"], [0, 1, 2], 1000, {"canclip": capture}, {"canclip": 0.25})
-    cache = tmp_path / "cache"
-    cache.mkdir()
+    capture, cache, docs = tmp_path / "canclip", tmp_path / "cache", tmp_path / "docs"
+    for folder in (capture, cache, docs):
+        folder.mkdir()
     with open(cache / "runs.jsonl", "w") as log:
-        for job in jobs["canclip"]:
-            log.write(json.dumps({**asdict(job), "status": "finished", "psnr": 36.2 + 0.01 * job.seed}) + "\n")
-    docs = tmp_path / "docs"
-    docs.mkdir()
+        for label, steps, base in psnr_of:
+            for job in scatter.plan([label], [0, 1, 2], steps, {"canclip": capture}, {"canclip": 0.25})[label]:
+                log.write(json.dumps({**asdict(job), "status": "finished", "psnr": base + 0.01 * job.seed}) + "\n")
+    return capture, cache, docs
+
+
+def report_arguments(capture: Path, cache: Path, docs: Path) -> list[str]:
+    return ["--seeds", "0-2", "--canclip", str(capture), "--cache", str(cache), "--docs", str(docs), "--report-only"]
+
+
+def test_report_only_rewrites_the_generated_block_and_keeps_the_text_around_it(scatter, tmp_path):
+    capture, cache, docs = logged_runs(scatter, tmp_path, [("canclip", 1000, 36.2)])
     (docs / "SEED_SCATTER.md").write_text(f"# By hand\n\n{scatter.MARKER_BEGIN}\nold\n{scatter.MARKER_END}\n\nAfter.\n")
-    scatter.main(["--configurations", "canclip", "--seeds", "0-2", "--canclip", str(capture), "--cache", str(cache),
-                  "--docs", str(docs), "--report-only"])
+    scatter.main(["--configurations", "canclip"] + report_arguments(capture, cache, docs))
     text = (docs / "SEED_SCATTER.md").read_text()
     assert text.startswith("# By hand\n") and text.endswith("\nAfter.\n") and "old" not in text
     assert "| canclip | 36.20 36.21 36.22 | 36.21 | 0.010 | 0.02 | 1 of 1 | 100 % |" in text
@@ -74,22 +82,9 @@ def test_report_only_rewrites_the_generated_block_and_keeps_the_text_around_it(s
 
 
 def test_another_budget_writes_its_own_block_and_csv_beside_the_studys(scatter, tmp_path):
-    import json
-    from dataclasses import asdict
-
-    capture = tmp_path / "canclip"
-    capture.mkdir()
-    cache = tmp_path / "cache"
-    cache.mkdir()
-    with open(cache / "runs.jsonl", "w") as log:
-        for steps in (1000, 3000):
-            for job in scatter.plan(["canclip"], [0, 1, 2], steps, {"canclip": capture}, {"canclip": 0.25})["canclip"]:
-                log.write(json.dumps({**asdict(job), "status": "finished", "psnr": steps / 100 + 0.01 * job.seed}) + "\n")
-    docs = tmp_path / "docs"
-    docs.mkdir()
+    capture, cache, docs = logged_runs(scatter, tmp_path, [("canclip", 1000, 10.0), ("canclip", 3000, 30.0)])
     (docs / "SEED_SCATTER.md").write_text("# By hand\n")
-    common = ["--configurations", "canclip", "--seeds", "0-2", "--canclip", str(capture), "--cache", str(cache),
-              "--docs", str(docs), "--report-only"]
+    common = ["--configurations", "canclip"] + report_arguments(capture, cache, docs)
     scatter.main(common)
     scatter.main(common + ["--steps", "3000", "--machine", "an H100 and a CPU"])
     scatter.main(common)  # the study's block again: the other budget's stays
@@ -101,20 +96,8 @@ def test_another_budget_writes_its_own_block_and_csv_beside_the_studys(scatter, 
 
 
 def test_a_run_of_some_configurations_keeps_the_others_rows_and_lines(scatter, tmp_path):
-    import json
-    from dataclasses import asdict
-
-    capture = tmp_path / "canclip"
-    capture.mkdir()
-    cache = tmp_path / "cache"
-    cache.mkdir()
-    with open(cache / "runs.jsonl", "w") as log:
-        for label, base in (("canclip", 36.2), ("canclip-6-photos", 34.8)):
-            for job in scatter.plan([label], [0, 1, 2], 1000, {"canclip": capture}, {"canclip": 0.25})[label]:
-                log.write(json.dumps({**asdict(job), "status": "finished", "psnr": base + 0.01 * job.seed}) + "\n")
-    docs = tmp_path / "docs"
-    docs.mkdir()
-    common = ["--seeds", "0-2", "--canclip", str(capture), "--cache", str(cache), "--docs", str(docs), "--report-only"]
+    capture, cache, docs = logged_runs(scatter, tmp_path, [("canclip", 1000, 36.2), ("canclip-6-photos", 1000, 34.8)])
+    common = report_arguments(capture, cache, docs)
     scatter.main(["--configurations", "canclip-6-photos"] + common)
     scatter.main(["--configurations", "canclip"] + common)  # the 6-photo rows stay, in CONFIGURATIONS' order
     text = (docs / "SEED_SCATTER.md").read_text()
