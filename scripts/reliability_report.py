@@ -96,7 +96,10 @@ CASES = [
         f"{CKPT}::test_cli_sigint_cancels_and_saves"]),
     Case("Cancel in Blender during training, then Train again", [
         f"{STORY}[train_cancel]", f"{STORY}[train_cancel_resume]",
-        f"{CKPT}::test_cancel_then_resume_equals_straight_training"]),
+        f"{CKPT}::test_cancel_then_resume_equals_straight_training",
+        f"{CKPT}::test_a_paused_fast_field_resumes_from_its_weights_before_the_fill",
+        "tests/test_starts.py::test_a_stop_before_the_choice_resumes_where_it_was[first]",
+        "tests/test_starts.py::test_a_stop_before_the_choice_resumes_where_it_was[second]"]),
     Case("Blender quit while training, then reopened: the model and its progress are found again", [
         f"{STORY}[quit_while_training]", f"{REL}::test_reader_of_progress_goes_away",
         f"{REL}::test_a_second_training_of_the_same_model_folder_is_refused"]),
