@@ -14,7 +14,8 @@ nothing, so it runs only where the pass limit ends training and the budget pays 
 second start's steps on top of it:
 
 - a steps budget: at least the pass limit plus the decision step (the steps asked for are
-  the work done, the discarded start's included);
+  the work done, the discarded start's included); one with fewer steps to spare past the pass
+  limit, down to SHORTEST_DECISION_SHARE of it, makes the choice at the steps it spares;
 - a minutes budget: the first start's time to the decision step, projected over the pass
   limit plus a second start, fits in the minutes (the user's few-photo capture then trains
   inside the time it was given, which the pass limit would otherwise leave unused).
@@ -45,19 +46,27 @@ SECOND_START_SEED_OFFSET = 100
 # Where the two starts are compared, as a share of the pass limit's steps: the measured
 # choice was at step 1000 of 2374 (the basins apart by 600-1000).
 DECISION_SHARE = 0.42
+# A steps budget short of that still pays for two starts when its steps past the pass limit
+# reach this share of it: the choice is then made there.  Measured: CanClip's 6 photos at
+# 3000 steps, the choice at step 626 of 2374, eight seeds 35.27 +- 0.078 dB, the same as at
+# step 998 (docs/SEED_SCATTER.md).
+SHORTEST_DECISION_SHARE = 0.26
 # The training loss is compared as a mean over this many last steps (one step's loss is a
 # random batch's, noisier than the two basins' difference).
 LOSS_WINDOW = 200
 
 
-def decision_step(pass_limit: int) -> int:
-    return max(1, math.ceil(DECISION_SHARE * pass_limit))
+def decision_step(pass_limit: int, steps: int | None = None) -> int:
+    """The step at which the two starts are compared: DECISION_SHARE of the pass limit, or
+    earlier where a steps budget has fewer steps to spare past the pass limit."""
+    step = max(1, math.ceil(DECISION_SHARE * pass_limit))
+    return min(step, steps - pass_limit) if steps and steps > pass_limit else step
 
 
 def steps_budget_allows(steps: int | None, pass_limit: int) -> bool:
     """A steps budget pays for two starts when it covers the pass limit plus the second
-    start's steps to the decision."""
-    return bool(steps) and steps >= pass_limit + decision_step(pass_limit)
+    start's steps to a decision at SHORTEST_DECISION_SHARE of the pass limit or later."""
+    return bool(steps) and steps - pass_limit >= max(1, math.ceil(SHORTEST_DECISION_SHARE * pass_limit))
 
 
 def minutes_budget_allows(minutes: float | None, seconds_to_decision: float, pass_limit: int) -> bool:
@@ -91,19 +100,23 @@ class _Watch:
     elapsed time and its recent training losses; forwards the events with the fraction
     rescaled into the whole run's (the pass limit plus the second start's steps)."""
 
-    def __init__(self, progress, stage: str, known_limit: int | None, user_stop=lambda: False):
+    def __init__(self, progress, stage: str, known_limit: int | None, user_stop=lambda: False,
+                 steps: int | None = None, decision: int | None = None):
         self.progress, self.stage, self.user_stop = progress, stage, user_stop
-        self.pass_limit = known_limit
-        self.two_starts = stage != "first"  # the first start learns it at its first step
+        self.pass_limit, self.steps, self.known_decision = known_limit, steps, decision
+        self.two_starts = stage != "first" and decision is not None  # the first start learns it at its first step
         self.step, self.elapsed = 0, 0.0
         self.losses: list[float] = []
 
     def overall(self, fraction: float) -> float:
         if not (self.pass_limit and self.two_starts):
             return fraction
-        limit, decision = self.pass_limit, decision_step(self.pass_limit)
+        limit, decision = self.pass_limit, self.decision()
         done_before = decision if self.stage != "first" else 0
         return min(1.0, (done_before + fraction * limit) / (limit + decision))
+
+    def decision(self) -> int:
+        return self.known_decision or decision_step(self.pass_limit, self.steps)
 
     def __call__(self, event: dict) -> None:
         kind = event.get("event")
@@ -126,8 +139,8 @@ class _Watch:
         """A start stopped at the decision step is paused, not cancelled (only the user
         cancels); the second start's own start, checkpoints and pass limit are not the
         model's; and the kept start says the pass limit again when it resumes."""
-        if kind == "cancelled":
-            return self.two_starts and not self.user_stop()
+        if kind == "cancelled":  # (after the choice a stop is the user's)
+            return self.stage != "rest" and self.two_starts and not self.user_stop()
         if kind == "passes":  # said once, by the first start
             return self.stage != "first"
         return self.stage == "second" and kind in ("start", "checkpoint", "finished")
@@ -170,21 +183,22 @@ def train_two_starts(train_one: Callable, scene, model_dir: Path, config, images
     shutil.rmtree(second_dir, ignore_errors=True)
     kept_seed = state["seed"] if state["kept"] == "first" else state["second_seed"]
     _emit_stage(progress, f"kept the {state['kept']} start (seed {kept_seed}); training it on", kept=state["kept"])
-    return train_one(scene, model_dir, config, images_dir, True, _Watch(progress, "rest", state["pass_limit"]),
+    return train_one(scene, model_dir, config, images_dir, True, _Watch(progress, "rest", state["pass_limit"], user_stop,
+                                                                           decision=state.get("decision_step")),
                      should_stop, _record(state))
 
 
 def _first_start(train_one, scene, model_dir: Path, config, images_dir, resume: bool, progress, user_stop, state: dict):
     """The first start, in the model folder: to the decision step where two starts are
     planned (the state then says what the second needs), else to the end (its result)."""
-    watch = _Watch(progress, "first", state.get("pass_limit"), user_stop)
+    watch = _Watch(progress, "first", state.get("pass_limit"), user_stop, steps=config.steps)
 
     def stop_first() -> bool:
         planned = watch.two_starts = _two_starts_planned(config, watch)
         if planned and "pass_limit" not in state:  # a cancel from here on resumes with two starts
             state["pass_limit"] = watch.pass_limit
             _write_state(model_dir, state)
-        return user_stop() or (planned and watch.step >= decision_step(watch.pass_limit))
+        return user_stop() or (planned and watch.step >= watch.decision())
 
     result = train_one(scene, model_dir, config, images_dir, resume, watch, stop_first, None)
     if "pass_limit" not in state or user_stop():
@@ -199,7 +213,7 @@ def _first_start(train_one, scene, model_dir: Path, config, images_dir, resume: 
         state = {**state, "stage": "decided", "kept": "first", "first_loss": first_loss,
                  "why": "the minutes do not pay for a second start"}
     else:
-        state = {**state, "stage": "second", "decision_step": decision_step(watch.pass_limit),
+        state = {**state, "stage": "second", "decision_step": watch.decision(),
                  "first_loss": first_loss, "first_seconds": round(watch.elapsed, 2)}
     _write_state(model_dir, state)
     return state
@@ -210,7 +224,7 @@ def _second_start(train_one, scene, second_dir: Path, config, images_dir, progre
     start is kept (or its result, when stopped before)."""
     _emit_stage(progress, f"a second start (seed {state['second_seed']}) to step {state['decision_step']}: "
                           "the one that fits the photos better trains on")
-    watch = _Watch(progress, "second", state["pass_limit"], user_stop)
+    watch = _Watch(progress, "second", state["pass_limit"], user_stop, decision=state["decision_step"])
     second_dir.mkdir(exist_ok=True)
     remove_stale_temporaries(second_dir)
     result = train_one(scene, second_dir, replace(config, seed=state["second_seed"]), images_dir,

@@ -9,8 +9,8 @@ import math
 import pytest
 
 from neulf_core.checkpoint import load_checkpoint
-from neulf_core.starts import (DECISION_SHARE, SECOND_START_DIR, SECOND_START_SEED_OFFSET, STATE_NAME, chosen_start,
-                               decision_step, minutes_budget_allows, steps_budget_allows)
+from neulf_core.starts import (DECISION_SHARE, SECOND_START_DIR, SECOND_START_SEED_OFFSET, SHORTEST_DECISION_SHARE,
+                               STATE_NAME, chosen_start, decision_step, minutes_budget_allows, steps_budget_allows)
 from neulf_core.train import TrainConfig, train
 
 # The tiny scene's 7 training views (of 9, every 8th held out) of 48 x 36 pixels, 512 rays a
@@ -53,7 +53,12 @@ def test_the_rules():
     assert decision_step(2374) == math.ceil(DECISION_SHARE * 2374) == 998
     assert decision_step(1) == 1
     # A steps budget pays for the pass limit plus the second start's steps to the decision.
-    assert steps_budget_allows(2374 + 998, 2374) and not steps_budget_allows(2374 + 997, 2374)
+    assert steps_budget_allows(2374 + 998, 2374) and decision_step(2374, 2374 + 5000) == 998
+    # ... or, short of that, the choice made earlier: at the steps it has past the pass limit,
+    # down to SHORTEST_DECISION_SHARE of it (CanClip's 6 photos at 3000 steps: at step 626).
+    assert decision_step(2374, 3000) == 626 and steps_budget_allows(3000, 2374)
+    shortest = math.ceil(SHORTEST_DECISION_SHARE * 2374)
+    assert steps_budget_allows(2374 + shortest, 2374) and not steps_budget_allows(2374 + shortest - 1, 2374)
     assert not steps_budget_allows(None, 2374)
     # A minutes budget: the first start's pace to the decision, over 3372 steps in all.
     assert minutes_budget_allows(5.0, 60.0, 2374)            # 60 s for 998 steps: 203 s in all
@@ -114,7 +119,8 @@ def test_the_second_start_wins_when_its_loss_is_lower(tiny_scene, tmp_path, monk
 
 def test_one_start_where_the_budget_does_not_pay_or_asked(tiny_scene, tmp_path):
     limit = pass_limit()
-    for name, config in (("short", fast_config(steps=limit + decision_step(limit) - 1)),
+    shortest = math.ceil(SHORTEST_DECISION_SHARE * limit)
+    for name, config in (("short", fast_config(steps=limit + shortest - 1)),
                          ("off", fast_config(steps=10 * limit, two_starts=False)),
                          ("no-limit", fast_config(steps=limit + decision_step(limit), max_passes=0))):
         result, events = run(tiny_scene, tmp_path / name, config)
@@ -122,6 +128,30 @@ def test_one_start_where_the_budget_does_not_pay_or_asked(tiny_scene, tmp_path):
         assert "starts" not in meta and not (tmp_path / name / STATE_NAME).exists(), name
         assert not any(e.get("start") == 2 for e in events), name
         assert result.step == (limit if name != "no-limit" else limit + decision_step(limit)), name
+
+
+def test_a_short_budget_chooses_earlier_and_a_cancel_after_the_choice_is_the_users(tiny_scene, tmp_path):
+    """Steps short of the pass limit plus its 42 % still pay for two starts when they spare
+    SHORTEST_DECISION_SHARE of it: the choice is made at the steps they spare.  A cancel after
+    the choice is the user's: reported as such, and the run resumes the kept start."""
+    limit = pass_limit()
+    spare = math.ceil(SHORTEST_DECISION_SHARE * limit) + 3
+    assert spare < decision_step(limit)
+    config = fast_config(steps=limit + spare, seed=2)
+
+    def stop_when(events):
+        kept = any(e.get("event") == "stage" and "kept" in e for e in events)
+        steps = [e["step"] for e in events if e.get("event") in ("step", "validate") and not e.get("start")]
+        return kept and steps[-1] >= spare + 10
+
+    stopped, events = run(tiny_scene, tmp_path / "m", config, stop_when=stop_when)
+    assert stopped.status == "cancelled" and stopped.step == spare + 10
+    assert [e["event"] for e in events if e.get("event") in ("cancelled", "finished")] == ["cancelled"]
+    second = [e["step"] for e in events if e.get("start") == 2 and e.get("event") in ("step", "validate")]
+    assert second[-1] == spare
+    result, _ = run(tiny_scene, tmp_path / "m", config, resume=True)
+    meta = json.loads((tmp_path / "m" / "model.json").read_text())
+    assert result.status == "finished" and result.step == limit and meta["starts"]["decision_step"] == spare
 
 
 @pytest.mark.parametrize("stop_in", ["first", "second"])
