@@ -679,9 +679,8 @@ def _train(scene, model_dir: Path, config: TrainConfig, images_dir, resume: bool
     # The fill is for rendering: training resumes from the weights before it, since texels
     # unseen now may be read once the geometry moves (a paused run then trains on exactly
     # as an uninterrupted one: a cancel, or the better of two starts' pause at its choice).
-    fills = step > 0 and hasattr(field_module, "fill_unseen_texels")
-    before_fill = {k: v.detach().clone() for k, v in field_module.state_dict().items()} if fills else None
-    elapsed += _fill_unseen(field_module, train_rays) if fills else 0.0
+    seconds, before_fill = _fill_unseen(field_module, train_rays) if step > 0 else (0.0, None)
+    elapsed += seconds
     save(status, val, before_fill)
     _emit(progress, event=status, step=step, elapsed=elapsed, val_psnr=val, model_dir=str(model_dir))
     return TrainResult(model_dir, status, step, elapsed, val, history)
@@ -777,14 +776,16 @@ def _restart_for_far_off_poses(field_module, optimizer, poses: PoseRefinement, m
                   f"starts again with smoother geometry{texture} while they are corrected (docs/STABILITY.md)")
 
 
-def _fill_unseen(field_module, train_rays: RaySet, chunk: int = 1 << 15) -> float:
+def _fill_unseen(field_module, train_rays: RaySet, chunk: int = 1 << 15) -> tuple[float, dict | None]:
     """Texels no training ray reads take their seen neighbours' features (fields that have
-    texels; DisparityField.fill_unseen_texels); the seconds it took, part of the training time."""
+    texels; DisparityField.fill_unseen_texels).  Returns the seconds it took, part of the
+    training time, and the weights before the fill (None where the field has no texels)."""
     if not hasattr(field_module, "fill_unseen_texels"):
-        return 0.0
+        return 0.0, None
     started = time.monotonic()
+    before = {k: v.detach().clone() for k, v in field_module.state_dict().items()}
     field_module.fill_unseen_texels(train_rays.uvst[i:i + chunk].float() for i in range(0, len(train_rays), chunk))
-    return time.monotonic() - started
+    return time.monotonic() - started, before
 
 
 def _decide_losses_at_measured_rate(slab: Slab, train_views, config: TrainConfig, seconds: float, device, meta: dict,

@@ -187,3 +187,19 @@ def benchmark_script():
         return module
 
     return load
+
+
+def assert_same_weights(a: Path, b: Path) -> None:
+    """Two model folders' checkpoints hold the same step, weights and optimizer state, bit for bit."""
+    import torch
+
+    from neulf_core.checkpoint import load_checkpoint
+
+    sa, sb = load_checkpoint(a), load_checkpoint(b)
+    assert sa["progress"]["step"] == sb["progress"]["step"]
+    assert sa["state_dict"].keys() == sb["state_dict"].keys()
+    for key in sa["state_dict"]:
+        assert torch.equal(sa["state_dict"][key], sb["state_dict"][key]), f"{key} differs"
+    for group_a, group_b in zip(sa["optimizer"]["state"].values(), sb["optimizer"]["state"].values()):
+        for key in group_a:
+            assert torch.equal(torch.as_tensor(group_a[key]), torch.as_tensor(group_b[key])), f"optimizer {key} differs"

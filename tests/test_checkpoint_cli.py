@@ -17,6 +17,7 @@ import torch
 from PIL import Image
 from skimage.metrics import peak_signal_noise_ratio, structural_similarity
 
+from conftest import assert_same_weights
 from neulf_core.checkpoint import CHECKPOINT_NAME, METADATA_NAME, atomic_write_bytes, load_checkpoint
 from neulf_core.cli import main
 from neulf_core.errors import NeulfError
@@ -162,17 +163,6 @@ def test_resume_continues_step_and_history(trained, tmp_path):
 
 def weights(model_dir: Path) -> dict:
     return torch.load(Path(model_dir) / CHECKPOINT_NAME, map_location="cpu", weights_only=False)
-
-
-def assert_same_weights(a: Path, b: Path):
-    sa, sb = weights(a), weights(b)
-    assert sa["progress"]["step"] == sb["progress"]["step"]
-    assert sa["state_dict"].keys() == sb["state_dict"].keys()
-    for key in sa["state_dict"]:
-        assert torch.equal(sa["state_dict"][key], sb["state_dict"][key]), f"{key} differs"
-    for group_a, group_b in zip(sa["optimizer"]["state"].values(), sb["optimizer"]["state"].values()):
-        for key in group_a:
-            assert torch.equal(torch.as_tensor(group_a[key]), torch.as_tensor(group_b[key])), f"optimizer {key} differs"
 
 
 def test_split_training_equals_straight_training_with_a_step_schedule(tiny_scene, tmp_path):

@@ -8,6 +8,7 @@ import math
 
 import pytest
 
+from conftest import assert_same_weights
 from neulf_core.checkpoint import load_checkpoint
 from neulf_core.starts import (DECISION_SHARE, SECOND_START_DIR, SECOND_START_SEED_OFFSET, SHORTEST_DECISION_SHARE,
                                STATE_NAME, chosen_start, decision_step, minutes_budget_allows, steps_budget_allows)
@@ -27,15 +28,6 @@ def fast_config(steps: int | None = None, **overrides) -> TrainConfig:
 
 def pass_limit() -> int:
     return math.ceil(PASSES * 7 * 48 * 36 / BATCH)
-
-
-def assert_same_weights(a, b):
-    import torch
-
-    sa, sb = load_checkpoint(a), load_checkpoint(b)
-    assert sa["progress"]["step"] == sb["progress"]["step"]
-    for key in sa["state_dict"]:
-        assert torch.equal(sa["state_dict"][key], sb["state_dict"][key]), f"{key} differs"
 
 
 def run(scene, folder, config, resume=False, stop_when=None):
