@@ -136,6 +136,7 @@ class Job:
     # The colour decoder's start (DisparityConfig.colour_start; "random": PyTorch's).  Part of the
     # key, so a new default start re-runs the study; rows logged before it read "random".
     colour_start: str = "random"
+    two_starts: bool | None = None  # the better of two starts forced on / off (TrainConfig.two_starts; None: its rule)
 
     @property
     def key(self) -> str:
@@ -371,6 +372,8 @@ def train_config(job: Job, held: list[View]) -> TrainConfig:
         options.update(steps=None, minutes=job.minutes)
     if job.coarse_to_fine is not None:
         options["coarse_to_fine"] = job.coarse_to_fine
+    if job.two_starts is not None:
+        options["two_starts"] = job.two_starts
     if job.colour_start != preset_colour_start(job.preset):
         options["field_overrides"] = {"colour_start": "" if job.colour_start == "random" else job.colour_start}
     return TrainConfig(**options)

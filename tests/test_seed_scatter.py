@@ -106,3 +106,20 @@ def test_a_run_of_some_configurations_keeps_the_others_rows_and_lines(scatter, t
     assert len(rows) == 1 + 6 and rows[1].startswith("canclip,fast,1.0,") and rows[4].startswith("canclip,fast,0.25,")
     kept = scatter.earlier_rows(docs / "seed_scatter.csv", ["canclip"])
     assert list(kept) == ["canclip-6-photos"] and [row["seed"] for row in kept["canclip-6-photos"]] == ["0", "1", "2"]
+
+
+def test_two_starts_can_be_forced_off_or_on_for_a_comparison(scatter):
+    """--two-starts off / on reaches the trainer (the default's rule otherwise), and the
+    few-photo pose-noise lines are asked for by name, not trained by default."""
+    stability = scatter.stability
+    scenes, scales = {"canclip": Path("/data/canclip")}, {"canclip": 0.25}
+    label = "canclip-6-photos-0.25deg"
+    for flag, forced in (("rule", None), ("on", True), ("off", False)):
+        args = scatter.parse_args(["--configurations", label, "--two-starts", flag])
+        job = scatter.plan([label], [0], 3000, scenes, scales, scatter.TWO_STARTS[args.two_starts])[label][0]
+        assert (job.fraction, job.pose_degrees, job.two_starts) == (0.25, 0.25, forced)
+        assert stability.train_config(job, []).two_starts is forced
+    ruled = scatter.plan([label], [0], 3000, scenes, scales)[label][0]
+    assert ruled.key != stability.replace(ruled, two_starts=False).key  # logged apart
+    assert label not in scatter.parse_args([]).configurations.split(",")
+    assert scatter.parse_args([]).configurations.split(",") == scatter.DEFAULT_CONFIGURATIONS
