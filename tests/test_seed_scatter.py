@@ -123,3 +123,31 @@ def test_two_starts_can_be_forced_off_or_on_for_a_comparison(scatter):
     assert ruled.key != stability.replace(ruled, two_starts=False).key  # logged apart
     assert label not in scatter.parse_args([]).configurations.split(",")
     assert scatter.parse_args([]).configurations.split(",") == scatter.DEFAULT_CONFIGURATIONS
+
+
+def test_one_start_against_two_reads_both_logs_seed_by_seed(scatter, tmp_path):
+    """--against-one-start: the two starts' log (--cache) beside the one-start log, each score
+    (the pose-fitted one where the runs have it) with its scatter, and the start each seed kept."""
+    import json
+    from dataclasses import asdict
+
+    label = "canclip-6-photos-0.25deg"
+    capture, docs = tmp_path / "canclip", tmp_path / "docs"
+    capture.mkdir(), docs.mkdir()
+    logs = {}
+    for name, two_starts, base, kept in (("one", False, 34.6, ""), ("two", None, 34.5, "second")):
+        logs[name] = tmp_path / name
+        logs[name].mkdir()
+        jobs = scatter.plan([label], [0, 1, 2], 3000, {"canclip": capture}, {"canclip": 0.25}, two_starts)[label]
+        (logs[name] / "runs.jsonl").write_text("".join(
+            json.dumps({**asdict(job), "status": "finished", "psnr": base + 0.1 * job.seed,
+                        "psnr_pose_fitted": base + 1 + 0.01 * job.seed, "start_kept": kept or None}) + "\n" for job in jobs))
+    scatter.main(["--configurations", label, "--seeds", "0-2", "--steps", "3000", "--canclip", str(capture),
+                  "--cache", str(logs["two"]), "--against-one-start", str(logs["one"]), "--docs", str(docs)])
+    text = (docs / "SEED_SCATTER.md").read_text()
+    assert (f"| {label} | PSNR | 34.60 34.70 34.80 | 34.70 ± 0.100 | 1 of 1 | 34.50 34.60 34.70 | 34.60 ± 0.100 | 1 of 1 "
+            f"| 2 2 2 |") in text
+    assert f"| {label} | PSNR, held-out poses fitted | 35.60 35.61 35.62 | 35.61 ± 0.010 |" in text
+    assert scatter.comparison_outputs(3000)[1] in text
+    rows = (docs / "seed_scatter_starts_3000.csv").read_text().splitlines()
+    assert len(rows) == 1 + 6 and sum(",second," in row for row in rows) == 3
