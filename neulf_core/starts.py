@@ -20,6 +20,12 @@ second start's steps on top of it:
   limit plus a second start, fits in the minutes (the user's few-photo capture then trains
   inside the time it was given, which the pass limit would otherwise leave unused).
 
+Not while the poses are refined (the pose check's verdict, or --refine-poses): the training
+loss then also measures how well each start's poses fit the few photos, and eight seeds on
+four such configurations gained nothing on average from the choice (+0.01 dB over the 19
+seeds it changed, fitted held-out poses; docs/SEED_SCATTER.md), so the first start trains on
+alone and the second start's steps are saved.  `two_starts=True` still forces it.
+
 The state between the steps lives in STATE_NAME in the model folder, so a run cancelled or
 killed at any point resumes where it was: the first start's checkpoint is the model folder's
 own (a model to render from all along), the second start's lives in SECOND_START_DIR inside
@@ -107,6 +113,7 @@ class _Watch:
         self.two_starts = stage != "first" and decision is not None  # the first start learns it at its first step
         self.step, self.elapsed = 0, 0.0
         self.losses: list[float] = []
+        self.refining_poses = False  # the pose check's verdict: the poses are off and being refined
 
     def overall(self, fraction: float) -> float:
         if not (self.pass_limit and self.two_starts):
@@ -122,6 +129,8 @@ class _Watch:
         kind = event.get("event")
         if kind == "passes":
             self.pass_limit = int(event["steps"])
+        if kind == "pose_check":
+            self.refining_poses = bool(event.get("refining"))
         if kind in ("step", "validate"):
             self.step = int(event["step"])
             self.elapsed = float(event.get("elapsed", self.elapsed))
@@ -192,8 +201,15 @@ def _first_start(train_one, scene, model_dir: Path, config, images_dir, resume: 
     """The first start, in the model folder: to the decision step where two starts are
     planned (the state then says what the second needs), else to the end (its result)."""
     watch = _Watch(progress, "first", state.get("pass_limit"), user_stop, steps=config.steps)
+    watch.refining_poses = bool(state.get("refining_poses"))  # (a resumed run may not hear the verdict again)
 
     def stop_first() -> bool:
+        if watch.refining_poses and "pass_limit" in state and not state.get("refining_poses"):
+            state["refining_poses"] = True  # one start from here on, a resumed run too
+            _write_state(model_dir, state)
+            if config.two_starts is None:
+                _emit_stage(progress, "the poses are being refined: one start (the training loss would also "
+                                      "measure how well each start's poses fit)")
         planned = watch.two_starts = _two_starts_planned(config, watch)
         if planned and "pass_limit" not in state:  # a cancel from here on resumes with two starts
             state["pass_limit"] = watch.pass_limit
@@ -203,8 +219,9 @@ def _first_start(train_one, scene, model_dir: Path, config, images_dir, resume: 
     result = train_one(scene, model_dir, config, images_dir, resume, watch, stop_first, None)
     if "pass_limit" not in state or user_stop():
         return result  # one start; or stopped by the user before the choice (STATE_NAME resumes it)
-    if result.status == "finished":  # the budget ended before the decision step
-        _write_state(model_dir, {**state, "stage": "decided", "kept": "first", "why": "the budget ended first"})
+    if result.status == "finished":  # the budget ended before the decision step, or one start was decided on
+        why = "the poses are being refined" if _refining_rules_out(config, watch) else "the budget ended first"
+        _write_state(model_dir, {**state, "stage": "decided", "kept": "first", "why": why})
         return result
     first_loss = watch.mean_loss() if watch.losses else _last_logged_loss(result)
     if not (steps_budget_allows(config.steps, watch.pass_limit)
@@ -251,11 +268,17 @@ def _two_starts_planned(config, watch: _Watch) -> bool:
     """Whether the first start stops at the decision step: the pass limit ends training
     (announced), two starts are not turned off, and a steps budget pays for them or a
     minutes budget may (decided at the decision step from the pace; two_starts=True: always)."""
-    if not watch.pass_limit or config.two_starts is False:
+    if not watch.pass_limit or config.two_starts is False or _refining_rules_out(config, watch):
         return False
     if config.steps and not config.two_starts:
         return steps_budget_allows(config.steps, watch.pass_limit)
     return True
+
+
+def _refining_rules_out(config, watch: _Watch) -> bool:
+    """Whether the rule (two_starts None) trains one start because the poses are refined:
+    asked for (refine_poses=True), or the pose check found them off (module docstring)."""
+    return config.two_starts is None and (config.refine_poses is True or watch.refining_poses)
 
 
 def _move_model(source: Path, target: Path) -> None:

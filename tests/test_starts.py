@@ -177,3 +177,41 @@ def test_a_stop_before_the_choice_resumes_where_it_was(tiny_scene, tmp_path, sto
     meta = json.loads((tmp_path / "m" / "model.json").read_text())
     assert meta["starts"]["decision_step"] == decision and meta["starts"]["kept"] in ("first", "second")
     assert not (tmp_path / "m" / SECOND_START_DIR).exists()
+
+
+def test_one_start_while_the_poses_are_refined(tiny_scene, tmp_path, monkeypatch):
+    """The pose check's verdict 'off, refining' (forced here) at step 100, before the choice
+    at step 120: the first start trains on alone, is the one-start run bit for bit, and says
+    why; a cancel after the verdict resumes as one start.  --refine-poses asked for: one
+    start from the beginning; --two-starts still forces two."""
+    import neulf_core.poses as poses_module
+
+    monkeypatch.setattr(poses_module, "poses_look_off", lambda degrees, second_look=False: True)
+    limit = pass_limit()
+    steps = limit + decision_step(limit)
+    assert 100 < decision_step(limit)
+    result, events = run(tiny_scene, tmp_path / "m", fast_config(steps=steps, seed=4, refine_poses=None))
+    assert result.status == "finished" and result.step == limit
+    assert not any(e.get("start") == 2 for e in events) and not (tmp_path / "m" / SECOND_START_DIR).exists()
+    assert any(e.get("event") == "pose_check" and e["refining"] for e in events)
+    assert any("poses are being refined" in e.get("message", "") for e in events if e.get("event") == "stage")
+    state = json.loads((tmp_path / "m" / STATE_NAME).read_text())
+    assert (state["stage"], state["kept"], state["why"]) == ("decided", "first", "the poses are being refined")
+    alone = tmp_path / "alone"
+    run(tiny_scene, alone, fast_config(steps=steps, seed=4, refine_poses=None, two_starts=False))
+    assert_same_weights(alone, tmp_path / "m")
+
+    def after_the_verdict(events):
+        return any(e.get("event") == "pose_check" for e in events) and events[-1].get("step", 0) >= 110
+
+    stopped, _ = run(tiny_scene, tmp_path / "resumed", fast_config(steps=steps, seed=4, refine_poses=None),
+                     stop_when=after_the_verdict)
+    assert stopped.status == "cancelled" and json.loads((tmp_path / "resumed" / STATE_NAME).read_text())["refining_poses"]
+    resumed, events = run(tiny_scene, tmp_path / "resumed", fast_config(steps=steps, seed=4, refine_poses=None), resume=True)
+    assert resumed.step == limit and not any(e.get("start") == 2 for e in events)
+    assert_same_weights(alone, tmp_path / "resumed")
+
+    result, events = run(tiny_scene, tmp_path / "asked", fast_config(steps=steps, seed=4, refine_poses=True))
+    assert not any(e.get("start") == 2 for e in events) and not (tmp_path / "asked" / STATE_NAME).exists()
+    result, events = run(tiny_scene, tmp_path / "forced", fast_config(steps=steps, seed=4, refine_poses=True, two_starts=True))
+    assert any(e.get("start") == 2 for e in events)
