@@ -53,11 +53,11 @@ CONFIGURATIONS = {
     "synthetic-0.1deg": {"scene": "lambertian", "pose_degrees": 0.1},
     "shiny": {"scene": "shiny"},
     "fine": {"scene": "fine"},
-    # Few photos with pose noise, where the poses are refined (thirty-ninth session: whether the
-    # better of two starts helps there, with the training loss also measuring the poses' fit).
+    # Few photos with pose noise, where the poses are refined (thirty-ninth session: the better
+    # of two starts there, where the training loss also measures the poses' fit; not kept).
     "canclip-6-photos-0.25deg": {"scene": "canclip", "fraction": 0.25, "pose_degrees": 0.25},
-    "synthetic-4-photos-0.1deg": {"scene": "lambertian", "fraction": 0.25, "pose_degrees": 0.1},
     "canclip-6-photos-1deg": {"scene": "canclip", "fraction": 0.25, "pose_degrees": 1.0},
+    "synthetic-4-photos-0.1deg": {"scene": "lambertian", "fraction": 0.25, "pose_degrees": 0.1},
     "synthetic-4-photos-2deg": {"scene": "lambertian", "fraction": 0.25, "pose_degrees": 2.0},
 }
 # --two-starts -> TrainConfig.two_starts: the default's rule, always, never.

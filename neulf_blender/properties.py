@@ -73,8 +73,8 @@ class NeulfSceneSettings(bpy.types.PropertyGroup):
     two_starts: BoolProperty(name="Two Starts", default=True,
                              description="With at most 13 photos, when the time pays for it, train a second random "
                                          "start to 42 % of the training and keep the one that fits the photos "
-                                         "better: one run in three otherwise can settle on a worse shape. Off: one "
-                                         "start")
+                                         "better: one run in three otherwise can settle on a worse shape. Not while "
+                                         "the poses are being refined (it gains nothing there). Off: one start")
     train_scale: FloatProperty(name="Image Scale", default=1.0, min=0.05, max=1.0,
                                description="Train on images resized by this factor")
     spiral_frames: IntProperty(name="Frames", default=60, min=3, max=2000, description="Frames of the spiral path")

@@ -430,8 +430,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--two-starts", action=argparse.BooleanOptionalAction, default=None,
                    help="where the pass limit ends training, train a second random start to 42%% of it (less where "
                         "a steps budget spares fewer steps past it, down to 26%%) and keep the one that fits the "
-                        "photos better (default: when the budget pays for the second start's steps; with few "
-                        "photos one run in three otherwise settles worse): docs/STABILITY.md")
+                        "photos better (default: when the budget pays for the second start's steps and the poses "
+                        "are not being refined; with few photos one run in three otherwise settles worse): "
+                        "docs/STABILITY.md")
     p.add_argument("--device", help="cpu, cuda, mps (default: the fastest available)")
     p.set_defaults(run=cmd_train)
 
