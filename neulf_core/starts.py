@@ -24,7 +24,9 @@ Not while the poses are refined (the pose check's verdict, or --refine-poses): t
 loss then also measures how well each start's poses fit the few photos, and eight seeds on
 four such configurations gained nothing on average from the choice (+0.01 dB over the 19
 seeds it changed, fitted held-out poses; docs/SEED_SCATTER.md), so the first start trains on
-alone and the second start's steps are saved.  `two_starts=True` still forces it.
+alone and the second start's steps are saved.  `two_starts=True` still forces it.  (A verdict
+that comes after the decision step -- an unsure first look decided at the second, or a pass
+limit so short that the choice comes before step 100 -- leaves the choice as it was made.)
 
 The state between the steps lives in STATE_NAME in the model folder, so a run cancelled or
 killed at any point resumes where it was: the first start's checkpoint is the model folder's
