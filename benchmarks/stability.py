@@ -137,6 +137,7 @@ class Job:
     # key, so a new default start re-runs the study; rows logged before it read "random".
     colour_start: str = "random"
     two_starts: bool | None = None  # the better of two starts forced on / off (TrainConfig.two_starts; None: its rule)
+    pixel_jitter: bool = False  # each training ray at a random point of its pixel (TrainConfig.pixel_jitter)
 
     @property
     def key(self) -> str:
@@ -374,6 +375,8 @@ def train_config(job: Job, held: list[View]) -> TrainConfig:
         options["coarse_to_fine"] = job.coarse_to_fine
     if job.two_starts is not None:
         options["two_starts"] = job.two_starts
+    if job.pixel_jitter:
+        options["pixel_jitter"] = True
     if job.colour_start != preset_colour_start(job.preset):
         options["field_overrides"] = {"colour_start": "" if job.colour_start == "random" else job.colour_start}
     return TrainConfig(**options)
@@ -998,7 +1001,7 @@ def update_markdown(path: Path, tables: str, begin: str = MARKER_BEGIN, end: str
 CSV_COLUMNS = ["scene", "preset", "fraction", "pose_degrees", "appearance", "refine_poses", "consistency", "minutes",
                "coarse_to_fine", "colour_start", "coarse_to_fine_used", "appearance_used", "appearance_default", "exposure_difference_stops",
                "pose_check_refining", "pose_check_degrees", "pose_check_halfway", "field_restarted", "start_kept", "discarded_steps",
-               "sweep_fade", "deep_scene", "multiview_losses", "seed", "status", "psnr", "ssim",
+               "sweep_fade", "deep_scene", "multiview_losses", "pixel_jitter", "seed", "status", "psnr", "ssim",
                "psnr_matched", "psnr_half_fit", "psnr_pose_fitted", "pose_fit_degrees", "psnr_per_view", "train_views", "held_out", "steps", "steps_done", "train_seconds",
                "wall_seconds", "warnings", "warning_text", "nonfinite_pixels", "error", "scale", "path", "truth"]
 

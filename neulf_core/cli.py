@@ -74,7 +74,7 @@ def cmd_train(args) -> int:
         st_depth=args.st_depth, near=args.near, far=args.far, device=args.device, batch_size=args.batch_size,
         consistency=args.consistency, appearance=args.appearance, teacher=args.sweep_teacher, field_overrides=overrides,
         refine_poses=args.refine_poses, coarse_to_fine=args.coarse_to_fine, max_passes=args.max_passes,
-        two_starts=args.two_starts,
+        two_starts=args.two_starts, pixel_jitter=args.pixel_jitter,
     )
     stop = {"signal": None, "reader_gone": False}
 
@@ -433,6 +433,10 @@ def build_parser() -> argparse.ArgumentParser:
                         "photos better (default: when the budget pays for the second start's steps and the poses "
                         "are not being refined; with few photos one run in three otherwise settles worse): "
                         "docs/STABILITY.md")
+    p.add_argument("--pixel-jitter", action=argparse.BooleanOptionalAction, default=False,
+                   help="train each ray at a random point of its pixel (default: off; renders with a pixel filter, "
+                        "such as Cycles', gain and steady, real photos lose; 16 bytes more memory a training ray): "
+                        "docs/TRAINING.md")
     p.add_argument("--device", help="cpu, cuda, mps (default: the fastest available)")
     p.set_defaults(run=cmd_train)
 
