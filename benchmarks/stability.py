@@ -137,7 +137,7 @@ class Job:
     # key, so a new default start re-runs the study; rows logged before it read "random".
     colour_start: str = "random"
     two_starts: bool | None = None  # the better of two starts forced on / off (TrainConfig.two_starts; None: its rule)
-    pixel_jitter: bool = False  # each training ray at a random point of its pixel (TrainConfig.pixel_jitter)
+    pixel_jitter: float = 0.0  # each training ray at a random point of a square this many pixels wide (TrainConfig)
 
     @property
     def key(self) -> str:
@@ -376,7 +376,7 @@ def train_config(job: Job, held: list[View]) -> TrainConfig:
     if job.two_starts is not None:
         options["two_starts"] = job.two_starts
     if job.pixel_jitter:
-        options["pixel_jitter"] = True
+        options["pixel_jitter"] = float(job.pixel_jitter)
     if job.colour_start != preset_colour_start(job.preset):
         options["field_overrides"] = {"colour_start": "" if job.colour_start == "random" else job.colour_start}
     return TrainConfig(**options)

@@ -433,10 +433,10 @@ def build_parser() -> argparse.ArgumentParser:
                         "photos better (default: when the budget pays for the second start's steps and the poses "
                         "are not being refined; with few photos one run in three otherwise settles worse): "
                         "docs/STABILITY.md")
-    p.add_argument("--pixel-jitter", action=argparse.BooleanOptionalAction, default=False,
-                   help="train each ray at a random point of its pixel (default: off; renders with a pixel filter, "
-                        "such as Cycles', gain and steady, real photos lose; 16 bytes more memory a training ray): "
-                        "docs/TRAINING.md")
+    p.add_argument("--pixel-jitter", type=float, default=0.0, metavar="W",
+                   help="train each ray at a random point of a square W pixels wide around its pixel centre (1: "
+                        "anywhere in its pixel; default 0: off; renders with a pixel filter, such as Cycles', gain "
+                        "and steady, real photos lose; 16 bytes more memory a training ray): docs/TRAINING.md")
     p.add_argument("--device", help="cpu, cuda, mps (default: the fastest available)")
     p.set_defaults(run=cmd_train)
 

@@ -43,12 +43,13 @@ class RaySet:
         step = self.pixel_step.to(device) if self.pixel_step is not None else None
         return RaySet(self.uvst.to(device), self.rgb.to(device), self.view_index.to(device), self.names, step)
 
-    def batch(self, index: torch.Tensor, generator: torch.Generator | None = None):
+    def batch(self, index: torch.Tensor, generator: torch.Generator | None = None, jitter: float = 1.0):
         """(uvst float32, rgb float32 in [0, 1]) for ray indices `index`; where the set holds
-        pixel steps and a generator is given, each ray moved to a random point of its pixel."""
+        pixel steps and a generator is given, each ray moved to a random point of a square
+        `jitter` pixels wide around its pixel centre (1: anywhere in its pixel)."""
         uvst = self.uvst[index].float()
-        if self.pixel_step is not None and generator is not None:
-            offsets = torch.rand((len(index), 2, 1), generator=generator).to(uvst.device) - 0.5
+        if self.pixel_step is not None and generator is not None and jitter > 0:
+            offsets = (torch.rand((len(index), 2, 1), generator=generator).to(uvst.device) - 0.5) * jitter
             uvst = uvst + (offsets * self.pixel_step[index].float()).sum(1)
         return uvst, self.rgb[index].float() / 255.0
 

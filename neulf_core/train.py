@@ -123,8 +123,9 @@ class TrainConfig:
                                         # default, FEW_PHOTOS_MAX_PASSES for few photos; 0: no limit)
     two_starts: bool | None = None      # the better of two starts where the pass limit ends training (starts.py;
                                         # None: when the budget pays for the second start; False: never)
-    pixel_jitter: bool = False          # each training ray at a random point of its pixel (dataset.py; off by
-                                        # default: real photos lose, docs/TRAINING.md)
+    pixel_jitter: float = 0.0           # each training ray at a random point of a square this many pixels wide
+                                        # around its pixel centre (dataset.py; 0: off, the default: real photos
+                                        # lose, docs/TRAINING.md; 1: anywhere in its pixel)
 
     def budget_fraction(self, step: int, elapsed: float) -> float:
         """How far through its budget training is; whichever budget (steps or minutes) ends
@@ -489,7 +490,7 @@ def _train(scene, model_dir: Path, config: TrainConfig, images_dir, resume: bool
           held_out=[v.name for v in held_views], device=describe_device(device), preset=config.preset, notes=scene.notes)
 
     _emit(progress, event="loading", message="building training rays")
-    train_rays = build_rayset(train_views, slab, config.scale, pixel_steps=config.pixel_jitter,
+    train_rays = build_rayset(train_views, slab, config.scale, pixel_steps=config.pixel_jitter > 0,
                               on_view=lambda i, n, v: _emit(progress, event="loading", message=f"rays of {v.name}", done=i + 1, total=n))
     train_rays = train_rays.to(device)
     val_rays = build_rayset(held_views, slab, config.scale).subset(VALIDATION_RAYS, generator).to(device) if held_views else None
@@ -607,7 +608,7 @@ def _train(scene, model_dir: Path, config: TrainConfig, images_dir, resume: bool
         if hasattr(field_module, "set_training_progress"):
             field_module.set_training_progress(fraction)
         index = torch.randint(n_rays, (batch,), generator=generator).to(device)
-        uvst, target = train_rays.batch(index, generator)
+        uvst, target = train_rays.batch(index, generator, config.pixel_jitter)
         view_index = train_rays.view_index[index].long()
         pull = teacher_weight(fraction, len(train_views), strong=strong) if teacher is not None else 0.0
         depth_teacher = (teacher[0][index], teacher[1][index], pull) if pull > 0 else None

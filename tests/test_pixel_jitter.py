@@ -47,6 +47,9 @@ def test_a_batch_moves_each_ray_inside_its_pixel_only_when_asked(tiny_scene):
     # Inside the pixel: at most half a step along each pixel axis from the centre ray.
     bound = 0.5 * rays.pixel_step[index].float().abs().sum(1) + 1e-6
     assert bool(((moved - centre).abs() <= bound).all())
+    half, _ = rays.batch(index, torch.Generator().manual_seed(0), jitter=0.5)  # a square half a pixel wide:
+    assert torch.allclose(half - centre, 0.5 * (moved - centre), atol=1e-6)  # the same draws, half the way
+    assert torch.equal(rays.batch(index, torch.Generator().manual_seed(0), jitter=0.0)[0], centre)
     again, _ = rays.batch(index, torch.Generator().manual_seed(0))
     assert torch.equal(again, moved)  # drawn from the generator: a seeded run repeats
     part = rays.subset(50, torch.Generator().manual_seed(1))
@@ -56,16 +59,16 @@ def test_a_batch_moves_each_ray_inside_its_pixel_only_when_asked(tiny_scene):
 def test_training_records_the_choice_and_trains_without_it_too(tiny_scene, tmp_path):
     common = dict(preset="fast", steps=30, batch_size=256, field_overrides={"texture_size": [16, 16]},
                   validate_seconds=1e9, checkpoint_seconds=1e9, teacher=False, refine_poses=False)
-    for jitter in (True, False):
+    for jitter in (1.0, 0.0):
         result = train(tiny_scene, tmp_path / str(jitter), TrainConfig(pixel_jitter=jitter, **common))
         meta = json.loads((tmp_path / str(jitter) / "model.json").read_text())
-        assert result.status == "finished" and meta["train_config"]["pixel_jitter"] is jitter
-    assert TrainConfig().pixel_jitter is False  # off by default: real photos lose (docs/TRAINING.md)
+        assert result.status == "finished" and meta["train_config"]["pixel_jitter"] == jitter
+    assert TrainConfig().pixel_jitter == 0.0  # off by default: real photos lose (docs/TRAINING.md)
 
 
 def test_the_command_line_turns_it_on():
     from neulf_core.cli import build_parser
 
     parser = build_parser()
-    assert parser.parse_args(["train", "scene", "--out", "m", "--steps", "5"]).pixel_jitter is False
-    assert parser.parse_args(["train", "scene", "--out", "m", "--steps", "5", "--pixel-jitter"]).pixel_jitter is True
+    assert parser.parse_args(["train", "scene", "--out", "m", "--steps", "5"]).pixel_jitter == 0.0
+    assert parser.parse_args(["train", "scene", "--out", "m", "--steps", "5", "--pixel-jitter", "0.5"]).pixel_jitter == 0.5
