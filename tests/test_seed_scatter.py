@@ -121,6 +121,9 @@ def test_two_starts_can_be_forced_off_or_on_for_a_comparison(scatter):
         assert stability.train_config(job, []).two_starts is forced
     ruled = scatter.plan([label], [0], 3000, scenes, scales)[label][0]
     assert ruled.key != stability.replace(ruled, two_starts=False).key  # logged apart
+    jittered = scatter.plan([label], [0], 3000, scenes, scales, None, 0.5)[label][0]
+    assert stability.train_config(jittered, []).pixel_jitter == 0.5 and jittered.key != ruled.key
+    assert scatter.parse_args(["--pixel-jitter", "0.25"]).pixel_jitter == 0.25
     assert label not in scatter.parse_args([]).configurations.split(",")
     assert scatter.parse_args([]).configurations.split(",") == scatter.DEFAULT_CONFIGURATIONS
 
