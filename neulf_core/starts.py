@@ -109,13 +109,13 @@ class _Watch:
     rescaled into the whole run's (the pass limit plus the second start's steps)."""
 
     def __init__(self, progress, stage: str, known_limit: int | None, user_stop=lambda: False,
-                 steps: int | None = None, decision: int | None = None):
+                 steps: int | None = None, decision: int | None = None, refining_poses: bool = False):
         self.progress, self.stage, self.user_stop = progress, stage, user_stop
         self.pass_limit, self.steps, self.known_decision = known_limit, steps, decision
         self.two_starts = stage != "first" and decision is not None  # the first start learns it at its first step
         self.step, self.elapsed = 0, 0.0
         self.losses: list[float] = []
-        self.refining_poses = False  # the pose check's verdict: the poses are off and being refined
+        self.refining_poses = refining_poses  # the pose check's verdict: the poses are off and being refined
 
     def overall(self, fraction: float) -> float:
         if not (self.pass_limit and self.two_starts):
@@ -202,8 +202,8 @@ def train_two_starts(train_one: Callable, scene, model_dir: Path, config, images
 def _first_start(train_one, scene, model_dir: Path, config, images_dir, resume: bool, progress, user_stop, state: dict):
     """The first start, in the model folder: to the decision step where two starts are
     planned (the state then says what the second needs), else to the end (its result)."""
-    watch = _Watch(progress, "first", state.get("pass_limit"), user_stop, steps=config.steps)
-    watch.refining_poses = bool(state.get("refining_poses"))  # (a resumed run may not hear the verdict again)
+    watch = _Watch(progress, "first", state.get("pass_limit"), user_stop, steps=config.steps,
+                   refining_poses=bool(state.get("refining_poses")))  # (a resumed run may not hear it again)
 
     def stop_first() -> bool:
         if watch.refining_poses and "pass_limit" in state and not state.get("refining_poses"):
