@@ -3,7 +3,7 @@ render speed-up (its DisparityField.forward, kept here as `reference_forward`, w
 chunks and ReLUs not in place), interleaved in one process, median of repeats.
 
     python benchmarks/render_speed.py --scene ../shared/data/canclip --scale 0.5 \
-        --model c8=MODEL_DIR --model c4=MODEL_DIR [--threads 2] [--repeats 7] [--no-depth]
+        --model c8=MODEL_DIR --model c4=MODEL_DIR [--threads 2] [--repeats 7] [--no-depth] [--pixel-samples 1,4]
 
 The camera is the first held-out view's, at the models' training scale.  Models with depth
 layers (which the reference code cannot evaluate) are timed with the current code only.
@@ -73,6 +73,8 @@ def main() -> None:
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--repeats", type=int, default=7)
     parser.add_argument("--no-depth", action="store_true")
+    parser.add_argument("--pixel-samples", default="1",
+                        help="comma-separated points per pixel to time with the current code (render.PIXEL_SAMPLES)")
     parser.add_argument("--default-allocator", action="store_true",
                         help="leave glibc's malloc thresholds as they are (the render path otherwise keeps freed "
                              "buffers, device.keep_freed_cpu_memory); run once with and once without to compare")
@@ -85,16 +87,20 @@ def main() -> None:
     camera = view.scaled_camera(args.scale)
     K, width, height = camera.calibration_matrix(), int(camera.width), int(camera.height)
     # The reference code predates the depth layers: layered models are timed with the current code only.
-    variants = [(f"{code}, {name}", name, code == "current") for name in models for code in ("reference", "current")
-                if code == "current" or not models[name].field.config.geometry_layers]
+    # More points per pixel: the current code only.
+    samples = [int(n) for n in args.pixel_samples.split(",")]
+    variants = [(f"{code}, {name}" + (f", {n} points a pixel" if n != 1 else ""), name, code == "current", n)
+                for name in models for code in ("reference", "current") for n in samples
+                if code == "current" or (n == 1 and not models[name].field.config.geometry_layers)]
     torch.set_num_threads(args.threads)  # for the timing only
-    times = {label: [] for label, _, _ in variants}
+    times = {label: [] for label, *_ in variants}
     faults_before = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
     for _ in range(args.repeats):
-        for label, name, current in variants:
+        for label, name, current, points in variants:
             chunk = use_code(models.values(), current)
             started = time.perf_counter()
-            models[name].render(K, width, height, view.R, view.t, depth=not args.no_depth, chunk=chunk)
+            models[name].render(K, width, height, view.R, view.t, depth=not args.no_depth, chunk=chunk,
+                                pixel_samples=points)
             times[label].append(time.perf_counter() - started)
     use_code(models.values(), True)
     first = variants[0][0]

@@ -30,6 +30,7 @@ class NeulfRenderEngine(bpy.types.RenderEngine):
             request.update(capture.lens_request(camera.evaluated_get(depsgraph), scale))
             self.update_stats("", "NeuLF: rendering")
             result = get_core().call("render", model_dir=model_dir(original), depth=False, chunk=scene.neulf.chunk,
+                                     pixel_samples=int(scene.neulf.pixel_samples),
                                      on_progress=self.update_progress, should_stop=self.test_break, **request)
         except InterruptedError:
             return

@@ -372,7 +372,7 @@ def render_active_camera(context, *, depth=True):
     request = capture.camera_request(scene, scene.camera)
     scale = request.pop("scale")
     result = get_core(context).call("render", model_dir=model_dir(scene), depth=depth, chunk=scene.neulf.chunk,
-                                    **request, **capture.lens_request(scene.camera, scale))
+                                    pixel_samples=int(scene.neulf.pixel_samples), **request, **capture.lens_request(scene.camera, scale))
     if result.get("depth") is not None:
         result["depth"] = result["depth"] * scale  # model units -> Blender units
     return result, request

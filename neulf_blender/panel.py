@@ -105,6 +105,7 @@ class NEULF_PT_main(bpy.types.Panel):
         col = layout.column(align=True)
         col.label(text="Render", icon="RENDER_STILL")
         col.operator("neulf.render_camera", icon="RENDER_STILL")
+        col.prop(props, "pixel_samples")
         col.operator("neulf.pick_focus", icon="EYEDROPPER")
         row = col.row(align=True)
         row.prop(props, "spiral_frames")

@@ -13,15 +13,16 @@ from .errors import NeulfError
 from .images import save_rgb
 from .lpips import load_lpips, lpips_distance
 from .metrics import psnr, ssim
-from .render import LightField
+from .render import DEFAULT_PIXEL_SAMPLES, LightField
 from .poses import fit_view_pose
 from .scene import camera_spacing, load_scene
 
 
 def evaluate_model(model_dir, scene_dir, *, images_dir=None, out_dir=None, views=None, device=None,
-                   save_images: bool = True, fit_poses: bool = False) -> dict:
-    """Scores per held-out view; with `fit_poses` also after fitting each view's pose to its
-    photo (poses.fit_view_pose), the fairer score where the reconstruction's poses carry error."""
+                   save_images: bool = True, fit_poses: bool = False, pixel_samples: int = DEFAULT_PIXEL_SAMPLES) -> dict:
+    """Scores per held-out view, each rendered with `pixel_samples` points per pixel (what
+    `render` writes); with `fit_poses` also after fitting each view's pose to its photo
+    (poses.fit_view_pose), the fairer score where the reconstruction's poses carry error."""
     light_field = LightField.load(model_dir, device, precision="full")  # scores are float32's
     scene = load_scene(scene_dir, images_dir)
     light_field.check_scene(scene)
@@ -37,7 +38,7 @@ def evaluate_model(model_dir, scene_dir, *, images_dir=None, out_dir=None, views
         view = scene.view(name)
         photo = view.load_image(scale)
         started = time.perf_counter()
-        rendering = light_field.render_view(view, scale, depth=False)
+        rendering = light_field.render_view(view, scale, depth=False, pixel_samples=pixel_samples)
         seconds = time.perf_counter() - started
         target = photo.astype(np.float32) / 255.0
         rows.append({"view": view.name, "psnr": psnr(rendering.rgb, target), "ssim": ssim(rendering.rgb, target),
@@ -47,7 +48,8 @@ def evaluate_model(model_dir, scene_dir, *, images_dir=None, out_dir=None, views
         if fit_poses:
             spacing = camera_spacing(np.asarray(light_field.meta["rig"]["centres"]))  # the training rig's
             fitted, degrees, moved = fit_view_pose(light_field, view, scale, spacing)
-            rows[-1].update(psnr_pose_fitted=psnr(light_field.render_view(fitted, scale, depth=False).rgb, target),
+            fitted_render = light_field.render_view(fitted, scale, depth=False, pixel_samples=pixel_samples)
+            rows[-1].update(psnr_pose_fitted=psnr(fitted_render.rgb, target),
                             pose_fit_degrees=degrees, pose_fit_shift=moved)
         baseline.append(psnr(np.broadcast_to(mean_colour, target.shape), target))
         if save_images:
@@ -55,7 +57,7 @@ def evaluate_model(model_dir, scene_dir, *, images_dir=None, out_dir=None, views
     report = {
         "model": str(model_dir), "scene": str(scene_dir), "scale": scale, "views": rows,
         "mean_psnr": float(np.mean([r["psnr"] for r in rows])), "mean_ssim": float(np.mean([r["ssim"] for r in rows])),
-        "mean_colour_psnr": float(np.mean(baseline)), "device": str(light_field.device),
+        "mean_colour_psnr": float(np.mean(baseline)), "device": str(light_field.device), "pixel_samples": pixel_samples,
     }
     if perceptual is not None:
         report["mean_lpips"] = float(np.mean([r["lpips"] for r in rows]))

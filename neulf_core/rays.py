@@ -56,10 +56,15 @@ def pinhole_rays(K, R, t, width: int, height: int, device="cpu", dtype=torch.flo
 def single_pixel_K(K, x: float, y: float) -> np.ndarray:
     """K of a 1x1 image whose only pixel centre is image point (x, y) of the camera `K`
     (top-left origin: x = 10.5 is the centre of column 10) -- a one-ray render of any pixel."""
-    K1 = np.array(K, dtype=np.float64).reshape(3, 3)
-    K1[0, 2] -= float(x) - 0.5
-    K1[1, 2] -= float(y) - 0.5
-    return K1
+    return shifted_K(K, (float(x) - 0.5, float(y) - 0.5))
+
+
+def shifted_K(K, offset) -> np.ndarray:
+    """K whose pixel centres are the image points `offset` pixels (x right, y down) from K's."""
+    moved = np.array(K, dtype=np.float64).reshape(3, 3)
+    moved[0, 2] -= float(offset[0])
+    moved[1, 2] -= float(offset[1])
+    return moved
 
 
 def pinhole_K(camera: pycolmap.Camera) -> np.ndarray:

@@ -120,13 +120,16 @@ class Service:
         return self._cached[1]
 
     def render(self, model_dir: str, K, width: int, height: int, R, t, depth: bool = True, chunk: int = 1 << 15,
-               on_progress=None, focus_distance: float | None = None, aperture: float = 0.0) -> dict:
+               on_progress=None, focus_distance: float | None = None, aperture: float = 0.0,
+               pixel_samples: int = 1) -> dict:
         """RGB (H, W, 3) float32 in [0, 1], row 0 at the top; depth along the optical axis.
-        `aperture` > 0 (lens radius, model units) refocuses at `focus_distance`."""
+        `aperture` > 0 (lens radius, model units) refocuses at `focus_distance`; each pixel the
+        mean over `pixel_samples` points of it (render.PIXEL_SAMPLES)."""
         field = self.light_field(model_dir)
         report = None if on_progress is None else (lambda done, total: on_progress(done / total))
         rendering = field.render(np.asarray(K), int(width), int(height), np.asarray(R), np.asarray(t), depth=depth,
-                                 chunk=int(chunk), on_chunk=report, focus_distance=focus_distance, aperture=aperture)
+                                 chunk=int(chunk), on_chunk=report, focus_distance=focus_distance, aperture=aperture,
+                                 pixel_samples=int(pixel_samples))
         return {"rgb": rendering.rgb, "depth": rendering.depth, "warnings": list(rendering.warnings)}
 
     def depth_at(self, model_dir: str, K, R, t, x: float, y: float) -> dict:

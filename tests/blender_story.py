@@ -32,8 +32,8 @@ PLANE_NORMAL = np.array([0.25, -0.15, -1.0]) / np.linalg.norm([0.25, -0.15, -1.0
 GRID = [(x, y) for y in (-0.3, 0.0, 0.3) for x in (-0.3, 0.0, 0.3)]
 
 STEPS = ["install", "import", "cameras_match_pycolmap", "slab_planes", "reimport_no_duplicates", "train_blocking",
-         "train_options", "train_timer_resume", "train_cancel", "train_cancel_resume", "render_camera", "render_worker_process",
-         "focus_at", "pick_focus_frame", "pick_focus_click", "root_scale", "engine_f12", "spiral_video", "save_reload",
+         "train_options", "train_timer_resume", "train_cancel", "train_cancel_resume", "render_camera", "pixel_samples",
+         "render_worker_process", "focus_at", "pick_focus_frame", "pick_focus_click", "root_scale", "engine_f12", "spiral_video", "save_reload",
          "blend_moved", "quit_while_training", "reconstruct_photos", "user_errors", "dependencies_status",
          "install_dependencies"]
 
@@ -384,6 +384,22 @@ def run_story(setup: dict) -> None:  # noqa: C901 - one story, told in order
         ctx["render"] = rendered
         return f"PSNR {model_psnr:.2f} dB vs mean colour {mean_psnr:.2f} dB; depth median {np.median(depth):.3f} " \
                f"(true {np.median(true_depth):.3f})"
+
+    @story.step("pixel_samples", "render_camera")
+    def _():
+        props = bpy.context.scene.neulf
+        assert props.pixel_samples == "4", props.pixel_samples  # the default: the mean of 2 x 2 points a pixel
+        props.pixel_samples = "1"
+        try:
+            assert bpy.ops.neulf.render_camera() == {"FINISHED"}
+            centres = image_array("NeuLF Render")
+        finally:
+            props.pixel_samples = "4"
+        change = np.abs(centres - ctx["render"])
+        assert change.max() > 1 / 255 and change.mean() < 0.02, (change.max(), change.mean())
+        assert bpy.ops.neulf.render_camera() == {"FINISHED"}
+        assert np.array_equal(image_array("NeuLF Render"), ctx["render"])
+        return f"1 point a pixel differs from 4 by {change.mean() * 255:.2f}/255 on average (at most {change.max() * 255:.0f}/255)"
 
     @story.step("render_worker_process", "render_camera")
     def _():

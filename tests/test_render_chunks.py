@@ -51,10 +51,10 @@ def _refusing_big_chunks(light_field, limit: int):
     """The light field's query, raising the out-of-memory error for more than `limit` rays."""
     query = light_field.query
 
-    def refusing(origins, directions, want_depth=True):
+    def refusing(origins, directions, want_depth=True, want_colour=True):
         if len(directions) > limit:
             raise OUT_OF_MEMORY(f"{len(directions)} rays do not fit")
-        return query(origins, directions, want_depth)
+        return query(origins, directions, want_depth, want_colour)
     return refusing
 
 
@@ -62,11 +62,11 @@ def test_frame_rendered_after_out_of_memory_matches_small_chunks(light_field, ti
     view = load_scene(tiny_scene).views[0]
     camera = view.scaled_camera(1.0)
     K, width, height = camera.calibration_matrix(), int(camera.width), int(camera.height)
-    small = light_field.render(K, width, height, view.R, view.t, depth=True, chunk=width * 2)
-    small_view = light_field.render_view(view, depth=True, chunk=97)
+    small = light_field.render(K, width, height, view.R, view.t, depth=True, chunk=width * 2, pixel_samples=4)
+    small_view = light_field.render_view(view, depth=True, chunk=97, pixel_samples=4)
     monkeypatch.setattr(light_field, "query", _refusing_big_chunks(light_field, width * 3))
-    big = light_field.render(K, width, height, view.R, view.t, depth=True, chunk=width * height)
-    big_view = light_field.render_view(view, depth=True, chunk=width * height)
+    big = light_field.render(K, width, height, view.R, view.t, depth=True, chunk=width * height, pixel_samples=4)
+    big_view = light_field.render_view(view, depth=True, chunk=width * height, pixel_samples=4)
     for a, b in ((small, big), (small_view, big_view)):
         assert np.array_equal(a.valid, b.valid)
         assert np.allclose(a.rgb, b.rgb, atol=1e-6)

@@ -1,0 +1,127 @@
+"""Pixel samples (render.PIXEL_SAMPLES): a finished render's pixel is the mean of the field
+over a grid of points in it.  Checked against renders of single points moved by hand, for the
+pinhole path (Blender's cameras) and a registered view's own camera model (evaluation)."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from neulf_core.errors import NeulfError
+from neulf_core.rays import shifted_K, single_pixel_K
+from neulf_core.render import LightField, pixel_offsets
+from neulf_core.scene import load_scene
+from neulf_core.train import TrainConfig, train
+
+
+@pytest.fixture(scope="module")
+def light_field(tiny_scene, tmp_path_factory):
+    model_dir = tmp_path_factory.mktemp("pixel_samples")
+    train(tiny_scene, model_dir, TrainConfig(steps=40, batch_size=512, seed=0, validate_seconds=1e9,
+                                             checkpoint_seconds=1e9, device="cpu"))
+    light_field = LightField.load(model_dir, "cpu", precision="full")
+    light_field.model_dir = model_dir  # for the command-line test
+    return light_field
+
+
+def test_pixel_offsets_are_the_cell_centres_of_a_square_grid():
+    assert np.array_equal(pixel_offsets(1), [[0.0, 0.0]])
+    four = pixel_offsets(4)
+    assert sorted(map(tuple, four)) == [(-0.25, -0.25), (-0.25, 0.25), (0.25, -0.25), (0.25, 0.25)]
+    nine = pixel_offsets(9)
+    assert np.allclose(nine.mean(0), 0.0) and np.isclose(np.abs(nine).max(), 1 / 3)
+    with pytest.raises(NeulfError, match="one of 1, 4, 9, 16"):
+        pixel_offsets(3)
+
+
+def test_shifted_K_moves_the_pixel_centres():
+    K = np.array([[100.0, 0.0, 32.0], [0.0, 90.0, 24.0], [0.0, 0.0, 1.0]])
+    assert np.allclose(single_pixel_K(K, 10.75, 3.25), shifted_K(K, (10.25, 2.75)))
+    moved = shifted_K(K, (0.25, -0.5))
+    assert (moved[0, 2], moved[1, 2]) == (31.75, 24.5) and np.array_equal(moved[:2, :2], K[:2, :2])
+
+
+def _registered(tiny_scene):
+    view = load_scene(tiny_scene).views[1]
+    camera = view.scaled_camera(1.0)
+    return view, camera.calibration_matrix(), int(camera.width), int(camera.height)
+
+
+def test_render_takes_the_mean_over_the_pixel_and_keeps_the_centre_depth(light_field, tiny_scene):
+    view, K, width, height = _registered(tiny_scene)
+    centre = light_field.render(K, width, height, view.R, view.t, depth=True)
+    four = light_field.render(K, width, height, view.R, view.t, depth=True, pixel_samples=4)
+    by_hand = np.mean([light_field.render(shifted_K(K, offset), width, height, view.R, view.t, depth=False).rgb
+                       for offset in pixel_offsets(4)], axis=0)
+    assert np.allclose(four.rgb, by_hand, atol=1e-6)
+    assert np.abs(four.rgb - centre.rgb).max() > 1e-4  # the points do differ
+    assert np.array_equal(four.depth, centre.depth, equal_nan=True) and np.array_equal(four.valid, centre.valid)
+    assert four.warnings == centre.warnings
+
+
+def test_a_registered_view_renders_the_same_points_through_its_own_camera(light_field, tiny_scene):
+    view, K, width, height = _registered(tiny_scene)  # a pinhole: both paths see the same rays
+    through_view = light_field.render_view(view, depth=True, pixel_samples=9)
+    through_K = light_field.render(K, width, height, view.R, view.t, depth=True, pixel_samples=9)
+    assert np.allclose(through_view.rgb, through_K.rgb, atol=1e-5)
+    assert np.allclose(through_view.depth, through_K.depth, atol=1e-4, equal_nan=True)
+    assert np.allclose(light_field.render_view(view, depth=False).rgb,
+                       light_field.render(K, width, height, view.R, view.t, depth=False).rgb, atol=1e-5)
+
+
+def test_a_refocused_render_takes_its_lens_samples_alone(light_field, tiny_scene):
+    view, K, width, height = _registered(tiny_scene)
+    depth = float(np.nanmedian(light_field.render(K, width, height, view.R, view.t).depth))
+    options = dict(depth=False, focus_distance=depth, aperture=0.5)
+    assert light_field._lens_plan(K, depth, 0.5, 64) is not None  # a blur wide enough for lens samples
+    assert np.array_equal(light_field.render(K, width, height, view.R, view.t, pixel_samples=4, **options).rgb,
+                          light_field.render(K, width, height, view.R, view.t, **options).rgb)
+
+
+def test_the_commands_render_and_score_four_points_by_default(light_field, tiny_scene, tmp_path, capfd):
+    from PIL import Image
+
+    from neulf_core.cli import main
+    from neulf_core.images import save_rgb
+
+    model = str(light_field.model_dir)
+    view = load_scene(tiny_scene).view("view_00.png")
+    for samples, folder in ((4, "default"), (1, "one")):
+        extra = [] if samples == 4 else ["--pixel-samples", "1"]
+        assert main(["render", model, "--scene", str(tiny_scene), "--views", "view_00", "--out", str(tmp_path / folder),
+                     *extra]) == 0
+        expected = light_field.render_view(view, depth=False, pixel_samples=samples).rgb
+        save_rgb(tmp_path / f"{folder}_expected.png", expected)  # the same 8-bit rounding
+        assert np.array_equal(np.asarray(Image.open(tmp_path / folder / "view_00.png")),
+                              np.asarray(Image.open(tmp_path / f"{folder}_expected.png")))
+    assert main(["eval", model, "--scene", str(tiny_scene), "--out", str(tmp_path / "eval")]) == 0
+    report = json.loads((tmp_path / "eval" / "eval.json").read_text())
+    assert report["pixel_samples"] == 4
+    capfd.readouterr()
+    assert main(["eval", model, "--scene", str(tiny_scene), "--pixel-samples", "3"]) != 0
+    message = capfd.readouterr().err.strip().splitlines()
+    assert len(message) == 1 and "--pixel-samples" in message[0] and "choose from 1, 4, 9, 16" in message[0]
+
+
+def test_the_benchmark_blurs_as_it_says_and_tables_gains_per_seed(benchmark_script):
+    bench = benchmark_script("pixel_samples")
+    flat = np.full((5, 6, 3), 0.4)
+    assert np.allclose(bench.blurred(flat), flat)
+    dot = np.zeros((5, 5, 3))
+    dot[2, 2] = 1.0
+    spread = bench.blurred(dot)[..., 0]
+    assert np.isclose(spread[2, 2], 0.75 ** 2) and np.isclose(spread[1, 2], 0.75 * 0.125)
+    assert np.isclose(spread.sum(), 1.0)
+
+    def row(seed, rendering, value, seconds=1.0):
+        return {"configuration": "scene", "seed": seed, "view": "v", "rendering": rendering,
+                "samples": int(rendering) if rendering.isdigit() else 1, "psnr": value, "ssim": 0.9,
+                "render_seconds": seconds, "width": 4, "height": 3}
+
+    rows = [row(0, "1", 30.0), row(0, "4", 30.5, 4.0), row(1, "1", 31.0), row(1, "4", 30.9, 4.4),
+            row(0, bench.BLURRED, 29.0, float("nan")), row(1, bench.BLURRED, 30.0, float("nan"))]
+    text = bench.table(rows)
+    assert "30.70 (sd 0.200), +0.20 dB" in text and "x4.2 time" in text and "-1.00 dB" in text
+    assert "4 points beat 1 point in 1 of 2 models" in text
