@@ -314,8 +314,6 @@ class LightField:
         return Rendering(rgb_out.reshape(height, width, 3), depth_map, valid)
 
 
-
-
 def pixel_offsets(samples: int) -> np.ndarray:
     """(samples, 2) points of a pixel, in pixels from its centre: the centres of the cells of
     a square grid over it (1: the centre itself)."""
