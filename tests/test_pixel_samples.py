@@ -26,11 +26,12 @@ def light_field(tiny_scene, tmp_path_factory):
     return light_field
 
 
-def test_pixel_offsets_are_the_cell_centres_of_a_square_grid():
+def test_pixel_offsets_are_the_cell_centres_of_a_square_grid_over_the_central_footprint():
     assert np.array_equal(pixel_offsets(1), [[0.0, 0.0]])
-    four = pixel_offsets(4)
-    assert sorted(map(tuple, four)) == [(-0.25, -0.25), (-0.25, 0.25), (0.25, -0.25), (0.25, 0.25)]
-    nine = pixel_offsets(9)
+    whole = pixel_offsets(4, footprint=1.0)
+    assert sorted(map(tuple, whole)) == [(-0.25, -0.25), (-0.25, 0.25), (0.25, -0.25), (0.25, 0.25)]
+    assert np.allclose(pixel_offsets(4), 0.75 * whole)  # the default footprint: the central 0.75 of the pixel
+    nine = pixel_offsets(9, footprint=1.0)
     assert np.allclose(nine.mean(0), 0.0) and np.isclose(np.abs(nine).max(), 1 / 3)
     with pytest.raises(NeulfError, match="one of 1, 4, 9, 16"):
         pixel_offsets(3)
@@ -125,3 +126,15 @@ def test_the_benchmark_blurs_as_it_says_and_tables_gains_per_seed(benchmark_scri
     text = bench.table(rows)
     assert "30.70 (sd 0.200), +0.20 dB" in text and "x4.2 time" in text and "-1.00 dB" in text
     assert "4 points beat 1 point in 1 of 2 models" in text
+
+
+def test_the_benchmark_plans_the_other_real_scenes_and_names_a_missing_one(benchmark_script, tmp_path, monkeypatch):
+    bench = benchmark_script("pixel_samples")
+    monkeypatch.setitem(bench.OTHER_SCENES, "fern", (tmp_path, 0.5))
+    args = bench.parse_args(["--seeds", "0-2", "--steps", "50"])
+    jobs = bench.other_scene_jobs(["fern"], args)["fern"]
+    assert [job.seed for job in jobs] == [0, 1, 2] and {(job.path, job.scale, job.steps) for job in jobs} == {
+        (str(tmp_path), 0.5, 50)}
+    monkeypatch.setitem(bench.OTHER_SCENES, "fern", (tmp_path / "missing", 0.5))
+    with pytest.raises(SystemExit, match="fern is not at"):
+        bench.other_scene_jobs(["fern"], args)
