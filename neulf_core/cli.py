@@ -373,7 +373,7 @@ def _precision_argument(p: argparse.ArgumentParser) -> None:
 def _pixel_samples_argument(p: argparse.ArgumentParser) -> None:
     # render.PIXEL_SAMPLES and DEFAULT_PIXEL_SAMPLES, spelled out (torch is imported only once a command runs)
     p.add_argument("--pixel-samples", type=int, choices=(1, 4, 9, 16), default=4, metavar="N",
-                   help="points per pixel, averaged (1, 4, 9 or 16; default 4): 4 scores +0.01 to +0.37 dB over 1 on "
+                   help="points per pixel, averaged (1, 4, 9 or 16; default 4): 4 scores +0.05 to +0.28 dB over 1 on "
                         "held-out views at 4 times the render time (docs/PIXEL_SAMPLES.md); 1 for speed")
 
 

@@ -55,14 +55,15 @@ PRECISIONS = ("auto", "half", "full")
 # centres; a new camera's centre rays fall between them in ray space, where the field carries
 # detail finer than a pixel that no photo constrains, and the mean over the pixel averages it
 # out.  The points are the cell centres of a grid over the pixel's central PIXEL_FOOTPRINT x
-# PIXEL_FOOTPRINT square: over the whole pixel the mean also blurs, which costs a field that is
-# already sharp (HCI's 70 views: -0.47 dB), while 0.75 of it never lost.  Measured on held-out
-# views (benchmarks/pixel_samples.py, docs/PIXEL_SAMPLES.md), 4 points against 1: +0.01 dB (HCI)
-# to +0.37 dB (CanClip's 6 photos), in 26 of 26 models, higher SSIM, at 4 times the field queries; blurring the
-# one-point render instead loses up to 1.5 dB.
+# PIXEL_FOOTPRINT square: spread wider the mean also blurs, which costs a field that is already
+# sharp (HCI's 70 views: -0.48 dB over the whole pixel at 1000 steps, -0.20 over 0.75 of it at
+# 3000), while over half of it no model lost.  Measured on held-out views
+# (benchmarks/pixel_samples.py, docs/PIXEL_SAMPLES.md), 4 points against 1: +0.05 dB (Statue) to
+# +0.28 dB (CanClip's 6 photos at 3000 steps), in every model, higher SSIM, at 4 times the field
+# queries; blurring the one-point render instead loses up to 1.5 dB on CanClip.
 PIXEL_SAMPLES = (1, 4, 9, 16)
 DEFAULT_PIXEL_SAMPLES = 4
-PIXEL_FOOTPRINT = 0.75
+PIXEL_FOOTPRINT = 0.5
 
 
 def half_precision(precision: str, device: torch.device) -> bool:

@@ -30,7 +30,7 @@ def test_pixel_offsets_are_the_cell_centres_of_a_square_grid_over_the_central_fo
     assert np.array_equal(pixel_offsets(1), [[0.0, 0.0]])
     whole = pixel_offsets(4, footprint=1.0)
     assert sorted(map(tuple, whole)) == [(-0.25, -0.25), (-0.25, 0.25), (0.25, -0.25), (0.25, 0.25)]
-    assert np.allclose(pixel_offsets(4), 0.75 * whole)  # the default footprint: the central 0.75 of the pixel
+    assert np.allclose(pixel_offsets(4), 0.5 * whole)  # the default footprint: the central half of the pixel
     nine = pixel_offsets(9, footprint=1.0)
     assert np.allclose(nine.mean(0), 0.0) and np.isclose(np.abs(nine).max(), 1 / 3)
     with pytest.raises(NeulfError, match="one of 1, 4, 9, 16"):
