@@ -78,7 +78,7 @@ def train_model(scene: Path, name: str, consistency: bool, steps: int, scale: fl
     result = train(scene, out, TrainConfig(steps=steps, scale=scale, seed=seed, consistency=consistency, teacher=teacher,
                                            validate_seconds=1e9, checkpoint_seconds=1e9))
     seconds = time.perf_counter() - started
-    report = evaluate_model(out, scene, save_images=False)
+    report = evaluate_model(out, scene, save_images=False, pixel_samples=1)  # as its cached rows were scored
     meta = json.loads((out / "model.json").read_text())
     row = {"model": str(out), "scene": name, "mode": mode_of(consistency, teacher), "consistency": consistency,
            "teacher": teacher, "losses_used": bool(meta.get("multiview_losses")), "steps": result.step,

@@ -60,7 +60,8 @@ PRECISIONS = ("auto", "half", "full")
 # 3000), while over half of it no model lost.  Measured on held-out views
 # (benchmarks/pixel_samples.py, docs/PIXEL_SAMPLES.md), 4 points against 1: +0.05 dB (Statue) to
 # +0.28 dB (CanClip's 6 photos at 3000 steps), in every model, higher SSIM, at 4 times the field
-# queries; blurring the one-point render instead loses up to 1.5 dB on CanClip.
+# queries (5 with depth: the centre ray's); blurring the one-point render instead loses up to
+# 1.5 dB on CanClip.
 PIXEL_SAMPLES = (1, 4, 9, 16)
 DEFAULT_PIXEL_SAMPLES = 4
 PIXEL_FOOTPRINT = 0.5
@@ -196,7 +197,9 @@ class LightField:
             raise NeulfError(f"cannot render a {width}x{height} image: width and height must be at least 1 pixel.")
         K, R, t = (np.asarray(a, dtype=np.float64) for a in (K, R, t))
         lens = self._lens_plan(K, focus_distance, aperture, max_samples)
-        offsets = pixel_offsets(pixel_samples if lens is None else 1, pixel_footprint)
+        offsets = pixel_offsets(pixel_samples, pixel_footprint)  # checked even where the lens takes over
+        if lens is not None:
+            offsets = pixel_offsets(1)
         spread = len(offsets) > 1
         rows_per_chunk = max(1, (chunk or self.default_chunk()) // width)
         forward = torch.as_tensor(R[2], device=self.device, dtype=self.geometry_dtype)
@@ -324,9 +327,11 @@ class LightField:
 def pixel_offsets(samples: int, footprint: float = PIXEL_FOOTPRINT) -> np.ndarray:
     """(samples, 2) points of a pixel, in pixels from its centre: the centres of the cells of
     a square grid over the central `footprint` x `footprint` of it (1: the centre itself)."""
-    side = math.isqrt(int(samples))
     if samples not in PIXEL_SAMPLES:
         raise NeulfError(f"pixel samples must be one of {', '.join(map(str, PIXEL_SAMPLES))}, not {samples}.")
+    if not 0.0 <= footprint <= 1.0:
+        raise NeulfError(f"the pixel footprint is a share of the pixel, from 0 to 1, not {footprint}.")
+    side = math.isqrt(int(samples))
     steps = ((np.arange(side) + 0.5) / side - 0.5) * footprint
     grid_x, grid_y = np.meshgrid(steps, steps)
     return np.stack([grid_x.ravel(), grid_y.ravel()], axis=1)

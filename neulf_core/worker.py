@@ -121,7 +121,7 @@ class Service:
 
     def render(self, model_dir: str, K, width: int, height: int, R, t, depth: bool = True, chunk: int = 1 << 15,
                on_progress=None, focus_distance: float | None = None, aperture: float = 0.0,
-               pixel_samples: int = 1) -> dict:
+               pixel_samples: int = 4) -> dict:  # render.DEFAULT_PIXEL_SAMPLES (torch is imported lazily here)
         """RGB (H, W, 3) float32 in [0, 1], row 0 at the top; depth along the optical axis.
         `aperture` > 0 (lens radius, model units) refocuses at `focus_distance`; each pixel the
         mean over `pixel_samples` points of it (render.PIXEL_SAMPLES)."""

@@ -33,15 +33,24 @@ def test_pixel_offsets_are_the_cell_centres_of_a_square_grid_over_the_central_fo
     assert np.allclose(pixel_offsets(4), 0.5 * whole)  # the default footprint: the central half of the pixel
     nine = pixel_offsets(9, footprint=1.0)
     assert np.allclose(nine.mean(0), 0.0) and np.isclose(np.abs(nine).max(), 1 / 3)
-    with pytest.raises(NeulfError, match="one of 1, 4, 9, 16"):
-        pixel_offsets(3)
+    for wrong in (3, -4, 0):
+        with pytest.raises(NeulfError, match="one of 1, 4, 9, 16"):
+            pixel_offsets(wrong)
+    with pytest.raises(NeulfError, match="from 0 to 1"):
+        pixel_offsets(4, footprint=1.5)
 
 
-def test_shifted_K_moves_the_pixel_centres():
-    K = np.array([[100.0, 0.0, 32.0], [0.0, 90.0, 24.0], [0.0, 0.0, 1.0]])
-    assert np.allclose(single_pixel_K(K, 10.75, 3.25), shifted_K(K, (10.25, 2.75)))
+def test_shifted_K_moves_the_pixel_centres_right_and_down(light_field, tiny_scene):
+    view, K, width, height = _registered(tiny_scene)
     moved = shifted_K(K, (0.25, -0.5))
-    assert (moved[0, 2], moved[1, 2]) == (31.75, 24.5) and np.array_equal(moved[:2, :2], K[:2, :2])
+    assert (moved[0, 2], moved[1, 2]) == (K[0, 2] - 0.25, K[1, 2] + 0.5) and np.array_equal(moved[:2, :2], K[:2, :2])
+    assert np.allclose(single_pixel_K(K, 10.75, 3.25), shifted_K(K, (10.25, 2.75)))
+    # One whole pixel right / down: the image of the next column / row (the grid of points is
+    # symmetric, so only this catches a sign or an x-y mix-up).
+    still = light_field.render(K, width, height, view.R, view.t, depth=False).rgb
+    right = light_field.render(shifted_K(K, (1.0, 0.0)), width, height, view.R, view.t, depth=False).rgb
+    down = light_field.render(shifted_K(K, (0.0, 1.0)), width, height, view.R, view.t, depth=False).rgb
+    assert np.allclose(right[:, :-1], still[:, 1:], atol=1e-5) and np.allclose(down[:-1], still[1:], atol=1e-5)
 
 
 def _registered(tiny_scene):
@@ -60,6 +69,14 @@ def test_render_takes_the_mean_over_the_pixel_and_keeps_the_centre_depth(light_f
     assert np.abs(four.rgb - centre.rgb).max() > 1e-4  # the points do differ
     assert np.array_equal(four.depth, centre.depth, equal_nan=True) and np.array_equal(four.valid, centre.valid)
     assert four.warnings == centre.warnings
+    # Turned until part of the picture misses the slab: the mask and the warnings stay the centre ray's.
+    turn = np.array([[np.cos(1.3), 0.0, np.sin(1.3)], [0.0, 1.0, 0.0], [-np.sin(1.3), 0.0, np.cos(1.3)]])
+    R = turn @ view.R
+    centre = light_field.render(K, width, height, R, view.t, depth=True)
+    four = light_field.render(K, width, height, R, view.t, depth=True, pixel_samples=4)
+    assert 0 < centre.valid.sum() < centre.valid.size and centre.warnings
+    assert np.array_equal(four.valid, centre.valid) and four.warnings == centre.warnings
+    assert np.array_equal(four.depth, centre.depth, equal_nan=True)
 
 
 def test_a_registered_view_renders_the_same_points_through_its_own_camera(light_field, tiny_scene):
@@ -77,6 +94,8 @@ def test_a_refocused_render_takes_its_lens_samples_alone(light_field, tiny_scene
     depth = float(np.nanmedian(light_field.render(K, width, height, view.R, view.t).depth))
     options = dict(depth=False, focus_distance=depth, aperture=0.5)
     assert light_field._lens_plan(K, depth, 0.5, 64) is not None  # a blur wide enough for lens samples
+    with pytest.raises(NeulfError, match="one of 1, 4, 9, 16"):  # still checked where the lens takes over
+        light_field.render(K, width, height, view.R, view.t, pixel_samples=3, **options)
     assert np.array_equal(light_field.render(K, width, height, view.R, view.t, pixel_samples=4, **options).rgb,
                           light_field.render(K, width, height, view.R, view.t, **options).rgb)
 
@@ -101,6 +120,13 @@ def test_the_commands_render_and_score_four_points_by_default(light_field, tiny_
     report = json.loads((tmp_path / "eval" / "eval.json").read_text())
     assert report["pixel_samples"] == 4
     capfd.readouterr()
+    from neulf_core.cli import build_parser
+    from neulf_core.render import DEFAULT_PIXEL_SAMPLES, PIXEL_SAMPLES
+
+    for command in ("render", "eval", "video"):  # the CLI spells the choices out (no torch import there)
+        action = next(a for a in build_parser()._subparsers._group_actions[0].choices[command]._actions
+                      if a.dest == "pixel_samples")
+        assert tuple(action.choices) == PIXEL_SAMPLES and action.default == DEFAULT_PIXEL_SAMPLES
     assert main(["eval", model, "--scene", str(tiny_scene), "--pixel-samples", "3"]) != 0
     message = capfd.readouterr().err.strip().splitlines()
     assert len(message) == 1 and "--pixel-samples" in message[0] and "choose from 1, 4, 9, 16" in message[0]
