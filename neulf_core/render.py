@@ -241,7 +241,8 @@ class LightField:
         return None if count == 1 else lens_samples(count)
 
     def _mean_colour(self, rays) -> torch.Tensor:
-        """The mean colour over bundles of rays (origin, directions), one bundle at a time."""
+        """The mean colour over bundles of rays (origin, directions), one bundle at a time (a
+        pixel's points, or a refocused render's lens samples)."""
         total, count = None, 0
         for origin, directions in rays:
             rgb = self.query(origin, directions, want_depth=False)[0]
@@ -249,12 +250,7 @@ class LightField:
         return total / count
 
     def _refocused_colour(self, origin, directions, R, focus, aperture, lens) -> torch.Tensor:
-        total = None
-        for point in lens:
-            origins, dirs = lens_rays(origin, directions, R, focus, aperture, point)
-            rgb = self.query(origins, dirs, want_depth=False)[0]
-            total = rgb if total is None else total + rgb
-        return total / len(lens)
+        return self._mean_colour(lens_rays(origin, directions, R, focus, aperture, point) for point in lens)
 
     def depth_at(self, K, R, t, x: float, y: float) -> float:
         """Depth along the optical axis of the ray through pixel (x, y) (top-left origin, in
