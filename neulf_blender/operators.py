@@ -16,6 +16,7 @@ from .preferences import get_core, get_prefs, worker_python
 from .properties import CHOICE_OPTION
 from ..neulf_core.errors import NeulfError
 from ..neulf_core.lock import being_trained_message, training_holder
+from ..neulf_core.members import work_done
 
 RENDER_IMAGE = "NeuLF Render"
 DEPTH_IMAGE = "NeuLF Depth"
@@ -274,13 +275,13 @@ def start_training(context, *, minutes=None, steps=None):
                                                              "to continue it"))
     resume = (Path(out) / "checkpoint.pt").is_file()
     resumed_from = None
-    if resume:  # budgets count from the start of training: add to what is done
-        progress = read_model_json(out).get("progress", {})
-        resumed_from = int(progress.get("step", 0))
+    if resume:  # budgets count from the start of training: add to what is done (all members together)
+        done_steps, done_seconds = work_done(out)
+        resumed_from = done_steps
         if steps:
-            steps = int(progress.get("step", 0)) + int(steps)
+            steps = done_steps + int(steps)
         else:
-            minutes = float(progress.get("elapsed", 0.0)) / 60.0 + float(minutes)
+            minutes = done_seconds / 60.0 + float(minutes)
     prefs = get_prefs(context)
     python, extra = worker_python(prefs)
     device = None if prefs is None or prefs.device == "AUTO" else prefs.device.lower()
@@ -289,7 +290,7 @@ def start_training(context, *, minutes=None, steps=None):
                         env=jobs.core_environment(extra), sweep_teacher=props.sweep_teacher,
                         depth_layers=props.depth_layers, appearance=CHOICE_OPTION[props.appearance],
                         refine_poses=CHOICE_OPTION[props.refine_poses],
-                        stop_early=props.stop_early, two_starts=props.two_starts)
+                        stop_early=props.stop_early, two_starts=props.two_starts, members=props.members)
     job.state["resumed_from"] = resumed_from
     props.model_dir = store_path(out)
     props.last_status = (f"training from step {resumed_from}" if resume else "training")

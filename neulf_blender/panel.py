@@ -81,6 +81,7 @@ class NEULF_PT_main(bpy.types.Panel):
         row = col.row(align=True)
         row.prop(props, "stop_early")
         row.prop(props, "two_starts")
+        col.prop(props, "members")
         train = tasks.get("train")
         if train is not None and train.running:
             _job_box(layout, train, "Training", "neulf.cancel_train")

@@ -74,7 +74,7 @@ def cmd_train(args) -> int:
         st_depth=args.st_depth, near=args.near, far=args.far, device=args.device, batch_size=args.batch_size,
         consistency=args.consistency, appearance=args.appearance, teacher=args.sweep_teacher, field_overrides=overrides,
         refine_poses=args.refine_poses, coarse_to_fine=args.coarse_to_fine, max_passes=args.max_passes,
-        two_starts=args.two_starts, pixel_jitter=args.pixel_jitter,
+        two_starts=args.two_starts, pixel_jitter=args.pixel_jitter, members=args.members,
     )
     stop = {"signal": None, "reader_gone": False}
 
@@ -445,6 +445,11 @@ def build_parser() -> argparse.ArgumentParser:
                    help="train each ray at a random point of a square W pixels wide around its pixel centre (1: "
                         "anywhere in its pixel; default 0: off; renders with a pixel filter, such as Cycles', gain "
                         "and steady, real photos lose; 16 bytes more memory a training ray): docs/TRAINING.md")
+    p.add_argument("--members", type=int, metavar="N",
+                   help="train N light fields apart (seeds S, S+1000, ...), each with 1/N of the budget, and render "
+                        "the mean of their colours: steadier and sharper where one run has stopped gaining from "
+                        "more steps, N times the render time (default 1; a resumed model keeps its count): "
+                        "docs/MEMBERS.md")
     p.add_argument("--device", help="cpu, cuda, mps (default: the fastest available)")
     p.set_defaults(run=cmd_train)
 

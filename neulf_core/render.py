@@ -21,6 +21,7 @@ from .checkpoint import load_for_render
 from .device import HALF_DEVICES, keep_freed_cpu_memory, pick_device
 from .errors import NeulfError
 from .fields import build_field, make_config
+from .members import finished_members, member_dir
 from .rays import pinhole_rays, pixel_centres, shifted_K, single_pixel_K, view_rays
 from .refocus import MAX_SAMPLES, lens_rays, lens_samples, max_blur_radius_px, sample_count
 from .scene import View
@@ -130,14 +131,23 @@ class LightField:
         `precision`: "auto", "half" or "full" (see PRECISIONS)."""
         device = pick_device(device)
         payload = load_for_render(model_dir, map_location="cpu")
-        try:
-            config = make_config(payload["field"], payload["field_config"])
-            module = build_field(payload["field"], config)
-            module.load_state_dict(payload["state_dict"])
-            slab = Slab.from_dict(payload["slab"])
-        except (KeyError, RuntimeError, TypeError, ValueError) as exc:
-            raise NeulfError(f"the checkpoint in {model_dir} is damaged or incomplete ({type(exc).__name__}: {exc}); train again.") from None
+        module, slab = _field_and_slab(payload, model_dir)
         meta = {k: v for k, v in payload.items() if k not in ("state_dict", "optimizer", "rng")}
+        others = finished_members(Path(model_dir).expanduser())
+        if others:  # an ensemble (members.py): the mean of the members that finished
+            fields = [module]
+            for member in others:
+                folder = member_dir(Path(model_dir).expanduser(), member)
+                if not folder.is_dir():
+                    raise NeulfError(f"{model_dir} is an ensemble of {len(others) + 1} members, but member {member} "
+                                     f"({folder}) is missing: put the folder back, or train the model again.")
+                field_module, member_slab = _field_and_slab(load_for_render(folder, map_location="cpu"), folder)
+                if member_slab.to_dict() != slab.to_dict():
+                    raise NeulfError(f"member {member} of {model_dir} was trained with another light slab; "
+                                     "train the model again.")
+                fields.append(field_module)
+            module = MemberMean(fields)
+            meta["members"] = [1, *others]
         return cls(module, slab, meta, device, precision)
 
     @property
@@ -318,6 +328,34 @@ class LightField:
             depth_map = depth_map.reshape(height, width)
             depth_map[~valid] = np.nan
         return Rendering(rgb_out.reshape(height, width, 3), depth_map, valid)
+
+
+class MemberMean(torch.nn.Module):
+    """The members' fields as one: the mean of their colours, and of their depth outputs
+    (which are linear in disparity, slab.depth_from_unit), so every renderer path -- pixel
+    samples, refocus, depth picking, fitting a held-out pose -- sees one field."""
+
+    def __init__(self, fields: list[torch.nn.Module]):
+        super().__init__()
+        self.members = torch.nn.ModuleList(fields)
+        self.field_name, self.field_config = fields[0].field_name, fields[0].field_config
+
+    def forward(self, uvst: torch.Tensor):
+        rgb, depth = self.members[0](uvst)
+        for member in self.members[1:]:
+            more_rgb, more_depth = member(uvst)
+            rgb, depth = rgb + more_rgb, depth + more_depth
+        return rgb / len(self.members), depth / len(self.members)
+
+
+def _field_and_slab(payload: dict, model_dir) -> tuple[torch.nn.Module, Slab]:
+    """The field module and slab a loaded checkpoint describes."""
+    try:
+        module = build_field(payload["field"], make_config(payload["field"], payload["field_config"]))
+        module.load_state_dict(payload["state_dict"])
+        return module, Slab.from_dict(payload["slab"])
+    except (KeyError, RuntimeError, TypeError, ValueError) as exc:
+        raise NeulfError(f"the checkpoint in {model_dir} is damaged or incomplete ({type(exc).__name__}: {exc}); train again.") from None
 
 
 def pixel_offsets(samples: int, footprint: float = PIXEL_FOOTPRINT) -> np.ndarray:

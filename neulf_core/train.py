@@ -126,6 +126,8 @@ class TrainConfig:
     pixel_jitter: float = 0.0           # each training ray at a random point of a square this many pixels wide
                                         # around its pixel centre (dataset.py; 0: off, the default: real photos
                                         # lose, docs/TRAINING.md; 1: anywhere in its pixel)
+    members: int | None = None          # light fields trained apart, rendered as their mean (members.py;
+                                        # None: 1, or a resumed model's count); they share the budget
 
     def budget_fraction(self, step: int, elapsed: float) -> float:
         """How far through its budget training is; whichever budget (steps or minutes) ends
@@ -458,11 +460,15 @@ def train(scene: Scene | str | Path, model_dir: str | Path, config: TrainConfig,
     model_dir = Path(model_dir).expanduser()
     if not config.steps and not config.minutes:
         raise NeulfError("give a training budget: --steps N or --minutes M.")
+    from .members import train_members  # (it trains the members, each as train_two_starts does)
     from .starts import train_two_starts  # (it runs _train, once or as two starts)
+
+    def train_one(scene, folder, config, images_dir, resume, progress, should_stop):
+        return train_two_starts(_train, scene, folder, config, images_dir, resume, progress, should_stop)
 
     with training_lock(model_dir):
         remove_stale_temporaries(model_dir)
-        return train_two_starts(_train, scene, model_dir, config, images_dir, resume, progress, should_stop)
+        return train_members(train_one, scene, model_dir, config, images_dir, resume, progress, should_stop)
 
 
 def _train(scene, model_dir: Path, config: TrainConfig, images_dir, resume: bool, progress, should_stop,

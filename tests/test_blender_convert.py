@@ -261,6 +261,10 @@ def test_train_job_passes_exposure_and_pose_options_only_to_a_new_model(ext, tmp
     # one keeps the start it has).
     assert "--no-two-starts" in argv(two_starts=False) and not any("two-starts" in a for a in argv())
     assert "--no-two-starts" not in argv(two_starts=False, resume=True)
+    # "Members": a new model trains that many; a continued one keeps its own count.
+    two = argv(members=2)
+    assert two[two.index("--members") + 1] == "2"
+    assert "--members" not in argv() and "--members" not in argv(members=2, resume=True)
 
 
 def test_explain_failure(ext):

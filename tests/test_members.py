@@ -1,0 +1,135 @@
+"""Members (neulf_core/members.py): light fields trained apart and rendered as the mean of
+their colours -- each member is exactly the run its seed and budget share would give alone,
+the render is their mean, and a stop at any point resumes."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from conftest import assert_same_weights
+from neulf_core.errors import NeulfError
+from neulf_core.members import (MEMBER_SEED_OFFSET, MEMBERS_DIR, STATE_NAME, finished_members, member_budget,
+                                member_dir)
+from neulf_core.render import LightField
+from neulf_core.scene import load_scene, split_views
+from neulf_core.train import TrainConfig, train
+
+
+def config(steps=None, **overrides) -> TrainConfig:
+    options = dict(preset="fast", steps=steps, batch_size=512, field_overrides={"texture_size": [16, 16]},
+                   validate_seconds=1e9, checkpoint_seconds=1e9, teacher=False, refine_poses=False, two_starts=False)
+    options.update(overrides)
+    return TrainConfig(**options)
+
+
+def run(scene, folder, cfg, resume=False, stop_when=None):
+    events = []
+    result = train(scene, folder, cfg, resume=resume, progress=events.append,
+                   should_stop=(lambda: stop_when(events)) if stop_when else None)
+    return result, events
+
+
+def test_the_budget_is_shared():
+    assert member_budget(config(steps=101), 2, 1) == (51, None)
+    assert member_budget(config(steps=101), 2, 2) == (50, None)
+    assert member_budget(config(minutes=3.0), 3, 2) == (None, 1.0)
+    with pytest.raises(NeulfError, match="cannot be shared"):
+        member_budget(config(steps=1), 2, 2)
+
+
+def test_members_are_the_runs_alone_and_render_as_their_mean(tiny_scene, tmp_path):
+    result, events = run(tiny_scene, tmp_path / "ens", config(steps=60, seed=2, members=2))
+    assert result.status == "finished" and result.model_dir == tmp_path / "ens"
+    assert json.loads((tmp_path / "ens" / STATE_NAME).read_text())["finished"] == [2]
+    assert finished_members(tmp_path / "ens") == [2]
+    # Each member is the ordinary run with its seed and half the steps.
+    run(tiny_scene, tmp_path / "a", config(steps=30, seed=2))
+    run(tiny_scene, tmp_path / "b", config(steps=30, seed=2 + MEMBER_SEED_OFFSET))
+    assert_same_weights(tmp_path / "ens", tmp_path / "a")
+    assert_same_weights(member_dir(tmp_path / "ens", 2), tmp_path / "b")
+    assert member_dir(tmp_path / "ens", 2) == tmp_path / "ens" / MEMBERS_DIR / "2"
+    # The progress runs once from 0 to 1 over both members, and training ends once.
+    fractions = [e["fraction"] for e in events if "fraction" in e]
+    assert fractions == sorted(fractions) and fractions[-1] == pytest.approx(1.0)
+    assert max(e["fraction"] for e in events if e.get("member") == 1 and "fraction" in e) <= 0.5 + 1e-9
+    assert [e["event"] for e in events].count("finished") == 1
+    # The ensemble renders the mean of the members' colours; depth the mean of their disparities.
+    scene = load_scene(tiny_scene)
+    view = split_views(scene)[1][0]
+    both = LightField.load(tmp_path / "ens", "cpu", precision="full")
+    one, two = (LightField.load(tmp_path / name, "cpu", precision="full") for name in ("a", "b"))
+    assert both.meta["members"] == [1, 2]
+    images = [lf.render_view(view, depth=True) for lf in (both, one, two)]
+    np.testing.assert_allclose(images[0].rgb, (images[1].rgb + images[2].rgb) / 2, atol=2e-6)
+    disparity = [1.0 / r.depth for r in images]
+    np.testing.assert_allclose(disparity[0], (disparity[1] + disparity[2]) / 2, rtol=1e-4)
+    # Pixel samples go through the same mean.
+    four = [lf.render_view(view, depth=False, pixel_samples=4).rgb for lf in (both, one, two)]
+    np.testing.assert_allclose(four[0], (four[1] + four[2]) / 2, atol=2e-6)
+
+
+def test_a_stop_in_the_second_member_resumes_to_the_same_model(tiny_scene, tmp_path):
+    run(tiny_scene, tmp_path / "whole", config(steps=60, seed=1, members=2))
+
+    def in_second_member(events):
+        return any(e.get("member") == 2 and e.get("event") == "step" and e["step"] >= 10 for e in events)
+
+    result, _ = run(tiny_scene, tmp_path / "cut", config(steps=60, seed=1, members=2), stop_when=in_second_member)
+    assert result.status == "cancelled" and result.model_dir == tmp_path / "cut"
+    # Cancelled mid-way, the model renders from the members that finished: the first alone.
+    assert finished_members(tmp_path / "cut") == []
+    assert "members" not in LightField.load(tmp_path / "cut", "cpu").meta
+    # --resume without --members keeps the model's count and finishes the second member.
+    result, events = run(tiny_scene, tmp_path / "cut", config(steps=60, seed=1), resume=True)
+    assert result.status == "finished" and finished_members(tmp_path / "cut") == [2]
+    assert_same_weights(tmp_path / "cut", tmp_path / "whole")
+    assert_same_weights(member_dir(tmp_path / "cut", 2), member_dir(tmp_path / "whole", 2))
+
+
+def test_member_errors_are_one_line(tiny_scene, tmp_path):
+    run(tiny_scene, tmp_path / "m", config(steps=20, members=2))
+    with pytest.raises(NeulfError, match="was trained with 2 members"):
+        run(tiny_scene, tmp_path / "m", config(steps=40, members=3), resume=True)
+    with pytest.raises(NeulfError, match="1 to 8"):
+        run(tiny_scene, tmp_path / "n", config(steps=20, members=0))
+    run(tiny_scene, tmp_path / "single", config(steps=20))
+    with pytest.raises(NeulfError, match="trained with 1 member;"):
+        run(tiny_scene, tmp_path / "single", config(steps=40, members=2), resume=True)
+    # A member moved away or damaged: a clear message, not a traceback.
+    model = member_dir(tmp_path / "m", 2)
+    model.rename(tmp_path / "elsewhere")
+    with pytest.raises(NeulfError, match="member 2 .* is missing"):
+        LightField.load(tmp_path / "m", "cpu")
+    (tmp_path / "elsewhere").rename(model)
+    for name in ("model.pt", "checkpoint.pt"):
+        (model / name).write_bytes(b"not a checkpoint")
+    with pytest.raises(NeulfError) as caught:
+        LightField.load(tmp_path / "m", "cpu")
+    assert "\n" not in str(caught.value) and "members/2" in str(caught.value).replace("\\", "/")
+
+
+def test_cli_members(tiny_scene, tmp_path, capsys):
+    from neulf_core.cli import main
+
+    out = tmp_path / "cli"
+    code = main(["train", str(tiny_scene), "--out", str(out), "--steps", "20", "--members", "2", "--batch-size", "512",
+                 "--no-sweep-teacher", "--no-refine-poses"])
+    assert code == 0 and finished_members(out) == [2]
+    assert json.loads((member_dir(out, 2) / "model.json").read_text())["train_config"]["seed"] == MEMBER_SEED_OFFSET
+    assert torch.isfinite(torch.as_tensor(LightField.load(out, "cpu").render_view(
+        split_views(load_scene(tiny_scene))[1][0], depth=False).rgb)).all()
+
+
+def test_work_done_counts_every_member(tiny_scene, tmp_path):
+    from neulf_core.members import work_done
+
+    assert work_done(tmp_path / "none") == (0, 0.0)
+    run(tiny_scene, tmp_path / "one", config(steps=20))
+    assert work_done(tmp_path / "one")[0] == 20
+    run(tiny_scene, tmp_path / "m", config(steps=30, members=3))
+    steps, seconds = work_done(tmp_path / "m")
+    assert steps == 30 and seconds > 0  # what Blender's Continue Training adds its budget to
