@@ -133,3 +133,29 @@ def test_work_done_counts_every_member(tiny_scene, tmp_path):
     run(tiny_scene, tmp_path / "m", config(steps=30, members=3))
     steps, seconds = work_done(tmp_path / "m")
     assert steps == 30 and seconds > 0  # what Blender's Continue Training adds its budget to
+
+
+def test_the_benchmark_trains_both_ways_and_tables_the_spread(benchmark_script, tiny_scene, tmp_path):
+    bench = benchmark_script("members")
+    args = bench.parse_args(["--configurations", "canclip", "--seeds", "0-1", "--budgets", "20,40",
+                             "--canclip", str(tiny_scene), "--canclip-scale", "1"])
+    work = bench.plan(args)
+    assert [(job.seed, job.steps, members) for _, job, members in work] == [
+        (0, 20, 1), (0, 20, 2), (1, 20, 1), (1, 20, 2), (0, 40, 1), (0, 40, 2), (1, 40, 1), (1, 40, 2)]
+    # One model each way, through the product's trainer and renderer.
+    label, job, _ = work[0]
+    one = bench.train_and_score(label, job, 1, tmp_path)
+    two = bench.train_and_score(label, job, 2, tmp_path)
+    assert (one["members"], two["members"], one["steps"], two["steps"]) == (1, 2, 20, 20)
+    assert finished_members(bench.model_folder(tmp_path, label, 0, 20, 2)) == [2]
+    assert np.isfinite([one["psnr"], two["psnr"], two["psnr_4"]]).all() and two["train_seconds"] > 0
+
+    def row(seed, members, value):
+        return {"configuration": "scene", "seed": seed, "budget": 2000, "members": members, "psnr": value,
+                "psnr_4": value + 0.1, "ssim": 0.9, "train_seconds": 10.0 * members, "steps": 2000}
+
+    rows = [row(0, 1, 30.0), row(1, 1, 30.4), row(2, 1, 30.1), row(0, 2, 30.3), row(1, 2, 30.5), row(2, 2, 30.35)]
+    text = bench.table(rows)
+    assert "| scene | 2000 | 3 | 30.17 ± 0.170, range 0.40 | 30.38 ± 0.085, range 0.20 | +0.22 (better in 3 of 3) |" in text
+    bench.chart(rows, tmp_path / "chart.png")
+    assert (tmp_path / "chart.png").stat().st_size > 0
