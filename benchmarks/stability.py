@@ -27,9 +27,10 @@ by side, one core each), and its runs stay out of the seed-spread target. Synthe
 `<cache>/runs.jsonl` and reused on the next call (`--fresh` ignores them). A run's key is its
 configuration, not the code: after a change of the default's rules (depth layers, the
 multi-view losses, coarse to fine, which each row records as `multiview_losses` and
-`coarse_to_fine_used`), delete the rows it affects.  The one exception: a row whose sweep pull
-faded otherwise than teacher.teacher_fade now gives its photo count (`sweep_fade`) is run again
-by itself.
+`coarse_to_fine_used`), delete the rows it affects.  Two exceptions are run again by
+themselves: a row whose sweep pull faded otherwise than teacher.teacher_fade now gives its
+photo count (`sweep_fade`), and one trained with another member count than the members rule
+now gives its budget (`members`; neulf_core/members.py).
 
 Writes docs/stability.csv (one row per run), docs/stability.png and the generated tables in
 docs/STABILITY.md (between the `stability tables` markers; the prose around them is kept).
@@ -54,6 +55,7 @@ import traceback
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import asdict, dataclass, fields, replace
 from datetime import date
+from functools import lru_cache
 from multiprocessing import get_context
 from pathlib import Path
 
@@ -64,6 +66,7 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 from neulf_core.images import save_rgb  # noqa: E402
+from neulf_core.members import finished_members, members_by_rule, work_done  # noqa: E402
 from neulf_core.metrics import psnr, ssim  # noqa: E402
 from neulf_core.poses import (POSE_CHECK_DEGREES, POSE_CHECK_STEP, POSE_CHECK_UNSURE_DEGREES,  # noqa: E402
                               POSE_SECOND_LOOK_DEGREES, POSE_SECOND_LOOK_STEP, fit_view_pose)
@@ -400,6 +403,26 @@ def trained_with_another_fade(row: dict) -> bool:
     return logged != sweep_fade(row["preset"], row["train_views"])
 
 
+@lru_cache(maxsize=None)
+def view_pixels(path: str, scale: float) -> int:
+    """Pixels of one of the scene's views at the training scale (a scene's views share a size)."""
+    return int(np.prod(scaled_size(load_any(path).views[0].size, scale)))
+
+
+def trained_with_other_members(row: dict) -> bool:
+    """Whether a logged run had another member count than the rule now gives its budget
+    (neulf_core/members.py; rows logged before members trained one): the study runs it again.
+    A minutes run's passes are counted at the steps it made."""
+    logged = int(row.get("members") or 1)
+    if not row.get("train_views") or (row.get("minutes") and logged > 1):
+        return False  # (a minutes run with members decided it at its own rate)
+    steps = row.get("steps_done") if row.get("minutes") else row.get("steps")
+    if not steps:
+        return False
+    pixels = int(row["train_views"]) * view_pixels(row["truth"], float(row["scale"]))
+    return members_by_rule(int(steps) * get_preset(row["preset"]).batch_size / pixels) != logged
+
+
 def run_job(job: Job, threads: int = 1) -> dict:
     """Train and score one configuration; never raises (a crash is a result too)."""
     torch.set_num_threads(threads)
@@ -420,8 +443,10 @@ def run_job(job: Job, threads: int = 1) -> dict:
         with tempfile.TemporaryDirectory(prefix="neulf_stability_") as model_dir:
             result = train(scene, model_dir, train_config(job, held), progress=progress)
             kept, discarded_steps, discarded_seconds = starts_cost(Path(model_dir))
-            row.update(steps_done=result.step, train_seconds=round(result.elapsed + discarded_seconds, 2),
-                       start_kept=kept, discarded_steps=discarded_steps)
+            members = 1 + len(finished_members(Path(model_dir)))
+            steps_done, seconds = work_done(model_dir) if members > 1 else (result.step, result.elapsed)
+            row.update(steps_done=steps_done, train_seconds=round(seconds + discarded_seconds, 2),
+                       start_kept=kept, discarded_steps=discarded_steps, members=members)
             row.update(score_views(Path(model_dir), held, job.scale, fit_poses=in_pose_study(job)))
         row["status"] = result.status
     except Exception as exc:  # recorded and reported; the study goes on
@@ -1000,7 +1025,7 @@ def update_markdown(path: Path, tables: str, begin: str = MARKER_BEGIN, end: str
 
 CSV_COLUMNS = ["scene", "preset", "fraction", "pose_degrees", "appearance", "refine_poses", "consistency", "minutes",
                "coarse_to_fine", "colour_start", "coarse_to_fine_used", "appearance_used", "appearance_default", "exposure_difference_stops",
-               "pose_check_refining", "pose_check_degrees", "pose_check_halfway", "field_restarted", "start_kept", "discarded_steps",
+               "pose_check_refining", "pose_check_degrees", "pose_check_halfway", "field_restarted", "start_kept", "discarded_steps", "members",
                "sweep_fade", "deep_scene", "multiview_losses", "pixel_jitter", "seed", "status", "psnr", "ssim",
                "psnr_matched", "psnr_half_fit", "psnr_pose_fitted", "pose_fit_degrees", "psnr_per_view", "train_views", "held_out", "steps", "steps_done", "train_seconds",
                "wall_seconds", "warnings", "warning_text", "nonfinite_pixels", "error", "scale", "path", "truth"]
@@ -1167,7 +1192,8 @@ def load_log(log: Path) -> dict:
     if log.is_file():
         for line in log.read_text().splitlines():
             row = json.loads(line)
-            if row.get("status") in ("finished", "crashed") and not trained_with_another_fade(row):
+            if row.get("status") in ("finished", "crashed") and not trained_with_another_fade(row) \
+                    and not trained_with_other_members(row):
                 if "pose_check_refining" not in row:  # logged before the pose check: trained without refinement
                     row.setdefault("refine_poses", False)  # unless it says so
                     if row["refine_poses"] is False and not row.get("minutes") and row["steps"] < 2 * POSE_CHECK_STEP:

@@ -153,7 +153,7 @@ class TrainJob(ProcessJob):
                  images_dir: str | None = None, device: str | None = None, env: dict | None = None,
                  checkpoint_seconds: float | None = None, sweep_teacher: bool | None = None,
                  depth_layers: int = -1, appearance: bool | None = None, refine_poses: bool | None = None,
-                 stop_early: bool = True, two_starts: bool = True, members: int = 1):
+                 stop_early: bool = True, two_starts: bool = True, members: int = 0):
         argv = [python, "-m", "neulf_core", "train", scene_dir, "--out", model_dir, "--progress", "json"]
         argv += ["--steps", str(int(steps))] if steps else ["--minutes", repr(float(minutes or 5.0))]
         if resume:
@@ -172,7 +172,7 @@ class TrainJob(ProcessJob):
             argv.append("--refine-poses" if refine_poses else "--no-refine-poses")
         if not two_starts and not resume:  # on: the trainer's rule (few photos, a budget that pays)
             argv.append("--no-two-starts")
-        if members > 1 and not resume:  # a model being continued keeps its own count
+        if members > 0 and not resume:  # 0: the trainer's rule; a model being continued keeps its own count
             argv += ["--members", str(int(members))]
         if not stop_early:  # also when continuing: a model that stopped at the limit then trains on
             argv += ["--max-passes", "0"]

@@ -75,11 +75,12 @@ class NeulfSceneSettings(bpy.types.PropertyGroup):
                                          "start to 42 % of the training and keep the one that fits the photos "
                                          "better: one run in three otherwise can settle on a worse shape. Not while "
                                          "the poses are being refined (it gains nothing there). Off: one start")
-    members: IntProperty(name="Members", default=1, min=1, max=8,
-                         description="Train this many light fields apart, each with an equal share of the time, and "
-                                     "render the mean of their colours: steadier and sharper where one has stopped "
-                                     "gaining from more training (few photos, long runs); renders take this many "
-                                     "times longer. A model being continued keeps its own count")
+    members: IntProperty(name="Members", default=0, min=0, max=8,
+                         description="Light fields trained apart, each with an equal share of the time, rendered "
+                                     "as the mean of their colours: better and steadier where one has stopped "
+                                     "gaining from more training; renders take this many times longer. 0: "
+                                     "automatic (2 when the time passes over the photos' pixels 60 times or more, "
+                                     "else 1). A model being continued keeps its own count")
     train_scale: FloatProperty(name="Image Scale", default=1.0, min=0.05, max=1.0,
                                description="Train on images resized by this factor")
     spiral_frames: IntProperty(name="Frames", default=60, min=3, max=2000, description="Frames of the spiral path")

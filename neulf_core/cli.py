@@ -447,9 +447,9 @@ def build_parser() -> argparse.ArgumentParser:
                         "and steady, real photos lose; 16 bytes more memory a training ray): docs/TRAINING.md")
     p.add_argument("--members", type=int, metavar="N",
                    help="train N light fields apart (seeds S, S+1000, ...), each with 1/N of the budget, and render "
-                        "the mean of their colours: steadier and sharper where one run has stopped gaining from "
-                        "more steps, N times the render time (default 1; a resumed model keeps its count): "
-                        "docs/MEMBERS.md")
+                        "the mean of their colours: better and steadier where one run has stopped gaining from more "
+                        "steps, N times the render time (default: 2 where the budget passes over the training "
+                        "pixels at least 60 times, else 1; a resumed model keeps its count): docs/MEMBERS.md")
     p.add_argument("--device", help="cpu, cuda, mps (default: the fastest available)")
     p.set_defaults(run=cmd_train)
 

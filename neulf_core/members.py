@@ -35,6 +35,26 @@ STATE_NAME = "members.json"
 MEMBERS_DIR = "members"
 MEMBER_SEED_OFFSET = 1000
 MAX_MEMBERS = 8
+# The rule (`members` None): two members where the budget passes over the training pixels at
+# least MEMBERS_PASSES times, else one.  Measured with the same steps either way
+# (benchmarks/members.py, docs/MEMBERS.md): at 61-213 passes two members were better in 15 of
+# 15 runs (+0.09 dB on CanClip's 6 photos to +0.48 on the shiny scene), at 10-42 passes in 6 of
+# 18 (CanClip's full capture -0.84 dB at 10 passes, -0.33 at 19; the Cycles scenes at 30
+# passes -0.15 to +0.07).  Two, not more: each member costs a render its time again.
+MEMBERS_PASSES = 60.0
+RULE_MEMBERS = 2
+# A minutes budget learns its passes from the step rate, timed over these steps of member 1
+# (the first RATE_FROM_STEP warm up); its share of the minutes is set there.
+RATE_FROM_STEP = 10
+RATE_DECISION_STEP = 30
+
+
+def members_by_rule(passes: float | None) -> int | None:
+    """The rule's member count for a budget of `passes` over the training pixels (None: not
+    known yet -- a minutes budget before the step rate is measured)."""
+    if passes is None:
+        return None
+    return RULE_MEMBERS if passes >= MEMBERS_PASSES else 1
 
 
 def member_dir(model_dir: Path, member: int) -> Path:
@@ -72,20 +92,30 @@ def finished_members(model_dir: Path) -> list[int]:
     return [int(m) for m in state.get("finished", []) if int(m) > 1] if state else []
 
 
+def _start_state(model_dir: Path, count: int, seed: int) -> dict:
+    state = {"count": count, "seed": seed, "finished": []}
+    Path(model_dir).mkdir(parents=True, exist_ok=True)
+    _write_state(model_dir, state)
+    return state
+
+
 def _write_state(model_dir: Path, state: dict) -> None:
     from .checkpoint import atomic_write_bytes
 
     atomic_write_bytes(Path(model_dir) / STATE_NAME, json.dumps(state, indent=2).encode())
 
 
-def member_count(config, model_dir: Path, resume: bool) -> int:
-    """How many members: as asked (`config.members`), or a resumed model's own count."""
+def member_count(config, model_dir: Path, resume: bool) -> int | None:
+    """How many members: as asked (`config.members`), or a resumed model's own count; None:
+    the rule's, for a new model (or one whose first member has not decided it yet)."""
     asked = config.members
     if asked is not None and not 1 <= asked <= MAX_MEMBERS:
         raise NeulfError(f"--members takes 1 to {MAX_MEMBERS}, not {asked}.")
     state = read_state(model_dir) if resume else None
     if state is None and not (resume and (Path(model_dir) / "checkpoint.pt").is_file()):
-        return asked or 1  # a new model
+        return asked  # a new model
+    if state is None and asked is None and _rule_pending(model_dir):
+        return None  # stopped before the first member had measured its step rate
     count = state["count"] if state else 1  # a model trained before: its own count
     if asked is not None and asked != count:
         raise NeulfError(f"{model_dir} was trained with {count} member{'s' if count > 1 else ''}; resume it with "
@@ -110,17 +140,55 @@ def work_done(model_dir: str | Path) -> tuple[int, float]:
     return steps, seconds
 
 
+def _rule_pending(model_dir: Path) -> bool:
+    """Whether the model's first member trains under the rule and has not decided it (a
+    minutes budget stopped before the step rate was measured)."""
+    try:
+        meta = json.loads((Path(model_dir) / "model.json").read_text())
+    except (OSError, ValueError):
+        return False
+    return meta.get("train_config", {}).get("members", 1) is None and "members_rule" not in meta
+
+
+def training_pixels(scene, config) -> int:
+    """The training views' pixels at the training scale (what a pass goes over)."""
+    from .scene import scaled_size, split_views
+
+    train_views, _ = split_views(scene, config.holdout_every, config.exclude)
+    return sum(w * h for w, h in (scaled_size(view.size, config.scale) for view in train_views))
+
+
+def _decide_upfront(scene, config, progress) -> int | None:
+    """The rule's count where the budget says it before training (a steps budget alone)."""
+    if config.minutes:
+        return None  # learnt from the step rate in the first member (train._train)
+    from .presets import get_preset
+    from .train import budget_passes
+
+    batch = config.batch_size or get_preset(config.preset).batch_size
+    passes = budget_passes(config, batch, training_pixels(scene, config))
+    count = members_by_rule(passes)
+    if count > 1 and progress is not None:
+        progress({"event": "stage", "message": f"{count} members: the budget passes over the training pixels "
+                                               f"{passes:.0f} times (at least {MEMBERS_PASSES:.0f}; --members 1 for one)",
+                  "members": count})
+    return count
+
+
 class _MemberProgress:
     """Forwards one member's events with the fraction rescaled into the whole run's; a member
     that is not the last says it finished as a stage, not as the end of training."""
 
-    def __init__(self, progress, member: int, count: int):
-        self.progress, self.member, self.count = progress, member, count
+    def __init__(self, progress, member: int, count: int, on_decided=None):
+        self.progress, self.member, self.count, self.on_decided = progress, member, count, on_decided
 
     def __call__(self, event: dict) -> None:
+        kind = event.get("event")
+        if kind == "members" and self.on_decided is not None:  # the rule, decided in the first member
+            self.count = int(event["count"])
+            self.on_decided(self.count)
         if self.progress is None:
             return
-        kind = event.get("event")
         if "fraction" in event:
             event = {**event, "fraction": (self.member - 1 + float(event["fraction"])) / self.count}
         if kind == "finished" and self.member < self.count:
@@ -140,24 +208,39 @@ def train_members(train_one: Callable, scene, model_dir: Path, config, images_di
     model_dir = Path(model_dir)
     count = member_count(config, model_dir, resume)
     state = read_state(model_dir) if resume else None
-    if count == 1 and state is None:
-        return train_one(scene, model_dir, replace(config, members=None), images_dir, resume, progress, should_stop)
     if not isinstance(scene, Scene):
         scene = load_scene(scene, images_dir)  # once for all the members
+    if count is None and not (resume and checkpoint_path(model_dir).is_file()):
+        count = _decide_upfront(scene, config, progress)
+    if count is not None and count == 1 and state is None:
+        return train_one(scene, model_dir, replace(config, members=1), images_dir, resume, progress, should_stop)
+    first_done = False
+    if count is None:  # a minutes budget: the first member learns its passes from its step rate
+        decided = {}
+
+        def on_decided(found: int) -> None:
+            decided["count"] = found
+            if found > 1:  # from here on a stop resumes as an ensemble
+                _start_state(model_dir, found, config.seed)
+
+        result = train_one(scene, model_dir, replace(config, members=None), images_dir, resume,
+                           _MemberProgress(progress, 1, 1, on_decided), should_stop)
+        state = read_state(model_dir)
+        if result.status != "finished" or state is None:
+            return replace(result, model_dir=model_dir)  # one member, or stopped: --resume goes on
+        count, first_done = state["count"], True
     if state is None:
         if not checkpoint_path(model_dir).is_file():  # members left by a model deleted since
             shutil.rmtree(model_dir / MEMBERS_DIR, ignore_errors=True)
-        state = {"count": count, "seed": config.seed, "finished": []}
-        model_dir.mkdir(parents=True, exist_ok=True)
-        _write_state(model_dir, state)
+        state = _start_state(model_dir, count, config.seed)
     result = None
-    for member in range(1, count + 1):
+    for member in range(2 if first_done else 1, count + 1):
         folder = member_dir(model_dir, member)
         folder.mkdir(parents=True, exist_ok=True)
         remove_stale_temporaries(folder)
         steps, minutes = member_budget(config, count, member)
         member_config = replace(config, seed=member_seed(state["seed"], member), steps=steps, minutes=minutes,
-                                members=None)
+                                members=count)
         # Member 1 is the folder the user named: resumed only when asked; the others whenever
         # they hold a checkpoint (a run of this model stopped while training them).
         member_resume = resume if member == 1 else checkpoint_path(folder).is_file()

@@ -26,6 +26,8 @@ from .errors import NeulfError
 from .fields import build_field, count_parameters, make_config
 from .fields.disparity import DisparityConfig, slab_geometry, texture_size_for
 from .lock import training_lock
+from .members import MEMBERS_PASSES, RATE_DECISION_STEP as MEMBERS_RATE_DECISION_STEP, \
+    RATE_FROM_STEP as MEMBERS_RATE_FROM_STEP, members_by_rule
 from . import poses as poses_module
 from .poses import POSE_CHECK_STEP, POSE_SECOND_LOOK_STEP, PoseRefinement
 from .presets import APPEARANCE_ADAM_BETA2, APPEARANCE_GEOMETRY, DEFAULT_PRESET, get_preset
@@ -127,7 +129,9 @@ class TrainConfig:
                                         # around its pixel centre (dataset.py; 0: off, the default: real photos
                                         # lose, docs/TRAINING.md; 1: anywhere in its pixel)
     members: int | None = None          # light fields trained apart, rendered as their mean (members.py;
-                                        # None: 1, or a resumed model's count); they share the budget
+                                        # None: the rule -- 2 where the budget passes over the training
+                                        # pixels at least 60 times, else 1 -- or a resumed model's count);
+                                        # they share the budget
 
     def budget_fraction(self, step: int, elapsed: float) -> float:
         """How far through its budget training is; whichever budget (steps or minutes) ends
@@ -579,6 +583,8 @@ def _train(scene, model_dir: Path, config: TrainConfig, images_dir, resume: bool
         meta["pose_check"] = resumed["pose_check"]  # the verdict of the run being continued
     if resumed and resumed.get("field_restart"):
         meta["field_restart"] = resumed["field_restart"]
+    if resumed and resumed.get("members_rule"):
+        meta["members_rule"] = resumed["members_rule"]
     meta.update(record or {})
     # (a run resumed past the check step has decided: its saved field config says how smooth)
     restart_pending = (poses is not None and step < POSE_CHECK_STEP and not slab.is_deep
@@ -597,12 +603,18 @@ def _train(scene, model_dir: Path, config: TrainConfig, images_dir, resume: bool
     announce_pass_limit(progress, config, field_module.field_name, len(train_views), step_limit, step)
     # The pass limit is a tighter step budget (the saved config keeps the one asked for).
     budget = replace(config, steps=min(config.steps or step_limit, step_limit)) if step_limit else config
+    # Members by rule on a minutes budget (members.py): decided from the step rate, and then
+    # this run -- the first member -- trains its share of the minutes.
+    members_pending = config.members is None and "members_rule" not in meta
+    if config.members is None and "members_rule" in meta:
+        budget = _members_share(config, budget, meta["members_rule"]["count"])
     start_time = time.monotonic()
     last_checkpoint = last_validation = start_time
     elapsed = elapsed_before
     val = history[-1]["val_psnr"] if history else None
     lr_scale, bad_steps, skipped = 1.0, 0, 0
     first_step, rate_mark = step, elapsed
+    members_mark = elapsed
     status = "finished"
     loss_value = float("nan")
     while budget.budget_fraction(step, elapsed) < 1.0:
@@ -658,6 +670,12 @@ def _train(scene, model_dir: Path, config: TrainConfig, images_dir, resume: bool
         elapsed = elapsed_before + (now - start_time)
         if losses_pending and step - first_step == LOSSES_RATE_FROM_STEP:
             rate_mark = elapsed
+        if members_pending and step - first_step == MEMBERS_RATE_FROM_STEP:
+            members_mark = elapsed
+        if members_pending and step - first_step >= MEMBERS_RATE_DECISION_STEP:
+            members_pending = False
+            budget = _decide_members_at_measured_rate(config, budget, batch, n_rays, elapsed - members_mark,
+                                                      meta, progress)
         if losses_pending and step - first_step >= LOSSES_DECISION_STEP:
             losses_pending = False
             consistency = _decide_losses_at_measured_rate(slab, train_views, config, elapsed - rate_mark, device, meta, progress)
@@ -812,6 +830,33 @@ def _decide_losses_at_measured_rate(slab: Slab, train_views, config: TrainConfig
     return _consistency_inputs(train_views, slab, config, device)
 
 
+def _members_share(config: TrainConfig, budget: TrainConfig, count: int) -> TrainConfig:
+    """The first member's share of the budget once the rule has decided on `count` members
+    (a pass limit stays each member's own)."""
+    if count <= 1:
+        return budget
+    steps = budget.steps
+    if config.steps:
+        steps = min(steps, max(1, config.steps // count))
+    return replace(budget, minutes=budget.minutes / count if budget.minutes else None, steps=steps)
+
+
+def _decide_members_at_measured_rate(config: TrainConfig, budget: TrainConfig, batch: int, n_rays: int,
+                                     seconds: float, meta: dict, progress) -> TrainConfig:
+    """The members rule on a minutes budget: the passes the budget makes at the rate of the
+    steps MEMBERS_RATE_FROM_STEP to MEMBERS_RATE_DECISION_STEP decide the count (members.py)."""
+    rate = (MEMBERS_RATE_DECISION_STEP - MEMBERS_RATE_FROM_STEP) / max(seconds, 1e-9) * 60.0
+    passes = budget_passes(config, batch, n_rays, rate)
+    count = members_by_rule(passes)
+    meta["members_rule"] = {"count": count, "passes": round(passes, 1), "steps_per_minute": round(rate, 1)}
+    _emit(progress, event="members", count=count, passes=round(passes, 1))
+    if count > 1:
+        _emit(progress, event="stage", message=f"{count} members: the budget passes over the training pixels "
+                                               f"{passes:.0f} times at this pace (at least {MEMBERS_PASSES:.0f}; "
+                                               f"--members 1 for one)")
+    return _members_share(config, budget, count)
+
+
 def _consistency_inputs(train_views, slab: Slab, config: TrainConfig, device):
     if len(train_views) < 2:
         raise NeulfError("the multi-view losses need at least two training views; train with consistency off.")
@@ -877,6 +922,7 @@ def _config_for_resume(payload: dict, config: TrainConfig, scene: Scene) -> Trai
     previous.steps, previous.minutes = config.steps, config.minutes
     previous.checkpoint_seconds, previous.validate_seconds = config.checkpoint_seconds, config.validate_seconds
     previous.device = config.device
+    previous.members = config.members  # a member's count comes with its share of the budget (members.py)
     if config.max_passes is not None:  # --max-passes 0 lets a model that stopped at the limit train on
         previous.max_passes = config.max_passes
     return previous

@@ -261,9 +261,10 @@ def test_train_job_passes_exposure_and_pose_options_only_to_a_new_model(ext, tmp
     # one keeps the start it has).
     assert "--no-two-starts" in argv(two_starts=False) and not any("two-starts" in a for a in argv())
     assert "--no-two-starts" not in argv(two_starts=False, resume=True)
-    # "Members": a new model trains that many; a continued one keeps its own count.
-    two = argv(members=2)
-    assert two[two.index("--members") + 1] == "2"
+    # "Members": a new model trains that many (0: the trainer's rule); a continued one keeps its own count.
+    for count in (1, 2):
+        asked = argv(members=count)
+        assert asked[asked.index("--members") + 1] == str(count)
     assert "--members" not in argv() and "--members" not in argv(members=2, resume=True)
 
 

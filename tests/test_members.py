@@ -147,15 +147,79 @@ def test_the_benchmark_trains_both_ways_and_tables_the_spread(benchmark_script, 
     one = bench.train_and_score(label, job, 1, tmp_path)
     two = bench.train_and_score(label, job, 2, tmp_path)
     assert (one["members"], two["members"], one["steps"], two["steps"]) == (1, 2, 20, 20)
+    assert one["passes"] == two["passes"] == round(20 * 8192 / (7 * 48 * 36), 1)
     assert finished_members(bench.model_folder(tmp_path, label, 0, 20, 2)) == [2]
     assert np.isfinite([one["psnr"], two["psnr"], two["psnr_4"]]).all() and two["train_seconds"] > 0
 
     def row(seed, members, value):
-        return {"configuration": "scene", "seed": seed, "budget": 2000, "members": members, "psnr": value,
+        return {"configuration": "scene", "seed": seed, "budget": 2000, "passes": 61.0, "members": members, "psnr": value,
                 "psnr_4": value + 0.1, "ssim": 0.9, "train_seconds": 10.0 * members, "steps": 2000}
 
     rows = [row(0, 1, 30.0), row(1, 1, 30.4), row(2, 1, 30.1), row(0, 2, 30.3), row(1, 2, 30.5), row(2, 2, 30.35)]
     text = bench.table(rows)
-    assert "| scene | 2000 | 3 | 30.17 ± 0.170, range 0.40 | 30.38 ± 0.085, range 0.20 | +0.22 (better in 3 of 3) |" in text
+    assert "| scene | 2000 | 61.0 | 3 | 30.17 ± 0.170, range 0.40 | 30.38 ± 0.085, range 0.20 | +0.22 (better in 3 of 3) |" in text
     bench.chart(rows, tmp_path / "chart.png")
     assert (tmp_path / "chart.png").stat().st_size > 0
+
+
+def test_the_rule_counts_the_passes_of_a_steps_budget(tiny_scene, tmp_path):
+    from neulf_core.members import MEMBERS_PASSES, members_by_rule, training_pixels
+
+    assert members_by_rule(None) is None and members_by_rule(MEMBERS_PASSES - 1) == 1
+    assert members_by_rule(MEMBERS_PASSES) == 2
+    scene = load_scene(tiny_scene)
+    pixels = training_pixels(scene, config())
+    assert pixels == 7 * 48 * 36  # the tiny scene's 7 training views (every 8th held out)
+    # 60 passes of 512 rays over its pixels take 1418 steps: two members from there.
+    just_under, enough = 1417, 1418
+    assert just_under * 512 / pixels < MEMBERS_PASSES <= enough * 512 / pixels
+    _, events = run(tiny_scene, tmp_path / "under", config(steps=40, batch_size=8192 * 0 + 512))
+    assert not (tmp_path / "under" / STATE_NAME).exists()
+    result, events = run(tiny_scene, tmp_path / "rule", config(steps=2 * 89, batch_size=8192))  # 120 passes
+    assert result.status == "finished" and finished_members(tmp_path / "rule") == [2]
+    assert any(e.get("event") == "stage" and "2 members" in e.get("message", "") for e in events)
+    steps = [json.loads((member_dir(tmp_path / "rule", m) / "model.json").read_text())["progress"]["step"]
+             for m in (1, 2)]
+    assert steps == [89, 89]
+    # --members 1 turns it off.
+    run(tiny_scene, tmp_path / "one", config(steps=2 * 89, batch_size=8192, members=1))
+    assert not (tmp_path / "one" / STATE_NAME).exists()
+
+
+def test_the_rule_on_a_minutes_budget_decides_from_the_step_rate(tiny_scene, tmp_path, monkeypatch):
+    import neulf_core.members as members
+
+    # Forced both ways (a measured rate differs between machines): the threshold at 0 passes
+    # makes two members, an unreachable one keeps one.
+    monkeypatch.setattr(members, "MEMBERS_PASSES", 0.0)
+    result, events = run(tiny_scene, tmp_path / "two", config(minutes=0.04))
+    assert result.status == "finished" and finished_members(tmp_path / "two") == [2]
+    decided = [e for e in events if e.get("event") == "members"]
+    assert len(decided) == 1 and decided[0]["count"] == 2
+    metas = [json.loads((member_dir(tmp_path / "two", m) / "model.json").read_text()) for m in (1, 2)]
+    assert metas[0]["members_rule"]["count"] == 2 and metas[0]["train_config"]["members"] is None
+    assert metas[1]["train_config"]["members"] == 2 and metas[1]["train_config"]["minutes"] == pytest.approx(0.02)
+    # Each member trained its half of the 2.4 s: the first stopped at its share, not at the whole.
+    for meta in metas:
+        assert 1.2 <= meta["progress"]["elapsed"] < 2.4
+    monkeypatch.setattr(members, "MEMBERS_PASSES", 1e12)
+    run(tiny_scene, tmp_path / "one", config(minutes=0.02))
+    meta = json.loads((tmp_path / "one" / "model.json").read_text())
+    assert meta["members_rule"]["count"] == 1 and not (tmp_path / "one" / STATE_NAME).exists()
+
+
+def test_a_minutes_budget_stopped_after_the_rule_resumes_as_an_ensemble(tiny_scene, tmp_path, monkeypatch):
+    import neulf_core.members as members
+
+    monkeypatch.setattr(members, "MEMBERS_PASSES", 0.0)
+
+    def after_the_decision(events):
+        return any(e.get("event") == "members" for e in events) and sum(e.get("event") == "step" for e in events) > 40
+
+    result, _ = run(tiny_scene, tmp_path / "m", config(minutes=0.04), stop_when=after_the_decision)
+    assert result.status == "cancelled"
+    assert json.loads((tmp_path / "m" / STATE_NAME).read_text())["count"] == 2
+    result, _ = run(tiny_scene, tmp_path / "m", config(minutes=0.04), resume=True)
+    assert result.status == "finished" and finished_members(tmp_path / "m") == [2]
+    first = json.loads((tmp_path / "m" / "model.json").read_text())
+    assert first["train_config"]["minutes"] == pytest.approx(0.02)  # its share, not the whole (nor a quarter)

@@ -443,7 +443,7 @@ def checkpoints_then_a_step(count: int):
 
 def test_sigkill_during_training_loses_at_most_one_checkpoint_interval(tiny_scene, tmp_path, capfd, record_property):
     model = tmp_path / "model"
-    process = cli_process(["train", tiny_scene, "--out", model, "--steps", "1000000", "--max-passes", "0", "--batch-size", "256",
+    process = cli_process(["train", tiny_scene, "--out", model, "--steps", "1000000", "--members", "1", "--max-passes", "0", "--batch-size", "256",
                            "--checkpoint-seconds", KILL_INTERVAL_S, "--validate-seconds", "1e9", "--progress", "json"],
                           tmp_path, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL)
     try:
@@ -486,7 +486,7 @@ def test_reader_of_progress_goes_away(tiny_scene, tmp_path, capfd, record_proper
     timed checkpoint, which may be a minute away, and not die on the next write), so that
     reopening finds the model and its progress."""
     model = tmp_path / "model"
-    process = cli_process(["train", tiny_scene, "--out", model, "--steps", "1000000", "--max-passes", "0", "--batch-size", "256",
+    process = cli_process(["train", tiny_scene, "--out", model, "--steps", "1000000", "--members", "1", "--max-passes", "0", "--batch-size", "256",
                            "--checkpoint-seconds", "1e9", "--validate-seconds", "1e9", "--progress", "json"],
                           tmp_path, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
     try:
