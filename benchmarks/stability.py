@@ -65,6 +65,7 @@ import torch
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
+from neulf_core.errors import NeulfError  # noqa: E402
 from neulf_core.images import save_rgb  # noqa: E402
 from neulf_core.members import finished_members, members_by_rule, work_done  # noqa: E402
 from neulf_core.metrics import psnr, ssim  # noqa: E402
@@ -419,7 +420,10 @@ def trained_with_other_members(row: dict) -> bool:
     steps = row.get("steps_done") if row.get("minutes") else row.get("steps")
     if not steps:
         return False
-    pixels = int(row["train_views"]) * view_pixels(row["truth"], float(row["scale"]))
+    try:
+        pixels = int(row["train_views"]) * view_pixels(row["truth"], float(row["scale"]))
+    except NeulfError:
+        return False  # a scene no longer at hand: the row stands as logged
     return members_by_rule(int(steps) * get_preset(row["preset"]).batch_size / pixels) != logged
 
 

@@ -241,6 +241,28 @@ def test_a_run_whose_sweep_faded_otherwise_than_now_is_run_again(stability, tmp_
     assert jobs["fast", few].key in stability.load_log(log)
 
 
+def test_a_run_with_another_member_count_than_the_rule_now_gives_is_run_again(stability, tiny_scene, tmp_path):
+    """neulf_core/members.py: two members where the budget passes over the training pixels at
+    least 60 times.  The tiny scene's 7 training views of 48 x 36 pixels at 8192 rays a step:
+    89 steps make 60 passes."""
+    def row(steps, members=None, minutes=None, steps_done=None):
+        job = stability.Job("tiny", str(tiny_scene), str(tiny_scene), 1.0, "fast", steps, 0, minutes=minutes)
+        extra = {"members": members} if members else {}
+        return {**stability.asdict(job), "train_views": 7, "status": "finished", "psnr": 30.0,
+                "sweep_fade": stability.sweep_fade("fast", 7), "steps_done": steps_done, **extra}
+
+    assert not stability.trained_with_other_members(row(88))                  # one member, as then
+    assert stability.trained_with_other_members(row(89))                      # logged before members: one
+    assert not stability.trained_with_other_members(row(89, members=2))
+    assert stability.trained_with_other_members(row(88, members=2))
+    assert stability.trained_with_other_members(row(1000, minutes=1.0, steps_done=500))  # its pace: 339 passes
+    assert not stability.trained_with_other_members(row(1000, minutes=1.0, steps_done=500, members=2))
+    assert not stability.trained_with_other_members({**row(89), "truth": str(tmp_path / "gone")})  # stands
+    log = tmp_path / "runs.jsonl"
+    log.write_text(json.dumps(row(89)) + "\n" + json.dumps({**row(89, members=2), "seed": 1}) + "\n")
+    assert len(stability.load_log(log)) == 1
+
+
 def test_the_default_only_plan_is_the_35_configurations_a_user_runs_in_their_order(stability, tmp_path):
     """--defaults-only keeps the fast preset with no rule forced (the paper's network, forced
     pose refinement and the forced-off colour transforms of the jittered photos go), three

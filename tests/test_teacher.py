@@ -119,7 +119,7 @@ def test_training_with_the_teacher_learns_the_depth_and_resumes(tiny_scene, tmp_
     monkeypatch.setattr(teacher, "TEACHER_FULL_VIEWS", 1)  # this weight as it is, whatever the view count
     monkeypatch.setattr(teacher, "SWEEP_SCALE", 1.0)  # the tiny scene's images are tiny already
     events = []
-    config = TrainConfig(steps=120, teacher=True, validate_seconds=1e9, checkpoint_seconds=1e9)
+    config = TrainConfig(steps=120, teacher=True, validate_seconds=1e9, checkpoint_seconds=1e9, members=1)
     result = train(tiny_scene, tmp_path / "m", config, progress=events.append)
     assert result.status == "finished"
     assert any("sweep depth of" in e.get("message", "") for e in events)
