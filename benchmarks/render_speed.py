@@ -54,13 +54,24 @@ def reference_forward(self, uvst):
     return self._decode(decoder_in, uvst[:, :2]), unit  # (the sigmoid, and the linear (u, v) slope where on)
 
 
+def single_fields(light_field) -> list:
+    """The fields a model renders: its one, or its members' (neulf_core/members.py)."""
+    return list(getattr(light_field.field, "members", [light_field.field]))
+
+
+def reference_can_render(light_field) -> bool:
+    """The reference code predates the depth layers and members: those are timed with the current code only."""
+    return len(single_fields(light_field)) == 1 and not light_field.field.config.geometry_layers
+
+
 def use_code(light_fields, current: bool) -> int | None:
     """Switch every model to the current or the reference code; returns the chunk to use."""
     DisparityField.forward = CURRENT_FORWARD if current else reference_forward
     for light_field in light_fields:
-        for layer in (*light_field.field.geometry.decoder, *light_field.field.decoder):
-            if isinstance(layer, torch.nn.ReLU):
-                layer.inplace = current
+        for field_module in single_fields(light_field):
+            for layer in (*field_module.geometry.decoder, *field_module.decoder):
+                if isinstance(layer, torch.nn.ReLU):
+                    layer.inplace = current
     return None if current else 1 << 16
 
 
@@ -86,12 +97,11 @@ def main() -> None:
     view = split_views(load_scene(args.scene, args.images))[1][0]
     camera = view.scaled_camera(args.scale)
     K, width, height = camera.calibration_matrix(), int(camera.width), int(camera.height)
-    # The reference code predates the depth layers: layered models are timed with the current code only.
-    # More points per pixel: the current code only.
+    # Layered models, members and more points per pixel: the current code only.
     samples = [int(n) for n in args.pixel_samples.split(",")]
     variants = [(f"{code}, {name}" + (f", {n} points a pixel" if n != 1 else ""), name, code == "current", n)
                 for name in models for code in ("reference", "current") for n in samples
-                if code == "current" or (n == 1 and not models[name].field.config.geometry_layers)]
+                if code == "current" or (n == 1 and reference_can_render(models[name]))]
     torch.set_num_threads(args.threads)  # for the timing only
     times = {label: [] for label, *_ in variants}
     faults_before = resource.getrusage(resource.RUSAGE_SELF).ru_minflt

@@ -223,3 +223,13 @@ def test_a_minutes_budget_stopped_after_the_rule_resumes_as_an_ensemble(tiny_sce
     assert result.status == "finished" and finished_members(tmp_path / "m") == [2]
     first = json.loads((tmp_path / "m" / "model.json").read_text())
     assert first["train_config"]["minutes"] == pytest.approx(0.02)  # its share, not the whole (nor a quarter)
+
+
+def test_render_speed_times_members_with_the_current_code_only(benchmark_script, tiny_scene, tmp_path):
+    bench = benchmark_script("render_speed")
+    run(tiny_scene, tmp_path / "two", config(steps=20, members=2))
+    run(tiny_scene, tmp_path / "one", config(steps=20))
+    two, one = (LightField.load(tmp_path / name, "cpu") for name in ("two", "one"))
+    assert len(bench.single_fields(two)) == 2 and not bench.reference_can_render(two)
+    assert len(bench.single_fields(one)) == 1 and bench.reference_can_render(one)
+    bench.use_code([two, one], current=True)  # reaches into every member's layers
