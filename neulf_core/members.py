@@ -8,8 +8,8 @@ of their renders is nearer the truth than either, and two such means differ less
 runs do.  Measured on the stability study's configurations (benchmarks/members.py,
 docs/MEMBERS.md): two members of 1000 steps each against one run of 2000 steps, the same
 training steps in all.  Where one run has stopped gaining from more steps (the project's
-Cycles scenes, a capture of few photos) the two members are better and about twice as
-steady; where it still gains (CanClip's full capture) the one run is better.  Each member
+Cycles scenes, a capture of few photos) the two members are better and mostly steadier;
+where it still gains (CanClip's full capture) the one run is better.  Each member
 renders, so a frame costs as many field queries as there are members.
 
 Layout: the model folder is member 1 -- a complete model by itself, trained first, with the
@@ -37,10 +37,10 @@ MEMBER_SEED_OFFSET = 1000
 MAX_MEMBERS = 8
 # The rule (`members` None): two members where the budget passes over the training pixels at
 # least MEMBERS_PASSES times, else one.  Measured with the same steps either way
-# (benchmarks/members.py, docs/MEMBERS.md): at 61-213 passes two members were better in 15 of
-# 15 runs (+0.09 dB on CanClip's 6 photos to +0.48 on the shiny scene), at 10-42 passes in 6 of
-# 18 (CanClip's full capture -0.84 dB at 10 passes, -0.33 at 19; the Cycles scenes at 30
-# passes -0.15 to +0.07).  Two, not more: each member costs a render its time again.
+# (benchmarks/members.py, docs/MEMBERS.md): at 61-213 passes two members were better in 21 of
+# 21 runs (+0.09 dB on CanClip's 6 photos to +0.66 on the shiny scene), at 10-42 passes one run
+# was as good or better (CanClip's full capture -0.84 dB at 10 passes, -0.33 at 19, +0.01 at 39;
+# the Cycles scenes at 30 passes -0.15 to +0.07).  Two, not more: each member renders.
 MEMBERS_PASSES = 60.0
 RULE_MEMBERS = 2
 # A minutes budget learns its passes from the step rate, timed over these steps of member 1
@@ -179,8 +179,9 @@ class _MemberProgress:
     """Forwards one member's events with the fraction rescaled into the whole run's; a member
     that is not the last says it finished as a stage, not as the end of training."""
 
-    def __init__(self, progress, member: int, count: int, on_decided=None):
+    def __init__(self, progress, member: int, count: int, on_decided=None, model_dir: Path | None = None):
         self.progress, self.member, self.count, self.on_decided = progress, member, count, on_decided
+        self.model_dir = model_dir
 
     def __call__(self, event: dict) -> None:
         kind = event.get("event")
@@ -194,6 +195,11 @@ class _MemberProgress:
         if kind == "finished" and self.member < self.count:
             event = {"event": "stage", "message": f"member {self.member} of {self.count} finished "
                                                   f"(step {event.get('step')})", "member": self.member}
+        elif kind == "finished" and self.count > 1 and self.model_dir is not None:
+            # The model's end: all the members' steps and time, in the folder the user named (a
+            # member's own validation PSNR is not the mean's, so none is said).
+            steps, seconds = work_done(self.model_dir)
+            event = {**event, "step": steps, "elapsed": seconds, "val_psnr": None, "model_dir": str(self.model_dir)}
         self.progress({**event, "member": self.member, "members": self.count})
 
 
@@ -245,7 +251,7 @@ def train_members(train_one: Callable, scene, model_dir: Path, config, images_di
         # they hold a checkpoint (a run of this model stopped while training them).
         member_resume = resume if member == 1 else checkpoint_path(folder).is_file()
         result = train_one(scene, folder, member_config, images_dir, member_resume,
-                           _MemberProgress(progress, member, count), should_stop)
+                           _MemberProgress(progress, member, count, model_dir=model_dir), should_stop)
         if result.status != "finished":
             return replace(result, model_dir=model_dir)  # cancelled: --resume continues this member
         if member > 1 and member not in state["finished"]:

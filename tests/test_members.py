@@ -57,6 +57,8 @@ def test_members_are_the_runs_alone_and_render_as_their_mean(tiny_scene, tmp_pat
     assert fractions == sorted(fractions) and fractions[-1] == pytest.approx(1.0)
     assert max(e["fraction"] for e in events if e.get("member") == 1 and "fraction" in e) <= 0.5 + 1e-9
     assert [e["event"] for e in events].count("finished") == 1
+    finished = next(e for e in events if e["event"] == "finished")  # the model's, all members together
+    assert (finished["step"], finished["model_dir"], finished["val_psnr"]) == (60, str(tmp_path / "ens"), None)
     # The ensemble renders the mean of the members' colours; depth the mean of their disparities.
     scene = load_scene(tiny_scene)
     view = split_views(scene)[1][0]
