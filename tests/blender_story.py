@@ -32,7 +32,7 @@ PLANE_NORMAL = np.array([0.25, -0.15, -1.0]) / np.linalg.norm([0.25, -0.15, -1.0
 GRID = [(x, y) for y in (-0.3, 0.0, 0.3) for x in (-0.3, 0.0, 0.3)]
 
 STEPS = ["install", "import", "cameras_match_pycolmap", "slab_planes", "reimport_no_duplicates", "train_blocking",
-         "train_options", "train_timer_resume", "train_cancel", "train_cancel_resume", "render_camera", "pixel_samples",
+         "train_options", "train_timer_resume", "train_cancel", "train_cancel_resume", "members", "render_camera", "pixel_samples",
          "render_worker_process", "focus_at", "pick_focus_frame", "pick_focus_click", "root_scale", "engine_f12", "spiral_video", "save_reload",
          "blend_moved", "quit_while_training", "reconstruct_photos", "user_errors", "dependencies_status",
          "install_dependencies"]
@@ -324,6 +324,9 @@ def run_story(setup: dict) -> None:  # noqa: C901 - one story, told in order
         props = bpy.context.scene.neulf
         saved = props.model_dir
         props.model_dir = str(cancel_model)
+        # One run: this step is about Cancel and Train again; five minutes pass over the tiny
+        # scene's pixels far more than 60 times, which would train two members (the members step).
+        props.members = 1
         try:
             job, _ = mod("operators").start_training(bpy.context, minutes=5)
             deadline = time.monotonic() + 120
@@ -337,7 +340,7 @@ def run_story(setup: dict) -> None:  # noqa: C901 - one story, told in order
             assert (cancel_model / "checkpoint.pt").is_file()
             ctx["cancelled_step"] = job.state["step"]
         finally:
-            props.model_dir = saved
+            props.model_dir, props.members = saved, 0
         return f"cancelled at step {job.state['step']}"
 
     @story.step("train_cancel_resume", "train_cancel")
@@ -384,6 +387,29 @@ def run_story(setup: dict) -> None:  # noqa: C901 - one story, told in order
         ctx["render"] = rendered
         return f"PSNR {model_psnr:.2f} dB vs mean colour {mean_psnr:.2f} dB; depth median {np.median(depth):.3f} " \
                f"(true {np.median(true_depth):.3f})"
+
+    @story.step("members", "train_blocking")
+    def _():
+        # "Members" 2: two light fields, each with half the steps; the panel's render is their mean.
+        props = bpy.context.scene.neulf
+        saved = props.model_dir
+        members_model = work / "model_members"
+        assert props.members == 0, props.members  # the default: the trainer's rule
+        props.model_dir, props.members = str(members_model), 2
+        try:
+            assert bpy.ops.neulf.train(steps=20) == {"FINISHED"}
+            state = json.loads((members_model / "members.json").read_text())
+            assert state["count"] == 2 and state["finished"] == [2], state
+            steps = [json.loads((folder / "model.json").read_text())["progress"]["step"]
+                     for folder in (members_model, members_model / "members" / "2")]
+            assert steps == [10, 10], steps
+            assert props.last_status.startswith("finished at step 20"), props.last_status
+            assert bpy.ops.neulf.render_camera() == {"FINISHED"}
+            image = image_array("NeuLF Render")
+            assert np.isfinite(image).all() and image.std() > 0.01
+        finally:
+            props.model_dir, props.members = saved, 0
+        return f"two members of 10 steps; {props.last_status.split(';')[0]}"
 
     @story.step("pixel_samples", "render_camera")
     def _():
@@ -924,6 +950,7 @@ def run_session(setup: dict) -> dict:
             bpy.ops.wm.save_as_mainfile(filepath=setup["blend"])
             props = bpy.context.scene.neulf
             props.model_dir = setup["model"]
+            props.members = 1  # one run, as in train_cancel (this is about quitting, not members)
             job, resumed = mod("operators").start_training(bpy.context, minutes=5)  # what Train does in the UI
             assert not resumed
             deadline = time.monotonic() + 180

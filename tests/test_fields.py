@@ -534,7 +534,7 @@ def test_a_time_budget_ends_at_the_pass_limit_and_resume_can_lift_it(tiny_scene,
     assert again.step == result.step + 4
 
     # The default limit applies to few photos (the test scene's 8), and the CLI says so.
-    args = ["train", str(tiny_scene), "--out", str(tmp_path / "cli"), "--steps", "100000", "--batch-size", "4096",
+    args = ["train", str(tiny_scene), "--out", str(tmp_path / "cli"), "--steps", "100000", "--members", "1", "--batch-size", "4096",
             "--no-sweep-teacher", "--validate-seconds", "1e9", "--progress", "json"]
     assert main(args) == 0
     out = [json.loads(line) for line in capsys.readouterr().out.splitlines()]
