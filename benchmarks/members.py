@@ -20,7 +20,6 @@ docs/MEMBERS.md.  Trained models stay in --cache (reused on the next call).
 from __future__ import annotations
 
 import argparse
-import csv
 import itertools
 import json
 import statistics
@@ -34,6 +33,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+import pixel_samples  # noqa: E402  (its CSV helpers)
 import seed_scatter  # noqa: E402  (its configurations, by label)
 import stability  # noqa: E402  (the study's jobs, scenes and markdown helpers)
 
@@ -162,18 +162,6 @@ def chart(rows: list[dict], path: Path) -> None:
     plt.close(figure)
 
 
-def read_csv(path: Path) -> list[dict]:
-    with open(path, newline="") as handle:
-        return list(csv.DictReader(handle))
-
-
-def write_csv(rows: list[dict], path: Path) -> None:
-    with open(path, "w", newline="") as handle:
-        writer = csv.DictWriter(handle, fieldnames=COLUMNS)
-        writer.writeheader()
-        writer.writerows(rows)
-
-
 def parse_args(argv=None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--configurations", default=",".join(CONFIGURATIONS),
@@ -207,7 +195,7 @@ def main(argv=None) -> None:
     args = parse_args(argv)
     csv_path = args.docs / "members.csv"
     if args.report_only:
-        rows = read_csv(csv_path)
+        rows = pixel_samples.read_csv(csv_path)
     else:
         work = plan(args)
         with ProcessPoolExecutor(max_workers=args.workers) as pool:
@@ -219,11 +207,11 @@ def main(argv=None) -> None:
                 print(f"{label} seed {job.seed}, {job.steps} steps, {members} member(s): {row['psnr']:.2f} dB "
                       f"({row['psnr_4']:.2f} with 4 points), {row['train_seconds']:.0f} s", flush=True)
         done = {(r["configuration"], int(r["seed"]), int(r["budget"]), int(r["members"])) for r in rows}
-        kept = [r for r in read_csv(csv_path)
+        kept = [r for r in pixel_samples.read_csv(csv_path)
                 if (r["configuration"], int(r["seed"]), int(r["budget"]), int(r["members"])) not in done] \
             if csv_path.is_file() else []
         rows = kept + rows  # rows not run this time stay
-        write_csv(rows, csv_path)
+        pixel_samples.write_csv(rows, csv_path, COLUMNS)
     chart(rows, args.docs / "members.png")
     header = (f"Generated {date.today().isoformat()} on {args.machine or stability.machine()}; the default model "
               f"(`fast`) trained as the stability study trains it, one run with the whole budget against two members "
