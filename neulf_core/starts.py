@@ -116,6 +116,7 @@ class _Watch:
         self.step, self.elapsed = 0, 0.0
         self.losses: list[float] = []
         self.refining_poses = refining_poses  # the pose check's verdict: the poses are off and being refined
+        self.members = 1  # members by rule on a minutes budget (members.py): this run trains 1/members of it
 
     def overall(self, fraction: float) -> float:
         if not (self.pass_limit and self.two_starts):
@@ -133,6 +134,8 @@ class _Watch:
             self.pass_limit = int(event["steps"])
         if kind == "pose_check":
             self.refining_poses = bool(event.get("refining"))
+        if kind == "members":
+            self.members = max(1, int(event["count"]))
         if kind in ("step", "validate"):
             self.step = int(event["step"])
             self.elapsed = float(event.get("elapsed", self.elapsed))
@@ -227,7 +230,8 @@ def _first_start(train_one, scene, model_dir: Path, config, images_dir, resume: 
         return result
     first_loss = watch.mean_loss() if watch.losses else _last_logged_loss(result)
     if not (steps_budget_allows(config.steps, watch.pass_limit)
-            or minutes_budget_allows(config.minutes, watch.elapsed, watch.pass_limit)
+            or minutes_budget_allows(config.minutes / watch.members if config.minutes else None, watch.elapsed,
+                                     watch.pass_limit)
             or config.two_starts):
         state = {**state, "stage": "decided", "kept": "first", "first_loss": first_loss,
                  "why": "the minutes do not pay for a second start"}

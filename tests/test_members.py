@@ -235,3 +235,16 @@ def test_render_speed_times_members_with_the_current_code_only(benchmark_script,
     assert len(bench.single_fields(two)) == 2 and not bench.reference_can_render(two)
     assert len(bench.single_fields(one)) == 1 and bench.reference_can_render(one)
     bench.use_code([two, one], current=True)  # reaches into every member's layers
+
+
+def test_two_starts_count_a_members_share_of_the_minutes():
+    """A minutes budget that the rule shares between two members: the first member's two starts
+    must fit in its half, not in the whole (they overran it before: 77 s for a 1-minute run)."""
+    from neulf_core.starts import _Watch, minutes_budget_allows
+
+    watch = _Watch(None, "first", 2374)
+    watch({"event": "members", "count": 2})
+    assert watch.members == 2
+    # 60 s to the decision step of CanClip's 6 photos projects to 203 s in all: inside 4 minutes,
+    # not inside the 2 minutes a member of two gets.
+    assert minutes_budget_allows(4.0, 60.0, 2374) and not minutes_budget_allows(4.0 / watch.members, 60.0, 2374)
