@@ -162,6 +162,17 @@ def earlier_rows(path: Path, labels: list[str]) -> dict[str, list[dict]]:
     return kept
 
 
+def add_scene_arguments(parser: argparse.ArgumentParser) -> None:
+    """Where plan_for finds the scenes (and their training scales), and the docs folder; also
+    benchmarks/pixel_samples.py's and benchmarks/members.py's."""
+    parser.add_argument("--scenes-cache", type=Path, default=stability.DEFAULT_CACHE,
+                        help="where the stability study renders its synthetic scenes (rendered there if missing)")
+    parser.add_argument("--canclip", type=Path, default=stability.CANCLIP)
+    parser.add_argument("--canclip-scale", type=float, default=0.25)
+    parser.add_argument("--synth-scale", type=float, default=0.5)
+    parser.add_argument("--docs", type=Path, default=DOCS)
+
+
 def add_plan_arguments(parser: argparse.ArgumentParser, configurations: str, seeds: str) -> None:
     """The options plan_for reads (which configurations, seeds, budget and scenes), and the
     runs side by side and the docs folder; also benchmarks/seed_disagreement.py's."""
@@ -170,12 +181,7 @@ def add_plan_arguments(parser: argparse.ArgumentParser, configurations: str, see
     parser.add_argument("--seeds", default=seeds)
     parser.add_argument("--steps", type=int, default=STUDY_STEPS)
     parser.add_argument("--workers", type=int, default=2, help="runs side by side (each uses 1 torch thread)")
-    parser.add_argument("--scenes-cache", type=Path, default=stability.DEFAULT_CACHE,
-                        help="where the stability study renders its synthetic scenes (rendered there if missing)")
-    parser.add_argument("--canclip", type=Path, default=stability.CANCLIP)
-    parser.add_argument("--canclip-scale", type=float, default=0.25)
-    parser.add_argument("--synth-scale", type=float, default=0.5)
-    parser.add_argument("--docs", type=Path, default=DOCS)
+    add_scene_arguments(parser)
     parser.add_argument("--pixel-jitter", type=float, default=0.0, metavar="W",
                         help="train with pixel jitter W (TrainConfig.pixel_jitter; logged under keys of their own)")
     parser.add_argument("--two-starts", choices=list(TWO_STARTS), default="rule",

@@ -32,6 +32,9 @@ from typing import Callable
 from .errors import NeulfError
 
 STATE_NAME = "members.json"
+# checkpoint.CHECKPOINT_NAME and METADATA_NAME, spelt here: the Blender layer imports this module
+# (work_done) where torch, which checkpoint.py imports, may be missing (a test checks they agree).
+CHECKPOINT_FILE, METADATA_FILE = "checkpoint.pt", "model.json"
 MEMBERS_DIR = "members"
 MEMBER_SEED_OFFSET = 1000
 MAX_MEMBERS = 8
@@ -112,7 +115,7 @@ def member_count(config, model_dir: Path, resume: bool) -> int | None:
     if asked is not None and not 1 <= asked <= MAX_MEMBERS:
         raise NeulfError(f"--members takes 1 to {MAX_MEMBERS}, not {asked}.")
     state = read_state(model_dir) if resume else None
-    if state is None and not (resume and (Path(model_dir) / "checkpoint.pt").is_file()):
+    if state is None and not (resume and (Path(model_dir) / CHECKPOINT_FILE).is_file()):
         return asked  # a new model
     if state is None and asked is None and _rule_pending(model_dir):
         return None  # stopped before the first member had measured its step rate
@@ -132,7 +135,7 @@ def work_done(model_dir: str | Path) -> tuple[int, float]:
     steps, seconds = 0, 0.0
     for folder in folders:
         try:
-            progress = json.loads((folder / "model.json").read_text()).get("progress", {})
+            progress = json.loads((folder / METADATA_FILE).read_text()).get("progress", {})
         except (OSError, ValueError):
             continue
         steps += int(progress.get("step", 0))
@@ -144,7 +147,7 @@ def _rule_pending(model_dir: Path) -> bool:
     """Whether the model's first member trains under the rule and has not decided it (a
     minutes budget stopped before the step rate was measured)."""
     try:
-        meta = json.loads((Path(model_dir) / "model.json").read_text())
+        meta = json.loads((Path(model_dir) / METADATA_FILE).read_text())
     except (OSError, ValueError):
         return False
     return meta.get("train_config", {}).get("members", 1) is None and "members_rule" not in meta
@@ -222,10 +225,7 @@ def train_members(train_one: Callable, scene, model_dir: Path, config, images_di
         return train_one(scene, model_dir, replace(config, members=1), images_dir, resume, progress, should_stop)
     first_done = False
     if count is None:  # a minutes budget: the first member learns its passes from its step rate
-        decided = {}
-
         def on_decided(found: int) -> None:
-            decided["count"] = found
             if found > 1:  # from here on a stop resumes as an ensemble
                 _start_state(model_dir, found, config.seed)
 
@@ -239,7 +239,6 @@ def train_members(train_one: Callable, scene, model_dir: Path, config, images_di
         if not checkpoint_path(model_dir).is_file():  # members left by a model deleted since
             shutil.rmtree(model_dir / MEMBERS_DIR, ignore_errors=True)
         state = _start_state(model_dir, count, config.seed)
-    result = None
     for member in range(2 if first_done else 1, count + 1):
         folder = member_dir(model_dir, member)
         folder.mkdir(parents=True, exist_ok=True)

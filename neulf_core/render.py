@@ -133,11 +133,12 @@ class LightField:
         payload = load_for_render(model_dir, map_location="cpu")
         module, slab = _field_and_slab(payload, model_dir)
         meta = {k: v for k, v in payload.items() if k not in ("state_dict", "optimizer", "rng")}
-        others = finished_members(Path(model_dir).expanduser())
+        folder_of_model = Path(model_dir).expanduser()
+        others = finished_members(folder_of_model)
         if others:  # an ensemble (members.py): the mean of the members that finished
             fields = [module]
             for member in others:
-                folder = member_dir(Path(model_dir).expanduser(), member)
+                folder = member_dir(folder_of_model, member)
                 if not folder.is_dir():
                     raise NeulfError(f"{model_dir} is an ensemble of {len(others) + 1} members, but member {member} "
                                      f"({folder}) is missing: put the folder back, or train the model again.")

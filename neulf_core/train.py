@@ -27,7 +27,7 @@ from .fields import build_field, count_parameters, make_config
 from .fields.disparity import DisparityConfig, slab_geometry, texture_size_for
 from .lock import training_lock
 from .members import MEMBERS_PASSES, RATE_DECISION_STEP as MEMBERS_RATE_DECISION_STEP, \
-    RATE_FROM_STEP as MEMBERS_RATE_FROM_STEP, members_by_rule
+    RATE_FROM_STEP as MEMBERS_RATE_FROM_STEP, member_budget, members_by_rule
 from . import poses as poses_module
 from .poses import POSE_CHECK_STEP, POSE_SECOND_LOOK_STEP, PoseRefinement
 from .presets import APPEARANCE_ADAM_BETA2, APPEARANCE_GEOMETRY, DEFAULT_PRESET, get_preset
@@ -835,10 +835,8 @@ def _members_share(config: TrainConfig, budget: TrainConfig, count: int) -> Trai
     (a pass limit stays each member's own)."""
     if count <= 1:
         return budget
-    steps = budget.steps
-    if config.steps:
-        steps = min(steps, max(1, config.steps // count))
-    return replace(budget, minutes=budget.minutes / count if budget.minutes else None, steps=steps)
+    steps, minutes = member_budget(config, count, 1)
+    return replace(budget, minutes=minutes, steps=min(budget.steps, steps) if steps else budget.steps)
 
 
 def _decide_members_at_measured_rate(config: TrainConfig, budget: TrainConfig, batch: int, n_rays: int,

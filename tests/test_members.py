@@ -5,6 +5,7 @@ the render is their mean, and a stop at any point resumes."""
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -31,6 +32,19 @@ def run(scene, folder, cfg, resume=False, stop_when=None):
     result = train(scene, folder, cfg, resume=resume, progress=events.append,
                    should_stop=(lambda: stop_when(events)) if stop_when else None)
     return result, events
+
+
+def test_the_file_names_are_the_checkpoints():
+    import sys
+
+    from neulf_core import checkpoint, members
+
+    assert (members.CHECKPOINT_FILE, members.METADATA_FILE) == (checkpoint.CHECKPOINT_NAME, checkpoint.METADATA_NAME)
+    # ... and the module loads without torch (what the Blender layer relies on).
+    import subprocess
+
+    code = "import sys, neulf_core.members; assert 'torch' not in sys.modules"
+    subprocess.run([sys.executable, "-c", code], check=True, cwd=Path(__file__).resolve().parents[1])
 
 
 def test_the_budget_is_shared():
