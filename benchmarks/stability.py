@@ -92,6 +92,9 @@ LOSSES_PLAN = {"lambertian": (1.0, 0.5, 0.25), "fern": (1.0, 0.5, 0.25), "cancli
 # fine's default), trained without it as well.
 COARSE_PLAN = {"canclip": (0.5, 0.25), "lambertian": (0.75, 0.5, 0.25)}
 DEFAULT_CACHE = Path(tempfile.gettempdir()) / "neulf_stability"
+# How a run of several members refines poses (logged as member_poses): the later members train
+# with the first one's corrections (neulf_core/members.py); rows without it refined each apart.
+MEMBER_POSES = "first"
 FRACTIONS = (1.0, 0.75, 0.5, 0.25)
 POSE_SCENES = ("lambertian", "canclip")
 # Few photos with pose noise (twenty-first session): the default alone on a quarter of the
@@ -427,6 +430,13 @@ def trained_with_other_members(row: dict) -> bool:
     return members_by_rule(int(steps) * get_preset(row["preset"]).batch_size / pixels) != logged
 
 
+def trained_with_members_own_poses(row: dict) -> bool:
+    """Whether a logged run of several members refined each member's poses apart (before the
+    later members took the first one's corrections, MEMBER_POSES): the study runs it again."""
+    refined = bool(row.get("pose_check_refining")) or row.get("refine_poses") is True
+    return int(row.get("members") or 1) > 1 and refined and row.get("member_poses") != MEMBER_POSES
+
+
 def run_job(job: Job, threads: int = 1) -> dict:
     """Train and score one configuration; never raises (a crash is a result too)."""
     torch.set_num_threads(threads)
@@ -450,7 +460,8 @@ def run_job(job: Job, threads: int = 1) -> dict:
             members = 1 + len(finished_members(Path(model_dir)))
             steps_done, seconds = work_done(model_dir) if members > 1 else (result.step, result.elapsed)
             row.update(steps_done=steps_done, train_seconds=round(seconds + discarded_seconds, 2),
-                       start_kept=kept, discarded_steps=discarded_steps, members=members)
+                       start_kept=kept, discarded_steps=discarded_steps, members=members,
+                       member_poses=MEMBER_POSES if members > 1 else None)
             row.update(score_views(Path(model_dir), held, job.scale, fit_poses=in_pose_study(job)))
         row["status"] = result.status
     except Exception as exc:  # recorded and reported; the study goes on
@@ -597,6 +608,10 @@ def plan(args, scenes: dict[str, Path]) -> list[Job]:
         jobs = [job for job in jobs if is_default_run(job)]
     if args.scenes:
         jobs = [job for job in jobs if job.scene in args.scenes.split(",")]
+    if args.fractions:
+        jobs = [job for job in jobs if job.fraction in {float(f) for f in args.fractions.split(",")}]
+    if args.pose_degrees:
+        jobs = [job for job in jobs if job.pose_degrees in {float(d) for d in args.pose_degrees.split(",")}]
     return jobs
 
 
@@ -1197,7 +1212,7 @@ def load_log(log: Path) -> dict:
         for line in log.read_text().splitlines():
             row = json.loads(line)
             if row.get("status") in ("finished", "crashed") and not trained_with_another_fade(row) \
-                    and not trained_with_other_members(row):
+                    and not trained_with_other_members(row) and not trained_with_members_own_poses(row):
                 if "pose_check_refining" not in row:  # logged before the pose check: trained without refinement
                     row.setdefault("refine_poses", False)  # unless it says so
                     if row["refine_poses"] is False and not row.get("minutes") and row["steps"] < 2 * POSE_CHECK_STEP:
@@ -1245,6 +1260,8 @@ def parse_args(argv=None) -> argparse.Namespace:
     parser.add_argument("--defaults-only", action="store_true",
                         help="only the default as a user runs it (no paper network, no rule forced on or off)")
     parser.add_argument("--scenes", help="only these scenes (comma-separated labels: canclip, hci, lambertian, ...)")
+    parser.add_argument("--fractions", help="only these shares of the training views (comma-separated: 0.25,1)")
+    parser.add_argument("--pose-degrees", help="only these pose noises (comma-separated degrees: 0,0.5)")
     parser.add_argument("--by-configuration", action="store_true",
                         help="run one configuration's seeds after another (a run cut short keeps whole configurations)")
     parser.add_argument("--pack", type=Path, metavar="DIR",

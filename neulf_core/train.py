@@ -132,6 +132,9 @@ class TrainConfig:
                                         # None: the rule -- 2 where the budget passes over the training
                                         # pixels at least 60 times, else 1 -- or a resumed model's count);
                                         # they share the budget
+    poses_from: str | None = None       # a model folder whose refined camera poses this run trains with, fixed
+                                        # (members.py: a member after the first, in the first one's frame;
+                                        # None: its own, or none)
 
     def budget_fraction(self, step: int, elapsed: float) -> float:
         """How far through its budget training is; whichever budget (steps or minutes) ends
@@ -528,6 +531,9 @@ def _train(scene, model_dir: Path, config: TrainConfig, images_dir, resume: bool
     batch = config.batch_size or preset.batch_size
     n_rays = len(train_rays)
     step_limit = pass_step_limit(config, field_module.field_name, len(train_views), n_rays, batch)
+    fixed_poses = _poses_of(config.poses_from, slab, train_views, device) if config.poses_from else None
+    if fixed_poses is not None:
+        config = replace(config, refine_poses=False)
     if config.refine_poses is None and not _pose_check_possible(config, step_limit, resumed):
         config = replace(config, refine_poses=False)
     pose_check_pending = config.refine_poses is None
@@ -585,6 +591,8 @@ def _train(scene, model_dir: Path, config: TrainConfig, images_dir, resume: bool
         meta["field_restart"] = resumed["field_restart"]
     if resumed and resumed.get("members_rule"):
         meta["members_rule"] = resumed["members_rule"]
+    if fixed_poses is not None:
+        meta["poses_from"] = {"model": config.poses_from, **fixed_poses.summary()}
     meta.update(record or {})
     # (a run resumed past the check step has decided: its saved field config says how smooth)
     restart_pending = (poses is not None and step < POSE_CHECK_STEP and not slab.is_deep
@@ -646,6 +654,10 @@ def _train(scene, model_dir: Path, config: TrainConfig, images_dir, resume: bool
             if consistency is not None:
                 # The neighbours' rays leave from where the refined cameras now stand.
                 step_consistency = (consistency[0], consistency[1].with_centres(poses.corrected_centres()))
+        elif fixed_poses is not None:
+            uvst = fixed_poses(uvst, view_index)
+            if consistency is not None:
+                step_consistency = (consistency[0], consistency[1].with_centres(fixed_poses.corrected_centres()))
         loss, objective = _objective(field_module, uvst, target, view_index, appearance, step_consistency, config,
                                      depth_teacher)
         if poses is not None and poses.holds_depth_like_part:
@@ -711,6 +723,21 @@ def _train(scene, model_dir: Path, config: TrainConfig, images_dir, resume: bool
     save(status, val, before_fill)
     _emit(progress, event=status, step=step, elapsed=elapsed, val_psnr=val, model_dir=str(model_dir))
     return TrainResult(model_dir, status, step, elapsed, val, history)
+
+
+def _poses_of(model_dir: str, slab: Slab, train_views: list, device) -> PoseRefinement | None:
+    """The camera corrections another model of this scene refined (members.py's first
+    member), fixed: None where it did not refine them."""
+    saved = load_checkpoint(Path(model_dir))
+    if not saved.get("poses"):
+        return None
+    if saved["scene"]["train"] != [v.name for v in train_views] or saved["slab"] != slab.to_dict():
+        raise NeulfError(f"{model_dir} was trained on other photos or another slab than this run; its pose "
+                         "corrections do not apply (train the members again with a new --out folder).")
+    poses = PoseRefinement(slab, np.stack([v.center for v in train_views]))
+    poses.load_state_dict(saved["poses"])
+    poses.set_training_progress(1.0)  # the corrections as the first model ended with them, rig-wide part too
+    return poses.requires_grad_(False).to(device)
 
 
 def _pose_check_possible(config: TrainConfig, step_limit: int | None, resumed: dict | None) -> bool:
@@ -921,6 +948,7 @@ def _config_for_resume(payload: dict, config: TrainConfig, scene: Scene) -> Trai
     previous.checkpoint_seconds, previous.validate_seconds = config.checkpoint_seconds, config.validate_seconds
     previous.device = config.device
     previous.members = config.members  # a member's count comes with its share of the budget (members.py)
+    previous.poses_from = config.poses_from  # ... and the first member's folder, wherever it now is
     if config.max_passes is not None:  # --max-passes 0 lets a model that stopped at the limit train on
         previous.max_passes = config.max_passes
     return previous

@@ -106,6 +106,31 @@ def test_a_stop_in_the_second_member_resumes_to_the_same_model(tiny_scene, tmp_p
     assert_same_weights(member_dir(tmp_path / "cut", 2), member_dir(tmp_path / "whole", 2))
 
 
+def test_later_members_train_with_the_first_members_pose_corrections(tiny_scene, tmp_path):
+    """Each member refining its own poses would settle the scene in a frame of its own, and
+    their mean would blur the two; so the first member's corrections carry over, fixed."""
+    cfg = config(steps=60, seed=3, members=2, refine_poses=True)
+    run(tiny_scene, tmp_path / "ens", cfg)
+    first = json.loads((tmp_path / "ens" / "model.json").read_text())
+    second = json.loads((member_dir(tmp_path / "ens", 2) / "model.json").read_text())
+    assert first["pose_corrections"]["median_degrees"] > 0
+    assert second["poses_from"]["model"] == str(tmp_path / "ens")
+    assert second["poses_from"]["median_degrees"] == pytest.approx(first["pose_corrections"]["median_degrees"])
+    assert second["train_config"]["refine_poses"] is False and "pose_corrections" not in second
+    # The corrections change what the second member learns: not the run its seed gives alone.
+    run(tiny_scene, tmp_path / "alone", config(steps=30, seed=3 + MEMBER_SEED_OFFSET, refine_poses=False))
+    with pytest.raises(AssertionError):
+        assert_same_weights(member_dir(tmp_path / "ens", 2), tmp_path / "alone")
+    # A stop in the second member resumes with the same corrections, to the same weights.
+    def in_second_member(events):
+        return any(e.get("member") == 2 and e.get("event") == "step" and e["step"] >= 10 for e in events)
+
+    result, _ = run(tiny_scene, tmp_path / "cut", cfg, stop_when=in_second_member)
+    assert result.status == "cancelled"
+    run(tiny_scene, tmp_path / "cut", config(steps=60, seed=3), resume=True)
+    assert_same_weights(member_dir(tmp_path / "cut", 2), member_dir(tmp_path / "ens", 2))
+
+
 def test_member_errors_are_one_line(tiny_scene, tmp_path):
     run(tiny_scene, tmp_path / "m", config(steps=20, members=2))
     with pytest.raises(NeulfError, match="was trained with 2 members"):

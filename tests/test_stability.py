@@ -265,6 +265,23 @@ def test_a_run_with_another_member_count_than_the_rule_now_gives_is_run_again(st
     assert len(stability.load_log(log)) == 1
 
 
+def test_members_that_refined_their_poses_apart_are_run_again(stability, tiny_scene, tmp_path):
+    """Since the later members train with the first one's pose corrections (members.py), a
+    logged run of several members that refined poses, logged before, is run again; one that
+    did not refine, or of one member, stands."""
+    job = stability.Job("tiny", str(tiny_scene), str(tiny_scene), 1.0, "fast", 89, 0, pose_degrees=1.0)
+    base = {**stability.asdict(job), "train_views": 7, "status": "finished", "psnr": 30.0,
+            "sweep_fade": stability.sweep_fade("fast", 7)}
+    assert stability.trained_with_members_own_poses({**base, "members": 2, "pose_check_refining": True})
+    assert not stability.trained_with_members_own_poses({**base, "members": 2, "pose_check_refining": True,
+                                                         "member_poses": stability.MEMBER_POSES})
+    assert not stability.trained_with_members_own_poses({**base, "members": 2, "pose_check_refining": False})
+    assert not stability.trained_with_members_own_poses({**base, "members": 1, "pose_check_refining": True})
+    log = tmp_path / "runs.jsonl"
+    log.write_text(json.dumps({**base, "members": 2, "pose_check_refining": True}) + "\n")
+    assert stability.load_log(log) == {}
+
+
 def test_the_default_only_plan_is_the_35_configurations_a_user_runs_in_their_order(stability, tmp_path):
     """--defaults-only keeps the fast preset with no rule forced (the paper's network, forced
     pose refinement and the forced-off colour transforms of the jittered photos go), three
