@@ -427,10 +427,7 @@ def trained_with_other_members(row: dict) -> bool:
         pixels = int(row["train_views"]) * view_pixels(row["truth"], float(row["scale"]))
     except NeulfError:
         return False  # a scene no longer at hand: the row stands as logged
-    count = members_by_rule(int(steps) * get_preset(row["preset"]).batch_size / pixels)
-    if row.get("field_restarted"):
-        count = 1  # far-off poses: the rule's members become one model (members.one_model_after_all)
-    return count != logged
+    return members_by_rule(int(steps) * get_preset(row["preset"]).batch_size / pixels) != logged
 
 
 def trained_with_members_own_poses(row: dict) -> bool:

@@ -95,12 +95,8 @@ def finished_members(model_dir: Path) -> list[int]:
     return [int(m) for m in state.get("finished", []) if int(m) > 1] if state else []
 
 
-def _start_state(model_dir: Path, count: int, seed: int, whole: tuple | None = None) -> dict:
-    """`whole`: (steps, minutes) of the whole budget where the rule chose the count (the
-    first member may give it back to one model, one_model_after_all)."""
+def _start_state(model_dir: Path, count: int, seed: int) -> dict:
     state = {"count": count, "seed": seed, "finished": []}
-    if whole is not None:
-        state["whole_budget"] = {"steps": whole[0], "minutes": whole[1]}
     Path(model_dir).mkdir(parents=True, exist_ok=True)
     _write_state(model_dir, state)
     return state
@@ -110,27 +106,6 @@ def _write_state(model_dir: Path, state: dict) -> None:
     from .checkpoint import atomic_write_bytes
 
     atomic_write_bytes(Path(model_dir) / STATE_NAME, json.dumps(state, indent=2).encode())
-
-
-def one_model_after_all(model_dir: Path) -> tuple[int | None, float | None] | None:
-    """Called by the first member where its pose check finds the poses far off
-    (train.FAR_OFF_POSE_DEGREES): a model whose count the rule chose becomes one model, and
-    the first member trains on with the whole budget, returned as (steps, minutes).  None
-    where the count was asked for (`--members`), or there are no members.
-
-    Why: far-off poses need the whole budget in one model.  CanClip's 6 photos with 1 and 2
-    degrees of pose noise, 3000 steps, three seeds, held-out PSNR with each held-out pose
-    fitted (docs/MEMBERS.md): one model 34.35 / 25.59 dB, two members of 1500 steps 31.35 /
-    23.76 (one run of 1500 steps: 30.34 at 1 degree, seed 0).  At 0.25 and 0.5 degrees the
-    check reads far off too and two members scored +0.63 / +0.12 dB fitted (+0.38 / -0.02
-    as rendered): a threshold between them the check's reading does not draw (0.48-0.53
-    degrees at 0.25, 0.57-0.78 at 0.5, 0.65-0.81 at 1), so one model wherever it reads far off."""
-    state = read_state(model_dir)
-    if state is None or "whole_budget" not in state or state.get("finished"):
-        return None
-    (Path(model_dir) / STATE_NAME).unlink(missing_ok=True)
-    shutil.rmtree(Path(model_dir) / MEMBERS_DIR, ignore_errors=True)
-    return state["whole_budget"]["steps"], state["whole_budget"]["minutes"]
 
 
 def member_count(config, model_dir: Path, resume: bool) -> int | None:
@@ -213,10 +188,9 @@ class _MemberProgress:
 
     def __call__(self, event: dict) -> None:
         kind = event.get("event")
-        if kind == "members":  # the rule, decided in the first member (or given back to one model)
+        if kind == "members" and self.on_decided is not None:  # the rule, decided in the first member
             self.count = int(event["count"])
-            if self.on_decided is not None:
-                self.on_decided(self.count)
+            self.on_decided(self.count)
         if self.progress is None:
             return
         if "fraction" in event:
@@ -252,8 +226,8 @@ def train_members(train_one: Callable, scene, model_dir: Path, config, images_di
     first_done = False
     if count is None:  # a minutes budget: the first member learns its passes from its step rate
         def on_decided(found: int) -> None:
-            if found > 1 and read_state(model_dir) is None:  # from here on a stop resumes as an ensemble
-                _start_state(model_dir, found, config.seed, whole=(config.steps, config.minutes))
+            if found > 1:  # from here on a stop resumes as an ensemble
+                _start_state(model_dir, found, config.seed)
 
         result = train_one(scene, model_dir, replace(config, members=None), images_dir, resume,
                            _MemberProgress(progress, 1, 1, on_decided), should_stop)
@@ -264,8 +238,7 @@ def train_members(train_one: Callable, scene, model_dir: Path, config, images_di
     if state is None:
         if not checkpoint_path(model_dir).is_file():  # members left by a model deleted since
             shutil.rmtree(model_dir / MEMBERS_DIR, ignore_errors=True)
-        by_rule = config.members is None
-        state = _start_state(model_dir, count, config.seed, whole=(config.steps, config.minutes) if by_rule else None)
+        state = _start_state(model_dir, count, config.seed)
     for member in range(2 if first_done else 1, count + 1):
         folder = member_dir(model_dir, member)
         folder.mkdir(parents=True, exist_ok=True)
@@ -288,8 +261,6 @@ def train_members(train_one: Callable, scene, model_dir: Path, config, images_di
                            _MemberProgress(progress, member, count, model_dir=model_dir), should_stop)
         if result.status != "finished":
             return replace(result, model_dir=model_dir)  # cancelled: --resume continues this member
-        if member == 1 and read_state(model_dir) is None:
-            return replace(result, model_dir=model_dir)  # one model after all (one_model_after_all)
         if member > 1 and member not in state["finished"]:
             state = {**state, "finished": sorted(state["finished"] + [member])}
             _write_state(model_dir, state)

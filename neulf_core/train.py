@@ -27,7 +27,7 @@ from .fields import build_field, count_parameters, make_config
 from .fields.disparity import DisparityConfig, slab_geometry, texture_size_for
 from .lock import training_lock
 from .members import MEMBERS_PASSES, RATE_DECISION_STEP as MEMBERS_RATE_DECISION_STEP, \
-    RATE_FROM_STEP as MEMBERS_RATE_FROM_STEP, member_budget, members_by_rule, one_model_after_all
+    RATE_FROM_STEP as MEMBERS_RATE_FROM_STEP, member_budget, members_by_rule
 from . import poses as poses_module
 from .poses import POSE_CHECK_STEP, POSE_SECOND_LOOK_STEP, PoseRefinement
 from .presets import APPEARANCE_ADAM_BETA2, APPEARANCE_GEOMETRY, DEFAULT_PRESET, get_preset
@@ -646,9 +646,6 @@ def _train(scene, model_dir: Path, config: TrainConfig, images_dir, resume: bool
         if restart_pending and step >= POSE_CHECK_STEP:
             restart_pending = False
             if poses is not None:
-                if poses.own_part_degrees() >= FAR_OFF_POSE_DEGREES:  # the whole budget in one model, then
-                    config, budget = _one_model_after_all(model_dir, config, budget, step_limit, meta, progress)
-                    fraction = budget.budget_fraction(step, elapsed)
                 _restart_for_far_off_poses(field_module, optimizer, poses, meta, progress, step, config.seed,
                                            fraction=fraction, n_train_views=len(train_views))
         if poses is not None:
@@ -858,24 +855,6 @@ def _decide_losses_at_measured_rate(slab: Slab, train_views, config: TrainConfig
         return None
     announce_default_losses(progress, len(train_views))
     return _consistency_inputs(train_views, slab, config, device)
-
-
-def _one_model_after_all(model_dir, config: TrainConfig, budget: TrainConfig, step_limit: int | None, meta: dict,
-                         progress) -> tuple[TrainConfig, TrainConfig]:
-    """The first of members the rule chose, where the poses are far off: one model with the
-    whole budget (members.one_model_after_all says why); recorded in the model, so a resumed
-    run trains on as one."""
-    whole = one_model_after_all(Path(model_dir))
-    if whole is None:
-        return config, budget
-    steps, minutes = whole
-    config = replace(config, steps=steps, minutes=minutes, members=1)
-    meta["train_config"].update(steps=steps, minutes=minutes, members=1)
-    meta["members_rule"] = {**meta.get("members_rule", {}), "count": 1, "far_off_poses": True}
-    _emit(progress, event="members", count=1)
-    _emit(progress, event="stage", message="the camera poses are far off: one light field with the whole budget "
-                                           "rather than members (docs/MEMBERS.md)")
-    return config, (replace(config, steps=min(steps or step_limit, step_limit)) if step_limit else config)
 
 
 def _members_share(config: TrainConfig, budget: TrainConfig, count: int) -> TrainConfig:

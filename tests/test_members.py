@@ -131,46 +131,6 @@ def test_later_members_train_with_the_first_members_pose_corrections(tiny_scene,
     assert_same_weights(member_dir(tmp_path / "cut", 2), member_dir(tmp_path / "ens", 2))
 
 
-def test_far_off_poses_make_the_rules_members_one_model(tiny_scene, tmp_path, monkeypatch):
-    """Where the first member's pose check finds the poses far off, a count the rule chose
-    becomes one model with the whole budget (members.one_model_after_all); a stop after that
-    resumes as one model, to the same weights; a count asked for stays."""
-    from neulf_core import train as train_module
-    from neulf_core.slab import Slab
-
-    monkeypatch.setattr(train_module, "FAR_OFF_POSE_DEGREES", 0.0)  # the tiny scene's noise-free poses read far off
-    monkeypatch.setattr(Slab, "is_deep", property(lambda self: False))  # (the restart is for shallow scenes)
-    cfg = config(steps=1500, seed=4, refine_poses=True, max_passes=0)  # 63 passes: two members by rule
-    result, events = run(tiny_scene, tmp_path / "one", cfg)
-    assert result.status == "finished" and result.step == 1500
-    assert not (tmp_path / "one" / STATE_NAME).exists() and not (tmp_path / "one" / MEMBERS_DIR).exists()
-    meta = json.loads((tmp_path / "one" / "model.json").read_text())
-    assert meta["members_rule"]["far_off_poses"] and meta["members_rule"]["count"] == 1
-    assert (meta["train_config"]["steps"], meta["train_config"]["members"]) == (1500, 1) and "field_restart" in meta
-    assert [e["count"] for e in events if e["event"] == "members"] == [1]
-    fractions = [e["fraction"] for e in events if "fraction" in e]
-    assert fractions == sorted(fractions) and fractions[-1] == pytest.approx(1.0)
-    assert [e["event"] for e in events].count("finished") == 1
-
-    def after_the_switch(events):
-        return any(e.get("event") == "step" and e["step"] >= 900 for e in events)
-
-    result, _ = run(tiny_scene, tmp_path / "cut", cfg, stop_when=after_the_switch)
-    assert result.status == "cancelled" and not (tmp_path / "cut" / STATE_NAME).exists()
-    result, _ = run(tiny_scene, tmp_path / "cut", config(steps=1500, seed=4, max_passes=0), resume=True)
-    assert result.status == "finished" and result.step == 1500
-    assert_same_weights(tmp_path / "cut", tmp_path / "one")
-    # Two members asked for stay two.
-    run(tiny_scene, tmp_path / "asked", replace_config(cfg, members=2))
-    assert finished_members(tmp_path / "asked") == [2]
-
-
-def replace_config(cfg, **changes):
-    from dataclasses import replace
-
-    return replace(cfg, **changes)
-
-
 def test_member_errors_are_one_line(tiny_scene, tmp_path):
     run(tiny_scene, tmp_path / "m", config(steps=20, members=2))
     with pytest.raises(NeulfError, match="was trained with 2 members"):
