@@ -16,6 +16,7 @@ import numpy as np
 import torch
 from torch import nn
 
+from .rows import rows_of
 from .scene import camera_gaps
 
 # The compensation is on by default when neighbouring photos differ in exposure by at least
@@ -49,7 +50,7 @@ class ViewAppearance(nn.Module):
     def forward(self, rgb: torch.Tensor, view_index: torch.Tensor) -> torch.Tensor:
         """(N, 3) field colours seen through the photos' transforms of `view_index` (N,)."""
         matrix, offset = self.transforms()
-        return torch.bmm(matrix[view_index], rgb.unsqueeze(-1)).squeeze(-1) + offset[view_index]
+        return torch.bmm(rows_of(matrix, view_index), rgb.unsqueeze(-1)).squeeze(-1) + rows_of(offset, view_index)
 
     def regularisation(self) -> torch.Tensor:
         eye = torch.eye(3, device=self.matrix.device)

@@ -25,6 +25,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from .rows import rows_of
 from .scene import camera_gaps
 
 # Neighbour rays this far outside the normalised training range are not used.
@@ -97,7 +98,7 @@ def multiview_losses(field, geometry: SlabGeometry, neighbours: CameraNeighbours
     """(L_mp, L_d) for the rays `uvst` of training views `view_index` with predicted depth `unit`.
     `as_seen(colours, view_index)` maps field colours to a photo's appearance (None: identity)."""
     points = geometry.surface_points(uvst, unit)                      # (N, 3)
-    centres = neighbours.centres[neighbours.index[view_index]]        # (N, K, 3)
+    centres = rows_of(neighbours.centres, neighbours.index[view_index])  # (N, K, 3)
     weights = neighbours.weights[view_index]                          # (N, K)
     n, k = weights.shape
     ray_uvst, inside = geometry.rays_through(centres, points.unsqueeze(1).expand(n, k, 3))

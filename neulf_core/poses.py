@@ -40,6 +40,7 @@ from torch import nn
 
 from .scene import camera_spacing
 from .dataset import view_uvst
+from .rows import rows_of
 from .slab import Slab
 
 # Share of the budget during which the corrections have no rig-wide part (see above).
@@ -190,7 +191,8 @@ class PoseRefinement(nn.Module):
 
     def forward(self, uvst: torch.Tensor, view_index: torch.Tensor) -> torch.Tensor:
         rotation, shift = self.corrections()
-        turn, moved, centre = rotation_matrices(rotation)[view_index], shift[view_index], self.centres[view_index]
+        turn, moved, centre = rows_of(rotation_matrices(rotation), view_index), rows_of(shift, view_index), \
+            self.centres[view_index]
         p_uv, p_st = self.slab.plane_crossings(uvst)
         # Both crossings move with the camera: about its centre, then by its shift.
         a = centre + torch.bmm(turn, (p_uv - centre).unsqueeze(-1)).squeeze(-1) + moved

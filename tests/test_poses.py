@@ -218,6 +218,35 @@ def test_training_with_refinement_saves_and_resumes_the_corrections(tiny_scene, 
     assert np.isfinite(rendering.rgb).all()
 
 
+def test_a_run_that_refines_poses_repeats_bit_for_bit_on_two_threads(tiny_scene, tmp_path):
+    """The per-view corrections' (and colour transforms', and the multi-view losses' camera
+    centres') gradients are summed in a fixed order (neulf_core/rows.py): at a full batch on 2
+    CPU threads the indexing's own backward summed them in no fixed order, and two runs of one
+    seed differed."""
+    from conftest import assert_same_weights
+    from neulf_core.rows import rows_of
+    from neulf_core.train import TrainConfig, train
+
+    table = torch.randn(7, 3, 3, requires_grad=True)
+    index = torch.randint(7, (8192, 2))
+    assert torch.equal(rows_of(table, index), table[index])
+    rows_of(table, index).square().sum().backward()
+    expected = torch.zeros_like(table).index_put_((index.reshape(-1),), 2 * table[index].reshape(-1, 3, 3).detach(),
+                                                  accumulate=True)
+    assert torch.allclose(table.grad, expected)
+    threads = torch.get_num_threads()
+    torch.set_num_threads(2)
+    try:
+        config = TrainConfig(steps=120, seed=4, refine_poses=True, appearance=True, consistency=True, teacher=False,
+                             members=1, max_passes=0, validate_seconds=1e9, checkpoint_seconds=1e9,
+                             field_overrides={"texture_size": [16, 16]})
+        for name in ("a", "b"):
+            train(tiny_scene, tmp_path / name, config)
+    finally:
+        torch.set_num_threads(threads)
+    assert_same_weights(tmp_path / "a", tmp_path / "b")
+
+
 def test_the_cli_flag_reaches_training(tiny_scene, tmp_path, capsys):
     from neulf_core.checkpoint import load_checkpoint
     from neulf_core.cli import main
