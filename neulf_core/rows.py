@@ -30,7 +30,7 @@ class _Rows(torch.autograd.Function):
 
 
 def rows_of(table: torch.Tensor, index: torch.Tensor) -> torch.Tensor:
-    """`table[index]` for a (V, ...) table and an integer index of any shape."""
+    """`table[index]` for a (V, ...) table and a non-negative integer index of any shape."""
     if table.device.type != "cpu" or not table.requires_grad:
         return table[index]
     return _Rows.apply(table, index)

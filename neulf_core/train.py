@@ -531,7 +531,10 @@ def _train(scene, model_dir: Path, config: TrainConfig, images_dir, resume: bool
     batch = config.batch_size or preset.batch_size
     n_rays = len(train_rays)
     step_limit = pass_step_limit(config, field_module.field_name, len(train_views), n_rays, batch)
-    fixed_poses = _poses_of(config.poses_from, slab, train_views, device) if config.poses_from else None
+    # (a member resumed with corrections of its own refined them itself -- it started before
+    # they were shared, or the first member had not refined -- and goes on so)
+    own_poses = bool(resumed and resumed.get("poses"))
+    fixed_poses = _poses_of(config.poses_from, slab, train_views, device) if config.poses_from and not own_poses else None
     if fixed_poses is not None:
         config = replace(config, refine_poses=False)
     if config.refine_poses is None and not _pose_check_possible(config, step_limit, resumed):
@@ -728,7 +731,11 @@ def _train(scene, model_dir: Path, config: TrainConfig, images_dir, resume: bool
 def _poses_of(model_dir: str, slab: Slab, train_views: list, device) -> PoseRefinement | None:
     """The camera corrections another model of this scene refined (members.py's first
     member), fixed: None where it did not refine them."""
-    saved = load_checkpoint(Path(model_dir))
+    try:
+        saved = load_checkpoint(Path(model_dir))
+    except NeulfError as exc:
+        raise NeulfError(f"a member after the first trains with the first one's pose corrections, and its checkpoint "
+                         f"cannot be read: {exc}") from None
     if not saved.get("poses"):
         return None
     if saved["scene"]["train"] != [v.name for v in train_views] or saved["slab"] != slab.to_dict():

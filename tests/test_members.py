@@ -131,6 +131,26 @@ def test_later_members_train_with_the_first_members_pose_corrections(tiny_scene,
     assert_same_weights(member_dir(tmp_path / "cut", 2), member_dir(tmp_path / "ens", 2))
 
 
+def test_a_second_member_that_refined_its_own_poses_resumes_so(tiny_scene, tmp_path, monkeypatch):
+    """A second member stopped by a version that refined each member's poses apart (or whose
+    first member did not refine) holds corrections of its own: resumed, it goes on with them."""
+    from neulf_core import train as train_module
+
+    cfg = config(steps=60, seed=3, members=2, refine_poses=True)
+
+    def in_second_member(events):
+        return any(e.get("member") == 2 and e.get("event") == "step" and e["step"] >= 10 for e in events)
+
+    with monkeypatch.context() as patch:
+        patch.setattr(train_module, "_poses_of", lambda *args: None)  # as before the corrections were shared
+        result, _ = run(tiny_scene, tmp_path / "old", cfg, stop_when=in_second_member)
+    assert result.status == "cancelled"
+    result, _ = run(tiny_scene, tmp_path / "old", config(steps=60, seed=3), resume=True)
+    assert result.status == "finished" and finished_members(tmp_path / "old") == [2]
+    second = json.loads((member_dir(tmp_path / "old", 2) / "model.json").read_text())
+    assert "poses_from" not in second and second["pose_corrections"]["median_degrees"] > 0
+
+
 def test_member_errors_are_one_line(tiny_scene, tmp_path):
     run(tiny_scene, tmp_path / "m", config(steps=20, members=2))
     with pytest.raises(NeulfError, match="was trained with 2 members"):
