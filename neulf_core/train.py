@@ -653,14 +653,12 @@ def _train(scene, model_dir: Path, config: TrainConfig, images_dir, resume: bool
                                            fraction=fraction, n_train_views=len(train_views))
         if poses is not None:
             poses.set_training_progress(fraction)
-            uvst = poses(uvst, view_index)
+        corrected = poses if poses is not None else fixed_poses
+        if corrected is not None:
+            uvst = corrected(uvst, view_index)
             if consistency is not None:
-                # The neighbours' rays leave from where the refined cameras now stand.
-                step_consistency = (consistency[0], consistency[1].with_centres(poses.corrected_centres()))
-        elif fixed_poses is not None:
-            uvst = fixed_poses(uvst, view_index)
-            if consistency is not None:
-                step_consistency = (consistency[0], consistency[1].with_centres(fixed_poses.corrected_centres()))
+                # The neighbours' rays leave from where the corrected cameras stand.
+                step_consistency = (consistency[0], consistency[1].with_centres(corrected.corrected_centres()))
         loss, objective = _objective(field_module, uvst, target, view_index, appearance, step_consistency, config,
                                      depth_teacher)
         if poses is not None and poses.holds_depth_like_part:
