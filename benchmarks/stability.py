@@ -92,9 +92,13 @@ LOSSES_PLAN = {"lambertian": (1.0, 0.5, 0.25), "fern": (1.0, 0.5, 0.25), "cancli
 # fine's default), trained without it as well.
 COARSE_PLAN = {"canclip": (0.5, 0.25), "lambertian": (0.75, 0.5, 0.25)}
 DEFAULT_CACHE = Path(tempfile.gettempdir()) / "neulf_stability"
-# How a run of several members refines poses (logged as member_poses): the later members train
-# with the first one's corrections (neulf_core/members.py); rows without it refined each apart.
-MEMBER_POSES = "first"
+# How a run of several members treats poses (logged as member_poses): the later members follow
+# the first one's verdict -- its corrections, fixed, or none and no check of their own
+# (neulf_core/members.py).  "first": logged when only the corrections were shared (a row that
+# refined stands; one whose first member dropped them had the second check its own); rows
+# without it refined each apart.
+MEMBER_POSES = "first-verdict"
+MEMBER_POSES_CORRECTIONS_ONLY = "first"
 FRACTIONS = (1.0, 0.75, 0.5, 0.25)
 POSE_SCENES = ("lambertian", "canclip")
 # Few photos with pose noise (twenty-first session): the default alone on a quarter of the
@@ -431,10 +435,15 @@ def trained_with_other_members(row: dict) -> bool:
 
 
 def trained_with_members_own_poses(row: dict) -> bool:
-    """Whether a logged run of several members refined each member's poses apart (before the
-    later members took the first one's corrections, MEMBER_POSES): the study runs it again."""
+    """Whether a logged run of several members let a later member decide its poses apart from
+    the first (MEMBER_POSES): refined each member's own, or, where the first member's check
+    dropped the refinement, ran the second member's own check.  The study runs it again."""
+    if int(row.get("members") or 1) <= 1 or row.get("member_poses") == MEMBER_POSES:
+        return False
     refined = bool(row.get("pose_check_refining")) or row.get("refine_poses") is True
-    return int(row.get("members") or 1) > 1 and refined and row.get("member_poses") != MEMBER_POSES
+    if refined:
+        return row.get("member_poses") != MEMBER_POSES_CORRECTIONS_ONLY
+    return row.get("pose_check_refining") is False  # the first dropped them; the second checked its own
 
 
 def run_job(job: Job, threads: int = 1) -> dict:

@@ -531,12 +531,7 @@ def _train(scene, model_dir: Path, config: TrainConfig, images_dir, resume: bool
     batch = config.batch_size or preset.batch_size
     n_rays = len(train_rays)
     step_limit = pass_step_limit(config, field_module.field_name, len(train_views), n_rays, batch)
-    # (a member resumed with corrections of its own refined them itself -- it started before
-    # they were shared, or the first member had not refined -- and goes on so)
-    own_poses = bool(resumed and resumed.get("poses"))
-    fixed_poses = _poses_of(config.poses_from, slab, train_views, device) if config.poses_from and not own_poses else None
-    if fixed_poses is not None:
-        config = replace(config, refine_poses=False)
+    config, fixed_poses = _first_members_poses(config, resumed, slab, train_views, device)
     if config.refine_poses is None and not _pose_check_possible(config, step_limit, resumed):
         config = replace(config, refine_poses=False)
     pose_check_pending = config.refine_poses is None
@@ -594,8 +589,9 @@ def _train(scene, model_dir: Path, config: TrainConfig, images_dir, resume: bool
         meta["field_restart"] = resumed["field_restart"]
     if resumed and resumed.get("members_rule"):
         meta["members_rule"] = resumed["members_rule"]
-    if fixed_poses is not None:
-        meta["poses_from"] = {"model": config.poses_from, **fixed_poses.summary()}
+    if config.poses_from and not (resumed and resumed.get("poses")):
+        meta["poses_from"] = {"model": config.poses_from, "refined": fixed_poses is not None,
+                              **(fixed_poses.summary() if fixed_poses is not None else {})}
     meta.update(record or {})
     # (a run resumed past the check step has decided: its saved field config says how smooth)
     restart_pending = (poses is not None and step < POSE_CHECK_STEP and not slab.is_deep
@@ -724,6 +720,18 @@ def _train(scene, model_dir: Path, config: TrainConfig, images_dir, resume: bool
     save(status, val, before_fill)
     _emit(progress, event=status, step=step, elapsed=elapsed, val_psnr=val, model_dir=str(model_dir))
     return TrainResult(model_dir, status, step, elapsed, val, history)
+
+
+def _first_members_poses(config: TrainConfig, resumed: dict | None, slab: Slab, train_views: list,
+                         device) -> tuple[TrainConfig, PoseRefinement | None]:
+    """A member after the first (`config.poses_from`) follows the first member's verdict on the
+    poses: its corrections, fixed, where it refined them; none, and no pose check of its own,
+    where it did not (a check of its own could refine on a borderline capture, in a frame of its
+    own).  Returns the config (refine_poses settled) and the fixed corrections.  A member resumed
+    with corrections of its own -- started before the corrections were shared -- goes on so."""
+    if not config.poses_from or (resumed and resumed.get("poses")):
+        return config, None
+    return replace(config, refine_poses=False), _poses_of(config.poses_from, slab, train_views, device)
 
 
 def _poses_of(model_dir: str, slab: Slab, train_views: list, device) -> PoseRefinement | None:

@@ -131,6 +131,27 @@ def test_later_members_train_with_the_first_members_pose_corrections(tiny_scene,
     assert_same_weights(member_dir(tmp_path / "cut", 2), member_dir(tmp_path / "ens", 2))
 
 
+def test_later_members_follow_the_first_members_verdict_on_the_poses(tiny_scene, tmp_path, monkeypatch):
+    """Where the first member's pose check drops the refinement, the second neither refines nor
+    checks its own (a check of its own could refine on a borderline capture, in a frame of its own)."""
+    import neulf_core.poses as poses_module
+    import neulf_core.train as train_module
+
+    monkeypatch.setattr(train_module, "POSE_CHECK_STEP", 5)
+    monkeypatch.setattr(poses_module, "POSE_CHECK_DEGREES", 90.0)  # any correction: the poses are right
+    monkeypatch.setattr(poses_module, "POSE_CHECK_UNSURE_DEGREES", 90.0)
+    result, events = run(tiny_scene, tmp_path / "ens", config(steps=40, seed=3, members=2, refine_poses=None))
+    assert result.status == "finished" and finished_members(tmp_path / "ens") == [2]
+    checks = [e for e in events if e["event"] == "pose_check"]
+    assert [e["member"] for e in checks] == [1] and checks[0]["refining"] is False
+    second = json.loads((member_dir(tmp_path / "ens", 2) / "model.json").read_text())
+    assert second["train_config"]["refine_poses"] is False and "pose_check" not in second
+    assert second["poses_from"] == {"model": str(tmp_path / "ens"), "refined": False}
+    # The second member is the run its seed gives alone without refinement.
+    run(tiny_scene, tmp_path / "alone", config(steps=20, seed=3 + MEMBER_SEED_OFFSET, members=1, refine_poses=False))
+    assert_same_weights(member_dir(tmp_path / "ens", 2), tmp_path / "alone")
+
+
 def test_a_second_member_that_refined_its_own_poses_resumes_so(tiny_scene, tmp_path, monkeypatch):
     """A second member stopped by a version that refined each member's poses apart (or whose
     first member did not refine) holds corrections of its own: resumed, it goes on with them."""
@@ -142,7 +163,8 @@ def test_a_second_member_that_refined_its_own_poses_resumes_so(tiny_scene, tmp_p
         return any(e.get("member") == 2 and e.get("event") == "step" and e["step"] >= 10 for e in events)
 
     with monkeypatch.context() as patch:
-        patch.setattr(train_module, "_poses_of", lambda *args: None)  # as before the corrections were shared
+        # as before the corrections were shared: each member refines and checks its own
+        patch.setattr(train_module, "_first_members_poses", lambda config, *args: (config, None))
         result, _ = run(tiny_scene, tmp_path / "old", cfg, stop_when=in_second_member)
     assert result.status == "cancelled"
     result, _ = run(tiny_scene, tmp_path / "old", config(steps=60, seed=3), resume=True)

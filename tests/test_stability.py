@@ -266,16 +266,26 @@ def test_a_run_with_another_member_count_than_the_rule_now_gives_is_run_again(st
 
 
 def test_members_that_refined_their_poses_apart_are_run_again(stability, tiny_scene, tmp_path):
-    """Since the later members train with the first one's pose corrections (members.py), a
-    logged run of several members that refined poses, logged before, is run again; one that
-    did not refine, or of one member, stands."""
+    """Since the later members follow the first one's verdict on the poses (members.py), a
+    logged run of several members that refined poses apart, or whose second member checked
+    its own, is run again; one trained without refinement, or of one member, stands."""
     job = stability.Job("tiny", str(tiny_scene), str(tiny_scene), 1.0, "fast", 89, 0, pose_degrees=1.0)
     base = {**stability.asdict(job), "train_views": 7, "status": "finished", "psnr": 30.0,
             "sweep_fade": stability.sweep_fade("fast", 7)}
     assert stability.trained_with_members_own_poses({**base, "members": 2, "pose_check_refining": True})
     assert not stability.trained_with_members_own_poses({**base, "members": 2, "pose_check_refining": True,
                                                          "member_poses": stability.MEMBER_POSES})
-    assert not stability.trained_with_members_own_poses({**base, "members": 2, "pose_check_refining": False})
+    assert not stability.trained_with_members_own_poses({**base, "members": 2, "pose_check_refining": True,
+                                                         "member_poses": stability.MEMBER_POSES_CORRECTIONS_ONLY})
+    # The first member's check dropped the refinement: logged before the second followed its
+    # verdict, the second ran its own check -- again; logged since, or forced off, it stands.
+    assert stability.trained_with_members_own_poses({**base, "members": 2, "pose_check_refining": False})
+    assert stability.trained_with_members_own_poses({**base, "members": 2, "pose_check_refining": False,
+                                                     "member_poses": stability.MEMBER_POSES_CORRECTIONS_ONLY})
+    assert not stability.trained_with_members_own_poses({**base, "members": 2, "pose_check_refining": False,
+                                                         "member_poses": stability.MEMBER_POSES})
+    assert not stability.trained_with_members_own_poses({**base, "members": 2, "pose_check_refining": None,
+                                                         "refine_poses": False})
     assert not stability.trained_with_members_own_poses({**base, "members": 1, "pose_check_refining": True})
     log = tmp_path / "runs.jsonl"
     log.write_text(json.dumps({**base, "members": 2, "pose_check_refining": True}) + "\n")
