@@ -244,8 +244,9 @@ def train_members(train_one: Callable, scene, model_dir: Path, config, images_di
         folder.mkdir(parents=True, exist_ok=True)
         remove_stale_temporaries(folder)
         steps, minutes = member_budget(config, count, member)
-        # A member after the first trains with the camera corrections the first refined, if it
-        # did, fixed: each refining its own settles the scene in a frame of its own (the
+        # A member after the first follows the first one's verdict on the poses
+        # (train._first_members_poses): the corrections it refined, fixed, or none and no check
+        # of its own.  Each refining its own settles the scene in a frame of its own (the
         # corrections' depth-like part wanders with the seed, poses.py) and their mean blurs
         # the frames.  CanClip's 6 photos with pose noise, 3000 steps, three seeds, held-out
         # PSNR with each held-out pose fitted (docs/STABILITY.md, forty-second session): own
