@@ -168,6 +168,9 @@ def parse_args(argv=None) -> argparse.Namespace:
                         help=f"labels of benchmarks/seed_scatter.py (default: {','.join(CONFIGURATIONS)})")
     parser.add_argument("--seeds", default="0-2")
     parser.add_argument("--budgets", default=",".join(map(str, BUDGETS)), help="training steps of a model, all members together")
+    parser.add_argument("--member-counts", default=",".join(map(str, MEMBER_COUNTS)),
+                        help="which of one run / two members to train (2: the members again after a change to them; "
+                             "the other rows stay as logged in members.csv)")
     parser.add_argument("--workers", type=int, default=2)
     parser.add_argument("--cache", type=Path, default=DEFAULT_CACHE, help="trained models (reused)")
     seed_scatter.add_scene_arguments(parser)
@@ -179,11 +182,12 @@ def parse_args(argv=None) -> argparse.Namespace:
 def plan(args: argparse.Namespace) -> list[tuple[str, object, int]]:
     """(label, job, members) of every model to train: the study's jobs at each budget."""
     labels = [label for label in args.configurations.split(",") if label]
+    counts = [int(c) for c in args.member_counts.split(",") if c]
     work = []
     for budget in (int(b) for b in args.budgets.split(",") if b):
         args.steps, args.two_starts, args.pixel_jitter = budget, "rule", 0.0  # the default, as plan_for reads it
         for label, jobs in seed_scatter.plan_for(labels, args).items():
-            work += [(label, job, members) for job in jobs for members in MEMBER_COUNTS]
+            work += [(label, job, members) for job in jobs for members in counts]
     return work
 
 

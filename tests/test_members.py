@@ -225,6 +225,9 @@ def test_the_benchmark_trains_both_ways_and_tables_the_spread(benchmark_script, 
     work = bench.plan(args)
     assert [(job.seed, job.steps, members) for _, job, members in work] == [
         (0, 20, 1), (0, 20, 2), (1, 20, 1), (1, 20, 2), (0, 40, 1), (0, 40, 2), (1, 40, 1), (1, 40, 2)]
+    again = bench.plan(bench.parse_args(["--configurations", "canclip", "--seeds", "0", "--budgets", "20",
+                                         "--member-counts", "2", "--canclip", str(tiny_scene)]))
+    assert [(job.seed, job.steps, members) for _, job, members in again] == [(0, 20, 2)]  # the members alone
     # One model each way, through the product's trainer and renderer.
     label, job, _ = work[0]
     one = bench.train_and_score(label, job, 1, tmp_path)
