@@ -40,10 +40,10 @@ MEMBER_SEED_OFFSET = 1000
 MAX_MEMBERS = 8
 # The rule (`members` None): two members where the budget passes over the training pixels at
 # least MEMBERS_PASSES times, else one.  Measured with the same steps either way
-# (benchmarks/members.py, docs/MEMBERS.md): at 61-213 passes two members were better in 21 of
-# 21 runs (+0.09 dB on CanClip's 6 photos to +0.66 on the shiny scene), at 10-42 passes one run
-# was as good or better (CanClip's full capture -0.84 dB at 10 passes, -0.33 at 19, +0.01 at 39;
-# the Cycles scenes at 30 passes -0.15 to +0.07).  Two, not more: each member renders.
+# (benchmarks/members.py, docs/MEMBERS.md): at 61-213 passes two members were better in 24 of
+# 24 runs (+0.11 dB on CanClip's 6 photos to +0.73 on the shiny scene), at 10-42 passes one run
+# was as good or better (CanClip's full capture -0.87 dB at 10 passes, -0.34 at 19, +0.01 at 39;
+# the Cycles scenes at 30 passes -0.11 to +0.08).  Two, not more: each member renders.
 MEMBERS_PASSES = 60.0
 RULE_MEMBERS = 2
 # A minutes budget learns its passes from the step rate, timed over these steps of member 1
