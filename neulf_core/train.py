@@ -589,7 +589,7 @@ def _train(scene, model_dir: Path, config: TrainConfig, images_dir, resume: bool
         meta["field_restart"] = resumed["field_restart"]
     if resumed and resumed.get("members_rule"):
         meta["members_rule"] = resumed["members_rule"]
-    if config.poses_from and not (resumed and resumed.get("poses")):
+    if config.poses_from:
         meta["poses_from"] = {"model": config.poses_from, "refined": fixed_poses is not None,
                               **(fixed_poses.summary() if fixed_poses is not None else {})}
     meta.update(record or {})
@@ -728,9 +728,12 @@ def _first_members_poses(config: TrainConfig, resumed: dict | None, slab: Slab, 
     poses: its corrections, fixed, where it refined them; none, and no pose check of its own,
     where it did not (a check of its own could refine on a borderline capture, in a frame of its
     own).  Returns the config (refine_poses settled) and the fixed corrections.  A member resumed
-    with corrections of its own -- started before the corrections were shared -- goes on so."""
-    if not config.poses_from or (resumed and resumed.get("poses")):
+    with corrections of its own -- started before the corrections were shared -- goes on so, and
+    its config no longer names the first member (poses_from None)."""
+    if not config.poses_from:
         return config, None
+    if resumed and resumed.get("poses"):
+        return replace(config, poses_from=None), None
     return replace(config, refine_poses=False), _poses_of(config.poses_from, slab, train_views, device)
 
 
