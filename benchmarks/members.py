@@ -3,6 +3,7 @@
     python benchmarks/members.py --workers 2                       # 6 configurations x 3 seeds, budgets 1000 and 2000 steps
     python benchmarks/members.py --configurations shiny --seeds 0-7 --budgets 2000
     python benchmarks/members.py --report-only                     # rewrite the table and chart from the CSV
+    python benchmarks/members.py --member-counts 1,2,3 --budgets 8000 --workers 14   # more members (a GPU's budgets)
 
 Each configuration of benchmarks/seed_scatter.py is trained exactly as the stability study
 trains it (its jobs and training config, one torch thread per run), once with the whole
@@ -25,7 +26,7 @@ import json
 import statistics
 import sys
 import tempfile
-from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import asdict, replace
 from datetime import date
 from pathlib import Path
@@ -133,6 +134,28 @@ def table(rows: list[dict]) -> str:
             lines.append(f"| {label} | {budget} | {passes} | {len(seeds)} | {spread_text(p1)} | {spread_text(p2)} | "
                          f"{statistics.mean(diff):+.2f} (better in {sum(d > 0 for d in diff)} of {len(diff)}) | "
                          f"{statistics.mean(f1):.2f} | {statistics.mean(f2):.2f} | {t1:.0f} / {t2:.0f} |")
+    return "\n".join(lines) + more_members_table(found)
+
+
+def more_members_table(found: dict) -> str:
+    """Where more than two members were trained: one run, two members and each larger count
+    side by side at the same budget (empty when none was)."""
+    counts = sorted({m for (_, _, m) in found if m > 2})
+    if not counts:
+        return ""
+    head = ["configuration", "budget (steps)", "passes over the training pixels", "seeds", "one run", "two members"]
+    head += [f"{m} members" for m in counts] + [f"{m} - two" for m in counts]
+    lines = ["", "", "| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for label, budget in dict.fromkeys((c, b) for (c, b, m) in found if m > 2):
+        by_count = {m: found.get((label, budget, m), {}) for m in [1, 2] + counts}
+        seeds = sorted(set.intersection(*(set(cell) for cell in by_count.values())))
+        if not seeds:
+            continue
+        psnr = {m: [float(cell[s]["psnr"]) for s in seeds] for m, cell in by_count.items()}
+        cells_text = [spread_text(psnr[m]) for m in [1, 2] + counts]
+        diffs = [f"{statistics.mean(b - a for a, b in zip(psnr[2], psnr[m])):+.2f}" for m in counts]
+        passes = by_count[1][seeds[0]].get("passes") or "?"
+        lines.append(f"| {label} | {budget} | {passes} | {len(seeds)} | " + " | ".join(cells_text + diffs) + " |")
     return "\n".join(lines)
 
 
@@ -146,7 +169,8 @@ def chart(rows: list[dict], path: Path) -> None:
     labels = list(dict.fromkeys(r["configuration"] for r in rows))
     figure, axes = plt.subplots(1, len(labels), figsize=(3.0 * len(labels), 3.4), squeeze=False)
     for axis, label in zip(axes[0], labels):
-        for members, style in zip(MEMBER_COUNTS, ("o-", "s--")):
+        counts = sorted({m for (c, _, m) in found if c == label})
+        for members, style in zip(counts, ("o-", "s--", "^:", "d-.")):
             budgets = sorted(b for (c, b, m) in found if c == label and m == members)
             means = [statistics.mean(float(r["psnr"]) for r in found[(label, b, members)].values()) for b in budgets]
             sds = [statistics.pstdev(float(r["psnr"]) for r in found[(label, b, members)].values()) for b in budgets]
@@ -191,6 +215,16 @@ def plan(args: argparse.Namespace) -> list[tuple[str, object, int]]:
     return work
 
 
+def merged(logged: list[dict], new: list[dict]) -> list[dict]:
+    """The logged rows that `new` does not replace (same configuration, seed, budget and
+    member count), then `new`, in the order the runs ended."""
+    def key(row):
+        return row["configuration"], int(row["seed"]), int(row["budget"]), int(row["members"])
+
+    done = {key(r) for r in new}
+    return [r for r in logged if key(r) not in done] + sorted(new, key=key)
+
+
 def main(argv=None) -> None:
     args = parse_args(argv)
     csv_path = args.docs / "members.csv"
@@ -198,26 +232,26 @@ def main(argv=None) -> None:
         rows = pixel_samples.read_csv(csv_path)
     else:
         work = plan(args)
+        logged = pixel_samples.read_csv(csv_path) if csv_path.is_file() else []
+        rows = []
         with ProcessPoolExecutor(max_workers=args.workers) as pool:
-            futures = [pool.submit(train_and_score, label, job, members, args.cache) for label, job, members in work]
-            rows = []
-            for (label, job, members), future in zip(work, futures):
+            futures = {pool.submit(train_and_score, label, job, members, args.cache): (label, job, members)
+                       for label, job, members in work}
+            for future in as_completed(futures):
+                label, job, members = futures[future]
                 row = future.result()
                 rows.append(row)
                 print(f"{label} seed {job.seed}, {job.steps} steps, {members} member(s): {row['psnr']:.2f} dB "
                       f"({row['psnr_4']:.2f} with 4 points), {row['train_seconds']:.0f} s", flush=True)
-        done = {(r["configuration"], int(r["seed"]), int(r["budget"]), int(r["members"])) for r in rows}
-        kept = [r for r in pixel_samples.read_csv(csv_path)
-                if (r["configuration"], int(r["seed"]), int(r["budget"]), int(r["members"])) not in done] \
-            if csv_path.is_file() else []
-        rows = kept + rows  # rows not run this time stay
-        pixel_samples.write_csv(rows, csv_path, COLUMNS)
+                rows_so_far = merged(logged, rows)  # written as each run ends, so a run cut short keeps its rows
+                pixel_samples.write_csv(rows_so_far, csv_path, COLUMNS)
+        rows = merged(logged, rows)
     chart(rows, args.docs / "members.png")
     header = (f"Generated {date.today().isoformat()} on {args.machine or stability.machine()}; the default model "
-              f"(`fast`) trained as the stability study trains it, one run with the whole budget against two members "
-              f"with half of it each; held-out PSNR scored as the study scores it (one point a pixel), mean ± sd over "
+              f"(`fast`) trained as the stability study trains it, one run with the whole budget against N members "
+              f"with an N-th of it each; held-out PSNR scored as the study scores it (one point a pixel), mean ± sd over "
               f"the seeds, and the range (max - min) the target bounds at 0.2 dB; training seconds: one torch "
-              f"thread, two runs side by side.")
+              f"thread" + ("" if args.report_only else f", {args.workers} runs side by side") + ".")
     text = f"{header}\n\n{table(rows)}"
     stability.update_markdown(args.docs / "MEMBERS.md", text, MARKER_BEGIN, MARKER_END)
     print(text)

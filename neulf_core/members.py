@@ -43,7 +43,9 @@ MAX_MEMBERS = 8
 # (benchmarks/members.py, docs/MEMBERS.md): at 61-213 passes two members were better in 24 of
 # 24 runs (+0.11 dB on CanClip's 6 photos to +0.73 on the shiny scene), at 10-42 passes one run
 # was as good or better (CanClip's full capture -0.87 dB at 10 passes, -0.34 at 19, +0.01 at 39;
-# the Cycles scenes at 30 passes -0.11 to +0.08).  Two, not more: each member renders.
+# the Cycles scenes at 30 passes -0.11 to +0.08).  Two, not more: each member renders, and a third
+# added +0.07 to +0.11 dB over two at 183-253 passes (NVIDIA H200, docs/members_h200/MEMBERS.md) for
+# 1.44 times the frame time.
 MEMBERS_PASSES = 60.0
 RULE_MEMBERS = 2
 # A minutes budget learns its passes from the step rate, timed over these steps of member 1

@@ -244,8 +244,15 @@ def test_the_benchmark_trains_both_ways_and_tables_the_spread(benchmark_script, 
     rows = [row(0, 1, 30.0), row(1, 1, 30.4), row(2, 1, 30.1), row(0, 2, 30.3), row(1, 2, 30.5), row(2, 2, 30.35)]
     text = bench.table(rows)
     assert "| scene | 2000 | 61.0 | 3 | 30.17 ± 0.170, range 0.40 | 30.38 ± 0.085, range 0.20 | +0.22 (better in 3 of 3) |" in text
+    assert "3 members" not in text  # the larger counts' table only where they were trained
+    rows += [row(0, 3, 30.5), row(1, 3, 30.6), row(2, 3, 30.4)]
+    text = bench.table(rows)
+    assert ("| scene | 2000 | 61.0 | 3 | 30.17 ± 0.170, range 0.40 | 30.38 ± 0.085, range 0.20 | "
+            "30.50 ± 0.082, range 0.20 | +0.12 |") in text
     bench.chart(rows, tmp_path / "chart.png")
     assert (tmp_path / "chart.png").stat().st_size > 0
+    # Rows are logged as each run ends; a re-run replaces its own rows and keeps the others.
+    assert bench.merged(rows[:3], [row(1, 1, 31.0)]) == [rows[0], rows[2], row(1, 1, 31.0)]
 
 
 def test_the_rule_counts_the_passes_of_a_steps_budget(tiny_scene, tmp_path):
