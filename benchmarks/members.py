@@ -3,7 +3,7 @@
     python benchmarks/members.py --workers 2                       # 6 configurations x 3 seeds, budgets 1000 and 2000 steps
     python benchmarks/members.py --configurations shiny --seeds 0-7 --budgets 2000
     python benchmarks/members.py --report-only                     # rewrite the table and chart from the CSV
-    python benchmarks/members.py --member-counts 1,2,3 --budgets 8000 --workers 14   # more members (a GPU's budgets)
+    python benchmarks/members.py --member-counts 1,2,3 --budgets 6000 --workers 14   # more members (a GPU's budgets)
 
 Each configuration of benchmarks/seed_scatter.py is trained exactly as the stability study
 trains it (its jobs and training config, one torch thread per run), once with the whole
@@ -217,7 +217,7 @@ def plan(args: argparse.Namespace) -> list[tuple[str, object, int]]:
 
 def merged(logged: list[dict], new: list[dict]) -> list[dict]:
     """The logged rows that `new` does not replace (same configuration, seed, budget and
-    member count), then `new`, in the order the runs ended."""
+    member count), then `new`, sorted by that key (runs end in any order side by side)."""
     def key(row):
         return row["configuration"], int(row["seed"]), int(row["budget"]), int(row["members"])
 
