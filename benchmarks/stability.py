@@ -420,10 +420,13 @@ def view_pixels(path: str, scale: float) -> int:
 def trained_with_other_members(row: dict) -> bool:
     """Whether a logged run had another member count than the rule now gives its budget
     (neulf_core/members.py; rows logged before members trained one): the study runs it again.
-    A minutes run's passes are counted at the steps it made."""
+    A minutes run logged since then decided its count at the pace it timed over its first
+    steps, so it stands whatever it logged (counted at the steps it made, a run that went
+    faster than it timed would read as another count: fern's 8 photos, one member, 80 passes);
+    one logged before is counted at the steps it made."""
     logged = int(row.get("members") or 1)
-    if not row.get("train_views") or (row.get("minutes") and logged > 1):
-        return False  # (a minutes run with members decided it at its own rate)
+    if not row.get("train_views") or (row.get("minutes") and row.get("members") is not None):
+        return False
     steps = row.get("steps_done") if row.get("minutes") else row.get("steps")
     if not steps:
         return False
@@ -644,7 +647,14 @@ def stats(rows: list[dict], column: str = "psnr") -> dict | None:
     values = [r[column] for r in rows if r.get("status") == "finished" and np.isfinite(r.get(column, math.nan))]
     if not values:
         return None
-    return {"mean": float(np.mean(values)), "spread": float(np.max(values) - np.min(values)), "n": len(values)}
+    sd = float(np.std(values, ddof=1)) if len(values) > 1 else math.nan
+    return {"mean": float(np.mean(values)), "spread": float(np.max(values) - np.min(values)), "n": len(values), "sd": sd}
+
+
+def difference_standard_error(first: dict, last: dict) -> float:
+    """Standard error of `first`'s mean minus `last`'s (two stats() of independent seeds): how far
+    the fewer-views loss could move if the same seeds' scatter were drawn again."""
+    return math.sqrt(first["sd"] ** 2 / first["n"] + last["sd"] ** 2 / last["n"])
 
 
 def cell(rows: list[dict], column: str = "psnr") -> str:
@@ -897,7 +907,10 @@ def targets(rows: list[dict]) -> list[str]:
         first, last = stats(group(rows, **base(scene, "fast"))), stats(group(rows, **base(scene, "fast", fraction=0.25)))
         if first and last:
             loss = first["mean"] - last["mean"]
-            out.append(f"- 100% -> 25% views on {scene}: {loss:.2f} dB lost (target ≤ 1.5): {'met' if loss <= 1.5 else 'MISSED'}")
+            error = difference_standard_error(first, last)
+            uncertainty = f" ± {error:.2f} (standard error, {first['n']} / {last['n']} seeds)" if math.isfinite(error) else ""
+            out.append(f"- 100% -> 25% views on {scene}: {loss:.2f}{uncertainty} dB lost (target ≤ 1.5): "
+                       f"{'met' if loss <= 1.5 else 'MISSED'}")
     spreads = []
     for match in configurations(rows, "fast"):
         if match["minutes"]:  # wall-clock budgets also vary with the machine's load, not only the seed

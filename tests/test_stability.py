@@ -259,6 +259,8 @@ def test_a_run_with_another_member_count_than_the_rule_now_gives_is_run_again(st
     assert stability.trained_with_other_members(row(88, members=2))
     assert stability.trained_with_other_members(row(1000, minutes=1.0, steps_done=500))  # its pace: 339 passes
     assert not stability.trained_with_other_members(row(1000, minutes=1.0, steps_done=500, members=2))
+    # logged since members: it chose one at the pace it timed, whatever steps it then made
+    assert not stability.trained_with_other_members(row(1000, minutes=1.0, steps_done=500, members=1))
     assert not stability.trained_with_other_members({**row(89), "truth": str(tmp_path / "gone")})  # stands
     log = tmp_path / "runs.jsonl"
     log.write_text(json.dumps(row(89)) + "\n" + json.dumps({**row(89, members=2), "seed": 1}) + "\n")
@@ -341,3 +343,16 @@ def test_pack_copies_the_real_captures_at_their_training_scale(stability, tiny_s
         assert np.array_equal(a.load_image(0.5), b.load_image(1.0))
         assert np.allclose(a.scaled_camera(0.5).calibration_matrix(), b.scaled_camera(1.0).calibration_matrix())
     assert (tmp_path / "packed" / "scenes" / "lambertian_jitter1" / "ground_truth" / "cameras.json").is_file()
+
+
+def test_the_fewer_views_target_states_its_standard_error(stability):
+    """Three seeds' means are each uncertain: the target line says by how much the loss is."""
+    def row(fraction, seed, value):
+        return {**stability.base("canclip", "fast", fraction=fraction), "seed": seed, "status": "finished", "psnr": value}
+    rows = [row(1.0, s, v) for s, v in enumerate((36.2, 36.3, 36.25))]
+    rows += [row(0.25, s, v) for s, v in enumerate((34.9, 34.5, 34.7))]
+    line = next(line for line in stability.targets(rows) if "views on canclip" in line)
+    error = math.sqrt(0.05 ** 2 / 3 + 0.2 ** 2 / 3)  # sample standard deviations 0.05 and 0.2 dB
+    assert f"1.55 ± {error:.2f} (standard error, 3 / 3 seeds) dB lost" in line and line.endswith("MISSED")
+    single = [r for r in rows if r["seed"] == 0]  # one seed each: no scatter to state
+    assert "standard error" not in next(line for line in stability.targets(single) if "views on canclip" in line)
