@@ -72,7 +72,8 @@ def cmd_train(args) -> int:
         exclude=_names(args.exclude), seed=args.seed, checkpoint_seconds=args.checkpoint_seconds,
         validate_seconds=args.validate_seconds,
         st_depth=args.st_depth, near=args.near, far=args.far, device=args.device, batch_size=args.batch_size,
-        consistency=args.consistency, appearance=args.appearance, teacher=args.sweep_teacher, field_overrides=overrides,
+        consistency=args.consistency, appearance=args.appearance, teacher=args.sweep_teacher, point_depth=args.point_depth,
+        field_overrides=overrides,
         refine_poses=args.refine_poses, coarse_to_fine=args.coarse_to_fine, max_passes=args.max_passes,
         two_starts=args.two_starts, pixel_jitter=args.pixel_jitter, members=args.members,
     )
@@ -424,6 +425,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--sweep-teacher", action=argparse.BooleanOptionalAction, default=None,
                    help="pull the early depth toward the classic plane sweep's (default: the preset's choice; on "
                         "for fast): better depth maps and refocus, docs/DEPTH.md")
+    p.add_argument("--point-depth", action=argparse.BooleanOptionalAction, default=None,
+                   help="pull the rays through the training photos' keypoints toward the depth of the COLMAP points "
+                        "they observe, triangulated again from the training photos (default: on for fast/auto where "
+                        "the model keeps tracks, off where the poses are refined; docs/STABILITY.md)")
     p.add_argument("--depth-layers", type=int, metavar="N",
                    help="fast/auto presets: N depth layers in the geometry (0: none; default: 8 when the scene's "
                         "far/near depth ratio is at most 3 and there are 18 or more training views, else none): sharper depth edges on shallow scenes, "

@@ -24,6 +24,7 @@ class Preset:
     adam_beta2: float = 0.999                 # Adam's second-moment decay (the paper: PyTorch's default)
     consistency: bool | None = False          # the paper's multi-view losses by default; None: train.default_consistency (docs/DEPTH.md)
     teacher: bool = False                     # early depth pulled toward the classic plane sweep (teacher.py, docs/DEPTH.md)
+    point_depth: bool = False                 # keypoint rays pulled toward their SfM point's depth (point_depth.py)
     description: str = ""
 
 
@@ -88,9 +89,9 @@ PRESETS: dict[str, Preset] = {
                     description="the paper's network: 20 x 256 ReLU layers, raw-input skips every 4 layers"),
     "authors": Preset("mlp", {"depth": 8, "width": 256, "skip": "embedding"}, lr=5e-4, lr_decay_per_epoch=0.995,
                       description="the authors' code default: 8 x 256, embedding skips"),
-    "fast": Preset("disparity", FAST_FIELD, **FAST_SCHEDULE, batch_size=8192, teacher=True, consistency=None,
+    "fast": Preset("disparity", FAST_FIELD, **FAST_SCHEDULE, batch_size=8192, teacher=True, consistency=None, point_depth=True,
                    description="per-ray disparity shearing one shared st texture; trains in minutes on a CPU"),
-    "auto": Preset("disparity", FAST_FIELD, **FAST_SCHEDULE, batch_size=8192, consistency=None,
+    "auto": Preset("disparity", FAST_FIELD, **FAST_SCHEDULE, batch_size=8192, consistency=None, point_depth=True,
                    description="the fast field with its texture sized per scene on validation views (autosize.py)"),
     "planes": Preset("planes", {}, lr=2e-3, lr_final_ratio=0.1, batch_size=8192,
                      description="six factorised (u,v,s,t) feature planes + tiny MLP (K-Planes style)"),

@@ -33,6 +33,12 @@ class View:
     R: np.ndarray              # (3, 3) world-to-camera rotation
     t: np.ndarray              # (3,) world-to-camera translation
     image_path: Path | None = None
+    # The photo's keypoints that the model triangulated, at the size of `camera` (K, 2; pixel
+    # (0, 0)'s centre at 0.5, 0.5, as COLMAP's), and the id of each one's 3D point (K,): the
+    # observations point_depth.py triangulates again from the training photos alone.  None
+    # where the model keeps no tracks (LLFF poses, a model written without 2D points).
+    keypoints: np.ndarray | None = None
+    point_ids: np.ndarray | None = None
 
     @property
     def center(self) -> np.ndarray:
@@ -279,9 +285,21 @@ def _load_colmap(scene_dir: Path, model_dir: Path, images_dir: Path | None) -> S
         _fit_camera_to_file(camera, path, notes)
         pose = image.cam_from_world()
         matrix = np.asarray(pose.matrix(), dtype=np.float64)
-        views.append(View(image.name, camera, matrix[:, :3].copy(), matrix[:, 3].copy(), path))
+        keypoints, point_ids = _triangulated_keypoints(image, recon.cameras[image.camera_id], camera)
+        views.append(View(image.name, camera, matrix[:, :3].copy(), matrix[:, 3].copy(), path, keypoints, point_ids))
     points = np.array([p.xyz for p in recon.points3D.values()], dtype=np.float64).reshape(-1, 3)
     return Scene(scene_dir, views, points, "colmap", notes=_dedupe(notes))
+
+
+def _triangulated_keypoints(image, model_camera: pycolmap.Camera, camera: pycolmap.Camera):
+    """(keypoints at `camera`'s size, their 3D points' ids) of the observations the model
+    triangulated; (None, None) where it has none."""
+    observed = [(p.xy, p.point3D_id) for p in image.points2D if p.has_point3D()]
+    if not observed:
+        return None, None
+    keypoints = np.array([xy for xy, _ in observed], dtype=np.float64).reshape(-1, 2)
+    keypoints *= np.array([camera.width / model_camera.width, camera.height / model_camera.height])
+    return keypoints, np.array([pid for _, pid in observed], dtype=np.int64)
 
 
 def _require_all_images(paths: dict[str, Path | None], images_dir: Path) -> None:

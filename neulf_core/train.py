@@ -34,6 +34,7 @@ from .presets import APPEARANCE_ADAM_BETA2, APPEARANCE_GEOMETRY, DEFAULT_PRESET,
 from .scene import Scene, load_scene, scaled_size, split_views
 from .slab import Slab, fit_slab
 from .teacher import strong_pull, sweep_depth_targets, teacher_fade, teacher_loss, teacher_weight
+from .point_depth import point_depth_loss, point_depth_targets
 
 VALIDATION_RAYS = 1 << 16
 # The paper's loss weights: L = L_p + 0.5 L_mp + 0.1 L_d.
@@ -117,6 +118,8 @@ class TrainConfig:
     appearance: bool | None = None      # learn a per-photo colour transform (exposure, white balance; None: on when
                                         # neighbouring photos differ in exposure, appearance.EXPOSURE_DIFFERENCE_STOPS)
     teacher: bool | None = None         # pull early depth toward the classic plane sweep's (None: the preset's default)
+    point_depth: bool | None = None     # pull the keypoints' rays toward their SfM points' depth (point_depth.py;
+                                        # None: the preset's default, where the model keeps tracks)
     refine_poses: bool | None = None    # learn a small rotation and shift of each training camera (poses.py; None:
                                         # refine from the start, and keep refining after POSE_CHECK_STEP steps only
                                         # where the corrections say the poses are off)
@@ -556,6 +559,7 @@ def _train(scene, model_dir: Path, config: TrainConfig, images_dir, resume: bool
     teacher, teacher_seconds = _teacher_inputs(train_views, slab, config, preset, device, resumed, progress)
     elapsed_before += teacher_seconds  # the sweep is part of the training time it saves
     strong = strong_pull(len(train_views), config.appearance)
+    point_depth = _point_depth_inputs(train_views, slab, config, preset, device, fixed_poses is not None)
     if resumed:
         optimizer.load_state_dict(resumed["optimizer"])
         step, elapsed_before = resumed["progress"]["step"], resumed["progress"]["elapsed"]
@@ -583,6 +587,10 @@ def _train(scene, model_dir: Path, config: TrainConfig, images_dir, resume: bool
         "appearance_default": exposures_differ,
         "rig": _rig(train_views, config.scale),
     }
+    if point_depth is not None:
+        meta["point_depth"] = {"rays": int(point_depth[1].sum())}
+        _emit(progress, event="stage", message=f"depth from the model's points: {meta['point_depth']['rays']} keypoint "
+              "rays pulled toward their points' depth (--no-point-depth turns it off)")
     if resumed and resumed.get("pose_check"):
         meta["pose_check"] = resumed["pose_check"]  # the verdict of the run being continued
     if resumed and resumed.get("field_restart"):
@@ -637,11 +645,17 @@ def _train(scene, model_dir: Path, config: TrainConfig, images_dir, resume: bool
         view_index = train_rays.view_index[index].long()
         pull = teacher_weight(fraction, len(train_views), strong=strong) if teacher is not None else 0.0
         depth_teacher = (teacher[0][index], teacher[1][index], pull) if pull > 0 else None
+        depth_points = (point_depth[0][index], point_depth[1][index]) if point_depth is not None else None
         step_consistency = consistency
         if pose_check_pending and POSE_CHECK_STEP // 2 <= step < POSE_CHECK_STEP and "halfway_degrees" not in meta.get("pose_check", {}):
             meta["pose_check"] = {"halfway_step": step, "halfway_degrees": round(poses.own_part_degrees(), 4)}
         if pose_check_pending and step >= _pose_look_step(meta):
             poses, pose_check_pending = _pose_check(poses, optimizer, meta, progress, step)
+            if poses is not None and not pose_check_pending and point_depth is not None:
+                point_depth = None  # the poses are off: so are the points placed through them
+                meta["point_depth"]["dropped_at_step"] = step
+                _emit(progress, event="stage", message="the poses are off, and so are the points placed through "
+                      "them: no longer pulling toward their depth")
         if restart_pending and step >= POSE_CHECK_STEP:
             restart_pending = False
             if poses is not None:
@@ -656,7 +670,7 @@ def _train(scene, model_dir: Path, config: TrainConfig, images_dir, resume: bool
                 # The neighbours' rays leave from where the corrected cameras stand.
                 step_consistency = (consistency[0], consistency[1].with_centres(corrected.corrected_centres()))
         loss, objective = _objective(field_module, uvst, target, view_index, appearance, step_consistency, config,
-                                     depth_teacher)
+                                     depth_teacher, depth_points)
         if poses is not None and poses.holds_depth_like_part:
             objective = objective + poses.depth_like_prior()
         optimizer.zero_grad(set_to_none=True)
@@ -920,9 +934,28 @@ def _teacher_inputs(train_views, slab: Slab, config: TrainConfig, preset, device
     return targets, (0.0 if resumed else time.monotonic() - started)
 
 
-def _objective(field_module, uvst, target, view_index, appearance, consistency, config: TrainConfig, depth_teacher=None):
+def _point_depth_inputs(train_views, slab: Slab, config: TrainConfig, preset, device, poses_corrected: bool):
+    """The SfM points' depth per training ray (point_depth.py) and its mask, on `device`; None
+    when off or where no training ray sees a point the training photos triangulate (model.json
+    records how many rays have one: "point_depth").
+    Off by default where the poses are refined from the start (`--refine-poses`, or a resumed
+    run whose pose check kept refining) or trained with a first member's corrections
+    (`poses_corrected`): the points are placed through the poses as the model gives them, and
+    where those are off, so are the points' depths, which would hold the field against the
+    corrections.  The trainer drops them too where the pose check finds the poses off: the
+    stability study's CanClip, 6 photos with 0.25 degrees of noise, 29.64 -> 28.99 dB with the
+    points kept on (docs/STABILITY.md, forty-fifth session)."""
+    wanted = preset.point_depth if config.point_depth is None else config.point_depth
+    if config.point_depth is None and (config.refine_poses is True or poses_corrected):
+        wanted = False
+    targets = point_depth_targets(train_views, slab, config.scale) if wanted else None
+    return None if targets is None else (targets[0].to(device), targets[1].to(device))
+
+
+def _objective(field_module, uvst, target, view_index, appearance, consistency, config: TrainConfig, depth_teacher=None,
+               depth_points=None):
     """(photometric loss L_p, everything minimised): L_p + regularisers + 0.5 L_mp + 0.1 L_d
-    (+ the fading pull toward the plane sweep's depth)."""
+    (+ the fading pull toward the plane sweep's depth, + the pull toward the SfM points')."""
     rgb, unit = field_module(uvst)
     seen = appearance(rgb, view_index) if appearance is not None else rgb
     loss = torch.mean((seen - target) ** 2)
@@ -940,6 +973,8 @@ def _objective(field_module, uvst, target, view_index, appearance, consistency, 
     if depth_teacher is not None:
         unit_target, confidence, weight = depth_teacher
         objective = objective + weight * teacher_loss(unit, unit_target, confidence)
+    if depth_points is not None:
+        objective = objective + point_depth_loss(unit, *depth_points)
     return loss, objective
 
 
@@ -960,6 +995,8 @@ def _config_for_resume(payload: dict, config: TrainConfig, scene: Scene) -> Trai
             "resume it with that scene, or train a new model into another --out folder."
         )
     previous = TrainConfig(**{k: v for k, v in payload["train_config"].items() if k in TrainConfig.__dataclass_fields__})
+    if "point_depth" not in payload["train_config"]:
+        previous.point_depth = False  # trained before the SfM points' pull: resumes as it began
     previous.steps, previous.minutes = config.steps, config.minutes
     previous.checkpoint_seconds, previous.validate_seconds = config.checkpoint_seconds, config.validate_seconds
     previous.device = config.device
