@@ -84,27 +84,33 @@ def point_depth_targets(train_views, slab: Slab, scale: float) -> tuple[torch.Te
         width, height = int(camera.width), int(camera.height)
         unit = torch.zeros(width * height)
         mask = torch.zeros(width * height, dtype=torch.bool)
-        if view.keypoints is not None:
-            known = np.array([pid in points for pid in view.point_ids.tolist()], dtype=bool)
-            if known.any():
-                # The keypoint's pixel at the training size (COLMAP's pixel (0, 0) spans 0..1).
-                xy = view.keypoints[known] * np.array([width / view.camera.width, height / view.camera.height])
-                column, row = np.floor(xy[:, 0]).astype(int), np.floor(xy[:, 1]).astype(int)
-                inside = (column >= 0) & (column < width) & (row >= 0) & (row < height)
-                xyz = np.stack([points[pid] for pid in view.point_ids[known][inside].tolist()]) if inside.any() \
-                    else np.zeros((0, 3))
-                depth = torch.as_tensor(slab.to_slab(xyz)[:, 2] if len(xyz) else np.zeros(0))
-                target = slab.unit_from_depth(depth.clamp_min(1e-9)).float()
-                in_range = (depth > 0) & (target >= 0) & (target <= 1)
-                pixel = torch.as_tensor(row[inside] * width + column[inside])[in_range]
-                unit[pixel] = target[in_range]
-                mask[pixel] = True
+        pixels, xyz = _keypoint_pixels(view, points, width, height)
+        if len(xyz):
+            depth = torch.as_tensor(slab.to_slab(xyz)[:, 2])
+            target = slab.unit_from_depth(depth.clamp_min(1e-9)).float()
+            keep = (depth > 0) & (target >= 0) & (target <= 1)  # in front, inside the slab's depth range
+            unit[pixels[keep]] = target[keep]
+            mask[pixels[keep]] = True
         _, valid = view_uvst(view, slab, scale)
         valid = torch.as_tensor(valid).reshape(-1)
         units.append(unit[valid])
         masks.append(mask[valid])
     mask = torch.cat(masks)
     return (torch.cat(units), mask) if bool(mask.any()) else None
+
+
+def _keypoint_pixels(view, points: dict[int, np.ndarray], width: int, height: int) -> tuple[torch.Tensor, np.ndarray]:
+    """(row-major pixel index at the training size, point position) of each of `view`'s
+    keypoints whose point is in `points` and whose pixel is inside the frame (COLMAP's pixel
+    (0, 0) spans 0..1)."""
+    if view.keypoints is None:
+        return torch.zeros(0, dtype=torch.long), np.zeros((0, 3))
+    known = np.array([pid in points for pid in view.point_ids.tolist()], dtype=bool)
+    xy = view.keypoints[known] * np.array([width / view.camera.width, height / view.camera.height])
+    column, row = np.floor(xy[:, 0]).astype(int), np.floor(xy[:, 1]).astype(int)
+    inside = (column >= 0) & (column < width) & (row >= 0) & (row < height)
+    xyz = np.array([points[pid] for pid in view.point_ids[known][inside].tolist()]).reshape(-1, 3)
+    return torch.as_tensor(row[inside] * width + column[inside], dtype=torch.long), xyz
 
 
 def point_depth_loss(unit: torch.Tensor, target: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
