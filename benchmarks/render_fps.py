@@ -2,13 +2,14 @@
 
     python benchmarks/render_fps.py --scene ../shared/data/canclip --model fast=MODEL_DIR \
         [--model other=DIR] [--width 1008 --height 567] [--device cuda] [--precision auto,full] \
-        [--repeats 30] [--out docs/render_fps.csv]
+        [--repeats 30] [--pixel-samples 1,4] [--out docs/render_fps.csv]
 
 The camera is the first held-out view's, its intrinsics stretched to the asked size.  Each
 variant (model x precision x with/without depth) renders through `LightField.render`, the
 call the Blender layer makes, so a frame ends as RGB (and depth) arrays in host memory.  Three
 warm-up frames, then `--repeats` timed ones, variants interleaved so a slow spell of the
-machine hits them alike; the median is reported.  Appends to docs/render_fps.csv (or --out) and
+machine hits them alike; the median is reported.  `--pixel-samples` renders each pixel as the
+mean of that many points (the CLI's and Blender's default is 4; `LightField.render`'s own is 1).  Appends to docs/render_fps.csv (or --out) and
 prints a markdown table.
 """
 
@@ -49,14 +50,14 @@ def synchronise(device: torch.device) -> None:
 
 
 def time_variants(variants: dict, camera_args: tuple, repeats: int, device: torch.device) -> dict[str, list[float]]:
-    """Seconds per frame of each variant (light field, with depth, rays per chunk or None); every repeat renders each variant once, in turn."""
+    """Seconds per frame of each variant (light field, with depth, rays per chunk or None, points a pixel); every repeat renders each variant once, in turn."""
     K, width, height, R, t = camera_args
     times = {label: [] for label in variants}
     for repeat in range(WARM_UP + repeats):
-        for label, (light_field, depth, chunk) in variants.items():
+        for label, (light_field, depth, chunk, samples) in variants.items():
             synchronise(device)
             started = time.perf_counter()
-            light_field.render(K, width, height, R, t, depth=depth, chunk=chunk)
+            light_field.render(K, width, height, R, t, depth=depth, chunk=chunk, pixel_samples=samples)
             synchronise(device)
             if repeat >= WARM_UP:
                 times[label].append(time.perf_counter() - started)
@@ -75,6 +76,7 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--chunks", default="", help="comma-separated rays per chunk to compare (default: the renderer's)")
     parser.add_argument("--repeats", type=int, default=30)
     parser.add_argument("--threads", type=int, default=0, help="torch CPU threads (0: torch's default)")
+    parser.add_argument("--pixel-samples", default="1", help="comma-separated points a pixel to compare (1, 4, ...)")
     parser.add_argument("--out", help="CSV to append to (default: docs/render_fps.csv)")
     args = parser.parse_args(argv)
     if args.threads:
@@ -88,9 +90,11 @@ def main(argv: list[str] | None = None) -> None:
             light_field = LightField.load(folder, str(device), precision=precision)
             shown = "half" if light_field.half else "full"
             for chunk in [int(c) for c in args.chunks.split(",") if c] or [None]:
-                for depth in (False, True):
-                    label = f"{name}, {precision} ({shown}), {'rgb+depth' if depth else 'rgb'}"
-                    variants[label + (f", chunk {chunk}" if chunk else "")] = (light_field, depth, chunk)
+                for samples in [int(n) for n in args.pixel_samples.split(",")]:
+                    for depth in (False, True):
+                        label = (f"{name}, {precision} ({shown}), {'rgb+depth' if depth else 'rgb'}"
+                                 + (f", chunk {chunk}" if chunk else "") + (f", {samples} points a pixel" if samples != 1 else ""))
+                        variants[label] = (light_field, depth, chunk, samples)
     if device.type == "cuda":
         torch.cuda.reset_peak_memory_stats(device)
     times = time_variants(variants, camera_args, args.repeats, device)
