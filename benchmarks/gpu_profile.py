@@ -95,7 +95,7 @@ def main(argv: list[str] | None = None) -> None:
     light_field = LightField.load(model_dir, str(device))
     view = split_views(scene)[1][0]
     camera = (stretched_intrinsics(view.scaled_camera(1.0), args.width, args.height), args.width, args.height, view.R, view.t)
-    seconds = time_variants({"frame": (light_field, False, None)}, camera, args.frames, device)["frame"]
+    seconds = time_variants({"frame": (light_field, False, None, 1)}, camera, args.frames, device)["frame"]
     frame_ms = float(np.median(seconds)) * 1000
     with profile(activities=activities(device)) as prof:
         for _ in range(5):

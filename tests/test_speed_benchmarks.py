@@ -52,12 +52,13 @@ def test_render_fps_times_every_variant_and_appends(tiny_scene, tmp_path, capsys
     common = ["--scene", str(tiny_scene), "--model", f"m={model}", "--width", "40", "--height", "30",
               "--device", "cpu", "--repeats", "2", "--out", str(out)]
     bench.main([*common, "--precision", "full", "--chunks", "64,4096"])
-    bench.main([*common, "--precision", "half"])
+    bench.main([*common, "--precision", "half", "--pixel-samples", "1,4"])
     rows = list(csv.DictReader(open(out)))
     assert [r["variant"] for r in rows] == [
         "m, full (full), rgb, chunk 64", "m, full (full), rgb+depth, chunk 64",
         "m, full (full), rgb, chunk 4096", "m, full (full), rgb+depth, chunk 4096",
-        "m, half (half), rgb", "m, half (half), rgb+depth"]
+        "m, half (half), rgb", "m, half (half), rgb+depth",
+        "m, half (half), rgb, 4 points a pixel", "m, half (half), rgb+depth, 4 points a pixel"]
     assert all(r["resolution"] == "40x30" and float(r["fps"]) > 0 for r in rows)
     assert "frames per second" in capsys.readouterr().out
 
@@ -76,3 +77,10 @@ def test_speed_accuracy_reads_a_batch_from_the_method_name():
     bench = load("speed_accuracy")
     assert bench.split_method("fast@65536") == ("fast", 65536)
     assert bench.split_method("authors") == ("authors", None)
+
+
+def test_point_depth_benchmark_reads_seed_ranges_and_writes_rows(tmp_path):
+    bench = load("point_depth")
+    assert bench.seed_list("0-3,7") == [0, 1, 2, 3, 7] and bench.seed_list("2") == [2]
+    bench.write_rows(tmp_path / "sub" / "rows.csv", [{"scene": "s", "seed": 0, "psnr": 30.0}])
+    assert list(csv.DictReader(open(tmp_path / "sub" / "rows.csv"))) == [{"scene": "s", "seed": "0", "psnr": "30.0"}]
