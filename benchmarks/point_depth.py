@@ -12,8 +12,9 @@ the training photos' keypoints pulled toward their points' depth, neulf_core/poi
 and once with `--no-point-depth`.  Both are scored on the held-out views (every 8th) as
 `eval` scores them (4 points a pixel).  On a GPU (`--device cuda`) nothing is pinned, `--jobs`
 pairs train at once (a step is bound by Python and kernel launches, so the GPU has room), and
-`--steps` fixes the budget in steps, so runs side by side do not change each other's.  Only scenes whose COLMAP model keeps tracks change
-(CanClip and Statue here; fern's and HCI's models have none).  Writes docs/point_depth.csv
+`--steps` fixes the budget in steps, so runs side by side do not change each other's.  Only
+scenes whose COLMAP model keeps tracks change (CanClip and Statue here; fern's and HCI's models
+have none).  Writes docs/point_depth.csv
 (or `--out`; one row per run) and prints a markdown table of the pairs and the mean change with
 its standard error over the seeds.
 """
@@ -35,6 +36,8 @@ from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))  # neulf_core from this checkout, installed or not
+sys.path.insert(0, str(REPO / "benchmarks"))
+from seed_scatter import parse_seeds as seed_list  # noqa: E402  ("0-7", "0,1" or a mix)
 DOCS = REPO / "docs"
 SCENES = {"canclip": 0.5, "statue": 0.5}  # the scenes (folders under --data) and the scale each trains at
 SETTINGS = {"on": True, "off": False}
@@ -124,15 +127,6 @@ def write_rows(path: Path, rows: list[dict]) -> None:
         writer = csv.DictWriter(handle, fieldnames=list(rows[0]))
         writer.writeheader()
         writer.writerows(rows)
-
-
-def seed_list(text: str) -> list[int]:
-    """"0,1" or "0-7" (or a mix) as a list of seeds."""
-    seeds = []
-    for part in text.split(","):
-        first, _, last = part.partition("-")
-        seeds += list(range(int(first), int(last or first) + 1))
-    return seeds
 
 
 def machine_name(device: str | None) -> str:

@@ -9,8 +9,8 @@ variant (model x precision x with/without depth) renders through `LightField.ren
 call the Blender layer makes, so a frame ends as RGB (and depth) arrays in host memory.  Three
 warm-up frames, then `--repeats` timed ones, variants interleaved so a slow spell of the
 machine hits them alike; the median is reported.  `--pixel-samples` renders each pixel as the
-mean of that many points (the CLI's and Blender's default is 4; `LightField.render`'s own is 1).  Appends to docs/render_fps.csv (or --out) and
-prints a markdown table.
+mean of that many points (the CLI's and Blender's default is 4; `LightField.render`'s own is 1).
+Appends to docs/render_fps.csv (or --out) and prints a markdown table.
 """
 
 from __future__ import annotations
