@@ -1277,7 +1277,7 @@ def parse_args(argv=None) -> argparse.Namespace:
     parser.add_argument("--fern", type=Path, default=FERN)
     parser.add_argument("--fern-scale", type=float, default=0.5, help="of fern's 504x378 images_8")
     parser.add_argument("--losses-minutes", type=float, default=1.0, help="the losses study's equal wall-clock budget")
-    parser.add_argument("--losses-seeds", default="0,1")
+    parser.add_argument("--losses-seeds", default="0,1,2,3")
     parser.add_argument("--only", default="views,variants,exposure,pose,losses,coarse")
     parser.add_argument("--defaults-only", action="store_true",
                         help="only the default as a user runs it (no paper network, no rule forced on or off)")

@@ -26,7 +26,7 @@ from .render import LightField
 from .scene import Scene, load_scene, scaled_size, split_views
 from .slab import fit_slab
 from .train import (LOSSES_DECISION_STEP, TrainConfig, TrainResult, _emit, announce_default_losses, default_coarse_to_fine,
-                    default_consistency, default_depth_detail_reads, default_geometry_scales, default_geometry_tv,
+                    default_consistency, default_depth_detail_reads, default_geometry_tv,
                     default_max_passes, train)
 
 PRESET = "auto"
@@ -136,7 +136,7 @@ def train_auto(scene: Scene | str | Path, model_dir: str | Path, config: TrainCo
 def _final_model_defaults(scene: Scene, config: TrainConfig, progress) -> TrainConfig:
     """`config` with the view-count rules left to the default (train.default_consistency,
     train.default_coarse_to_fine, train.default_depth_detail_reads, train.default_geometry_tv,
-    train.default_geometry_scales, train.default_max_passes) decided once, for the final
+    train.default_max_passes) decided once, for the final
     model's training views: the search runs (fewer views: the validation views are carved
     out) train as the model will."""
     train_views, _ = split_views(scene, config.holdout_every, config.exclude)
@@ -144,8 +144,7 @@ def _final_model_defaults(scene: Scene, config: TrainConfig, progress) -> TrainC
         config = replace(config, coarse_to_fine=default_coarse_to_fine(len(train_views)))
     if config.max_passes is None:
         config = replace(config, max_passes=default_max_passes(len(train_views)))
-    rules = {"depth_detail_reads": default_depth_detail_reads, "tv_weight": default_geometry_tv,
-             "geometry_spatial_res": default_geometry_scales}
+    rules = {"depth_detail_reads": default_depth_detail_reads, "tv_weight": default_geometry_tv}
     chosen = {name: rule(len(train_views)) for name, rule in rules.items() if name not in config.field_overrides}
     config = replace(config, field_overrides={**config.field_overrides, **chosen})
     if config.consistency is None:

@@ -283,23 +283,6 @@ def default_depth_detail_reads(n_train_views: int) -> int:
     return 2 if n_train_views <= FEW_PHOTOS_MAX_VIEWS else 1
 
 
-# Few photos leave the geometry planes' finest cells to one photo's noise: there the planes'
-# scales are one octave coarser (16 / 32 / 64 cells across st instead of 32 / 64 / 128; the
-# depth detail, read over the texture's own coordinates, still gives a depth edge its place).
-# At the stability study's 1000 steps, seeds 0-3 (docs/STABILITY.md, forty-sixth session):
-# CanClip's 6 photos 34.92 -> 35.24 dB, its 13 36.26 -> 36.36; the synthetic scene's 4 / 7 / 10
-# photos +0.23 / +0.19 / +0.34.  With more photos not adopted: CanClip's 26 lost 0.06 dB (the
-# synthetic scene's 14 gained 0.34 and HCI's 18 0.13, seeds 0-2 / 0-1: the rule for every capture
-# waits on the product's budget).  Dropping the finest scale instead ([32, 64]): CanClip's 6
-# +0.22, 13 -0.03, 26 -0.12.
-FEW_PHOTOS_GEOMETRY_SCALES = (16, 32, 64)
-
-
-def default_geometry_scales(n_train_views: int) -> list[int]:
-    """The geometry planes' cells across st, coarse to fine, for this many training views."""
-    return list(FEW_PHOTOS_GEOMETRY_SCALES if n_train_views <= FEW_PHOTOS_MAX_VIEWS else DisparityConfig().geometry_spatial_res)
-
-
 # Few photos overfit their depth (the synthetic scene's 4 views at 2400 steps: training views
 # at 36.6 dB, held-out 28.3): a three times stronger total-variation prior on the geometry
 # planes there.  1000 steps, seeds 0 / 1 / 2, against 1e-3: the synthetic scene's 4 views
@@ -415,7 +398,6 @@ def _build_field(preset_name: str, overrides: dict, train_views, slab: Slab, sca
         use_ramp = coarse_to_fine if coarse_to_fine is not None else default_coarse_to_fine(n_train_views)
         options["geometry_coarse_to_fine"] = COARSE_TO_FINE if use_ramp else 0.0
         options["depth_detail_reads"] = default_depth_detail_reads(n_train_views)
-        options["geometry_spatial_res"] = default_geometry_scales(n_train_views)
         options["tv_weight"] = default_geometry_tv(n_train_views)
         if appearance:
             options.update(APPEARANCE_GEOMETRY)

@@ -46,7 +46,7 @@ def test_model_file_holds_8_bit_grids_and_renders_like_the_checkpoint(fast_model
     assert "textures.0" not in payload["state_dict"]
     assert payload["state_dict"]["decoder.0.weight"].dtype == torch.float32  # small tensors stay float32
     float32_bytes = sum(t.numel() * 4 for t in load_checkpoint(model_dir)["state_dict"].values())
-    # (under 0.35 before few photos got coarser geometry planes: this 8-photo scene's grids are
+    # (under 0.35 before the coarser geometry planes: this 8-photo scene's grids are
     # now a smaller share of its model, and its small tensors stay float32)
     assert small.stat().st_size < 0.5 * float32_bytes < full.stat().st_size
 
@@ -274,7 +274,7 @@ def test_auto_decides_coarse_to_fine_once_for_its_search_and_its_model(tiny_scen
 @pytest.mark.parametrize("max_views, expected", [(7, 2), (6, 1)])
 def test_auto_decides_the_depth_detail_reads_once_for_its_search_and_its_model(tiny_scene, tmp_path, monkeypatch,
                                                                                max_views, expected):
-    """The same for reading the depth detail twice, the geometry's smoothness prior and scales, and
+    """The same for reading the depth detail twice, the geometry's smoothness prior, and
     the pass limit: 7 training views, 6 in the search runs; the decoders learn at the preset's factor."""
     import neulf_core.train as train_module
 
@@ -288,13 +288,13 @@ def test_auto_decides_the_depth_detail_reads_once_for_its_search_and_its_model(t
     def recording(*args, **kwargs):
         field, preset = real(*args, **kwargs)
         reads.append((field.config.depth_detail_reads, field.config.tv_weight, field.config.decoder_lr_factor,
-                      field.config.geometry_spatial_res))
+                      field.config.geometry_spatial_res))  # the preset's for any count
         return field, preset
 
     monkeypatch.setattr(train_module, "_build_field", recording)
     train_auto(tiny_scene, tmp_path / "auto", fast_config(8, preset="auto", teacher=False))
     tv = train_module.FEW_VIEWS_GEOMETRY_TV if expected == 2 else 1e-3
-    scales = list(train_module.FEW_PHOTOS_GEOMETRY_SCALES) if expected == 2 else [32, 64, 128]
+    scales = FAST_FIELD["geometry_spatial_res"]
     assert reads == [(expected, tv, FAST_FIELD["decoder_lr_factor"], scales)] * 4  # 3 candidates and the final run
     assert passes == [train_module.FEW_PHOTOS_MAX_PASSES if expected == 2 else 0.0] * 4
     assert json.loads((tmp_path / "auto" / METADATA_NAME).read_text())["field_config"]["depth_detail_reads"] == expected

@@ -79,8 +79,30 @@ def test_speed_accuracy_reads_a_batch_from_the_method_name():
     assert bench.split_method("authors") == ("authors", None)
 
 
-def test_point_depth_benchmark_reads_seed_ranges_and_writes_rows(tmp_path):
-    bench = load("point_depth")
-    assert bench.seed_list("0-3,7") == [0, 1, 2, 3, 7] and bench.seed_list("2") == [2]
-    bench.write_rows(tmp_path / "sub" / "rows.csv", [{"scene": "s", "seed": 0, "psnr": 30.0}])
-    assert list(csv.DictReader(open(tmp_path / "sub" / "rows.csv"))) == [{"scene": "s", "seed": "0", "psnr": "30.0"}]
+def test_side_by_side_trains_both_settings_of_a_pair_and_scores_them(tiny_scene, tmp_path, capsys):
+    """benchmarks/side_by_side.py end to end on the tiny scene (3 steps a run, pinned cores):
+    one CSV row per setting, each trained as its JSON says, and the pair's change printed."""
+    import os
+
+    import pytest
+
+    bench = load("side_by_side")
+    bench.SCENES[tiny_scene.name] = (1.0, None)
+    out = tmp_path / "sub" / "pairs.csv"
+    bench.main(["--scenes", tiny_scene.name, "--data", str(tiny_scene.parent), "--steps", "3", "--seeds", "0",
+                "--baseline", 'coarse={"field_overrides": {"geometry_spatial_res": [4, 8]}, "point_depth": false}',
+                "--candidate", "default={}", "--out", str(out)])
+    rows = list(csv.DictReader(open(out)))
+    assert [(r["setting"], r["seed"], r["steps"]) for r in rows] == [("coarse", "0", "3"), ("default", "0", "3")]
+    assert all(0 < float(r["psnr"]) < 100 for r in rows)
+    if len(os.sched_getaffinity(0)) > 1:
+        assert rows[0]["core"] != rows[1]["core"]  # each run pinned to a core of its own
+    printed = capsys.readouterr().out
+    assert f"{tiny_scene.name}: mean change" in printed and "| coarse | default |" in printed
+    assert bench.parse_setting('off={"point_depth": false}') == ("off", {"point_depth": False})
+    for wrong in ("no-equals-sign", "x=[1]", "x={bad json"):
+        with pytest.raises(SystemExit):
+            bench.parse_setting(wrong)
+    with pytest.raises(SystemExit):
+        bench.main(["--scenes", "nowhere", "--baseline", "a={}"])
+    assert load("point_depth").main.__module__ == "side_by_side"  # the same script, its two settings fixed
