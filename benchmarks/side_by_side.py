@@ -23,7 +23,6 @@ import argparse
 import csv
 import json
 import os
-import platform
 import statistics
 import subprocess
 import sys
@@ -168,13 +167,15 @@ def write_rows(path: Path, rows: list[dict]) -> None:
 
 
 def machine_name(device: str | None) -> str:
-    """The CPU (and GPU, where one trained) the rows came from."""
-    machine = f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores"
-    if device and device.startswith("cuda"):
-        import torch
+    """The CPU's model name (and the GPU, where one trained), as the speed benchmark names them;
+    each run trains with one torch thread."""
+    import torch
 
-        machine += f", {torch.cuda.get_device_name(0)}"
-    return machine
+    from speed_accuracy import hardware
+
+    described = hardware(torch.device(device or "cpu"))
+    on_cpu = torch.device(device or "cpu").type == "cpu"
+    return described.rsplit(", ", 1)[0] + ", one torch thread a run" if on_cpu else described
 
 
 if __name__ == "__main__":

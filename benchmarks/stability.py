@@ -76,7 +76,7 @@ from neulf_core.render import LightField  # noqa: E402
 from neulf_core.scene import Scene, View, camera_spacing, find_model_dir, load_scene, scaled_size, split_views  # noqa: E402
 from neulf_core.teacher import TEACHER_FADE, teacher_fade  # noqa: E402
 from neulf_core.train import (COARSE_TO_FINE_MAX_VIEWS, CONSISTENCY_MAX_VIEWS, FAR_OFF_POSE_DEGREES,  # noqa: E402
-                              LOSSES_MIN_PASSES, SHALLOW_CONSISTENCY_MAX_VIEWS, SHALLOW_LOSSES_MIN_PASSES, TrainConfig,
+                              LOSSES_MIN_PASSES, TrainConfig,
                               losses_by_default, train)
 
 DOCS = REPO / "docs"
@@ -1029,7 +1029,7 @@ def tables_markdown(rows: list[dict], meta: dict) -> str:
         "", f"### The paper's multi-view losses with fewer views (fast; equal time, {meta.get('losses_minutes', 1.0):g} min "
         f"per run; seeds {meta.get('losses_seeds', '0,1')}; the default turns them on for deep scenes with at most "
         f"{CONSISTENCY_MAX_VIEWS} training views when the budget passes over their pixels at least {LOSSES_MIN_PASSES:g} "
-        f"times, for shallow ones with at most {SHALLOW_CONSISTENCY_MAX_VIEWS} at {SHALLOW_LOSSES_MIN_PASSES:g}, the passes "
+        "times, never for shallow ones, the passes "
         "counted at the step rate the run measures)", "", *losses_table(rows),
         "", f"### Coarse to fine with fewer views (fast; the default turns it on with at most {COARSE_TO_FINE_MAX_VIEWS} "
         "training views)", "", *coarse_table(rows),
