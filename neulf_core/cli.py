@@ -410,7 +410,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--far", type=float)
     p.add_argument("--consistency", action=argparse.BooleanOptionalAction, default=None,
                    help="the paper's multi-view photometric and depth losses (default: fast/auto turn them on for deep "
-                        "scenes with at most 13 training views when the budget passes over the training pixels at "
+                        "scenes with at most 20 training views when the budget passes over the training pixels at "
                         "least 20 times, where they were measured "
                         "to help; docs/DEPTH.md, docs/STABILITY.md)")
     p.add_argument("--appearance", action=argparse.BooleanOptionalAction, default=None,
