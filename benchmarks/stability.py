@@ -11,15 +11,16 @@ network (`paper`, about 50x slower per step on a CPU) on:
 - view-dependent effects: the synthetic scene in its Lambertian and shiny versions;
 - fine texture: the synthetic scene with high-frequency textures;
 - exposure: the synthetic scene rendered with each view's exposure jittered by up to one
-  stop, trained with and without per-view appearance compensation, scored against the
-  held-out views rendered at the nominal exposure;
+  stop, and CanClip's photos each brightened or darkened by up to one stop on linear light
+  (jitter_capture_exposures), trained with and without per-view appearance compensation,
+  scored against the held-out views at the nominal exposure;
 - pose noise: training poses rotated and shifted by increasing amounts (held-out poses exact);
 - the paper's multi-view losses off and on at equal wall-clock time (`--losses-minutes`) with
   fewer views, on the synthetic scene, fern and CanClip: where the default turns them on;
 - coarse to fine off, on the fewer-views runs with at most 13 training views (where the default
   turns it on);
 
-three seeds each (two for the losses study). Fixed step budgets and one torch thread per run, so
+three seeds each (four for the losses study). Fixed step budgets and one torch thread per run, so
 the numbers do not depend on how busy the (shared) machine is -- except the losses study, whose
 point is equal wall-clock time: run it on an otherwise idle machine (its off / on runs go side
 by side, one core each), and its runs stay out of the seed-spread target. Synthetic scenes are rendered once with
@@ -190,6 +191,34 @@ def render_synthetic(cache: Path, variant: str, jitter: float = 0.0) -> Path:
                "--exposure-jitter", str(jitter)]
     print("rendering:", " ".join(command[1:]), flush=True)
     subprocess.run(command, check=True, cwd=REPO, stdout=subprocess.DEVNULL)
+    return out
+
+
+def jitter_capture_exposures(cache: Path, source: Path, stops: float = 1.0, seed: int = 7) -> Path:
+    """A copy of a real capture whose photos each change exposure by a stop count drawn
+    uniformly in [-stops, stops] (seeded): a gain on linear light, clipped at white and saved
+    as 8-bit sRGB, as a camera's exposure changes a photo.  The model folder is copied as is
+    (same poses).  Made once into the cache."""
+    from PIL import Image
+
+    out = cache / "scenes" / f"{source.name}_jitter{stops:g}"
+    done = out / "exposures.json"
+    if done.is_file() and json.loads(done.read_text()).get("source") == str(source.resolve()):
+        return out
+    names = sorted(p.name for p in (source / "images").iterdir() if p.suffix.lower() in (".png", ".jpg", ".jpeg"))
+    drawn = np.random.default_rng(seed).uniform(-stops, stops, len(names))
+    if out.exists():
+        shutil.rmtree(out)
+    (out / "images").mkdir(parents=True)
+    shutil.copytree(source / "sparse", out / "sparse")
+    for name, k in zip(names, drawn):
+        srgb = np.asarray(Image.open(source / "images" / name).convert("RGB"), dtype=np.float64) / 255
+        linear = np.where(srgb <= 0.04045, srgb / 12.92, ((srgb + 0.055) / 1.055) ** 2.4)
+        linear = np.clip(linear * 2.0 ** k, 0.0, 1.0)
+        jittered = np.where(linear <= 0.0031308, 12.92 * linear, 1.055 * np.maximum(linear, 0.0031308) ** (1 / 2.4) - 0.055)
+        Image.fromarray(np.round(jittered * 255).astype(np.uint8)).save(out / "images" / (Path(name).stem + ".png"))
+    done.write_text(json.dumps({"source": str(source.resolve()), "stops": stops, "seed": seed,
+                                "exposures": dict(zip(names, np.round(drawn, 4).tolist()))}, indent=1))
     return out
 
 
@@ -537,7 +566,7 @@ def run_order(job: Job, jobs: list[Job]) -> tuple:
         return (4, job.seed, job.scene, job.fraction)
     if job.seed == first_seed:
         return (0, job.seed)
-    targeted = job.pose_degrees == 0 and (job.fraction in (1.0, 0.25) or job.scene.startswith("jitter"))
+    targeted = job.pose_degrees == 0 and (job.fraction in (1.0, 0.25) or "jitter" in job.scene)
     return (2 if targeted else 3, job.seed)
 
 
@@ -589,6 +618,9 @@ def plan(args, scenes: dict[str, Path]) -> list[Job]:
         add("lambertian", "fast", synth)
         add("jitter1", "fast", synth, truth="lambertian")
         add("jitter1", "fast", synth, truth="lambertian", appearance=None)  # the default: its rule turns it on
+        if "canclip_jitter1" in scenes:  # a real capture's photos, each a stop-jittered exposure of the original
+            add("canclip_jitter1", "fast", args.canclip_scale, truth="canclip")
+            add("canclip_jitter1", "fast", args.canclip_scale, truth="canclip", appearance=None)
     if "pose" in studies:
         # The default (its pose check), and refinement forced on and off; on CanClip, a real
         # capture, 0° is COLMAP's own poses.
@@ -632,7 +664,7 @@ def is_default_run(job: Job) -> bool:
     left to decide (the nominal captures' colour transform is forced off, which is what its
     rule decides there; the jittered photos' is the rule's), no rule forced on or off."""
     forced = (job.refine_poses is not None or job.consistency is not None or job.coarse_to_fine is not None
-              or job.minutes or (job.scene.startswith("jitter") and job.appearance is not None) or job.appearance)
+              or job.minutes or ("jitter" in job.scene and job.appearance is not None) or job.appearance)
     return job.preset == "fast" and not forced
 
 
@@ -711,18 +743,25 @@ def variants_table(rows: list[dict]) -> list[str]:
     return lines
 
 
+# The exposure study's captures: (label, the nominal scene, its exposure-jittered copy).
+EXPOSURE_SCENES = (("synthetic scene", "lambertian", "jitter1"), ("CanClip (real photos)", "canclip", "canclip_jitter1"))
+
+
 def exposure_table(rows: list[dict]) -> list[str]:
-    lines = ["| trained on | compensation | held-out PSNR (vs nominal exposure) | cost | gain/offset fitted on the left half, "
-             "PSNR of the right half (NeRF-W) | cost | colour-matched on the whole photo | cost |",
-             "|---|---|---|---|---|---|---|---|"]
-    nominal = group(rows, **base("lambertian", "fast"))
-    for scene, appearance, label in (("lambertian", False, "nominal exposure"), ("jitter1", False, "exposure ±1 stop"),
-                                     ("jitter1", None, "exposure ±1 stop")):
-        c = group(rows, **base(scene, "fast", appearance=appearance))
-        costs = [cost_text(nominal, c, column) if scene != "lambertian" else "-"
-                 for column in ("psnr", "psnr_half_fit", "psnr_matched")]
-        lines.append(f"| {label} | {compensation_text(appearance, c)} | {cell(c)} | {costs[0]} | "
-                     f"{cell(c, 'psnr_half_fit')} | {costs[1]} | {cell(c, 'psnr_matched')} | {costs[2]} |")
+    lines = ["| scene | trained on | compensation | held-out PSNR (vs nominal exposure) | cost | gain/offset fitted on the "
+             "left half, PSNR of the right half (NeRF-W) | cost | colour-matched on the whole photo | cost |",
+             "|---|---|---|---|---|---|---|---|---|"]
+    for name, nominal_scene, jittered in EXPOSURE_SCENES:
+        nominal = group(rows, **base(nominal_scene, "fast"))
+        if not group(rows, **base(jittered, "fast", appearance=None)):
+            continue
+        for scene, appearance, label in ((nominal_scene, False, "nominal exposure"), (jittered, False, "exposure ±1 stop"),
+                                         (jittered, None, "exposure ±1 stop")):
+            c = group(rows, **base(scene, "fast", appearance=appearance))
+            costs = [cost_text(nominal, c, column) if scene != nominal_scene else "-"
+                     for column in ("psnr", "psnr_half_fit", "psnr_matched")]
+            lines.append(f"| {name} | {label} | {compensation_text(appearance, c)} | {cell(c)} | {costs[0]} | "
+                         f"{cell(c, 'psnr_half_fit')} | {costs[1]} | {cell(c, 'psnr_matched')} | {costs[2]} |")
     return lines
 
 
@@ -739,6 +778,30 @@ def compensation_text(appearance: bool | None, rows: list[dict]) -> str:
 def cost_text(reference: list[dict], rows: list[dict], column: str) -> str:
     a, b = stats(reference, column), stats(rows, column)
     return f"{a['mean'] - b['mean']:.2f} dB" if a and b else "-"
+
+
+def exposure_targets(rows: list[dict], name: str, nominal_scene: str, jittered: str) -> list[str]:
+    """The exposure target's lines for one capture (none where its jittered runs are missing)."""
+    nominal_rows = group(rows, **base(nominal_scene, "fast"))
+    comp_rows = group(rows, **base(jittered, "fast", appearance=None))
+    nominal, comp, plain = stats(nominal_rows), stats(comp_rows), stats(group(rows, **base(jittered, "fast")))
+    out = []
+    if nominal and plain:
+        out.append(f"- exposure ±1 stop without compensation, {name}: {nominal['mean'] - plain['mean']:.2f} dB lost")
+    if nominal and comp:
+        cost = nominal["mean"] - comp["mean"]
+        out.append(f"- exposure ±1 stop with compensation, {name}, rendered as is against the nominal exposure: "
+                   f"{cost:.2f} dB lost (target ≤ 0.5): {'met' if cost <= 0.5 else 'MISSED'}; after a per-channel colour "
+                   f"fit to each held-out photo: {cost_text(nominal_rows, comp_rows, 'psnr_matched')} lost")
+        nominal_half, comp_half = stats(nominal_rows, "psnr_half_fit"), stats(comp_rows, "psnr_half_fit")
+        if nominal_half and comp_half:
+            half_cost = nominal_half["mean"] - comp_half["mean"]
+            out.append(f"- exposure ±1 stop with compensation, {name}, NeRF-W protocol (gain and offset fitted on the "
+                       f"left half of each held-out photo, PSNR of the right half, the nominal model scored alike): "
+                       f"{half_cost:.2f} dB lost (target ≤ 0.5): {'met' if half_cost <= 0.5 else 'MISSED'}")
+    elif nominal:
+        out.append(f"- exposure with compensation, {name}: not measured")
+    return out
 
 
 def pose_table(rows: list[dict]) -> list[str]:
@@ -931,27 +994,8 @@ def targets(rows: list[dict]) -> list[str]:
             widest = "; ".join(f"{describe(m)}: {s:.2f}" for s, m in sorted(fitted, key=lambda x: -x[0])[:3] if s > 0.2)
             out.append(f"  - the default's pose-noise configurations scored with the held-out poses fitted (BARF's "
                        f"protocol): {within} of {len(fitted)} within 0.2 dB" + (f" (widest: {widest})" if widest else ""))
-    nominal = stats(group(rows, **base("lambertian", "fast")))
-    comp = stats(group(rows, **base("jitter1", "fast", appearance=None)))
-    plain = stats(group(rows, **base("jitter1", "fast")))
-    matched_cost = cost_text(group(rows, **base("lambertian", "fast")),
-                             group(rows, **base("jitter1", "fast", appearance=None)), "psnr_matched")
-    nominal_half = stats(group(rows, **base("lambertian", "fast")), "psnr_half_fit")
-    comp_half = stats(group(rows, **base("jitter1", "fast", appearance=None)), "psnr_half_fit")
-    if nominal and plain:
-        out.append(f"- exposure ±1 stop without compensation: {nominal['mean'] - plain['mean']:.2f} dB lost")
-    if nominal and comp:
-        cost = nominal["mean"] - comp["mean"]
-        out.append(f"- exposure ±1 stop with compensation, rendered as is against the nominal exposure: {cost:.2f} dB "
-                   f"lost (target ≤ 0.5): {'met' if cost <= 0.5 else 'MISSED'}; after a per-channel colour fit to each "
-                   f"held-out photo: {matched_cost} lost")
-        if nominal_half and comp_half:
-            half_cost = nominal_half["mean"] - comp_half["mean"]
-            out.append(f"- exposure ±1 stop with compensation, NeRF-W protocol (gain and offset fitted on the left half "
-                       f"of each held-out photo, PSNR of the right half, the nominal model scored alike): {half_cost:.2f} "
-                       f"dB lost (target ≤ 0.5): {'met' if half_cost <= 0.5 else 'MISSED'}")
-    elif nominal:
-        out.append("- exposure with compensation: not measured (TrainConfig.appearance not available)")
+    for name, nominal_scene, jittered in EXPOSURE_SCENES:
+        out += exposure_targets(rows, name, nominal_scene, jittered)
     crashed = sum(r.get("status") == "crashed" for r in rows)
     warned = sum(int(r.get("warnings", 0)) for r in rows)
     nonfinite = sum(int(r.get("nonfinite_pixels", 0) or 0) for r in rows)
@@ -1337,6 +1381,7 @@ def main(argv=None) -> None:
           f"stops, mean {exposure['mean_stops']:+.2f}", flush=True)
     if args.canclip.is_dir():
         scenes["canclip"] = args.canclip
+        scenes["canclip_jitter1"] = jitter_capture_exposures(args.cache, args.canclip)
     if args.hci.is_dir():
         scenes["hci"] = args.hci
     if args.fern.is_dir():

@@ -8,6 +8,12 @@ the field's output during training only; at render time the field's own colour i
 transforms are centred on the identity (their mean is fixed), which pins the otherwise free
 global colour to the average photo, and a small penalty keeps each near identity
 (NeRF-in-the-wild uses per-image embeddings for the same job).
+
+The transform acts on linear light (the sRGB curve undone, applied, and redone, with the
+photo's clipping at white), since an exposure or white-balance change is a gain on linear
+light, not on sRGB values; and each photo's gain, in stops, starts at its measured exposure,
+so the field does not first learn the exposures into its colours and geometry.  Runs saved
+before keep the sRGB-space transform they were trained with (`linear_light` False).
 """
 
 from __future__ import annotations
@@ -30,29 +36,71 @@ from .scene import camera_gaps
 # +1.15 / +1.16 dB as rendered but nothing under NeRF-in-the-wild's protocol (+0.22 / -0.12),
 # at 0.5 stops +2.75 / +2.54 as rendered and +0.30 / +0.23 under the protocol.  So the threshold
 # stays well above where fixed exposures and changing content lie (docs/STABILITY.md, "Exposure").
+# (Those costs are the sRGB-space transform's; the linear-light one forced on for CanClip's fixed
+# exposure costs less: 1000 steps, seeds 0 / 1, 36.37 -> 35.94 / 35.84 dB, against 35.01 / 34.83.)
 EXPOSURE_DIFFERENCE_STOPS = 0.1
 
 
+def srgb_to_linear(srgb: torch.Tensor) -> torch.Tensor:
+    """sRGB values in [0, 1] (clamped) to linear light."""
+    srgb = srgb.clamp(0.0, 1.0)
+    return torch.where(srgb <= 0.04045, srgb / 12.92, ((srgb + 0.055) / 1.055) ** 2.4)
+
+
+def linear_to_srgb(linear: torch.Tensor) -> torch.Tensor:
+    """Linear light to sRGB values, clipped to [0, 1] as a photo's pixels are.  (The power
+    branch reads a value kept above its threshold, so its gradient stays finite at zero.)"""
+    linear = linear.clamp(0.0, 1.0)
+    return torch.where(linear <= 0.0031308, linear * 12.92, 1.055 * linear.clamp(min=0.0031308) ** (1 / 2.4) - 0.055)
+
+
 class ViewAppearance(nn.Module):
-    def __init__(self, n_views: int, identity_weight: float = 1e-3):
+    """Per photo: a gain in stops (`stops`, linear light only) times a colour matrix, plus an
+    offset.  The gains are centred in stops, so the field renders at the photos' typical
+    exposure (their mean in stops: the capture's middle exposure); the matrices and offsets
+    are centred on the identity, so it renders the average photo's colour balance."""
+
+    def __init__(self, n_views: int, identity_weight: float = 1e-3, linear_light: bool = True):
         super().__init__()
         self.matrix = nn.Parameter(torch.eye(3).repeat(n_views, 1, 1))
         self.offset = nn.Parameter(torch.zeros(n_views, 3))
+        if linear_light:
+            self.stops = nn.Parameter(torch.zeros(n_views))
         self.identity_weight = identity_weight
+        self.linear_light = linear_light
+
+    def start_from_exposures(self, exposures: np.ndarray) -> None:
+        """Each photo's gain set to its measured exposure (stops, photo_exposures).  Neighbouring
+        photos of a forward-facing capture see nearly the same things, so this is mostly the
+        exposure; what is the scene's own brightness the training takes back out.  Without this
+        start the field first learns the exposures into its colours and depth (the jittered
+        synthetic scene's 14 photos, 1000 steps: NeRF-W's protocol 28.07 dB without it, even at
+        five times the learning rate, 28.4-28.5 with it; docs/STABILITY.md)."""
+        if not self.linear_light:
+            raise ValueError("the exposure start is for the linear-light transform")
+        with torch.no_grad():
+            self.stops.copy_(torch.as_tensor(np.asarray(exposures, dtype=np.float64), dtype=self.stops.dtype))
 
     def transforms(self) -> tuple[torch.Tensor, torch.Tensor]:
-        """The per-photo (matrix, offset), centred so that their mean is the identity: the
-        field's own colours (what renders) are then the average photo's, not whatever
-        global colour the optimiser happened to drift to."""
+        """The per-photo (matrix, offset), the gain folded into the matrix, centred so that the
+        field's own colours (what renders) are the typical photo's, not whatever global colour
+        the optimiser happened to drift to."""
         eye = torch.eye(3, device=self.matrix.device)
-        return self.matrix - self.matrix.mean(0) + eye, self.offset - self.offset.mean(0)
+        matrix = self.matrix - self.matrix.mean(0) + eye
+        if self.linear_light:
+            matrix = matrix * torch.exp2(self.stops - self.stops.mean())[:, None, None]
+        return matrix, self.offset - self.offset.mean(0)
 
     def forward(self, rgb: torch.Tensor, view_index: torch.Tensor) -> torch.Tensor:
         """(N, 3) field colours seen through the photos' transforms of `view_index` (N,)."""
         matrix, offset = self.transforms()
-        return torch.bmm(rows_of(matrix, view_index), rgb.unsqueeze(-1)).squeeze(-1) + rows_of(offset, view_index)
+        colour = srgb_to_linear(rgb) if self.linear_light else rgb
+        seen = torch.bmm(rows_of(matrix, view_index), colour.unsqueeze(-1)).squeeze(-1) + rows_of(offset, view_index)
+        return linear_to_srgb(seen) if self.linear_light else seen
 
     def regularisation(self) -> torch.Tensor:
+        """A pull of the colour matrices and offsets toward the identity (not of the gains:
+        an exposure can be anything, and their centring fixes the global brightness)."""
         eye = torch.eye(3, device=self.matrix.device)
         return self.identity_weight * (((self.matrix - eye) ** 2).mean() + (self.offset ** 2).mean())
 
@@ -60,8 +108,7 @@ class ViewAppearance(nn.Module):
 def photo_exposures(rgb: torch.Tensor, view_index: torch.Tensor, n_views: int) -> np.ndarray:
     """(n_views,) each photo's exposure in stops: log2 of its mean linear luminance.
     `rgb`: (N, 3) uint8 training colours (sRGB), `view_index`: (N,) their photos."""
-    srgb = rgb.float() / 255.0
-    linear = torch.where(srgb <= 0.04045, srgb / 12.92, ((srgb + 0.055) / 1.055) ** 2.4)
+    linear = srgb_to_linear(rgb.float() / 255.0)
     luminance = linear @ torch.tensor([0.2126, 0.7152, 0.0722], device=linear.device)
     index = view_index.long()
     sums = torch.zeros(n_views, device=luminance.device).index_add_(0, index, luminance)

@@ -423,6 +423,19 @@ def _build_field(preset_name: str, overrides: dict, train_views, slab: Slab, sca
     return build_field(preset.field, config), preset
 
 
+def _view_appearance(n_views: int, exposures: np.ndarray, resumed: dict | None) -> ViewAppearance:
+    """The per-photo colour transforms: a resumed run's as saved (in the colour space it was
+    trained in: runs saved before the linear-light transform have no flag), a new run's
+    starting from the photos' measured exposures."""
+    if resumed and resumed.get("appearance"):
+        appearance = ViewAppearance(n_views, linear_light=bool(resumed.get("appearance_linear_light")))
+        appearance.load_state_dict(resumed["appearance"])
+        return appearance
+    appearance = ViewAppearance(n_views)
+    appearance.start_from_exposures(exposures)
+    return appearance
+
+
 def _optimizer(field_module, lr: float, beta2: float, appearance: ViewAppearance | None = None,
                poses: PoseRefinement | None = None) -> torch.optim.Optimizer:
     groups = field_module.param_groups(lr) if hasattr(field_module, "param_groups") else [{"params": field_module.parameters(), "lr": lr}]
@@ -519,7 +532,8 @@ def _train(scene, model_dir: Path, config: TrainConfig, images_dir, resume: bool
                               on_view=lambda i, n, v: _emit(progress, event="loading", message=f"rays of {v.name}", done=i + 1, total=n))
     train_rays = train_rays.to(device)
     val_rays = build_rayset(held_views, slab, config.scale).subset(VALIDATION_RAYS, generator).to(device) if held_views else None
-    exposure_stops = exposure_difference(photo_exposures(train_rays.rgb, train_rays.view_index, len(train_views)),
+    exposures = photo_exposures(train_rays.rgb, train_rays.view_index, len(train_views))
+    exposure_stops = exposure_difference(exposures,
                                          np.stack([v.center for v in train_views]))
     exposures_differ = appearance_by_default(exposure_stops)
     if config.appearance is None:
@@ -537,9 +551,7 @@ def _train(scene, model_dir: Path, config: TrainConfig, images_dir, resume: bool
         field_module, preset = _build_field(config.preset, config.field_overrides, train_views, slab, config.scale,
                                             config.appearance, config.coarse_to_fine)
     field_module.to(device).train()
-    appearance = ViewAppearance(len(train_views)).to(device) if config.appearance else None
-    if appearance is not None and resumed and resumed.get("appearance"):
-        appearance.load_state_dict(resumed["appearance"])
+    appearance = _view_appearance(len(train_views), exposures, resumed).to(device) if config.appearance else None
     batch = config.batch_size or preset.batch_size
     n_rays = len(train_rays)
     step_limit = pass_step_limit(config, field_module.field_name, len(train_views), n_rays, batch)
@@ -618,6 +630,7 @@ def _train(scene, model_dir: Path, config: TrainConfig, images_dir, resume: bool
         payload = {**meta, "state_dict": field_module.state_dict(), "optimizer": optimizer.state_dict(),
                    **({TRAINING_STATE_KEY: before_fill} if before_fill is not None else {}),
                    "appearance": appearance.state_dict() if appearance is not None else None,
+                   "appearance_linear_light": appearance.linear_light if appearance is not None else None,
                    "poses": poses.state_dict() if poses is not None else None,
                    "rng": {"torch": torch.get_rng_state(), "generator": generator.get_state()},
                    "progress": {"step": step, "elapsed": elapsed, "status": status, "val_psnr": val, "history": history}}

@@ -143,16 +143,91 @@ def test_appearance_transforms_average_to_identity():
     """The per-photo transforms are centred: a global colour change cannot drift into them."""
     from neulf_core.appearance import ViewAppearance
 
+    from neulf_core.appearance import linear_to_srgb, srgb_to_linear
+
+    for linear_light in (True, False):
+        appearance = ViewAppearance(4, linear_light=linear_light)
+        with torch.no_grad():
+            appearance.matrix.mul_(torch.tensor([1.5, 0.5, 1.2, 0.9]).view(4, 1, 1))
+            appearance.offset.add_(0.03)
+            if linear_light:  # gains in stops, centred on their mean
+                appearance.stops.add_(torch.tensor([0.7, -0.2, 0.4, 0.3]))
+        matrix, offset = appearance.transforms()
+        if linear_light:
+            gain = torch.tensor([0.4, -0.5, 0.1, 0.0]).exp2().view(4, 1, 1)
+            assert torch.allclose((matrix / gain).mean(0), torch.eye(3), atol=1e-6)
+        else:
+            assert torch.allclose(matrix.mean(0), torch.eye(3), atol=1e-6)
+        assert torch.allclose(offset.mean(0), torch.zeros(3), atol=1e-6)
+        rgb = torch.rand(8, 3)
+        views = torch.arange(8) % 4
+        if linear_light:
+            expected = linear_to_srgb(torch.einsum("nij,nj->ni", matrix[views], srgb_to_linear(rgb)) + offset[views])
+        else:
+            expected = torch.einsum("nij,nj->ni", matrix[views], rgb) + offset[views]
+        assert torch.allclose(appearance(rgb, views), expected, atol=1e-6)
+
+
+def test_the_linear_light_transform_is_an_exposure_change_and_starts_at_the_measured_exposures():
+    """A photo k stops brighter is sRGB(2^k * linear), clipped at white: a gain on linear light,
+    which the transform represents exactly (a gain on sRGB values does not), and its start
+    reads the gains from the photos themselves."""
+    from neulf_core.appearance import ViewAppearance, linear_to_srgb, photo_exposures, srgb_to_linear
+
+    srgb = torch.linspace(0.0, 1.0, 256)
+    assert torch.allclose(linear_to_srgb(srgb_to_linear(srgb)), srgb, atol=1e-5)
+
+    rng = np.random.default_rng(1)
+    field_colour = torch.from_numpy(rng.uniform(0.02, 0.9, (600, 3))).float()
+    stops = np.array([0.0, -1.0, 1.0, 0.5])
+    photos = [linear_to_srgb(srgb_to_linear(field_colour) * 2.0 ** k) for k in stops]  # +1 stop clips the bright ones
+    views = torch.arange(4).repeat_interleave(len(field_colour))
+    rgb = torch.cat([field_colour] * 4)
+    exposures = photo_exposures((torch.cat(photos) * 255).round().to(torch.uint8), views, 4)
+
     appearance = ViewAppearance(4)
-    with torch.no_grad():
-        appearance.matrix.mul_(torch.tensor([1.5, 0.5, 1.2, 0.9]).view(4, 1, 1))
-        appearance.offset.add_(0.3)
-    matrix, offset = appearance.transforms()
-    assert torch.allclose(matrix.mean(0), torch.eye(3), atol=1e-6) and torch.allclose(offset.mean(0), torch.zeros(3), atol=1e-6)
-    rgb = torch.rand(8, 3)
-    views = torch.arange(8) % 4
-    expected = torch.einsum("nij,nj->ni", matrix[views], rgb) + offset[views]
-    assert torch.allclose(appearance(rgb, views), expected, atol=1e-6)
+    appearance.start_from_exposures(exposures)
+    seen = appearance(rgb, views).detach()
+    # The start's gains are the photos' exposures against each other (the clipped photo reads a
+    # little darker than +1 stop), centred in stops: the field's colour is the photos' at their
+    # mean exposure, and the transform reproduces each photo from it...
+    gains = torch.diagonal(appearance.transforms()[0].detach(), dim1=1, dim2=2)
+    assert torch.allclose(gains, gains[:, :1].expand(4, 3)) and float(torch.log2(gains[:, 0]).mean()) == pytest.approx(0.0, abs=1e-6)
+    read = np.log2(gains[:, 0].numpy() / float(gains[0, 0]))
+    assert np.allclose(read[[0, 1, 3]], stops[[0, 1, 3]], atol=0.02) and 0.7 < read[2] < 1.0
+    centred = [linear_to_srgb(srgb_to_linear(field_colour) * 2.0 ** (k - read.mean())) for k in read]
+    for view in (0, 1, 3):  # (not the clipped one)
+        assert float((seen[views == view] - centred[view]).abs().max()) < 0.03, view
+    # ...where a gain on sRGB values misses: the best single sRGB gain for one stop darker.
+    darker = centred[1]
+    best_gain = float((darker * field_colour).sum() / (field_colour * field_colour).sum())
+    assert float((best_gain * field_colour - darker).abs().max()) > 3 * float((seen[views == 1] - darker).abs().max())
+
+
+def test_a_run_saved_with_the_srgb_space_transform_resumes_in_it(tiny_scene, tmp_path, monkeypatch):
+    """Checkpoints written before the linear-light transform carry no flag: their transforms
+    were learned on sRGB values, and resuming keeps them there; a new run saves the flag."""
+    import neulf_core.train as train_module
+    from neulf_core.appearance import ViewAppearance
+    from neulf_core.train import TrainConfig, train
+
+    config = TrainConfig(preset="fast", steps=3, appearance=True, batch_size=256, validate_seconds=1e9,
+                         field_overrides={"texture_size": [32, 32]}, teacher=False)
+    train(tiny_scene, tmp_path / "new", config)
+    assert torch.load(tmp_path / "new" / "checkpoint.pt", weights_only=False)["appearance_linear_light"] is True
+
+    with monkeypatch.context() as patch:  # a run as the code before saved it
+        patch.setattr(train_module, "_view_appearance", lambda n, exposures, resumed: ViewAppearance(n, linear_light=False))
+        train(tiny_scene, tmp_path / "old", config)
+    path = tmp_path / "old" / "checkpoint.pt"
+    payload = torch.load(path, weights_only=False)
+    del payload["appearance_linear_light"]
+    torch.save(payload, path)
+    config.steps = 5
+    resumed = train(tiny_scene, tmp_path / "old", config, resume=True)
+    assert resumed.step == 5 and np.isfinite(resumed.val_psnr)
+    payload = torch.load(path, weights_only=False)
+    assert payload["appearance_linear_light"] is False and "stops" not in payload["appearance"]
 
 
 def test_losses_by_default_only_for_up_to_20_photos_of_a_deep_scene():

@@ -294,18 +294,19 @@ def test_members_that_refined_their_poses_apart_are_run_again(stability, tiny_sc
     assert stability.load_log(log) == {}
 
 
-def test_the_default_only_plan_is_the_35_configurations_a_user_runs_in_their_order(stability, tmp_path):
+def test_the_default_only_plan_is_the_36_configurations_a_user_runs_in_their_order(stability, tmp_path):
     """--defaults-only keeps the fast preset with no rule forced (the paper's network, forced
     pose refinement and the forced-off colour transforms of the jittered photos go), three
     seeds each; --by-configuration runs each configuration's seeds together; --scenes keeps
     the named scenes only."""
     args = stability.parse_args(["--defaults-only", "--only", "views,variants,exposure,pose"])
-    scenes = {name: tmp_path / name for name in ("lambertian", "shiny", "fine", "jitter1", "canclip", "hci")}
+    scenes = {name: tmp_path / name for name in ("lambertian", "shiny", "fine", "jitter1", "canclip", "canclip_jitter1", "hci")}
     jobs = stability.plan(args, scenes)
     configurations = {stability.replace(job, seed=0).key for job in jobs}
-    assert len(configurations) == 35 and len(jobs) == 105
+    assert len(configurations) == 36 and len(jobs) == 108
     assert all(job.preset == "fast" and job.refine_poses is None for job in jobs)
-    assert [job.appearance for job in jobs if job.scene == "jitter1"] == [None] * 3  # the rule's choice only
+    for jittered in ("jitter1", "canclip_jitter1"):
+        assert [job.appearance for job in jobs if job.scene == jittered] == [None] * 3  # the rule's choice only
     everything = stability.plan(stability.parse_args(["--only", "views,variants,exposure,pose"]), scenes)
     assert {job.key for job in jobs} == {job.key for job in everything if stability.is_default_run(job)}
 
@@ -315,7 +316,7 @@ def test_the_default_only_plan_is_the_35_configurations_a_user_runs_in_their_ord
         assert [job.seed for job in group] == [0, 1, 2]
         assert len({stability.replace(job, seed=0).key for job in group}) == 1
     seed_first = sorted(jobs, key=stability.job_order(jobs))
-    assert {job.seed for job in seed_first[:35]} == {0}  # the study's own order: every configuration once first
+    assert {job.seed for job in seed_first[:36]} == {0}  # the study's own order: every configuration once first
 
     only = stability.plan(stability.parse_args(["--defaults-only", "--only", "pose", "--scenes", "canclip"]), scenes)
     assert {job.scene for job in only} == {"canclip"} and len(only) == 12 * 3
@@ -343,6 +344,31 @@ def test_pack_copies_the_real_captures_at_their_training_scale(stability, tiny_s
         assert np.array_equal(a.load_image(0.5), b.load_image(1.0))
         assert np.allclose(a.scaled_camera(0.5).calibration_matrix(), b.scaled_camera(1.0).calibration_matrix())
     assert (tmp_path / "packed" / "scenes" / "lambertian_jitter1" / "ground_truth" / "cameras.json").is_file()
+
+
+def test_a_real_captures_exposures_jittered_as_a_camera_would(stability, tiny_scene, tmp_path):
+    """Each photo of the copy is the original brightened or darkened by its drawn stops on
+    linear light (photo_exposures reads them back), with the same model; made once, and made
+    again for another source."""
+    import torch
+
+    from neulf_core.appearance import photo_exposures
+    from neulf_core.scene import load_scene
+
+    out = stability.jitter_capture_exposures(tmp_path, tiny_scene)
+    drawn = json.loads((out / "exposures.json").read_text())["exposures"]
+    assert max(abs(k) for k in drawn.values()) <= 1.0 and len(set(drawn.values())) == len(drawn)
+    original, jittered = load_scene(tiny_scene), load_scene(out)
+    assert [v.name for v in original.views] == [v.name for v in jittered.views]
+    for a, b in zip(original.views, jittered.views):
+        assert np.allclose(a.camera.calibration_matrix(), b.camera.calibration_matrix()) and np.allclose(a.R, b.R)
+        both = torch.from_numpy(np.concatenate([a.load_image(1.0), b.load_image(1.0)]).reshape(-1, 3))
+        views = torch.arange(2).repeat_interleave(len(both) // 2)
+        before, after = photo_exposures(both, views, 2)
+        expected = drawn[a.image_path.name]
+        assert after - before == pytest.approx(expected, abs=0.15 if expected > 0 else 0.05), a.name  # (brightening clips)
+    stamp = (out / "exposures.json").stat().st_mtime_ns
+    assert stability.jitter_capture_exposures(tmp_path, tiny_scene) == out and (out / "exposures.json").stat().st_mtime_ns == stamp
 
 
 def test_the_fewer_views_target_states_its_standard_error(stability):
