@@ -66,6 +66,7 @@ import torch
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
+from neulf_core.appearance import linear_to_srgb, srgb_to_linear  # noqa: E402
 from neulf_core.errors import NeulfError  # noqa: E402
 from neulf_core.images import save_rgb  # noqa: E402
 from neulf_core.members import finished_members, members_by_rule, work_done  # noqa: E402
@@ -212,10 +213,8 @@ def jitter_capture_exposures(cache: Path, source: Path, stops: float = 1.0, seed
     (out / "images").mkdir(parents=True)
     shutil.copytree(source / "sparse", out / "sparse")
     for name, k in zip(names, drawn):
-        srgb = np.asarray(Image.open(source / "images" / name).convert("RGB"), dtype=np.float64) / 255
-        linear = np.where(srgb <= 0.04045, srgb / 12.92, ((srgb + 0.055) / 1.055) ** 2.4)
-        linear = np.clip(linear * 2.0 ** k, 0.0, 1.0)
-        jittered = np.where(linear <= 0.0031308, 12.92 * linear, 1.055 * np.maximum(linear, 0.0031308) ** (1 / 2.4) - 0.055)
+        srgb = torch.from_numpy(np.asarray(Image.open(source / "images" / name).convert("RGB"), dtype=np.float64) / 255)
+        jittered = linear_to_srgb(srgb_to_linear(srgb) * 2.0 ** k).numpy()  # (clipped at white)
         Image.fromarray(np.round(jittered * 255).astype(np.uint8)).save(out / "images" / (Path(name).stem + ".png"))
     done.write_text(json.dumps({"source": str(source.resolve()), "stops": stops, "seed": seed,
                                 "exposures": dict(zip(names, np.round(drawn, 4).tolist()))}, indent=1))
