@@ -57,3 +57,24 @@ def test_volume_baseline_learns_the_tiny_scene(view_dependence, tiny_scene):
     assert image.shape == target.shape and np.isfinite(image).all()
     flat = np.broadcast_to(target.reshape(-1, 3).mean(0), target.shape)
     assert psnr(image, target) > psnr(flat, target) + 8  # ~24 dB against ~13
+
+
+def logged_row(view_dependence, method, variant, seed, steps=1000, minutes=0.0, psnr=30.0, mask=27.0):
+    key = view_dependence.run_key(method, variant, seed, steps, None, minutes)
+    return {"key": key, "method": method, "variant": variant, "seed": seed, "steps": steps, "train_seconds": 40.0,
+            "render_seconds": 0.03, "parameters": 210_000, "psnr": psnr, "psnr_mask": mask, "psnr_outside": 32.0,
+            "psnr_per_view": "a=1/1;b=1/1"}
+
+
+def test_report_names_each_budget_and_pairs_the_seeds_of_a_drop(view_dependence):
+    rows = [logged_row(view_dependence, "volume", "lambertian", 0, steps=2400, psnr=33.0, mask=31.0),
+            logged_row(view_dependence, "light field", "lambertian", 0, psnr=30.0),
+            logged_row(view_dependence, "light field", "lambertian", 1, psnr=31.0),
+            logged_row(view_dependence, "light field", "shiny", 0, psnr=29.0, mask=26.0),
+            logged_row(view_dependence, "light field, equal time", "lambertian", 0, steps=1000, minutes=7.5)]
+    assert view_dependence.labels(rows) == ["light field, 1000 steps", "light field, 7.5 min", "volume, 2400 steps"]
+    # shiny has seed 0 only: its drop is against the Lambertian seed 0 (30.0), not the mean of 0 and 1
+    assert view_dependence.drop(rows, "light field, 1000 steps", "shiny", "psnr") == "-1.00"
+    assert view_dependence.drop(rows, "volume, 2400 steps", "shiny", "psnr") == "--"
+    text = view_dependence.table(rows)
+    assert "| light field, 1000 steps | 2 | 1000 |" in text and "30.50 ± 1.00" in text
