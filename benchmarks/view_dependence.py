@@ -283,18 +283,6 @@ def table(rows: list[dict]) -> str:
     return "\n".join(lines)
 
 
-def write_csv(rows: list[dict], path: Path) -> None:
-    import csv
-
-    path.parent.mkdir(parents=True, exist_ok=True)
-    with open(path, "w", newline="") as handle:
-        writer = csv.DictWriter(handle, fieldnames=CSV_COLUMNS, extrasaction="ignore")
-        writer.writeheader()
-        for row in rows:
-            writer.writerow({"label": label_of(row), **{k: round(v, 4) if isinstance(v, float) else v
-                                                         for k, v in row.items()}})
-
-
 BARS = [(v, "psnr") for v in VARIANTS] + [(v, "psnr_mask") for v in MASKED]
 
 
@@ -383,7 +371,7 @@ def add_far_scores(rows: list[dict], truths: dict, masks: dict, folder: Path) ->
 def report(args, rows: list[dict], scenes: dict[str, Path]) -> str:
     truths, masks, _ = held_out_truths(scenes, args.scale)
     add_far_scores(rows, truths, masks, args.cache / "view_dependence")
-    write_csv(rows, args.docs / "view_dependence.csv")
+    stability.write_csv([{"label": label_of(row), **row} for row in rows], args.docs / "view_dependence.csv", CSV_COLUMNS)
     chart(rows, truths, masks, args.cache / "view_dependence", args.docs / "view_dependence.png")
     machines = sorted({row["machine"] for row in rows})
     dates = sorted({row["date"] for row in rows})
