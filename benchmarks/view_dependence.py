@@ -43,7 +43,7 @@ import volume_baseline  # noqa: E402
 from neulf_core.images import save_rgb  # noqa: E402
 from neulf_core.metrics import psnr  # noqa: E402
 from neulf_core.render import LightField  # noqa: E402
-from neulf_core.slab import scene_depths, slab_frame  # noqa: E402
+from neulf_core.slab import fit_slab  # noqa: E402
 from neulf_core.train import train  # noqa: E402
 
 VARIANTS = ("lambertian", "shiny", "fine")
@@ -82,10 +82,7 @@ def shiny_mask(shiny: np.ndarray, lambertian: np.ndarray, threshold: float = MAS
 
 def masked_psnr(image: np.ndarray, target: np.ndarray, mask: np.ndarray) -> float:
     """PSNR over the pixels of `mask` only (nan when it is empty)."""
-    if not mask.any():
-        return float("nan")
-    error = float(np.mean((image[mask] - target[mask]) ** 2))
-    return float(10 * np.log10(1.0 / max(error, 1e-12)))
+    return psnr(image[mask], target[mask]) if mask.any() else float("nan")
 
 
 def score(images: dict[str, np.ndarray], truths: dict[str, np.ndarray], masks: dict[str, np.ndarray]) -> dict:
@@ -119,12 +116,11 @@ def light_field_images(job: stability.Job) -> tuple[dict, dict]:
 
 def volume_images(job: stability.Job, config: volume_baseline.VolumeConfig) -> tuple[dict, dict]:
     """Train the volume baseline on the job's training photos in the light field's slab frame
-    and depth range (neulf_core.slab.fit_slab's near and far), and render the held-out views."""
+    and depth range (the slab neulf_core.slab.fit_slab places), and render the held-out views."""
     scene, train_views, held = stability.prepare(job)
-    rotation, origin = slab_frame(train_views)
-    depths = scene_depths(scene, rotation, origin)
-    model, record = volume_baseline.train_volume(train_views, job.scale, rotation, origin, 0.9 * float(depths.min()),
-                                                 1.1 * float(depths.max()), replace(config, steps=job.steps), job.seed)
+    slab = fit_slab(scene, train_views, scale=job.scale)
+    model, record = volume_baseline.train_volume(train_views, job.scale, slab.rotation, slab.origin, slab.z_near,
+                                                 slab.z_far, replace(config, steps=job.steps), job.seed)
     started = time.perf_counter()
     images = {view.name: model.render_view(view, job.scale) for view in held}
     return images, {"steps": record["steps"], "train_seconds": record["seconds"],
@@ -141,17 +137,16 @@ def job_for(scenes: dict[str, Path], variant: str, seed: int, steps: int, scale:
                          colour_start=stability.preset_colour_start("fast"))
 
 
-def held_out_truths(scenes: dict[str, Path], scale: float) -> tuple[dict, dict, dict]:
-    """(truths per variant, masks, the held-out views) from the two versions' held-out photos."""
-    truths, held_views = {}, {}
+def held_out_truths(scenes: dict[str, Path], scale: float) -> tuple[dict, dict]:
+    """(truths per variant, masks) from the versions' held-out photos."""
+    truths = {}
     for variant in scenes:
         _, _, held = stability.prepare(job_for(scenes, variant, 0, 0, scale))
-        held_views[variant] = held
         truths[variant] = {v.name: v.load_image(scale).astype(np.float32) / 255.0 for v in held}
     if any(sorted(truths[variant]) != sorted(truths["lambertian"]) for variant in truths):
         raise SystemExit("the scene's versions hold out different photos: render them with the same grid")
     masks = {name: shiny_mask(truths["shiny"][name], truths["lambertian"][name]) for name in truths["shiny"]}
-    return truths, masks, held_views
+    return truths, masks
 
 
 def run_key(method: str, variant: str, seed: int, steps: int, config: dict | None, minutes: float = 0.0) -> str:
@@ -181,13 +176,12 @@ def load_runs(log: Path) -> dict:
     return {row["key"]: row for row in map(json.loads, log.read_text().splitlines())} if log.is_file() else {}
 
 
-def run_all(args, scenes: dict[str, Path]) -> list[dict]:
+def run_all(args, scenes: dict[str, Path], truths: dict, masks: dict) -> None:
+    """Train and score every run asked for that the log does not hold yet."""
     log = args.cache / "view_dependence" / "runs.jsonl"
     log.parent.mkdir(parents=True, exist_ok=True)
     done = load_runs(log)
-    truths, masks, _ = held_out_truths(scenes, args.scale)
     volume_config = volume_baseline.VolumeConfig()
-    rows = []
     for seed in args.seeds:
         for variant in args.variants:
             for method in args.methods:
@@ -195,7 +189,7 @@ def run_all(args, scenes: dict[str, Path]) -> list[dict]:
                 minutes = args.lf_minutes if method == "light field, equal time" else 0.0
                 config = asdict(replace(volume_config, steps=steps)) if method == "volume" else None
                 key = run_key(method, variant, seed, steps, config, minutes)
-                if key not in done and not args.report_only:
+                if key not in done:
                     torch.set_num_threads(args.threads)
                     job = job_for(scenes, variant, seed, steps, args.scale, minutes)
                     print(f"training: {method}, {variant}, seed {seed}, {minutes or steps} {'minutes' if minutes else 'steps'}",
@@ -211,9 +205,6 @@ def run_all(args, scenes: dict[str, Path]) -> list[dict]:
                     done[key] = row
                     print(f"  {row['psnr']:.2f} dB whole, {row['psnr_mask']:.2f} in the mask, "
                           f"{row['train_seconds']:.0f} s", flush=True)
-                if key in done:
-                    rows.append(done[key])
-    return rows
 
 
 def render_path(folder: Path, label: str, variant: str, seed: int, name: str) -> Path:
@@ -368,8 +359,7 @@ def add_far_scores(rows: list[dict], truths: dict, masks: dict, folder: Path) ->
         row["psnr_far"] = float(np.mean(scores)) if len(scores) == len(truths[row["variant"]]) else float("nan")
 
 
-def report(args, rows: list[dict], scenes: dict[str, Path]) -> str:
-    truths, masks, _ = held_out_truths(scenes, args.scale)
+def report(args, rows: list[dict], truths: dict, masks: dict) -> str:
     add_far_scores(rows, truths, masks, args.cache / "view_dependence")
     stability.write_csv([{"label": label_of(row), **row} for row in rows], args.docs / "view_dependence.csv", CSV_COLUMNS)
     chart(rows, truths, masks, args.cache / "view_dependence", args.docs / "view_dependence.png")
@@ -411,12 +401,14 @@ def main(argv=None) -> None:
     scenes = {variant: stability.render_synthetic(args.cache, variant) for variant in VARIANTS}
     if not set(args.variants) <= set(VARIANTS):
         raise SystemExit(f"--variants: choose among {', '.join(VARIANTS)}")
-    run_all(args, scenes)
+    truths, masks = held_out_truths(scenes, args.scale)
+    if not args.report_only:
+        run_all(args, scenes, truths, masks)
     rows = sorted(load_runs(args.cache / "view_dependence" / "runs.jsonl").values(),
                   key=lambda row: (label_order(label_of(row)), VARIANTS.index(row["variant"]), row["seed"]))
     if not rows:
         raise SystemExit("no runs logged yet: run without --report-only first")
-    print(report(args, rows, scenes))
+    print(report(args, rows, truths, masks))
 
 
 if __name__ == "__main__":
