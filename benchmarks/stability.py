@@ -67,6 +67,7 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 from neulf_core.appearance import linear_to_srgb, srgb_to_linear  # noqa: E402
+from neulf_core.checkpoint import load_for_render  # noqa: E402
 from neulf_core.errors import NeulfError  # noqa: E402
 from neulf_core.images import save_rgb  # noqa: E402
 from neulf_core.members import finished_members, members_by_rule, work_done  # noqa: E402
@@ -75,6 +76,7 @@ from neulf_core.poses import (POSE_CHECK_DEGREES, POSE_CHECK_STEP, POSE_CHECK_UN
                               POSE_SECOND_LOOK_DEGREES, POSE_SECOND_LOOK_STEP, fit_view_pose)
 from neulf_core.presets import get_preset  # noqa: E402
 from neulf_core.render import LightField  # noqa: E402
+from neulf_core.slab import fit_slab  # noqa: E402
 from neulf_core.scene import Scene, View, camera_spacing, find_model_dir, load_scene, scaled_size, split_views  # noqa: E402
 from neulf_core.teacher import TEACHER_FADE, teacher_fade  # noqa: E402
 from neulf_core.train import (COARSE_TO_FINE_MAX_VIEWS, CONSISTENCY_MAX_VIEWS, FAR_OFF_POSE_DEGREES,  # noqa: E402
@@ -427,6 +429,27 @@ def sweep_fade(preset: str, n_train_views: int) -> float | None:
     return teacher_fade(n_train_views) if get_preset(preset).teacher else None
 
 
+def trained_without_back_surface(row: dict) -> bool:
+    """Whether a logged run of a deep scene with the fast field was trained with one surface
+    (rows logged before the back surface existed have none, or an empty cell in the CSV): the
+    default now gives deep scenes a back surface (train.default_back_surface), so the study runs
+    it again."""
+    if row.get("back_surface") is not None or get_preset(row["preset"]).field != "disparity":
+        return False
+    return scene_is_deep(row["path"], row["scale"], row.get("fraction", 1.0))
+
+
+@lru_cache(maxsize=None)
+def scene_is_deep(path: str, scale: float, fraction: float) -> bool:
+    """Whether the slab of this share of the scene's training photos is deep (Slab.is_deep);
+    False where the scene is not on this machine (its logged runs then stay as they are)."""
+    try:
+        scene, train_views, _ = prepare(Job("", path, path, scale, "fast", 0, 0, fraction=fraction))
+    except NeulfError:
+        return False
+    return fit_slab(scene, train_views, scale=scale).is_deep
+
+
 def trained_with_another_fade(row: dict) -> bool:
     """Whether a logged run's sweep pull faded otherwise than the code now fades it for its
     photo count (rows logged before the fade depended on it faded over TEACHER_FADE): the
@@ -503,6 +526,7 @@ def run_job(job: Job, threads: int = 1) -> dict:
                        start_kept=kept, discarded_steps=discarded_steps, members=members,
                        member_poses=MEMBER_POSES if members > 1 else None)
             row.update(score_views(Path(model_dir), held, job.scale, fit_poses=in_pose_study(job)))
+            row["back_surface"] = bool(load_for_render(Path(model_dir))["field_config"].get("back_surface", False))
         row["status"] = result.status
     except Exception as exc:  # recorded and reported; the study goes on
         row["error"] = f"{type(exc).__name__}: {exc}"
@@ -1110,7 +1134,7 @@ def update_markdown(path: Path, tables: str, begin: str = MARKER_BEGIN, end: str
 CSV_COLUMNS = ["scene", "preset", "fraction", "pose_degrees", "appearance", "refine_poses", "consistency", "minutes",
                "coarse_to_fine", "colour_start", "coarse_to_fine_used", "appearance_used", "appearance_default", "exposure_difference_stops",
                "pose_check_refining", "pose_check_degrees", "pose_check_halfway", "field_restarted", "start_kept", "discarded_steps", "members",
-               "sweep_fade", "deep_scene", "multiview_losses", "pixel_jitter", "seed", "status", "psnr", "ssim",
+               "sweep_fade", "deep_scene", "multiview_losses", "back_surface", "pixel_jitter", "seed", "status", "psnr", "ssim",
                "psnr_matched", "psnr_half_fit", "psnr_pose_fitted", "pose_fit_degrees", "psnr_per_view", "train_views", "held_out", "steps", "steps_done", "train_seconds",
                "wall_seconds", "warnings", "warning_text", "nonfinite_pixels", "error", "scale", "path", "truth"]
 
@@ -1277,6 +1301,7 @@ def load_log(log: Path) -> dict:
         for line in log.read_text().splitlines():
             row = json.loads(line)
             if row.get("status") in ("finished", "crashed") and not trained_with_another_fade(row) \
+                    and not trained_without_back_surface(row) \
                     and not trained_with_other_members(row) and not trained_with_members_own_poses(row):
                 if "pose_check_refining" not in row:  # logged before the pose check: trained without refinement
                     row.setdefault("refine_poses", False)  # unless it says so

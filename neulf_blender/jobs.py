@@ -153,7 +153,7 @@ class TrainJob(ProcessJob):
                  images_dir: str | None = None, device: str | None = None, env: dict | None = None,
                  checkpoint_seconds: float | None = None, sweep_teacher: bool | None = None,
                  depth_layers: int = -1, appearance: bool | None = None, refine_poses: bool | None = None,
-                 stop_early: bool = True, two_starts: bool = True, members: int = 0):
+                 back_surface: bool | None = None, stop_early: bool = True, two_starts: bool = True, members: int = 0):
         argv = [python, "-m", "neulf_core", "train", scene_dir, "--out", model_dir, "--progress", "json"]
         argv += ["--steps", str(int(steps))] if steps else ["--minutes", repr(float(minutes or 5.0))]
         if resume:
@@ -170,6 +170,8 @@ class TrainJob(ProcessJob):
             argv.append("--appearance" if appearance else "--no-appearance")
         if refine_poses is not None and not resume:  # None: the trainer's pose check decides
             argv.append("--refine-poses" if refine_poses else "--no-refine-poses")
+        if back_surface is not None and not resume:  # None: the trainer's rule (deep scenes); a saved field keeps its own
+            argv.append("--back-surface" if back_surface else "--no-back-surface")
         if not two_starts and not resume:  # on: the trainer's rule (few photos, a budget that pays)
             argv.append("--no-two-starts")
         if members > 0 and not resume:  # 0: the trainer's rule; a model being continued keeps its own count

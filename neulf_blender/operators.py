@@ -289,7 +289,7 @@ def start_training(context, *, minutes=None, steps=None):
                         scale=props.train_scale, images_dir=abspath(props.images_dir) or None, device=device,
                         env=jobs.core_environment(extra), sweep_teacher=props.sweep_teacher,
                         depth_layers=props.depth_layers, appearance=CHOICE_OPTION[props.appearance],
-                        refine_poses=CHOICE_OPTION[props.refine_poses],
+                        refine_poses=CHOICE_OPTION[props.refine_poses], back_surface=CHOICE_OPTION[props.back_surface],
                         stop_early=props.stop_early, two_starts=props.two_starts, members=props.members)
     job.state["resumed_from"] = resumed_from
     props.model_dir = store_path(out)

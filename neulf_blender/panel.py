@@ -78,6 +78,7 @@ class NEULF_PT_main(bpy.types.Panel):
         row.prop(props, "depth_layers")
         col.prop(props, "appearance")
         col.prop(props, "refine_poses")
+        col.prop(props, "back_surface")
         row = col.row(align=True)
         row.prop(props, "stop_early")
         row.prop(props, "two_starts")

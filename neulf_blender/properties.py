@@ -32,6 +32,12 @@ POSE_CHOICES = [
     ("ON", "On", "Always learn a correction of each photo's camera pose"),
     ("OFF", "Off", "Never: the reconstruction's poses are exact"),
 ]
+# "Back Surface": likewise (Auto: on for deep scenes, far/near above 3).
+BACK_SURFACE_CHOICES = [
+    ("AUTO", "Auto", "A second surface behind each ray's first on deep scenes (far/near depth ratio above 3)"),
+    ("ON", "On", "Always: objects in front of a distant background, whatever the depth range"),
+    ("OFF", "Off", "Never: one surface per ray, about a quarter less time per step"),
+]
 # What an Auto / On / Off choice passes to the trainer (None: the trainer decides).
 CHOICE_OPTION = {"AUTO": None, "ON": True, "OFF": False}
 
@@ -66,6 +72,10 @@ class NeulfSceneSettings(bpy.types.PropertyGroup):
     refine_poses: EnumProperty(name="Refine Poses", default="AUTO", items=POSE_CHOICES,
                                description="Learn a small correction of each photo's camera pose, for captures whose "
                                            "reconstruction is off by a tenth of a degree or more")
+    back_surface: EnumProperty(name="Back Surface", default="AUTO", items=BACK_SURFACE_CHOICES,
+                               description="Let each ray see a surface behind its first, so the outlines of objects "
+                                           "in front of a background blend the two instead of ghosting in views "
+                                           "between the photos")
     stop_early: BoolProperty(name="Stop Early", default=True,
                              description="With at most 13 photos, end training once it has passed over their "
                                          "pixels 100 times, even before the time is up: more only memorises so few "

@@ -67,6 +67,8 @@ def cmd_train(args) -> int:
         raise NeulfError("--max-passes takes a number of passes (0: no limit).")
     if args.coarse_to_fine is not None and preset.field != "disparity":
         raise NeulfError("--coarse-to-fine / --no-coarse-to-fine apply to the fast and auto presets only.")
+    if args.back_surface is not None and preset.field != "disparity":
+        raise NeulfError("--back-surface / --no-back-surface apply to the fast and auto presets only.")
     config = TrainConfig(
         preset=args.preset, steps=args.steps, minutes=args.minutes, scale=args.scale, holdout_every=args.holdout_every,
         exclude=_names(args.exclude), seed=args.seed, checkpoint_seconds=args.checkpoint_seconds,
@@ -74,7 +76,8 @@ def cmd_train(args) -> int:
         st_depth=args.st_depth, near=args.near, far=args.far, device=args.device, batch_size=args.batch_size,
         consistency=args.consistency, appearance=args.appearance, teacher=args.sweep_teacher, point_depth=args.point_depth,
         field_overrides=overrides,
-        refine_poses=args.refine_poses, coarse_to_fine=args.coarse_to_fine, max_passes=args.max_passes,
+        refine_poses=args.refine_poses, coarse_to_fine=args.coarse_to_fine, back_surface=args.back_surface,
+        max_passes=args.max_passes,
         two_starts=args.two_starts, pixel_jitter=args.pixel_jitter, members=args.members,
     )
     stop = {"signal": None, "reader_gone": False}
@@ -436,6 +439,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--coarse-to-fine", action=argparse.BooleanOptionalAction, default=None,
                    help="fast/auto presets: fade the finer depth cells in over 80%% of the budget (default: on with "
                         "at most 13 training views, where it gains up to 0.4 dB; docs/STABILITY.md)")
+    p.add_argument("--back-surface", action=argparse.BooleanOptionalAction, default=None,
+                   help="fast/auto presets: a second surface behind each ray's first, so silhouettes blend the "
+                        "object's and the background's colours instead of ghosting (default: on for deep scenes, "
+                        "far/near above 3; about 1.35x the time a step; docs/STABILITY.md)")
     p.add_argument("--max-passes", type=float, metavar="N",
                    help="fast/auto presets: stop once the steps have passed over the training pixels N times, "
                         "whatever the budget (default: 100 with at most 13 training views, where more training "

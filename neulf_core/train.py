@@ -124,6 +124,8 @@ class TrainConfig:
                                         # refine from the start, and keep refining after POSE_CHECK_STEP steps only
                                         # where the corrections say the poses are off)
     coarse_to_fine: bool | None = None  # fade the finer geometry scales in (None: on for at most 13 training views)
+    back_surface: bool | None = None    # a second surface behind each ray's first (DisparityConfig.back_surface;
+                                        # None: on for deep scenes, default_back_surface)
     max_passes: float | None = None     # stop after this many passes over the training pixels (None: the
                                         # default, FEW_PHOTOS_MAX_PASSES for few photos; 0: no limit)
     two_starts: bool | None = None      # the better of two starts where the pass limit ends training (starts.py;
@@ -194,6 +196,17 @@ DEPTH_LAYERS_MIN_VIEWS = 18
 
 def default_depth_layers(slab: Slab, n_train_views: int) -> int:
     return 0 if slab.is_deep or n_train_views < DEPTH_LAYERS_MIN_VIEWS else DEFAULT_DEPTH_LAYERS
+
+
+# A back surface (DisparityConfig.back_surface) for deep scenes, where objects in front of a
+# distant background leave silhouettes that ghost in views between the photos.  It costs about
+# 1.35 times the time a step.  At equal time (45 s, two runs side by side, one thread each,
+# seeds 0 / 1, AMD EPYC): the synthetic scene (far/near 3.3) +0.19 / +0.35 dB, fern (4.6) +0.18 /
+# -0.02; on shallow ones it lost or split: CanClip (1.7) -0.27, HCI (2.6) -0.51 (seed 0), Statue
+# (2.0) +0.31 / +0.49 -- the one shallow capture with a background well behind its subject,
+# which is why it is an option there (`train --back-surface`).  docs/STABILITY.md, fiftieth session.
+def default_back_surface(slab: Slab) -> bool:
+    return slab.is_deep
 
 
 # The paper's multi-view losses (consistency.py) cost time per step (~1.4 times with
@@ -391,7 +404,7 @@ def announce_default_appearance(progress, n_train_views: int, exposure_stops: fl
 
 
 def _build_field(preset_name: str, overrides: dict, train_views, slab: Slab, scale: float, appearance: bool = False,
-                 coarse_to_fine: bool | None = None):
+                 coarse_to_fine: bool | None = None, back_surface: bool | None = None):
     n_train_views = len(train_views)
     preset = get_preset(preset_name)
     options = dict(preset.field_config)
@@ -407,6 +420,7 @@ def _build_field(preset_name: str, overrides: dict, train_views, slab: Slab, sca
         use_ramp = coarse_to_fine if coarse_to_fine is not None else default_coarse_to_fine(n_train_views)
         options["geometry_coarse_to_fine"] = COARSE_TO_FINE if use_ramp else 0.0
         options["depth_detail_reads"] = default_depth_detail_reads(n_train_views)
+        options["back_surface"] = default_back_surface(slab) if back_surface is None else back_surface
         options["tv_weight"] = default_geometry_tv(n_train_views)
         if appearance:
             options.update(APPEARANCE_GEOMETRY)
@@ -549,7 +563,7 @@ def _train(scene, model_dir: Path, config: TrainConfig, images_dir, resume: bool
         field_module.load_state_dict(resumed.get(TRAINING_STATE_KEY) or resumed["state_dict"])
     else:
         field_module, preset = _build_field(config.preset, config.field_overrides, train_views, slab, config.scale,
-                                            config.appearance, config.coarse_to_fine)
+                                            config.appearance, config.coarse_to_fine, config.back_surface)
     field_module.to(device).train()
     appearance = _view_appearance(len(train_views), exposures, resumed).to(device) if config.appearance else None
     batch = config.batch_size or preset.batch_size

@@ -252,6 +252,9 @@ def test_train_job_passes_exposure_and_pose_options_only_to_a_new_model(ext, tmp
     assert "--appearance" not in resumed and "--refine-poses" not in resumed
     assert "--no-appearance" not in argv(appearance=False, resume=True)
     assert "--no-refine-poses" not in argv(refine_poses=False, resume=True)
+    # "Back Surface" likewise: Auto is the trainer's rule (deep scenes), and a saved field keeps its own.
+    assert "--back-surface" in argv(back_surface=True) and "--no-back-surface" in argv(back_surface=False)
+    assert not {"--back-surface", "--no-back-surface"} & (set(argv()) | set(argv(back_surface=True, resume=True)))
     # "Stop Early" off: no pass limit, for a new model and for one continued past its limit.
     assert "--max-passes" not in argv()
     for options in ({}, {"resume": True}):

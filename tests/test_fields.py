@@ -288,6 +288,68 @@ def test_train_cli_depth_layers_are_saved_and_render(tiny_scene, tmp_path, capsy
     assert "--depth-layers" in capsys.readouterr().err
 
 
+def _back_surface_field(**options):
+    slab = Slab(np.eye(3), np.zeros(3), 0.0, 4.0, 2.0, 8.0, -np.ones(4), np.ones(4))
+    return build_field("disparity", make_config("disparity", {**slab_geometry(slab), "texture_size": [16, 16], "texture_levels": 2,
+                                                              "back_surface": True, **options}))
+
+
+def test_back_surface_stays_behind_the_front_and_blends_two_texture_reads():
+    """With a back surface each ray reads the texture at two shears, the back one at a depth
+    unit below the front's (farther), and its colour and depth are the weighted blend of the
+    two surfaces' -- half and half at the start."""
+    torch.manual_seed(0)
+    field = _back_surface_field(depth_detail_shift=0)
+    with torch.no_grad():
+        for texture in field.textures:
+            texture.normal_()
+        field.geometry.decoder[-1].weight.normal_()  # surfaces that differ from ray to ray
+        rays = torch.rand(500, 4) * 2 - 1
+        (front_grid, front_unit), (back_grid, back_unit) = field.surfaces(rays)[0]
+        weight = field.surfaces(rays)[1]
+        assert bool((back_unit < front_unit).all())
+        assert not torch.allclose(front_grid, back_grid)
+        rgb, unit = field(rays)
+        front_rgb = field._colour_at(front_grid, rays[:, :2])
+        back_rgb = field._colour_at(back_grid, rays[:, :2])
+        assert torch.allclose(rgb, weight * front_rgb + (1 - weight) * back_rgb, atol=1e-6)
+        assert torch.allclose(unit, weight * front_unit + (1 - weight) * back_unit, atol=1e-6)
+        assert torch.equal(field.sheared(rays)[0], front_grid)  # `sheared` is the front surface's
+    fresh = _back_surface_field()
+    with torch.no_grad():
+        (_, front_unit), (_, back_unit) = fresh.surfaces(rays)[0]
+        assert torch.allclose(fresh.surfaces(rays)[1], torch.full((500, 1), 0.5), atol=0.02)
+        assert torch.allclose(back_unit, front_unit * 0.5, atol=0.02)
+
+
+def test_back_surface_by_default_on_deep_scenes_and_the_cli_flags(tiny_scene, tmp_path, capsys):
+    from neulf_core.checkpoint import load_checkpoint
+    from neulf_core.cli import main
+    from neulf_core.render import LightField
+    from neulf_core.scene import load_scene
+    from neulf_core.train import default_back_surface
+
+    def slab(near, far):
+        return Slab(np.eye(3), np.zeros(3), 0.0, (near + far) / 2, near, far, -np.ones(4), np.ones(4))
+
+    assert default_back_surface(slab(2.0, 6.9))        # the synthetic scene, far/near 3.3
+    assert default_back_surface(slab(16.8, 77.8))      # fern, 4.6
+    assert not default_back_surface(slab(10.0, 20.0))  # Statue-like, 2.0
+    out = tmp_path / "m"
+    args = ["train", str(tiny_scene), "--out", str(out), "--steps", "5", "--batch-size", "256", "--progress", "json",
+            "--no-sweep-teacher", "--back-surface"]
+    assert main(args) == 0
+    assert load_checkpoint(out)["field_config"]["back_surface"] is True
+    rendering = LightField.load(out, "cpu").render_view(load_scene(tiny_scene).views[0], depth=True)
+    assert np.isfinite(rendering.rgb).all() and np.isfinite(rendering.depth).all()
+    assert main(args[:-1] + ["--no-back-surface", "--out", str(tmp_path / "one")]) == 0
+    assert load_checkpoint(tmp_path / "one")["field_config"]["back_surface"] is False
+    capsys.readouterr()
+    assert main(["train", str(tiny_scene), "--out", str(tmp_path / "mlp"), "--steps", "1", "--preset", "authors",
+                 "--back-surface"]) != 0
+    assert "--back-surface" in capsys.readouterr().err
+
+
 RENDER_FRAMES = """
 import resource, sys
 import numpy as np, torch

@@ -59,8 +59,13 @@ def test_volume_baseline_learns_the_tiny_scene(view_dependence, tiny_scene):
     assert psnr(image, target) > psnr(flat, target) + 8  # ~24 dB against ~13
 
 
-def logged_row(view_dependence, method, variant, seed, steps=1000, minutes=0.0, psnr=30.0, mask=27.0):
-    key = view_dependence.run_key(method, variant, seed, steps, None, minutes)
+ONE_SURFACE = "one surface"  # a light-field run logged before the back surface (its key has no config)
+
+
+def logged_row(view_dependence, method, variant, seed, steps=1000, minutes=0.0, psnr=30.0, mask=27.0, config=None):
+    if config is None and method != "volume":
+        config = view_dependence.LIGHT_FIELD_CONFIG
+    key = view_dependence.run_key(method, variant, seed, steps, None if config == ONE_SURFACE else config, minutes)
     return {"key": key, "method": method, "variant": variant, "seed": seed, "steps": steps, "train_seconds": 40.0,
             "render_seconds": 0.03, "parameters": 210_000, "psnr": psnr, "psnr_mask": mask, "psnr_outside": 32.0,
             "psnr_per_view": "a=1/1;b=1/1"}
@@ -73,8 +78,31 @@ def test_report_names_each_budget_and_pairs_the_seeds_of_a_drop(view_dependence)
             logged_row(view_dependence, "light field", "shiny", 0, psnr=29.0, mask=26.0),
             logged_row(view_dependence, "light field, equal time", "lambertian", 0, steps=1000, minutes=7.5)]
     assert view_dependence.labels(rows) == ["light field, 1000 steps", "light field, 7.5 min", "volume, 2400 steps"]
+    before = logged_row(view_dependence, "light field", "lambertian", 0, psnr=29.0, config=ONE_SURFACE)
+    assert view_dependence.labels(rows + [before])[0] == "light field, one surface, 1000 steps"
     # shiny has seed 0 only: its drop is against the Lambertian seed 0 (30.0), not the mean of 0 and 1
     assert view_dependence.drop(rows, "light field, 1000 steps", "shiny", "psnr") == "-1.00"
     assert view_dependence.drop(rows, "volume, 2400 steps", "shiny", "psnr") == "--"
     text = view_dependence.table(rows)
     assert "| light field, 1000 steps | 2 | 1000 |" in text and "30.50 ± 1.00" in text
+
+
+def test_a_fresh_machine_starts_the_log_from_the_csv_with_the_same_runs_and_labels(view_dependence, tmp_path):
+    """The run log lives in the temp folder; the committed CSV restarts it, keys and all, so the
+    report keeps the runs (and their far-from-the-objects scores, whose renders are gone)."""
+    import stability
+
+    rows = [logged_row(view_dependence, "volume", "lambertian", 0, steps=2400, psnr=33.0, mask=31.0),
+            logged_row(view_dependence, "light field", "shiny", 1, psnr=29.5),
+            logged_row(view_dependence, "light field", "lambertian", 0, psnr=29.0, config=ONE_SURFACE)]
+    for row in rows:
+        row.update(psnr_far=37.5, date="2026-11-28", machine="test machine")
+    table = tmp_path / "view_dependence.csv"
+    stability.write_csv([{"label": view_dependence.label_of(row), **row} for row in rows], table, view_dependence.CSV_COLUMNS)
+    log = tmp_path / "cache" / "runs.jsonl"
+    assert view_dependence.seed_log_from_csv(log, table) == 3
+    assert view_dependence.seed_log_from_csv(log, table) == 0  # a log that exists is kept
+    again = view_dependence.load_runs(log)
+    assert sorted(again) == sorted(row["key"] for row in rows)
+    assert sorted(map(view_dependence.label_of, again.values())) == sorted(map(view_dependence.label_of, rows))
+    assert all(row["psnr_far"] == 37.5 and row["seed"] in (0, 1) for row in again.values())

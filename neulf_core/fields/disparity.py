@@ -35,6 +35,10 @@ from .planes import ANGULAR, PAIRS, PlanesConfig, PlanesField, total_variation
 # The geometry planes that mix one angular and one spatial axis (us, ut, vs, vt) share a shape
 # within a scale, so each scale samples them in one batched grid_sample (see _geometry_features).
 MIXED = [i for i, (a, b) in enumerate(PAIRS) if (a in ANGULAR) != (b in ANGULAR)]
+# The geometry decoder's four outputs: the front surface's depth logit, and with a back surface
+# the back's depth as a share of the front's (a logit; so it stays behind) and the front's weight
+# (a logit).  Both of the latter start at one half (zero bias and near-zero weights).
+FRONT_DEPTH, BACK_SHARE, FRONT_WEIGHT = 3, 0, 1
 ANGULAR_PAIR = PAIRS.index(ANGULAR)
 SPATIAL_PAIR = PAIRS.index((2, 3))
 
@@ -104,6 +108,15 @@ class DisparityConfig:
     # photos (train.FEW_PHOTOS_TEXTURE_COARSE_TO_FINE; start_texture_coarse_to_fine).
     texture_coarse_to_fine: float = 0.0
     texture_ramp_start: float = 0.0
+    # A back surface (`train --back-surface`): each ray sees a front surface and one behind it,
+    # each reading the texture where its own depth shears the ray, their colours (and depth
+    # units) mixed by a weight the geometry planes also give.  With one surface a ray at a
+    # silhouette gets one depth between the object's and the background's and reads a texel
+    # that belongs to neither -- the ghosting at occlusion edges in views between the photos
+    # (docs/VIEW_DEPENDENCE.md); with two it blends two right colours, as the photo's pixel does.
+    # The trainer turns it on for deep scenes (train.default_back_surface, with the numbers).
+    # Off here, so models saved before read as they were.
+    back_surface: bool = False
     # The colour decoder's start: the name of a packaged start (neulf_core/fields/starts/<name>.npz,
     # learned by scripts/learn_colour_start.py) or "" for PyTorch's random initialisation.  With a
     # learned start no seed draws the decoder, and it was the decoder's random start that spread
@@ -186,7 +199,7 @@ class DisparityField(nn.Module):
             last = self.geometry.decoder[-1]
             last.weight.mul_(0.01)
             last.bias.zero_()
-            last.bias[3] = self._unit_of_st()
+            last.bias[FRONT_DEPTH] = self._unit_of_st()
         if config.geometry_layers:
             k, c, res = config.geometry_layers, config.geometry_layer_channels, config.geometry_layer_res
             self.register_buffer("layer_disparity", self.disparity(torch.linspace(0, 1, k)), persistent=False)
@@ -274,14 +287,25 @@ class DisparityField(nn.Module):
         return c.z_st * inverse_depth - 1.0
 
     def forward(self, uvst: torch.Tensor):
-        grid, unit = self.sheared(uvst)
+        surfaces, front_weight = self.surfaces(uvst)
+        uv = uvst[:, :2]
+        if front_weight is None:
+            (grid, unit), = surfaces
+            return self._colour_at(grid, uv), unit
+        (front_grid, front_unit), (back_grid, back_unit) = surfaces
+        # Both surfaces' texture reads and colours in one batch of 2N rays: fewer kernel calls.
+        front_rgb, back_rgb = self._colour_at(torch.cat([front_grid, back_grid]), torch.cat([uv, uv])).chunk(2)
+        return (torch.lerp(back_rgb, front_rgb, front_weight.to(front_rgb.dtype)),
+                torch.lerp(back_unit, front_unit, front_weight))
+
+    def _colour_at(self, grid: torch.Tensor, uv: torch.Tensor) -> torch.Tensor:
+        """(N, 3) colours of rays whose surface points read the texture at grid (N, 2)."""
         features = [_features_at(texture, grid) for texture in self.textures]
         if self.config.texture_coarse_to_fine > 0:
             features = [f * w for f, w in zip(features, self.texture_level_weights)]
-        uv = uvst[:, :2]
         if self.uv_input:
             features.append(uv)
-        return self._colour(_rows(features), uv), unit
+        return self._colour(_rows(features), uv)
 
     def _colour(self, features: torch.Tensor, uv: torch.Tensor) -> torch.Tensor:
         if torch.is_grad_enabled() or features.device.type != "cpu" or features.shape[0] <= DECODE_ROWS:
@@ -300,25 +324,47 @@ class DisparityField(nn.Module):
         return torch.sigmoid(torch.addcmul(logit, out[:, 6:], uv[:, 1:]))
 
     def sheared(self, uvst: torch.Tensor, detail_reads: list | None = None) -> tuple[torch.Tensor, torch.Tensor]:
-        """Where rays (N, 4) read the texture, (N, 2) in [-1, 1], and their depth unit (N, 1).
-        `detail_reads`, a list: gets the (N, 2) points where the rays read the depth detail."""
+        """Where rays (N, 4) read the texture for their (front) surface, (N, 2) in [-1, 1], and
+        its depth unit (N, 1).  `detail_reads`, a list: gets the (N, 2) points where the rays
+        read the depth detail."""
+        surfaces, _ = self.surfaces(uvst, detail_reads)
+        return surfaces[0]
+
+    def surfaces(self, uvst: torch.Tensor, detail_reads: list | None = None) -> tuple[list, torch.Tensor | None]:
+        """([(grid, unit)] for the front surface and, with a back surface, the back one; the
+        front's weight (N, 1) in the colour, or None with one surface).  `detail_reads`, a list:
+        gets the points where the front surface reads the depth detail."""
         # float32 even when rendering under float16 autocast (render.PRECISIONS): a texel is
         # 1/512 of the range, and float16 disparities moved colours to 55 dB from float32.
         if uvst.device.type not in HALF_DEVICES:  # no autocast there to switch off
-            return self._sheared(uvst, detail_reads)
+            return self._surfaces(uvst, detail_reads)
         with torch.autocast(uvst.device.type, enabled=False):
-            return self._sheared(uvst, detail_reads)
+            return self._surfaces(uvst, detail_reads)
 
-    def _sheared(self, uvst: torch.Tensor, detail_reads: list | None = None) -> tuple[torch.Tensor, torch.Tensor]:
-        features = self._geometry_features(uvst)
+    def _surfaces(self, uvst: torch.Tensor, detail_reads: list | None) -> tuple[list, torch.Tensor | None]:
         uv = uvst[:, :2] * self.uv_half + self.uv_centre
         scale = 1.0 / (1.0 + self.config.texture_margin)  # sheared st leaves [-1, 1] a little
-        if self.config.geometry_layers:
-            k, n = self.layers.shape[0], uvst.shape[0]
-            grids = (uvst[:, 2:] + uv * (self.layer_disparity[:, None, None] / self.st_half)) * scale
-            layered = _sample(self.layers, grids.view(k, n, 1, 2)).view(-1, n).t()
-            features = torch.cat([features, layered], 1)
-        logit = self.geometry.decoder(features)[:, 3:4]
+        out = self.geometry.decoder(self._ray_geometry_features(uvst, uv, scale))
+        front = self._surface(uvst, uv, out[:, FRONT_DEPTH:FRONT_DEPTH + 1], scale, detail_reads)
+        if not self.config.back_surface:
+            return [front], None
+        back_unit = front[1] * torch.sigmoid(out[:, BACK_SHARE:BACK_SHARE + 1])  # behind the front
+        back = self._surface(uvst, uv, torch.logit(back_unit.clamp(1e-6, 1 - 1e-6)), scale, None)
+        return [front, back], torch.sigmoid(out[:, FRONT_WEIGHT:FRONT_WEIGHT + 1])
+
+    def _ray_geometry_features(self, uvst: torch.Tensor, uv: torch.Tensor, scale: float) -> torch.Tensor:
+        """The geometry decoder's input: the planes' features, and the depth layers' where on."""
+        features = self._geometry_features(uvst)
+        if not self.config.geometry_layers:
+            return features
+        k, n = self.layers.shape[0], uvst.shape[0]
+        grids = (uvst[:, 2:] + uv * (self.layer_disparity[:, None, None] / self.st_half)) * scale
+        layered = _sample(self.layers, grids.view(k, n, 1, 2)).view(-1, n).t()
+        return torch.cat([features, layered], 1)
+
+    def _surface(self, uvst: torch.Tensor, uv: torch.Tensor, logit: torch.Tensor, scale: float,
+                 detail_reads: list | None) -> tuple[torch.Tensor, torch.Tensor]:
+        """(grid, unit) of a surface at depth logit (N, 1), with the depth detail's correction."""
         unit = torch.sigmoid(logit)
         grid = self._shear(uvst, uv, unit, scale)
         if self.config.depth_detail_shift:
@@ -348,6 +394,9 @@ class DisparityField(nn.Module):
         seen = [torch.zeros(g.shape[2] * g.shape[3], dtype=torch.bool, device=g.device) for g in grids]
         for uvst in uvst_chunks:
             detail_reads = []
+            # The front surface's reads only: a back surface's carry (1 - its weight) of the colour,
+            # and where that is small its texels keep their random start.  (Counting them too, or
+            # those of weight 0.5 or more, scored the same to 0.01 dB: the synthetic scene, seeds 0 / 1.)
             grid, _ = self.sheared(uvst, detail_reads)
             for texture, mask in zip(self.textures, seen):
                 mark_bilinear_footprint(mask, grid, texture.shape[2], texture.shape[3])
