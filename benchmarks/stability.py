@@ -1085,7 +1085,7 @@ def tables_markdown(rows: list[dict], meta: dict) -> str:
     sections = [
         f"Generated {meta['date']} on {meta['machine']}; fast: {meta['fast_steps']} steps, paper: "
         f"{meta['paper_steps']} steps; seeds {meta['seeds']}; cells: mean ± spread (max - min) of the held-out PSNR "
-        "in dB over the seeds, n = number of seeds where fewer than 3.", *random_start_note(rows),
+        "in dB over the seeds, n = number of seeds where fewer than 3.", *random_start_note(rows), *one_surface_note(rows),
         "", "### Fewer views", "", f"Training views kept ({', '.join(map(lambda f: f'{f:.0%}', FRACTIONS))}): "
         f"{train_view_counts(rows)}.", "", *views_table(rows),
         "", "### View-dependent effects and fine texture (synthetic scene, all training views)", "", *variants_table(rows),
@@ -1106,6 +1106,13 @@ def tables_markdown(rows: list[dict], meta: dict) -> str:
     return "\n".join(sections)
 
 
+def runs_by_study(runs: list[dict]) -> str:
+    """How many of `runs` each study holds: "14 losses, 30 pose, 18 others"."""
+    studies = {"losses": sum(bool(r["minutes"]) for r in runs), "pose": sum(bool(r["pose_degrees"]) for r in runs)}
+    studies["others"] = len(runs) - studies["losses"] - studies["pose"]
+    return ", ".join(f"{n} {name}" for name, n in studies.items() if n)
+
+
 def random_start_note(rows: list[dict]) -> list[str]:
     """Which of the default's runs still have the colour decoder's random start (trained before the
     learned start became the default and not re-run since), by study."""
@@ -1113,11 +1120,20 @@ def random_start_note(rows: list[dict]) -> list[str]:
     old = [r for r in fast if r.get("colour_start", "random") == "random"]
     if not old:
         return []
-    studies = {"losses": sum(bool(r["minutes"]) for r in old), "pose": sum(bool(r["pose_degrees"]) for r in old)}
-    studies["others"] = len(old) - studies["losses"] - studies["pose"]
-    where = ", ".join(f"{n} {name}" for name, n in studies.items() if n)
     return ["", f"**{len(old)} of the default's {len(fast)} runs were trained before its learned colour start "
-                f"(`colour_start` random in docs/stability.csv: {where}); their rows stand until the study re-runs them.**"]
+                f"(`colour_start` random in docs/stability.csv: {runs_by_study(old)}); their rows stand until the "
+                "study re-runs them.**"]
+
+
+def one_surface_note(rows: list[dict]) -> list[str]:
+    """Which runs of deep scenes were trained with one surface (before the back surface became
+    the default there and not re-run since), by study."""
+    old = [r for r in rows if trained_without_back_surface(r)]
+    if not old:
+        return []
+    return ["", f"**{len(old)} runs of deep scenes were trained before the back surface became their default "
+                f"(`back_surface` empty in docs/stability.csv: {runs_by_study(old)}; the default as a user runs it "
+                "is re-run); their rows stand until the study re-runs them.**"]
 
 
 def update_markdown(path: Path, tables: str, begin: str = MARKER_BEGIN, end: str = MARKER_END) -> None:
@@ -1133,7 +1149,7 @@ def update_markdown(path: Path, tables: str, begin: str = MARKER_BEGIN, end: str
 
 CSV_COLUMNS = ["scene", "preset", "fraction", "pose_degrees", "appearance", "refine_poses", "consistency", "minutes",
                "coarse_to_fine", "colour_start", "coarse_to_fine_used", "appearance_used", "appearance_default", "exposure_difference_stops",
-               "pose_check_refining", "pose_check_degrees", "pose_check_halfway", "field_restarted", "start_kept", "discarded_steps", "members",
+               "pose_check_refining", "pose_check_degrees", "pose_check_halfway", "field_restarted", "start_kept", "discarded_steps", "members", "member_poses",
                "sweep_fade", "deep_scene", "multiview_losses", "back_surface", "pixel_jitter", "seed", "status", "psnr", "ssim",
                "psnr_matched", "psnr_half_fit", "psnr_pose_fitted", "pose_fit_degrees", "psnr_per_view", "train_views", "held_out", "steps", "steps_done", "train_seconds",
                "wall_seconds", "warnings", "warning_text", "nonfinite_pixels", "error", "scale", "path", "truth"]
@@ -1290,38 +1306,55 @@ def seed_log_from_csv(log: Path, table: Path) -> int:
         return 0
     with open(table, newline="") as handle:
         rows = [{k: csv_value(v) for k, v in row.items()} for row in csv.DictReader(handle)]
+    for row in rows:
+        # The CSV kept no `member_poses` before 2026-11-28; a run of several members it holds was
+        # reported, so it stood: it was trained with the later members following the first.
+        if int(row.get("members") or 1) > 1 and row.get("member_poses") is None:
+            row["member_poses"] = MEMBER_POSES
     log.parent.mkdir(parents=True, exist_ok=True)
     log.write_text("".join(json.dumps(row) + "\n" for row in rows))
     return len(rows)
 
 
-def load_log(log: Path) -> dict:
+def load_log(log: Path, one_surface: dict | None = None) -> dict:
+    """key -> row of the logged runs the study counts as done.  `one_surface`, a dict: gets the
+    runs that stand but for their one surface (trained_without_back_surface), for the report
+    until the study re-runs them."""
     done = {}
     if log.is_file():
         for line in log.read_text().splitlines():
             row = json.loads(line)
             if row.get("status") in ("finished", "crashed") and not trained_with_another_fade(row) \
-                    and not trained_without_back_surface(row) \
                     and not trained_with_other_members(row) and not trained_with_members_own_poses(row):
+                into = done
+                if trained_without_back_surface(row):
+                    if one_surface is None:
+                        continue
+                    into = one_surface
                 if "pose_check_refining" not in row:  # logged before the pose check: trained without refinement
                     row.setdefault("refine_poses", False)  # unless it says so
                     if row["refine_poses"] is False and not row.get("minutes") and row["steps"] < 2 * POSE_CHECK_STEP:
                         row["refine_poses"] = None  # too short for the check: the default trains it so too
                 for f in fields(Job):  # rows logged before a Job field existed ran with its default
                     row.setdefault(f.name, f.default)
-                done[Job(**{f.name: row[f.name] for f in fields(Job)}).key] = row
+                into[Job(**{f.name: row[f.name] for f in fields(Job)}).key] = row
     return done
 
 
-def report_rows(done: dict, jobs: list[Job]) -> list[dict]:
+def report_rows(done: dict, jobs: list[Job], one_surface: dict | None = None) -> list[dict]:
     """The logged rows of `jobs`.  A configuration not yet re-run with every seed since the
-    learned colour start became the default reports its runs with the random start (logged
-    before; the tables say how many), so no spread mixes the two starts."""
+    back surface became the default for deep scenes reports its runs with one surface
+    (`one_surface`, from load_log), and one not re-run since the learned colour start its runs
+    with the random start (logged before; the tables say how many), so no spread mixes the
+    two."""
     configs: dict[str, list[Job]] = {}
     for job in jobs:
         configs.setdefault(job.configuration, []).append(job)
     rows = []
     for runs in configs.values():
+        if not all(job.key in done for job in runs) and any(job.key in (one_surface or {}) for job in runs):
+            rows += [one_surface[job.key] for job in runs if job.key in one_surface]
+            continue
         if not all(job.key in done for job in runs):
             runs = [replace(job, colour_start="random") for job in runs]
         rows += [done[job.key] for job in runs if job.key in done]
@@ -1419,9 +1452,10 @@ def main(argv=None) -> None:
     log = args.cache / "runs.jsonl"
     if not args.fresh and (seeded := seed_log_from_csv(log, args.docs / "stability.csv")):
         print(f"no run log in {args.cache}: started it from {args.docs / 'stability.csv'} ({seeded} runs)", flush=True)
-    done = {} if args.fresh else load_log(log)
+    one_surface = {}
+    done = {} if args.fresh else load_log(log, one_surface)
     if args.report_only:
-        rows = report_rows(done, jobs)
+        rows = report_rows(done, jobs, one_surface)
     else:
         rows = run_jobs(jobs, args.workers, done, log, by_configuration=args.by_configuration)
     meta = {**generation(args), "fast_steps": args.fast_steps,

@@ -198,13 +198,13 @@ def default_depth_layers(slab: Slab, n_train_views: int) -> int:
     return 0 if slab.is_deep or n_train_views < DEPTH_LAYERS_MIN_VIEWS else DEFAULT_DEPTH_LAYERS
 
 
-# A back surface (DisparityConfig.back_surface) for deep scenes, where objects in front of a
-# distant background leave silhouettes that ghost in views between the photos.  It costs about
-# 1.35 times the time a step.  At equal time (45 s, two runs side by side, one thread each,
-# seeds 0 / 1, AMD EPYC): the synthetic scene (far/near 3.3) +0.19 / +0.35 dB, fern (4.6) +0.18 /
-# -0.02; on shallow ones it lost or split: CanClip (1.7) -0.27, HCI (2.6) -0.51 (seed 0), Statue
-# (2.0) +0.31 / +0.49 -- the one shallow capture with a background well behind its subject,
-# which is why it is an option there (`train --back-surface`).  docs/STABILITY.md, fiftieth session.
+# A back surface (DisparityConfig.back_surface) for deep scenes.  It costs about 1.4 times the
+# time a training step and 1.5 times a render.  AMD EPYC, fiftieth session (docs/STABILITY.md):
+# the stability study's synthetic configurations (far/near 3.3; 1000 steps, three seeds) +0.02
+# to +0.36 dB on 14 of 17; at the product's 1.5 minutes, side by side: fern (4.6) +0.02 ± 0.04
+# dB over four seeds, Statue (2.0) +0.48 ± 0.12 over three, CanClip (1.7) -0.13 ± 0.05 over two;
+# at 45 s HCI (2.6) -0.51 (one seed).  No depth-range rule parts Statue from HCI, so shallow
+# captures keep one surface unless asked (`train --back-surface`).
 def default_back_surface(slab: Slab) -> bool:
     return slab.is_deep
 
