@@ -25,7 +25,8 @@ from .metrics import psnr
 from .render import LightField
 from .scene import Scene, load_scene, scaled_size, split_views
 from .slab import fit_slab
-from .train import (LOSSES_DECISION_STEP, TrainConfig, TrainResult, _emit, announce_default_losses, default_coarse_to_fine,
+from .train import (LOSSES_DECISION_STEP, TrainConfig, TrainResult, _emit, announce_default_losses, default_back_surface,
+                    default_coarse_to_fine,
                     default_consistency, default_depth_detail_reads, default_geometry_tv,
                     default_max_passes, train)
 
@@ -136,7 +137,7 @@ def train_auto(scene: Scene | str | Path, model_dir: str | Path, config: TrainCo
 def _final_model_defaults(scene: Scene, config: TrainConfig, progress) -> TrainConfig:
     """`config` with the view-count rules left to the default (train.default_consistency,
     train.default_coarse_to_fine, train.default_depth_detail_reads, train.default_geometry_tv,
-    train.default_max_passes) decided once, for the final
+    train.default_max_passes, train.default_back_surface) decided once, for the final
     model's training views: the search runs (fewer views: the validation views are carved
     out) train as the model will."""
     train_views, _ = split_views(scene, config.holdout_every, config.exclude)
@@ -147,9 +148,11 @@ def _final_model_defaults(scene: Scene, config: TrainConfig, progress) -> TrainC
     rules = {"depth_detail_reads": default_depth_detail_reads, "tv_weight": default_geometry_tv}
     chosen = {name: rule(len(train_views)) for name, rule in rules.items() if name not in config.field_overrides}
     config = replace(config, field_overrides={**config.field_overrides, **chosen})
+    slab = fit_slab(scene, train_views, scale=config.scale, st_depth=config.st_depth, uv_depth=config.uv_depth,
+                    near=config.near, far=config.far)
+    if config.back_surface is None:  # the search's slab, of fewer views, could fall on the other side of the rule
+        config = replace(config, back_surface=default_back_surface(slab))
     if config.consistency is None:
-        slab = fit_slab(scene, train_views, scale=config.scale, st_depth=config.st_depth, uv_depth=config.uv_depth,
-                        near=config.near, far=config.far)
         decided = default_consistency(slab, train_views, config)
         if decided is None:  # a minutes budget: how many steps it buys is measured, as train() does
             decided = default_consistency(slab, train_views, config, _steps_per_minute(scene, config))

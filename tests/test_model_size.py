@@ -3,6 +3,7 @@ preset's size search, on the tiny synthetic scene from conftest.py."""
 
 from __future__ import annotations
 
+import inspect
 import json
 import os
 import shutil
@@ -262,11 +263,20 @@ def test_auto_decides_coarse_to_fine_once_for_its_search_and_its_model(tiny_scen
     import neulf_core.train as train_module
 
     monkeypatch.setattr(train_module, "COARSE_TO_FINE_MAX_VIEWS", max_views)
-    ramps = []
+    ramps, surfaces = [], []
     real = train_module._build_field
-    monkeypatch.setattr(train_module, "_build_field", lambda *a, **k: ramps.append(a[-1]) or real(*a, **k))
+    signature = inspect.signature(real)
+
+    def recording(*args, **kwargs):
+        asked = signature.bind(*args, **kwargs).arguments
+        ramps.append(asked.get("coarse_to_fine"))
+        surfaces.append(asked.get("back_surface"))
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(train_module, "_build_field", recording)
     train_auto(tiny_scene, tmp_path / "auto", fast_config(8, preset="auto", teacher=False))
     assert ramps == [expected] * 4  # 3 candidates and the final run
+    assert len(set(surfaces)) == 1 and surfaces[0] is not None  # the back surface too: decided once
     config = json.loads((tmp_path / "auto" / METADATA_NAME).read_text())["field_config"]
     assert config["geometry_coarse_to_fine"] == (train_module.COARSE_TO_FINE if expected else 0.0)
 
