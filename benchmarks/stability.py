@@ -67,7 +67,6 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 from neulf_core.appearance import linear_to_srgb, srgb_to_linear  # noqa: E402
-from neulf_core.checkpoint import load_for_render  # noqa: E402
 from neulf_core.errors import NeulfError  # noqa: E402
 from neulf_core.images import save_rgb  # noqa: E402
 from neulf_core.members import finished_members, members_by_rule, work_done  # noqa: E402
@@ -76,7 +75,6 @@ from neulf_core.poses import (POSE_CHECK_DEGREES, POSE_CHECK_STEP, POSE_CHECK_UN
                               POSE_SECOND_LOOK_DEGREES, POSE_SECOND_LOOK_STEP, fit_view_pose)
 from neulf_core.presets import get_preset  # noqa: E402
 from neulf_core.render import LightField  # noqa: E402
-from neulf_core.slab import fit_slab  # noqa: E402
 from neulf_core.scene import Scene, View, camera_spacing, find_model_dir, load_scene, scaled_size, split_views  # noqa: E402
 from neulf_core.teacher import TEACHER_FADE, teacher_fade  # noqa: E402
 from neulf_core.train import (COARSE_TO_FINE_MAX_VIEWS, CONSISTENCY_MAX_VIEWS, FAR_OFF_POSE_DEGREES,  # noqa: E402
@@ -349,6 +347,7 @@ def score_views(model_dir: Path, held: list[View], scale: float, fit_poses: bool
             "nonfinite_pixels": nonfinite, "deep_scene": bool(light_field.slab.is_deep),
             "multiview_losses": light_field.meta.get("multiview_losses"),
             "coarse_to_fine_used": bool(light_field.meta.get("field_config", {}).get("geometry_coarse_to_fine", 0.0)),
+            "back_surface": bool(light_field.meta.get("field_config", {}).get("back_surface", False)),
             "appearance_used": bool(light_field.meta.get("train_config", {}).get("appearance")),
             "pose_check_refining": light_field.meta.get("pose_check", {}).get("refining"),
             "pose_check_degrees": light_field.meta.get("pose_check", {}).get("median_degrees"),
@@ -430,24 +429,13 @@ def sweep_fade(preset: str, n_train_views: int) -> float | None:
 
 
 def trained_without_back_surface(row: dict) -> bool:
-    """Whether a logged run of a deep scene with the fast field was trained with one surface
-    (rows logged before the back surface existed have none, or an empty cell in the CSV): the
-    default now gives deep scenes a back surface (train.default_back_surface), so the study runs
-    it again."""
+    """Whether a logged run of a deep scene (its `deep_scene`, the slab it trained in) with the
+    fast field was trained with one surface (rows logged before the back surface existed have
+    none, or an empty cell in the CSV): the default now gives deep scenes a back surface
+    (train.default_back_surface), so the study runs it again."""
     if row.get("back_surface") is not None or get_preset(row["preset"]).field != "disparity":
         return False
-    return scene_is_deep(row["path"], row["scale"], row.get("fraction", 1.0))
-
-
-@lru_cache(maxsize=None)
-def scene_is_deep(path: str, scale: float, fraction: float) -> bool:
-    """Whether the slab of this share of the scene's training photos is deep (Slab.is_deep);
-    False where the scene is not on this machine (its logged runs then stay as they are)."""
-    try:
-        scene, train_views, _ = prepare(Job("", path, path, scale, "fast", 0, 0, fraction=fraction))
-    except NeulfError:
-        return False
-    return fit_slab(scene, train_views, scale=scale).is_deep
+    return bool(row.get("deep_scene"))
 
 
 def trained_with_another_fade(row: dict) -> bool:
@@ -526,7 +514,6 @@ def run_job(job: Job, threads: int = 1) -> dict:
                        start_kept=kept, discarded_steps=discarded_steps, members=members,
                        member_poses=MEMBER_POSES if members > 1 else None)
             row.update(score_views(Path(model_dir), held, job.scale, fit_poses=in_pose_study(job)))
-            row["back_surface"] = bool(load_for_render(Path(model_dir))["field_config"].get("back_surface", False))
         row["status"] = result.status
     except Exception as exc:  # recorded and reported; the study goes on
         row["error"] = f"{type(exc).__name__}: {exc}"

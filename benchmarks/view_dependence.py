@@ -25,7 +25,6 @@ docs/view_dependence.csv, docs/view_dependence.png and docs/VIEW_DEPENDENCE.md.
 from __future__ import annotations
 
 import argparse
-import csv
 import json
 import sys
 import tempfile
@@ -181,19 +180,6 @@ def label_order(label: str) -> tuple:
 
 def load_runs(log: Path) -> dict:
     return {row["key"]: row for row in map(json.loads, log.read_text().splitlines())} if log.is_file() else {}
-
-
-def seed_log_from_csv(log: Path, table: Path) -> int:
-    """Start a missing run log from the committed CSV, so a fresh machine reports (and does not
-    train again) the runs it holds; their renders are not kept, so their far-from-the-objects
-    scores come from the CSV too.  Returns the rows written."""
-    if log.is_file() or not table.is_file():
-        return 0
-    with open(table, newline="") as handle:
-        rows = [{k: stability.csv_value(v) for k, v in row.items() if k != "label"} for row in csv.DictReader(handle)]
-    log.parent.mkdir(parents=True, exist_ok=True)
-    log.write_text("".join(json.dumps(row) + "\n" for row in rows))
-    return len(rows)
 
 
 def run_all(args, scenes: dict[str, Path], truths: dict, masks: dict) -> None:
@@ -384,7 +370,7 @@ def add_far_scores(rows: list[dict], truths: dict, masks: dict, folder: Path) ->
 
 def report(args, rows: list[dict], truths: dict, masks: dict) -> str:
     add_far_scores(rows, truths, masks, args.cache / "view_dependence")
-    stability.write_csv([{"label": label_of(row), **row} for row in rows], args.docs / "view_dependence.csv", CSV_COLUMNS)
+    stability.write_csv([{**row, "label": label_of(row)} for row in rows], args.docs / "view_dependence.csv", CSV_COLUMNS)
     chart(rows, truths, masks, args.cache / "view_dependence", args.docs / "view_dependence.png")
     machines = sorted({row["machine"] for row in rows})
     dates = sorted({row["date"] for row in rows})
@@ -426,7 +412,9 @@ def main(argv=None) -> None:
         raise SystemExit(f"--variants: choose among {', '.join(VARIANTS)}")
     truths, masks = held_out_truths(scenes, args.scale)
     log = args.cache / "view_dependence" / "runs.jsonl"
-    if seeded := seed_log_from_csv(log, args.docs / "view_dependence.csv"):
+    # A fresh machine restarts the log from the CSV (keys and all), so it reports, and does not
+    # train again, the runs the CSV holds; their renders are not kept, their far scores are.
+    if seeded := stability.seed_log_from_csv(log, args.docs / "view_dependence.csv"):
         print(f"no run log in {log.parent}: started it from {args.docs / 'view_dependence.csv'} ({seeded} runs)", flush=True)
     if not args.report_only:
         run_all(args, scenes, truths, masks)

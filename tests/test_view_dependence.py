@@ -100,8 +100,8 @@ def test_a_fresh_machine_starts_the_log_from_the_csv_with_the_same_runs_and_labe
     table = tmp_path / "view_dependence.csv"
     stability.write_csv([{"label": view_dependence.label_of(row), **row} for row in rows], table, view_dependence.CSV_COLUMNS)
     log = tmp_path / "cache" / "runs.jsonl"
-    assert view_dependence.seed_log_from_csv(log, table) == 3
-    assert view_dependence.seed_log_from_csv(log, table) == 0  # a log that exists is kept
+    assert stability.seed_log_from_csv(log, table) == 3
+    assert stability.seed_log_from_csv(log, table) == 0  # a log that exists is kept
     again = view_dependence.load_runs(log)
     assert sorted(again) == sorted(row["key"] for row in rows)
     assert sorted(map(view_dependence.label_of, again.values())) == sorted(map(view_dependence.label_of, rows))

@@ -328,26 +328,28 @@ class DisparityField(nn.Module):
         """Where rays (N, 4) read the texture for their (front) surface, (N, 2) in [-1, 1], and
         its depth unit (N, 1).  `detail_reads`, a list: gets the (N, 2) points where the rays
         read the depth detail."""
-        surfaces, _ = self.surfaces(uvst, detail_reads)
+        surfaces, _ = self.surfaces(uvst, detail_reads, back=False)
         return surfaces[0]
 
-    def surfaces(self, uvst: torch.Tensor, detail_reads: list | None = None) -> tuple[list, torch.Tensor | None]:
+    def surfaces(self, uvst: torch.Tensor, detail_reads: list | None = None,
+                 back: bool = True) -> tuple[list, torch.Tensor | None]:
         """([(grid, unit)] for the front surface and, with a back surface, the back one; the
         front's weight (N, 1) in the colour, or None with one surface).  `detail_reads`, a list:
-        gets the points where the front surface reads the depth detail."""
+        gets the points where the front surface reads the depth detail.  `back` False: the front
+        surface only (its weight None), without the back one's work."""
         # float32 even when rendering under float16 autocast (render.PRECISIONS): a texel is
         # 1/512 of the range, and float16 disparities moved colours to 55 dB from float32.
         if uvst.device.type not in HALF_DEVICES:  # no autocast there to switch off
-            return self._surfaces(uvst, detail_reads)
+            return self._surfaces(uvst, detail_reads, back)
         with torch.autocast(uvst.device.type, enabled=False):
-            return self._surfaces(uvst, detail_reads)
+            return self._surfaces(uvst, detail_reads, back)
 
-    def _surfaces(self, uvst: torch.Tensor, detail_reads: list | None) -> tuple[list, torch.Tensor | None]:
+    def _surfaces(self, uvst: torch.Tensor, detail_reads: list | None, back: bool) -> tuple[list, torch.Tensor | None]:
         uv = uvst[:, :2] * self.uv_half + self.uv_centre
         scale = 1.0 / (1.0 + self.config.texture_margin)  # sheared st leaves [-1, 1] a little
         out = self.geometry.decoder(self._ray_geometry_features(uvst, uv, scale))
         front = self._surface(uvst, uv, out[:, FRONT_DEPTH:FRONT_DEPTH + 1], scale, detail_reads)
-        if not self.config.back_surface:
+        if not (self.config.back_surface and back):
             return [front], None
         back_unit = front[1] * torch.sigmoid(out[:, BACK_SHARE:BACK_SHARE + 1])  # behind the front
         back = self._surface(uvst, uv, torch.logit(back_unit.clamp(1e-6, 1 - 1e-6)), scale, None)
