@@ -286,7 +286,9 @@ def losses_by_default(deep: bool, n_train_views: int, passes: float = math.inf) 
 # 80 / 100 % of the budget at 6 of CanClip's views: +0.23 / +0.37 / +0.45 / +0.49 dB; the
 # synthetic scene's 4: +0.30 / +0.49 / +0.54 / +0.50 (seed 0).  Fading the texture levels in
 # as well helped 4 photos of the synthetic scene (+0.24 dB more) but not 4 of fern's (+0.04),
-# and cost with 7 or 8 (-0.06 to -0.17) and on CanClip: not adopted.
+# and cost with 7 or 8 (-0.06 to -0.17) and on CanClip: not adopted.  With the back surface
+# (deep scenes) the synthetic scene's 10 / 7 / 4 photos gain +0.15 / +0.00 / -0.05 dB (three
+# seeds, fifty-first session): nothing either way there, and no cost in time, so the rule stands.
 COARSE_TO_FINE = 0.8
 COARSE_TO_FINE_MAX_VIEWS = 13
 
