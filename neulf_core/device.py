@@ -46,9 +46,10 @@ _allocator_tuned: bool | None = None
 
 
 def keep_freed_cpu_memory() -> bool:
-    """Let the C allocator reuse the memory a CPU render frees instead of handing it back.
+    """Let the C allocator reuse the memory a CPU render or training step frees instead of
+    handing it back.
 
-    A render's chunks allocate and free the same few-MB buffers over and over.  By default
+    A render's chunks (and training's steps) allocate and free the same few-MB buffers over and over.  By default
     glibc serves such buffers with fresh mmaps or trims them off the heap, so every chunk
     page-faults its buffers in again: 4,000-13,000 faults and about 10 % of the CPU time
     of a 480x270 frame (docs/BENCHMARKS.md).  Buffers up to 32 MB from the heap, and up to

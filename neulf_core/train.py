@@ -21,7 +21,7 @@ from .appearance import ViewAppearance, appearance_by_default, exposure_differen
 from .checkpoint import TRAINING_STATE_KEY, checkpoint_path, load_checkpoint, remove_stale_temporaries, save_checkpoint
 from .consistency import SlabGeometry, camera_neighbours, multiview_losses
 from .dataset import RaySet, build_rayset, mean_colour
-from .device import describe_device, pick_device
+from .device import describe_device, keep_freed_cpu_memory, pick_device
 from .errors import NeulfError
 from .fields import build_field, count_parameters, make_config
 from .fields.disparity import DisparityConfig, slab_geometry, texture_size_for
@@ -536,6 +536,12 @@ def _train(scene, model_dir: Path, config: TrainConfig, images_dir, resume: bool
         config = _config_for_resume(resumed, config, scene)
     train_views, held_views = split_views(scene, config.holdout_every, config.exclude)
     device = pick_device(config.device)
+    if device.type == "cpu":
+        # The back surface's colour batch (2 x 8192 rays x 128 hidden floats, 8 MB a buffer) lets
+        # glibc hand its freed buffers back, and in about half of the runs it then page-faults
+        # them in again every step: 2.3 M faults and 4.2 s of system time in 400 steps, 46
+        # instead of 36 ms a step (fern at 252x189, one thread; docs/BENCHMARKS.md).
+        keep_freed_cpu_memory()
     generator = _seed_everything(config.seed)
 
     slab = Slab.from_dict(resumed["slab"]) if resumed else fit_slab(

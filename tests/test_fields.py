@@ -393,6 +393,43 @@ def test_cpu_render_does_not_page_fault_its_chunk_buffers_in_again():
     assert int(done.stdout.strip().splitlines()[-1]) < 1000 * FRAMES
 
 
+TRAIN_STEPS = """
+import resource, sys
+from neulf_core import device
+from neulf_core.train import TrainConfig, train
+faults = {}
+def progress(event):
+    if event.get("event") in ("step", "validate") and event["step"] in (20, 60):
+        faults[event["step"]] = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
+train(sys.argv[1], sys.argv[2], TrainConfig(steps=60, device="cpu", back_surface=True, refine_poses=False,
+                                             checkpoint_seconds=1e9, validate_seconds=1e9), progress=progress)
+print(device._allocator_tuned, faults[60] - faults[20])
+"""
+
+
+def test_cpu_training_keeps_its_freed_step_buffers(tiny_scene, tmp_path):
+    """Training on a CPU keeps the buffers a step frees for the next step
+    (device.keep_freed_cpu_memory), as rendering does: the back surface's 16k-row colour
+    batch otherwise made glibc hand them back and page-fault them in again every step in about
+    half of the runs (2.3 M faults in 400 steps of fern; docs/BENCHMARKS.md).  In a fresh
+    process; 40 steps of the tiny scene take a few hundred faults with the setting."""
+    import os
+    import platform
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    if platform.system() != "Linux" or platform.libc_ver()[0] != "glibc":
+        pytest.skip("the allocator setting is glibc's")
+    root = Path(__file__).resolve().parents[1]
+    done = subprocess.run([sys.executable, "-c", TRAIN_STEPS, str(tiny_scene), str(tmp_path / "model")],
+                          capture_output=True, text=True, cwd=root, env={**os.environ, "OMP_NUM_THREADS": "1"})
+    assert done.returncode == 0, done.stderr
+    tuned, faults = done.stdout.strip().splitlines()[-1].split()
+    assert tuned == "True"
+    assert int(faults) < 40 * 100, f"{faults} page faults in 40 training steps"
+
+
 def test_appearance_captures_get_eight_geometry_channels_and_resume_keeps_the_saved_shape(tiny_scene, tmp_path, monkeypatch):
     """`--appearance` trains the fast field with 8 geometry channels (the default has 4); a
     resumed model keeps the shape it was saved with even when the defaults changed since:
