@@ -538,9 +538,9 @@ def _train(scene, model_dir: Path, config: TrainConfig, images_dir, resume: bool
     device = pick_device(config.device)
     if device.type == "cpu":
         # The back surface's colour batch (2 x 8192 rays x 128 hidden floats, 8 MB a buffer) lets
-        # glibc hand its freed buffers back, and in about half of the runs it then page-faults
-        # them in again every step: 2.3 M faults and 4.2 s of system time in 400 steps, 46
-        # instead of 36 ms a step (fern at 252x189, one thread; docs/BENCHMARKS.md).
+        # glibc hand its freed buffers back, and in 4 of 14 runs it then page-faulted them in
+        # again every step: 2.3 M faults and 4.2 s of system time in 400 steps, 45-47 instead
+        # of 36-43 ms a step (fern at 252x189, one thread; docs/BENCHMARKS.md).
         keep_freed_cpu_memory()
     generator = _seed_everything(config.seed)
 

@@ -410,9 +410,9 @@ print(device._allocator_tuned, faults[60] - faults[20])
 def test_cpu_training_keeps_its_freed_step_buffers(tiny_scene, tmp_path):
     """Training on a CPU keeps the buffers a step frees for the next step
     (device.keep_freed_cpu_memory), as rendering does: the back surface's 16k-row colour
-    batch otherwise made glibc hand them back and page-fault them in again every step in about
-    half of the runs (2.3 M faults in 400 steps of fern; docs/BENCHMARKS.md).  In a fresh
-    process; 40 steps of the tiny scene take a few hundred faults with the setting."""
+    batch otherwise made glibc hand them back and page-fault them in again every step in 4
+    of 14 runs (2.3 M faults in 400 steps of fern; docs/BENCHMARKS.md).  In a fresh process;
+    40 steps of the tiny scene take 13-2,059 faults with the setting, about 180,000 without."""
     import os
     import platform
     import subprocess
