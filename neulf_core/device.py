@@ -38,7 +38,7 @@ def describe_device(device: torch.device) -> str:
     return device.type
 
 
-# glibc's mallopt parameters (malloc.h) and the values chosen for rendering.
+# glibc's mallopt parameters (malloc.h) and the values chosen for rendering and training.
 _M_TRIM_THRESHOLD, _M_MMAP_THRESHOLD = -1, -3
 _MMAP_THRESHOLD = 32 << 20   # glibc's upper limit on 64-bit systems
 _TRIM_THRESHOLD = 256 << 20  # the freed heap a process keeps for reuse
@@ -49,8 +49,8 @@ def keep_freed_cpu_memory() -> bool:
     """Let the C allocator reuse the memory a CPU render or training step frees instead of
     handing it back.
 
-    A render's chunks (and training's steps) allocate and free the same few-MB buffers over and over.  By default
-    glibc serves such buffers with fresh mmaps or trims them off the heap, so every chunk
+    A render's chunks (and training's steps) allocate and free the same few-MB buffers over
+    and over.  By default glibc serves such buffers with fresh mmaps or trims them off the heap, so every chunk
     page-faults its buffers in again: 4,000-13,000 faults and about 10 % of the CPU time
     of a 480x270 frame (docs/BENCHMARKS.md).  Buffers up to 32 MB from the heap, and up to
     256 MB of freed heap kept, make that zero.  Once per process; glibc (Linux) only, a

@@ -376,21 +376,25 @@ def test_cpu_render_does_not_page_fault_its_chunk_buffers_in_again():
     average (0 for most frames, a few hundred when the heap grows once; 4,000-16,000 per
     frame with glibc's default thresholds, docs/BENCHMARKS.md).  In a fresh process, so that
     what other tests left in this one's heap does not count."""
+    assert int(_last_line_of_fresh_process(f"FRAMES = {FRAMES}\n" + RENDER_FRAMES, threads=2)) < 1000 * FRAMES
+
+
+def _last_line_of_fresh_process(code: str, *args: str, threads: int) -> str:
+    """The last line `code` prints, run with `args` in a new Python process of the repository
+    (so that what other tests left in this one's heap does not count); skips where the
+    allocator setting these tests measure does not exist (it is glibc's)."""
     import os
     import platform
     import subprocess
     import sys
     from pathlib import Path
 
-    import pytest
-
     if platform.system() != "Linux" or platform.libc_ver()[0] != "glibc":
         pytest.skip("the allocator setting is glibc's")
-    root = Path(__file__).resolve().parents[1]
-    done = subprocess.run([sys.executable, "-c", f"FRAMES = {FRAMES}\n" + RENDER_FRAMES], capture_output=True, text=True,
-                          cwd=root, env={**os.environ, "OMP_NUM_THREADS": "2"})
+    done = subprocess.run([sys.executable, "-c", code, *args], capture_output=True, text=True,
+                          cwd=Path(__file__).resolve().parents[1], env={**os.environ, "OMP_NUM_THREADS": str(threads)})
     assert done.returncode == 0, done.stderr
-    assert int(done.stdout.strip().splitlines()[-1]) < 1000 * FRAMES
+    return done.stdout.strip().splitlines()[-1]
 
 
 TRAIN_STEPS = """
@@ -413,19 +417,7 @@ def test_cpu_training_keeps_its_freed_step_buffers(tiny_scene, tmp_path):
     batch otherwise made glibc hand them back and page-fault them in again every step in 4
     of 14 runs (2.3 M faults in 400 steps of fern; docs/BENCHMARKS.md).  In a fresh process;
     40 steps of the tiny scene take 13-2,059 faults with the setting, about 180,000 without."""
-    import os
-    import platform
-    import subprocess
-    import sys
-    from pathlib import Path
-
-    if platform.system() != "Linux" or platform.libc_ver()[0] != "glibc":
-        pytest.skip("the allocator setting is glibc's")
-    root = Path(__file__).resolve().parents[1]
-    done = subprocess.run([sys.executable, "-c", TRAIN_STEPS, str(tiny_scene), str(tmp_path / "model")],
-                          capture_output=True, text=True, cwd=root, env={**os.environ, "OMP_NUM_THREADS": "1"})
-    assert done.returncode == 0, done.stderr
-    tuned, faults = done.stdout.strip().splitlines()[-1].split()
+    tuned, faults = _last_line_of_fresh_process(TRAIN_STEPS, str(tiny_scene), str(tmp_path / "model"), threads=1).split()
     assert tuned == "True"
     assert int(faults) < 40 * 100, f"{faults} page faults in 40 training steps"
 
