@@ -578,7 +578,7 @@ def _train(scene, model_dir: Path, config: TrainConfig, images_dir, resume: bool
     n_rays = len(train_rays)
     step_limit = pass_step_limit(config, field_module.field_name, len(train_views), n_rays, batch)
     config, fixed_poses = _first_members_poses(config, resumed, slab, train_views, device)
-    if config.refine_poses is None and not _pose_check_possible(config, step_limit, resumed):
+    if config.refine_poses is None and not _pose_check_possible(config, preset, step_limit, resumed):
         config = replace(config, refine_poses=False)
     pose_check_pending = config.refine_poses is None
     poses = (PoseRefinement(slab, np.stack([v.center for v in train_views])).to(device)
@@ -814,13 +814,16 @@ def _poses_of(model_dir: str, slab: Slab, train_views: list, device) -> PoseRefi
     return poses.requires_grad_(False).to(device)
 
 
-def _pose_check_possible(config: TrainConfig, step_limit: int | None, resumed: dict | None) -> bool:
+def _pose_check_possible(config: TrainConfig, preset, step_limit: int | None, resumed: dict | None) -> bool:
     """Whether the default's pose check can run: a continued model whose checkpoint holds pose
     corrections has not decided yet (one without them has, or predates the check); a new one
-    needs a budget long enough to reach the check and still train on (a minutes budget is
-    taken to be; one that ends first is checked at its end).  `step_limit`: the pass limit."""
+    needs a preset that checks (not the published networks: presets.Preset.pose_check) and a
+    budget long enough to reach the check and still train on (a minutes budget is taken to be;
+    one that ends first is checked at its end).  `step_limit`: the pass limit."""
     if resumed is not None:
         return bool(resumed.get("poses"))
+    if not preset.pose_check:
+        return False
     steps = min(s for s in (config.steps, step_limit, math.inf) if s)
     return steps >= 2 * POSE_CHECK_STEP
 

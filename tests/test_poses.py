@@ -332,6 +332,27 @@ def test_the_pose_check_keeps_or_drops_the_refinement_and_saves_its_verdict(tiny
         assert not torch.equal(resumed["poses"]["rotation"], saved["poses"]["rotation"])
 
 
+@pytest.mark.parametrize("preset", ["authors", "paper"])
+def test_the_published_networks_train_with_fixed_poses_unless_asked(tiny_scene, tmp_path, monkeypatch, preset):
+    """The pose check belongs to the default's recipe: at its step a published MLP is still a
+    blur whose corrections fit the blur (presets.Preset.pose_check), so those presets train
+    with the poses as given, and refine them only when asked."""
+    import neulf_core.poses as poses_module
+    import neulf_core.train as train_module
+    from neulf_core.checkpoint import load_checkpoint
+    from neulf_core.train import TrainConfig, train
+
+    monkeypatch.setattr(train_module, "POSE_CHECK_STEP", 3)
+    monkeypatch.setattr(poses_module, "POSE_CHECK_DEGREES", 0.0)  # the default's check would keep any correction
+    monkeypatch.setattr(poses_module, "POSE_CHECK_UNSURE_DEGREES", 0.0)
+    events = []
+    train(tiny_scene, tmp_path / "m", TrainConfig(preset=preset, steps=8, batch_size=256), progress=events.append)
+    saved = load_checkpoint(tmp_path / "m")
+    assert not _check_events(events) and saved["poses"] is None and saved["train_config"]["refine_poses"] is False
+    train(tiny_scene, tmp_path / "asked", TrainConfig(preset=preset, steps=8, batch_size=256, refine_poses=True))
+    assert load_checkpoint(tmp_path / "asked")["poses"] is not None
+
+
 def test_a_run_stopped_before_the_pose_check_checks_when_resumed(tiny_scene, tmp_path, monkeypatch):
     import neulf_core.poses as poses_module
     import neulf_core.train as train_module
