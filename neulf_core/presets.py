@@ -30,8 +30,9 @@ class Preset:
     # on the disparity field, whose early steps already fit the photos' edges; the published
     # MLPs are still a blur at the check's step, so their corrections fit the blur and the check
     # keeps them: the authors' network on CanClip lost 2.2 dB at 1000 steps (240x135, CPU,
-    # 21.39 against 23.55 dB) and 4.3 dB in a minute on an H200 (22.99 against 27.32), its steps
-    # 2.6 times slower.  Off here means the published recipe: fixed poses unless asked.
+    # 21.39 against 23.55 dB) and 4.5 dB in a minute at 960x540 on an H200 (22.99 against 27.51,
+    # 7,490 steps against 17,744; docs/BENCHMARKS.md).  Off: the published recipe, fixed poses
+    # unless asked.
     pose_check: bool = False
     description: str = ""
 
