@@ -348,6 +348,8 @@ def score_views(model_dir: Path, held: list[View], scale: float, fit_poses: bool
             "multiview_losses": light_field.meta.get("multiview_losses"),
             "coarse_to_fine_used": bool(light_field.meta.get("field_config", {}).get("geometry_coarse_to_fine", 0.0)),
             "back_surface": bool(light_field.meta.get("field_config", {}).get("back_surface", False)),
+            "back_surface_blend": (light_field.meta.get("field_config", {}).get("back_surface_blend", "colour")
+                                   if light_field.meta.get("field_config", {}).get("back_surface") else None),
             "appearance_used": bool(light_field.meta.get("train_config", {}).get("appearance")),
             "pose_check_refining": light_field.meta.get("pose_check", {}).get("refining"),
             "pose_check_degrees": light_field.meta.get("pose_check", {}).get("median_degrees"),
@@ -428,14 +430,20 @@ def sweep_fade(preset: str, n_train_views: int) -> float | None:
     return teacher_fade(n_train_views) if get_preset(preset).teacher else None
 
 
-def trained_without_back_surface(row: dict) -> bool:
-    """Whether a logged run of a deep scene (its `deep_scene`, the slab it trained in) with the
-    fast field was trained with one surface (rows logged before the back surface existed have
-    none, or an empty cell in the CSV): the default now gives deep scenes a back surface
-    (train.default_back_surface), so the study runs it again."""
-    if row.get("back_surface") is not None or get_preset(row["preset"]).field != "disparity":
+def trained_with_another_surface_mix(row: dict) -> bool:
+    """Whether a logged fast run of a deep scene (its `deep_scene`, the slab it trained in) was
+    trained otherwise than the default now trains deep scenes: with one surface (rows logged
+    before the back surface existed have none, or an empty cell in the CSV;
+    train.default_back_surface), or with its surfaces blended otherwise than the fast preset
+    blends them (`back_surface_blend`; rows logged before it was recorded blended colours).
+    The study runs it again."""
+    preset = get_preset(row["preset"])
+    if preset.field != "disparity":
         return False
-    return bool(row.get("deep_scene"))
+    if row.get("back_surface") is None:
+        return bool(row.get("deep_scene"))
+    blend = preset.field_config.get("back_surface_blend", "colour")
+    return bool(row["back_surface"]) and (row.get("back_surface_blend") or "colour") != blend
 
 
 def trained_with_another_fade(row: dict) -> bool:
@@ -1072,7 +1080,7 @@ def tables_markdown(rows: list[dict], meta: dict) -> str:
     sections = [
         f"Generated {meta['date']} on {meta['machine']}; fast: {meta['fast_steps']} steps, paper: "
         f"{meta['paper_steps']} steps; seeds {meta['seeds']}; cells: mean ± spread (max - min) of the held-out PSNR "
-        "in dB over the seeds, n = number of seeds where fewer than 3.", *random_start_note(rows), *one_surface_note(rows),
+        "in dB over the seeds, n = number of seeds where fewer than 3.", *random_start_note(rows), *older_surface_note(rows),
         "", "### Fewer views", "", f"Training views kept ({', '.join(map(lambda f: f'{f:.0%}', FRACTIONS))}): "
         f"{train_view_counts(rows)}.", "", *views_table(rows),
         "", "### View-dependent effects and fine texture (synthetic scene, all training views)", "", *variants_table(rows),
@@ -1112,15 +1120,17 @@ def random_start_note(rows: list[dict]) -> list[str]:
                 "study re-runs them.**"]
 
 
-def one_surface_note(rows: list[dict]) -> list[str]:
-    """Which runs of deep scenes were trained with one surface (before the back surface became
-    the default there and not re-run since), by study."""
-    old = [r for r in rows if trained_without_back_surface(r)]
+def older_surface_note(rows: list[dict]) -> list[str]:
+    """Which runs of deep scenes were trained with one surface, or with the surfaces blended
+    otherwise than the default now blends them, and not re-run since, by study."""
+    old = [r for r in rows if trained_with_another_surface_mix(r)]
     if not old:
         return []
-    return ["", f"**{len(old)} runs of deep scenes were trained before the back surface became their default "
-                f"(`back_surface` empty in docs/stability.csv: {runs_by_study(old)}; the default as a user runs it "
-                "is re-run); their rows stand until the study re-runs them.**"]
+    one = [r for r in old if r.get("back_surface") is None]
+    return ["", f"**{len(old)} runs of deep scenes were trained before their default's surfaces "
+                f"({len(one)} with one surface, `back_surface` empty in docs/stability.csv; {len(old) - len(one)} blending "
+                f"colours, `back_surface_blend` empty or `colour`: {runs_by_study(old)}); their rows stand until "
+                "the study re-runs them.**"]
 
 
 def update_markdown(path: Path, tables: str, begin: str = MARKER_BEGIN, end: str = MARKER_END) -> None:
@@ -1137,7 +1147,7 @@ def update_markdown(path: Path, tables: str, begin: str = MARKER_BEGIN, end: str
 CSV_COLUMNS = ["scene", "preset", "fraction", "pose_degrees", "appearance", "refine_poses", "consistency", "minutes",
                "coarse_to_fine", "colour_start", "coarse_to_fine_used", "appearance_used", "appearance_default", "exposure_difference_stops",
                "pose_check_refining", "pose_check_degrees", "pose_check_halfway", "field_restarted", "start_kept", "discarded_steps", "members", "member_poses",
-               "sweep_fade", "deep_scene", "multiview_losses", "back_surface", "pixel_jitter", "seed", "status", "psnr", "ssim",
+               "sweep_fade", "deep_scene", "multiview_losses", "back_surface", "back_surface_blend", "pixel_jitter", "seed", "status", "psnr", "ssim",
                "psnr_matched", "psnr_half_fit", "psnr_pose_fitted", "pose_fit_degrees", "psnr_per_view", "train_views", "held_out", "steps", "steps_done", "train_seconds",
                "wall_seconds", "warnings", "warning_text", "nonfinite_pixels", "error", "scale", "path", "truth"]
 
@@ -1303,9 +1313,9 @@ def seed_log_from_csv(log: Path, table: Path) -> int:
     return len(rows)
 
 
-def load_log(log: Path, one_surface: dict | None = None) -> dict:
-    """key -> row of the logged runs the study counts as done.  `one_surface`, a dict: gets the
-    runs that stand but for their one surface (trained_without_back_surface), for the report
+def load_log(log: Path, older_surface: dict | None = None) -> dict:
+    """key -> row of the logged runs the study counts as done.  `older_surface`, a dict: gets the
+    runs that stand but for their surfaces (trained_with_another_surface_mix), for the report
     until the study re-runs them."""
     done = {}
     if log.is_file():
@@ -1314,10 +1324,10 @@ def load_log(log: Path, one_surface: dict | None = None) -> dict:
             if row.get("status") in ("finished", "crashed") and not trained_with_another_fade(row) \
                     and not trained_with_other_members(row) and not trained_with_members_own_poses(row):
                 into = done
-                if trained_without_back_surface(row):
-                    if one_surface is None:
+                if trained_with_another_surface_mix(row):
+                    if older_surface is None:
                         continue
-                    into = one_surface
+                    into = older_surface
                 if "pose_check_refining" not in row:  # logged before the pose check: trained without refinement
                     row.setdefault("refine_poses", False)  # unless it says so
                     if row["refine_poses"] is False and not row.get("minutes") and row["steps"] < 2 * POSE_CHECK_STEP:
@@ -1328,10 +1338,10 @@ def load_log(log: Path, one_surface: dict | None = None) -> dict:
     return done
 
 
-def report_rows(done: dict, jobs: list[Job], one_surface: dict | None = None) -> list[dict]:
-    """The logged rows of `jobs`.  A configuration not yet re-run with every seed since the
-    back surface became the default for deep scenes reports its runs with one surface
-    (`one_surface`, from load_log), and one not re-run since the learned colour start its runs
+def report_rows(done: dict, jobs: list[Job], older_surface: dict | None = None) -> list[dict]:
+    """The logged rows of `jobs`.  A configuration not yet re-run with every seed since deep
+    scenes' surfaces last changed reports its runs as they were (`older_surface`, from
+    load_log), and one not re-run since the learned colour start its runs
     with the random start (logged before; the tables say how many), so no spread mixes the
     two."""
     configs: dict[str, list[Job]] = {}
@@ -1339,8 +1349,8 @@ def report_rows(done: dict, jobs: list[Job], one_surface: dict | None = None) ->
         configs.setdefault(job.configuration, []).append(job)
     rows = []
     for runs in configs.values():
-        if not all(job.key in done for job in runs) and any(job.key in (one_surface or {}) for job in runs):
-            rows += [one_surface[job.key] for job in runs if job.key in one_surface]
+        if not all(job.key in done for job in runs) and any(job.key in (older_surface or {}) for job in runs):
+            rows += [older_surface[job.key] for job in runs if job.key in older_surface]
             continue
         if not all(job.key in done for job in runs):
             runs = [replace(job, colour_start="random") for job in runs]
@@ -1439,10 +1449,10 @@ def main(argv=None) -> None:
     log = args.cache / "runs.jsonl"
     if not args.fresh and (seeded := seed_log_from_csv(log, args.docs / "stability.csv")):
         print(f"no run log in {args.cache}: started it from {args.docs / 'stability.csv'} ({seeded} runs)", flush=True)
-    one_surface = {}
-    done = {} if args.fresh else load_log(log, one_surface)
+    older_surface = {}
+    done = {} if args.fresh else load_log(log, older_surface)
     if args.report_only:
-        rows = report_rows(done, jobs, one_surface)
+        rows = report_rows(done, jobs, older_surface)
     else:
         rows = run_jobs(jobs, args.workers, done, log, by_configuration=args.by_configuration)
     meta = {**generation(args), "fast_steps": args.fast_steps,

@@ -75,7 +75,7 @@ class Preset:
 # geometry's parameters (74 k instead of 232 k).  Models saved before keep theirs (model.json).
 FAST_FIELD = {"texture_channels": 4, "geometry_channels": 4, "hidden": 128, "depth_detail_shift": 2,
               "view_dependence_linear": True, "decoder_lr_factor": 3.0, "colour_start": "statue_v1",
-              "geometry_spatial_res": [16, 32, 64]}
+              "geometry_spatial_res": [16, 32, 64], "back_surface_blend": "features"}
 # Its learning rate: a cosine from 2e-3 down to 1 % over the budget instead of an exponential
 # decay to 10 %.  Same cost per step; the field learns longer at a high rate, then settles.
 # Stability study's setting (1000 steps, three seeds, mean / spread of held-out PSNR):

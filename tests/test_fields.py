@@ -297,7 +297,8 @@ def _back_surface_field(**options):
 def test_back_surface_stays_behind_the_front_and_blends_two_texture_reads():
     """With a back surface each ray reads the texture at two shears, the back one at a depth
     unit below the front's (farther), and its colour and depth are the weighted blend of the
-    two surfaces' -- half and half at the start."""
+    two surfaces' -- half and half at the start.  Blending "features" mixes the two reads
+    before one decode instead of the two decoded colours."""
     torch.manual_seed(0)
     field = _back_surface_field(depth_detail_shift=0)
     with torch.no_grad():
@@ -310,9 +311,19 @@ def test_back_surface_stays_behind_the_front_and_blends_two_texture_reads():
         assert bool((back_unit < front_unit).all())
         assert not torch.allclose(front_grid, back_grid)
         rgb, unit = field(rays)
-        front_rgb = field._colour_at(front_grid, rays[:, :2])
-        back_rgb = field._colour_at(back_grid, rays[:, :2])
-        assert torch.allclose(rgb, weight * front_rgb + (1 - weight) * back_rgb, atol=1e-6)
+        uv = rays[:, :2]
+        front_features, back_features = field._texture_features(front_grid, uv), field._texture_features(back_grid, uv)
+        front_rgb, back_rgb = field._colour(front_features, uv), field._colour(back_features, uv)
+        assert torch.allclose(rgb, weight * front_rgb + (1 - weight) * back_rgb, atol=1e-6)  # "colour", models saved before
+        field.config.back_surface_blend = "features"
+        decoded = []
+        hook = field.decoder.register_forward_hook(lambda module, inputs, output: decoded.append(inputs[0].shape[0]))
+        blended_rgb, blended_unit = field(rays)
+        hook.remove()
+        assert decoded == [500]  # one decode of N rows, not 2N
+        mixed = weight * front_features + (1 - weight) * back_features
+        assert torch.allclose(blended_rgb, field._colour(mixed, uv), atol=1e-6)
+        assert torch.allclose(blended_unit, unit) and not torch.allclose(blended_rgb, rgb, atol=1e-3)
         assert torch.allclose(unit, weight * front_unit + (1 - weight) * back_unit, atol=1e-6)
         assert torch.equal(field.sheared(rays)[0], front_grid)  # `sheared` is the front surface's
     fresh = _back_surface_field()
@@ -339,7 +350,9 @@ def test_back_surface_by_default_on_deep_scenes_and_the_cli_flags(tiny_scene, tm
     args = ["train", str(tiny_scene), "--out", str(out), "--steps", "5", "--batch-size", "256", "--progress", "json",
             "--no-sweep-teacher", "--back-surface"]
     assert main(args) == 0
-    assert load_checkpoint(out)["field_config"]["back_surface"] is True
+    saved = load_checkpoint(out)["field_config"]
+    assert saved["back_surface"] is True and saved["back_surface_blend"] == "features"  # the fast preset's
+    assert make_config("disparity", {k: v for k, v in saved.items() if k != "back_surface_blend"}).back_surface_blend == "colour"
     rendering = LightField.load(out, "cpu").render_view(load_scene(tiny_scene).views[0], depth=True)
     assert np.isfinite(rendering.rgb).all() and np.isfinite(rendering.depth).all()
     assert main(args[:-1] + ["--no-back-surface", "--out", str(tmp_path / "one")]) == 0

@@ -384,25 +384,32 @@ def test_the_fewer_views_target_states_its_standard_error(stability):
     assert "standard error" not in next(line for line in stability.targets(single) if "views on canclip" in line)
 
 
-def test_a_deep_scene_trained_with_one_surface_is_run_again(stability, tiny_scene, tmp_path):
-    """Since deep scenes train with a back surface (train.default_back_surface), a fast run of
-    one logged without `back_surface` (or with an empty CSV cell) is trained again; one logged
-    since, a shallow scene's, the paper network's and one that never recorded its depth stand."""
+def test_a_deep_scene_trained_with_other_surfaces_is_run_again(stability, tiny_scene, tmp_path):
+    """Since deep scenes train with a back surface (train.default_back_surface) whose features
+    the fast preset blends (DisparityConfig.back_surface_blend), a fast run of one logged
+    without `back_surface` (or with an empty CSV cell), or with a back surface but no blend or
+    the colour blend, is trained again; one logged since, a shallow scene's, the paper
+    network's and one that never recorded its depth stand."""
     # (88 steps: one member by the members rule, so only the surface decides)
     fast = {**stability.asdict(stability.Job("tiny", str(tiny_scene), str(tiny_scene), 1.0, "fast", 88, 0)),
             "train_views": 7, "status": "finished", "psnr": 30.0, "sweep_fade": stability.sweep_fade("fast", 7)}
+    current = {"back_surface": True, "back_surface_blend": "features"}
     for deep in (True, False):
         run = {**fast, "deep_scene": deep}
         paper = {**run, "preset": "paper", "sweep_fade": None}
-        assert stability.trained_without_back_surface(run) is deep
-        assert stability.trained_without_back_surface({**run, "back_surface": None}) is deep  # from the CSV
-        assert not stability.trained_without_back_surface({**run, "back_surface": True})
-        assert not stability.trained_without_back_surface(paper)
-    assert not stability.trained_without_back_surface(fast)  # no depth recorded: it stands
+        assert stability.trained_with_another_surface_mix(run) is deep
+        assert stability.trained_with_another_surface_mix({**run, "back_surface": None}) is deep  # from the CSV
+        assert not stability.trained_with_another_surface_mix({**run, **current})
+        assert stability.trained_with_another_surface_mix({**run, "back_surface": True})  # logged before the blend
+        assert stability.trained_with_another_surface_mix({**run, **current, "back_surface_blend": "colour"})
+        assert not stability.trained_with_another_surface_mix({**run, "back_surface": False})  # forced off
+        assert not stability.trained_with_another_surface_mix(paper)
+    assert not stability.trained_with_another_surface_mix(fast)  # no depth recorded: it stands
     log = tmp_path / "runs.jsonl"
     deep = {**fast, "deep_scene": True}
-    log.write_text(json.dumps(deep) + "\n" + json.dumps({**deep, "seed": 1, "back_surface": True}) + "\n")
+    log.write_text("".join(json.dumps(row) + "\n" for row in
+                           (deep, {**deep, "seed": 1, **current}, {**deep, "seed": 2, "back_surface": True})))
     assert [row["seed"] for row in stability.load_log(log).values()] == [1]
-    one_surface = {}
-    stability.load_log(log, one_surface)
-    assert [row["seed"] for row in one_surface.values()] == [0]  # kept for the report until re-run
+    older = {}
+    stability.load_log(log, older)
+    assert sorted(row["seed"] for row in older.values()) == [0, 2]  # kept for the report until re-run

@@ -43,6 +43,8 @@ ANGULAR_PAIR = PAIRS.index(ANGULAR)
 SPATIAL_PAIR = PAIRS.index((2, 3))
 
 
+BACK_SURFACE_BLENDS = ("colour", "features")  # DisparityConfig.back_surface_blend
+
 @dataclass
 class DisparityConfig:
     texture_size: list[int] = field(default_factory=lambda: [512, 512])  # finest level (rows, columns)
@@ -118,6 +120,15 @@ class DisparityConfig:
     # The trainer turns it on for deep scenes (train.default_back_surface, with the numbers).
     # Off here, so models saved before read as they were.
     back_surface: bool = False
+    # How the two surfaces mix: "colour" decodes each surface's texture features to a colour and
+    # blends the colours; "features" blends the features and decodes once, half the colour
+    # decoder's work.  A trained model never lets one surface take a ray's whole colour (the
+    # front's weight: median 0.31-0.40, 1-99 % of rays within 0.12-0.78;
+    # benchmarks/back_surface_weights.py), so the blend is a second tap along the depth either
+    # way, and a tap of features decodes as well as a tap of colours.  The fast preset blends
+    # features (presets.FAST_FIELD, with the numbers); "colour" here, so models saved before
+    # read as they were.
+    back_surface_blend: str = "colour"  # BACK_SURFACE_BLENDS
     # The colour decoder's start: the name of a packaged start (neulf_core/fields/starts/<name>.npz,
     # learned by scripts/learn_colour_start.py) or "" for PyTorch's random initialisation.  With a
     # learned start no seed draws the decoder, and it was the decoder's random start that spread
@@ -192,6 +203,9 @@ def slab_geometry(slab) -> dict:
 class DisparityField(nn.Module):
     def __init__(self, config: DisparityConfig):
         super().__init__()
+        if config.back_surface_blend not in BACK_SURFACE_BLENDS:
+            raise NeulfError(f"this model blends its two surfaces by '{config.back_surface_blend}', which this version "
+                             f"of NeuLF does not know ({' or '.join(BACK_SURFACE_BLENDS)}): update NeuLF or train it again.")
         self.config = config
         self.geometry = PlanesField(PlanesConfig(angular_res=config.geometry_angular_res, spatial_res=config.geometry_spatial_res,
                                                  channels=config.geometry_channels, hidden=32, hidden_layers=1,
@@ -292,21 +306,25 @@ class DisparityField(nn.Module):
         uv = uvst[:, :2]
         if front_weight is None:
             (grid, unit), = surfaces
-            return self._colour_at(grid, uv), unit
+            return self._colour(self._texture_features(grid, uv), uv), unit
         (front_grid, front_unit), (back_grid, back_unit) = surfaces
-        # Both surfaces' texture reads and colours in one batch of 2N rays: fewer kernel calls.
-        front_rgb, back_rgb = self._colour_at(torch.cat([front_grid, back_grid]), torch.cat([uv, uv])).chunk(2)
-        return (torch.lerp(back_rgb, front_rgb, front_weight.to(front_rgb.dtype)),
-                torch.lerp(back_unit, front_unit, front_weight))
+        unit = torch.lerp(back_unit, front_unit, front_weight)
+        # Both surfaces' texture reads in one batch of 2N rays: fewer kernel calls.
+        both = self._texture_features(torch.cat([front_grid, back_grid]), torch.cat([uv, uv]))
+        if self.config.back_surface_blend == "features":
+            front_features, back_features = both.chunk(2)
+            return self._colour(torch.lerp(back_features, front_features, front_weight.to(both.dtype)), uv), unit
+        front_rgb, back_rgb = self._colour(both, torch.cat([uv, uv])).chunk(2)
+        return torch.lerp(back_rgb, front_rgb, front_weight.to(front_rgb.dtype)), unit
 
-    def _colour_at(self, grid: torch.Tensor, uv: torch.Tensor) -> torch.Tensor:
-        """(N, 3) colours of rays whose surface points read the texture at grid (N, 2)."""
+    def _texture_features(self, grid: torch.Tensor, uv: torch.Tensor) -> torch.Tensor:
+        """(N, F) colour-decoder input of rays whose surface points read the texture at grid (N, 2)."""
         features = [_features_at(texture, grid) for texture in self.textures]
         if self.config.texture_coarse_to_fine > 0:
             features = [f * w for f, w in zip(features, self.texture_level_weights)]
         if self.uv_input:
             features.append(uv)
-        return self._colour(_rows(features), uv)
+        return _rows(features)
 
     def _colour(self, features: torch.Tensor, uv: torch.Tensor) -> torch.Tensor:
         if torch.is_grad_enabled() or features.device.type != "cpu" or features.shape[0] <= DECODE_ROWS:
