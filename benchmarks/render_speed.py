@@ -7,6 +7,8 @@ chunks and ReLUs not in place), interleaved in one process, median of repeats.
 
 The camera is the first held-out view's, at the models' training scale.  Models with depth
 layers (which the reference code cannot evaluate) are timed with the current code only.
+`--blends colour,features` times models with a back surface with each way of blending their
+two surfaces (DisparityConfig.back_surface_blend: two decodes or one), current code.
 `--default-allocator` times the same with glibc's default malloc thresholds (a process-wide
 setting, so that comparison takes two runs).  Timings on a shared machine are noisy: compare
 the ratios (each repeat renders every variant once, in turn).
@@ -64,6 +66,10 @@ def reference_can_render(light_field) -> bool:
     return len(single_fields(light_field)) == 1 and not light_field.field.config.geometry_layers
 
 
+def has_back_surface(light_field) -> bool:
+    return any(field_module.config.back_surface for field_module in single_fields(light_field))
+
+
 def use_code(light_fields, current: bool) -> int | None:
     """Switch every model to the current or the reference code; returns the chunk to use."""
     DisparityField.forward = CURRENT_FORWARD if current else reference_forward
@@ -86,6 +92,8 @@ def main() -> None:
     parser.add_argument("--no-depth", action="store_true")
     parser.add_argument("--pixel-samples", default="1",
                         help="comma-separated points per pixel to time with the current code (render.PIXEL_SAMPLES)")
+    parser.add_argument("--blends", help="comma-separated back-surface blends to time (colour, features) for models "
+                                         "with a back surface (default: each model's own)")
     parser.add_argument("--default-allocator", action="store_true",
                         help="leave glibc's malloc thresholds as they are (the render path otherwise keeps freed "
                              "buffers, device.keep_freed_cpu_memory); run once with and once without to compare")
@@ -99,15 +107,22 @@ def main() -> None:
     K, width, height = camera.calibration_matrix(), int(camera.width), int(camera.height)
     # Layered models, members and more points per pixel: the current code only.
     samples = [int(n) for n in args.pixel_samples.split(",")]
-    variants = [(f"{code}, {name}" + (f", {n} points a pixel" if n != 1 else ""), name, code == "current", n)
+    variants = [(f"{code}, {name}" + (f", {n} points a pixel" if n != 1 else ""), name, code == "current", n, None)
                 for name in models for code in ("reference", "current") for n in samples
                 if code == "current" or (n == 1 and reference_can_render(models[name]))]
+    if args.blends:
+        variants = [variant for variant in variants if not variant[2] or not has_back_surface(models[variant[1]])] + [
+            (f"{label}, {blend} blend", name, True, points, blend) for label, name, current, points, _ in variants
+            if current and has_back_surface(models[name]) for blend in args.blends.split(",")]
     torch.set_num_threads(args.threads)  # for the timing only
     times = {label: [] for label, *_ in variants}
+    own_blend = {id(f): f.config.back_surface_blend for m in models.values() for f in single_fields(m)}
     faults_before = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
     for _ in range(args.repeats):
-        for label, name, current, points in variants:
+        for label, name, current, points, blend in variants:
             chunk = use_code(models.values(), current)
+            for field_module in single_fields(models[name]):
+                field_module.config.back_surface_blend = blend or own_blend[id(field_module)]
             started = time.perf_counter()
             models[name].render(K, width, height, view.R, view.t, depth=not args.no_depth, chunk=chunk,
                                 pixel_samples=points)
