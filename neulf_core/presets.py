@@ -73,6 +73,13 @@ class Preset:
 # (standard error; 5 of 5 pairs up), CanClip +0.02 ± 0.03, Statue -0.02 ± 0.11; at 1000 steps the
 # synthetic scene's 14 photos +0.34, HCI's 18 +0.13, CanClip's 26 -0.06.  A third of the
 # geometry's parameters (74 k instead of 232 k).  Models saved before keep theirs (model.json).
+# Where a deep scene gives it a back surface, the two surfaces' texture features are blended and
+# decoded once, not decoded to two colours and blended (DisparityConfig.back_surface_blend): half
+# the decoder's work.  Fifty-second session, AMD EPYC: the stability study's 147 deep-scene runs
+# trained again, 45 configurations against the colour blend at the same seeds: +0.03 dB (mean
+# and median), 32 better, 13 worse; 1000 steps in 40 instead of 47 s (runs a day apart); the
+# default's seed spread 26 of 36 configurations inside 0.2 dB, as before (docs/STABILITY.md,
+# fifty-second session).  Models saved before blend colours (model.json).
 FAST_FIELD = {"texture_channels": 4, "geometry_channels": 4, "hidden": 128, "depth_detail_shift": 2,
               "view_dependence_linear": True, "decoder_lr_factor": 3.0, "colour_start": "statue_v1",
               "geometry_spatial_res": [16, 32, 64], "back_surface_blend": "features"}
