@@ -322,6 +322,7 @@ def score_views(model_dir: Path, held: list[View], scale: float, fit_poses: bool
     """Held-out scores; with `fit_poses` also after fitting each held-out camera's pose to its
     photo with the field frozen (poses.fit_view_pose, BARF's protocol for pose-refined models)."""
     light_field = LightField.load(model_dir, "cpu", precision="full")
+    field_config = light_field.meta.get("field_config", {})
     psnrs, ssims, matched, half_fit, nonfinite = [], [], [], [], 0
     fitted_psnrs, fitted_degrees = [], []
     spacing = camera_spacing(np.asarray(light_field.meta["rig"]["centres"]))  # the training rig's (pose fits)
@@ -346,10 +347,9 @@ def score_views(model_dir: Path, held: list[View], scale: float, fit_poses: bool
             "psnr_per_view": ";".join(f"{view.stem}={p:.2f}" for view, p in zip(held, psnrs)),
             "nonfinite_pixels": nonfinite, "deep_scene": bool(light_field.slab.is_deep),
             "multiview_losses": light_field.meta.get("multiview_losses"),
-            "coarse_to_fine_used": bool(light_field.meta.get("field_config", {}).get("geometry_coarse_to_fine", 0.0)),
-            "back_surface": bool(light_field.meta.get("field_config", {}).get("back_surface", False)),
-            "back_surface_blend": (light_field.meta.get("field_config", {}).get("back_surface_blend", "colour")
-                                   if light_field.meta.get("field_config", {}).get("back_surface") else None),
+            "coarse_to_fine_used": bool(field_config.get("geometry_coarse_to_fine", 0.0)),
+            "back_surface": bool(field_config.get("back_surface", False)),
+            "back_surface_blend": field_config.get("back_surface_blend", "colour") if field_config.get("back_surface") else None,
             "appearance_used": bool(light_field.meta.get("train_config", {}).get("appearance")),
             "pose_check_refining": light_field.meta.get("pose_check", {}).get("refining"),
             "pose_check_degrees": light_field.meta.get("pose_check", {}).get("median_degrees"),

@@ -45,6 +45,7 @@ SPATIAL_PAIR = PAIRS.index((2, 3))
 
 BACK_SURFACE_BLENDS = ("colour", "features")  # DisparityConfig.back_surface_blend
 
+
 @dataclass
 class DisparityConfig:
     texture_size: list[int] = field(default_factory=lambda: [512, 512])  # finest level (rows, columns)
