@@ -25,7 +25,7 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import stability  # noqa: E402
 
-from neulf_core.rays import pixel_centres, view_rays  # noqa: E402
+from neulf_core.dataset import view_uvst  # noqa: E402
 from neulf_core.render import LightField  # noqa: E402
 from neulf_core.train import train  # noqa: E402
 
@@ -37,12 +37,9 @@ def surfaces_over(light_field: LightField, views, scale: float) -> tuple[np.ndar
     """(front weight, back unit / front unit) over every pixel-centre ray of `views`."""
     weights, shares = [], []
     for view in views:
-        camera = view.scaled_camera(scale)
-        origin, directions = view_rays(camera, view.R, view.t, pixel_centres(int(camera.width), int(camera.height)))
-        uvst, _ = light_field.slab.rays_to_uvst(torch.as_tensor(origin, dtype=torch.float32),
-                                                torch.as_tensor(directions, dtype=torch.float32))
+        uvst, _ = view_uvst(view, light_field.slab, scale)
         with torch.no_grad():
-            ((_, front_unit), (_, back_unit)), front_weight = light_field.field.surfaces(uvst.float())
+            ((_, front_unit), (_, back_unit)), front_weight = light_field.field.surfaces(uvst)
         weights.append(front_weight[:, 0].numpy())
         shares.append((back_unit / front_unit.clamp(min=1e-9))[:, 0].numpy())
     return np.concatenate(weights), np.concatenate(shares)

@@ -50,10 +50,10 @@ def keep_freed_cpu_memory() -> bool:
     handing it back.
 
     A render's chunks (and training's steps) allocate and free the same few-MB buffers over
-    and over.  By default glibc serves such buffers with fresh mmaps or trims them off the heap, so every chunk
-    page-faults its buffers in again: 4,000-13,000 faults and about 10 % of the CPU time
-    of a 480x270 frame (docs/BENCHMARKS.md).  Buffers up to 32 MB from the heap, and up to
-    256 MB of freed heap kept, make that zero.  Once per process; glibc (Linux) only, a
+    and over.  By default glibc serves such buffers with fresh mmaps or trims them off the
+    heap, so every chunk page-faults its buffers in again: 4,000-13,000 faults and about 10 %
+    of the CPU time of a 480x270 frame (docs/BENCHMARKS.md).  Buffers up to 32 MB from the
+    heap, and up to 256 MB of freed heap kept, make that zero.  Once per process; glibc (Linux) only, a
     no-op elsewhere.  Returns whether the setting is in effect."""
     global _allocator_tuned
     if _allocator_tuned is None:
