@@ -78,8 +78,8 @@ from neulf_core.render import LightField  # noqa: E402
 from neulf_core.scene import Scene, View, camera_spacing, find_model_dir, load_scene, scaled_size, split_views  # noqa: E402
 from neulf_core.teacher import TEACHER_FADE, teacher_fade  # noqa: E402
 from neulf_core.train import (COARSE_TO_FINE_MAX_VIEWS, CONSISTENCY_MAX_VIEWS, FAR_OFF_POSE_DEGREES,  # noqa: E402
-                              LOSSES_MIN_PASSES, TrainConfig,
-                              losses_by_default, train)
+                              CONSISTENCY_ALWAYS_MAX_VIEWS, LOSSES_MIN_PASSES, LOSSES_WHILE_REFINING, TrainConfig,
+                              losses_by_default, losses_while_refining, train)
 
 DOCS = REPO / "docs"
 CANCLIP = REPO.parent / "shared" / "data" / "canclip"
@@ -347,6 +347,7 @@ def score_views(model_dir: Path, held: list[View], scale: float, fit_poses: bool
             "psnr_per_view": ";".join(f"{view.stem}={p:.2f}" for view, p in zip(held, psnrs)),
             "nonfinite_pixels": nonfinite, "deep_scene": bool(light_field.slab.is_deep),
             "multiview_losses": light_field.meta.get("multiview_losses"),
+            "losses_from_step": light_field.meta.get("multiview_losses_from_step"),
             "coarse_to_fine_used": bool(field_config.get("geometry_coarse_to_fine", 0.0)),
             "back_surface": bool(field_config.get("back_surface", False)),
             "back_surface_blend": field_config.get("back_surface_blend", "colour") if field_config.get("back_surface") else None,
@@ -462,6 +463,31 @@ def trained_with_another_fade(row: dict) -> bool:
 def view_pixels(path: str, scale: float) -> int:
     """Pixels of one of the scene's views at the training scale (a scene's views share a size)."""
     return int(np.prod(scaled_size(load_any(path).views[0].size, scale)))
+
+
+def trained_with_another_losses_rule(row: dict) -> bool:
+    """Whether a logged run whose multi-view losses the default decided (`consistency` empty,
+    a preset that leaves them to train.losses_by_default) trained with them otherwise than the
+    rule now decides for its photo count, depth and step budget, and for whether it refined its
+    poses (the pose check's verdict, or `refine_poses`) or its photos' colours: the study runs
+    it again.  Minutes runs stand (their passes were counted at the rate they measured), and so
+    do runs whose scene is not at hand to count its pixels."""
+    if row.get("consistency") is not None or get_preset(row["preset"]).consistency is not None:
+        return False
+    views, deep, logged = row.get("train_views"), row.get("deep_scene"), row.get("multiview_losses")
+    if not views or deep is None or logged is None or row.get("minutes") or not row.get("steps"):
+        return False
+    rule = losses_by_default(bool(deep), int(views))
+    if rule is not False:  # the budget counts too
+        if not Path(row["path"]).exists():
+            return False
+        pixels = int(views) * image_pixels(row["path"], row["scale"])
+        rule = losses_by_default(bool(deep), int(views), row["steps"] * get_preset(row["preset"]).batch_size / pixels)
+    refining_poses = row.get("pose_check_refining") if row.get("refine_poses") is None else row["refine_poses"]
+    decided = losses_while_refining(rule, bool(row.get("appearance_used")), bool(refining_poses))
+    # Turned on by the pose check's verdict, they start after it (logged before: from the start).
+    waits = decided and rule == LOSSES_WHILE_REFINING and not row.get("appearance_used") and row.get("refine_poses") is None
+    return decided != bool(logged) or bool(waits and not row.get("losses_from_step"))
 
 
 def trained_with_other_members(row: dict) -> bool:
@@ -931,8 +957,8 @@ def losses_table(rows: list[dict]) -> list[str]:
             passes = (np.mean(done_on) * batch / (views * image_pixels(on[0]["path"], on[0]["scale"]))
                       if done_on and isinstance(views, int) else None)
             # What the default decides when its minutes buy the steps these runs made (train.default_consistency).
-            default = "?" if deep is None or passes is None else (
-                "on" if losses_by_default(deep, views, passes) else "off")
+            rule = None if deep is None or passes is None else losses_by_default(deep, views, passes)
+            default = {None: "?", True: "on", False: "off", LOSSES_WHILE_REFINING: "while refining"}[rule]
             passes_text = "-" if passes is None else f"{passes:.0f}"
             lines.append(f"| {scene} | {views} | {cell(off)} | {cell(on)} | {gain} | {steps} | {passes_text} | {default} |")
     return lines
@@ -1090,9 +1116,10 @@ def tables_markdown(rows: list[dict], meta: dict) -> str:
         *pose_table(rows),
         "", f"### The paper's multi-view losses with fewer views (fast; equal time, {meta.get('losses_minutes', 1.0):g} min "
         f"per run; seeds {meta.get('losses_seeds', '0,1')}; the default turns them on for deep scenes with at most "
-        f"{CONSISTENCY_MAX_VIEWS} training views when the budget passes over their pixels at least {LOSSES_MIN_PASSES:g} "
-        "times, never for shallow ones, the passes "
-        "counted at the step rate the run measures)", "", *losses_table(rows),
+        f"{CONSISTENCY_ALWAYS_MAX_VIEWS} training views when the budget passes over their pixels at least "
+        f"{LOSSES_MIN_PASSES:g} times, with up to {CONSISTENCY_MAX_VIEWS} only while training refines the poses or "
+        "the photos' colours, never for shallow scenes; the passes "
+        "counted at the step rate the run measures; these runs have right poses)", "", *losses_table(rows),
         "", f"### Coarse to fine with fewer views (fast; the default turns it on with at most {COARSE_TO_FINE_MAX_VIEWS} "
         "training views)", "", *coarse_table(rows),
         "", "### Runs", "", *runs_table(rows),
@@ -1147,7 +1174,7 @@ def update_markdown(path: Path, tables: str, begin: str = MARKER_BEGIN, end: str
 CSV_COLUMNS = ["scene", "preset", "fraction", "pose_degrees", "appearance", "refine_poses", "consistency", "minutes",
                "coarse_to_fine", "colour_start", "coarse_to_fine_used", "appearance_used", "appearance_default", "exposure_difference_stops",
                "pose_check_refining", "pose_check_degrees", "pose_check_halfway", "field_restarted", "start_kept", "discarded_steps", "members", "member_poses",
-               "sweep_fade", "deep_scene", "multiview_losses", "back_surface", "back_surface_blend", "pixel_jitter", "seed", "status", "psnr", "ssim",
+               "sweep_fade", "deep_scene", "multiview_losses", "losses_from_step", "back_surface", "back_surface_blend", "pixel_jitter", "seed", "status", "psnr", "ssim",
                "psnr_matched", "psnr_half_fit", "psnr_pose_fitted", "pose_fit_degrees", "psnr_per_view", "train_views", "held_out", "steps", "steps_done", "train_seconds",
                "wall_seconds", "warnings", "warning_text", "nonfinite_pixels", "error", "scale", "path", "truth"]
 
@@ -1322,7 +1349,8 @@ def load_log(log: Path, older_surface: dict | None = None) -> dict:
         for line in log.read_text().splitlines():
             row = json.loads(line)
             if row.get("status") in ("finished", "crashed") and not trained_with_another_fade(row) \
-                    and not trained_with_other_members(row) and not trained_with_members_own_poses(row):
+                    and not trained_with_other_members(row) and not trained_with_members_own_poses(row) \
+                    and not trained_with_another_losses_rule(row):
                 into = done
                 if trained_with_another_surface_mix(row):
                     if older_surface is None:

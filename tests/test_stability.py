@@ -413,3 +413,36 @@ def test_a_deep_scene_trained_with_other_surfaces_is_run_again(stability, tiny_s
     older = {}
     stability.load_log(log, older)
     assert sorted(row["seed"] for row in older.values()) == [0, 2]  # kept for the report until re-run
+
+
+def test_a_run_whose_losses_the_rule_now_decides_otherwise_is_run_again(stability, tiny_scene, tmp_path):
+    """A fast run of 14 photos of a deep scene logged with the multi-view losses on is trained
+    again where it neither refined its poses nor learned its colours (the rule now leaves them
+    off there), and stands where it did either; runs whose losses were asked for, shallow
+    scenes' and minutes runs stand."""
+    from neulf_core.train import CONSISTENCY_ALWAYS_MAX_VIEWS
+
+    # (88 steps: one member by the members rule; the surfaces and the fade as the default's now)
+    run = {**stability.asdict(stability.Job("tiny", str(tiny_scene), str(tiny_scene), 1.0, "fast", 88, 0)),
+           "train_views": 14, "deep_scene": True, "multiview_losses": True, "status": "finished",
+           "pose_check_refining": False, "appearance_used": False, "sweep_fade": stability.sweep_fade("fast", 14),
+           "back_surface": True, "back_surface_blend": "features"}
+    assert stability.trained_with_another_losses_rule(run)
+    assert not stability.trained_with_another_losses_rule({**run, "multiview_losses": False})
+    refining = {**run, "pose_check_refining": True, "losses_from_step": 101}
+    assert not stability.trained_with_another_losses_rule(refining)                               # the check kept refining
+    # ... logged before the losses waited for the check: on from the start
+    assert stability.trained_with_another_losses_rule({**refining, "losses_from_step": None})
+    assert not stability.trained_with_another_losses_rule({**run, "pose_check_refining": None, "refine_poses": True})
+    assert stability.trained_with_another_losses_rule({**run, "pose_check_refining": None, "refine_poses": False})
+    assert not stability.trained_with_another_losses_rule({**run, "appearance_used": True})       # colours learned
+    assert not stability.trained_with_another_losses_rule({**run, "train_views": CONSISTENCY_ALWAYS_MAX_VIEWS})
+    assert not stability.trained_with_another_losses_rule({**run, "consistency": True})           # asked for
+    assert not stability.trained_with_another_losses_rule({**run, "minutes": 1.0})                # counted at its rate
+    assert stability.trained_with_another_losses_rule({**run, "deep_scene": False})               # shallow: off
+    assert not stability.trained_with_another_losses_rule({**run, "deep_scene": False, "multiview_losses": False})
+    assert stability.trained_with_another_losses_rule({**refining, "steps": 1})                   # too few passes: off
+    assert not stability.trained_with_another_losses_rule({**refining, "steps": 1, "multiview_losses": False})
+    log = tmp_path / "runs.jsonl"
+    log.write_text("".join(json.dumps(row) + "\n" for row in (run, {**run, "seed": 1, "multiview_losses": False})))
+    assert [row["seed"] for row in stability.load_log(log).values()] == [1]
