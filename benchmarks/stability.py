@@ -78,8 +78,8 @@ from neulf_core.render import LightField  # noqa: E402
 from neulf_core.scene import Scene, View, camera_spacing, find_model_dir, load_scene, scaled_size, split_views  # noqa: E402
 from neulf_core.teacher import TEACHER_FADE, teacher_fade  # noqa: E402
 from neulf_core.train import (COARSE_TO_FINE_MAX_VIEWS, CONSISTENCY_MAX_VIEWS, FAR_OFF_POSE_DEGREES,  # noqa: E402
-                              CONSISTENCY_ALWAYS_MAX_VIEWS, LOSSES_MIN_PASSES, LOSSES_WHILE_REFINING, TrainConfig,
-                              losses_by_default, losses_while_refining, train)
+                              CONSISTENCY_ALWAYS_MAX_VIEWS, LOSSES_MIN_PASSES, LOSSES_UNTIL_POSES_RIGHT, TrainConfig,
+                              losses_by_default, losses_stop_at_pose_check, train)
 
 DOCS = REPO / "docs"
 CANCLIP = REPO.parent / "shared" / "data" / "canclip"
@@ -89,7 +89,10 @@ HCI = REPO.parent / "shared" / "data" / "hci_antinous"
 FERN = REPO.parent / "shared" / "data" / "fern"
 FEWER_VIEWS_SCENES = ("canclip", "hci", "lambertian")
 # The losses study: scenes and shares of the training views (deep: lambertian, fern; shallow: canclip).
-LOSSES_PLAN = {"lambertian": (1.0, 0.5, 0.25), "fern": (1.0, 0.5, 0.25), "canclip": (1.0, 0.25)}
+LOSSES_PLAN = {"lambertian": (1.0, 0.5, 0.25), "shiny": (1.0,), "fern": (1.0, 0.5, 0.25), "canclip": (1.0, 0.25)}
+# ... and the default in the same minute where it is neither column: 11 to 20 photos of a deep
+# scene, whose losses stop where the pose check finds the poses right (train.losses_by_default).
+LOSSES_DEFAULT_PLAN = {"lambertian": (1.0,), "shiny": (1.0,), "fern": (1.0,)}
 # The coarse-to-fine study: the fewer-views shares with at most 13 training views (coarse to
 # fine's default), trained without it as well.
 COARSE_PLAN = {"canclip": (0.5, 0.25), "lambertian": (0.75, 0.5, 0.25)}
@@ -347,7 +350,7 @@ def score_views(model_dir: Path, held: list[View], scale: float, fit_poses: bool
             "psnr_per_view": ";".join(f"{view.stem}={p:.2f}" for view, p in zip(held, psnrs)),
             "nonfinite_pixels": nonfinite, "deep_scene": bool(light_field.slab.is_deep),
             "multiview_losses": light_field.meta.get("multiview_losses"),
-            "losses_from_step": light_field.meta.get("multiview_losses_from_step"),
+            "losses_until_step": light_field.meta.get("multiview_losses_until_step"),
             "coarse_to_fine_used": bool(field_config.get("geometry_coarse_to_fine", 0.0)),
             "back_surface": bool(field_config.get("back_surface", False)),
             "back_surface_blend": field_config.get("back_surface_blend", "colour") if field_config.get("back_surface") else None,
@@ -468,10 +471,11 @@ def view_pixels(path: str, scale: float) -> int:
 def trained_with_another_losses_rule(row: dict) -> bool:
     """Whether a logged run whose multi-view losses the default decided (`consistency` empty,
     a preset that leaves them to train.losses_by_default) trained with them otherwise than the
-    rule now decides for its photo count, depth and step budget, and for whether it refined its
-    poses (the pose check's verdict, or `refine_poses`) or its photos' colours: the study runs
-    it again.  Minutes runs stand (their passes were counted at the rate they measured), and so
-    do runs whose scene is not at hand to count its pixels."""
+    rule now decides for its photo count, depth and step budget, or kept them on where the
+    pose check, finding its poses right, now ends them (train.losses_stop_at_pose_check;
+    `losses_until_step`, logged since): the study runs it again.  Minutes runs stand (their
+    passes were counted at the rate they measured), and so do runs whose scene is not at hand
+    to count its pixels."""
     if row.get("consistency") is not None or get_preset(row["preset"]).consistency is not None:
         return False
     views, deep, logged = row.get("train_views"), row.get("deep_scene"), row.get("multiview_losses")
@@ -483,11 +487,9 @@ def trained_with_another_losses_rule(row: dict) -> bool:
             return False
         pixels = int(views) * image_pixels(row["path"], row["scale"])
         rule = losses_by_default(bool(deep), int(views), row["steps"] * get_preset(row["preset"]).batch_size / pixels)
-    refining_poses = row.get("pose_check_refining") if row.get("refine_poses") is None else row["refine_poses"]
-    decided = losses_while_refining(rule, bool(row.get("appearance_used")), bool(refining_poses))
-    # Turned on by the pose check's verdict, they start after it (logged before: from the start).
-    waits = decided and rule == LOSSES_WHILE_REFINING and not row.get("appearance_used") and row.get("refine_poses") is None
-    return decided != bool(logged) or bool(waits and not row.get("losses_from_step"))
+    found_right = row.get("refine_poses") is None and row.get("pose_check_refining") is False
+    stops = losses_stop_at_pose_check(rule, bool(row.get("appearance_used")), found_right)
+    return bool(rule) != bool(logged) or (stops and row.get("losses_until_step") is None)
 
 
 def trained_with_other_members(row: dict) -> bool:
@@ -676,13 +678,14 @@ def plan(args, scenes: dict[str, Path]) -> list[Job]:
                         add(scene, "fast", scale, pose_degrees=degrees, refine_poses=refine)
                     add(scene, "fast", scale, fraction=POSE_FEW_VIEWS, pose_degrees=degrees)
     if "losses" in studies:
-        scales = {"lambertian": synth, "fern": args.fern_scale, "canclip": args.canclip_scale}
+        scales = {"lambertian": synth, "shiny": synth, "fern": args.fern_scale, "canclip": args.canclip_scale}
         losses_seeds = [int(s) for s in args.losses_seeds.split(",")]
         for scene, shares in LOSSES_PLAN.items():
             if scene not in scenes:
                 continue
             for fraction in shares:
-                for consistency in (False, True):
+                settings = (False, True, None) if fraction in LOSSES_DEFAULT_PLAN.get(scene, ()) else (False, True)
+                for consistency in settings:
                     add(scene, "fast", scales[scene], seed_list=losses_seeds, fraction=fraction,
                         consistency=consistency, minutes=args.losses_minutes, steps=0)
     if "coarse" in studies:  # the fewer-views runs the default trains coarse to fine, without it
@@ -936,8 +939,8 @@ def pose_check_kept(rows: list[dict]) -> str:
 
 def losses_table(rows: list[dict]) -> list[str]:
     lines = ["| scene | training views | off | on (the paper's losses) | gain | steps off / on (mean) "
-             "| passes with them on | the default at that rate |",
-             "|---|---|---|---|---|---|---|---|"]
+             "| passes with them on | the default at that rate | the default, run (what it did) |",
+             "|---|---|---|---|---|---|---|---|---|"]
     timed = [r for r in rows if r.get("minutes") and r.get("consistency") is not None]
     batch = get_preset("fast").batch_size
     for scene in dict.fromkeys([*LOSSES_PLAN, *(r["scene"] for r in timed)]):
@@ -958,10 +961,22 @@ def losses_table(rows: list[dict]) -> list[str]:
                       if done_on and isinstance(views, int) else None)
             # What the default decides when its minutes buy the steps these runs made (train.default_consistency).
             rule = None if deep is None or passes is None else losses_by_default(deep, views, passes)
-            default = {None: "?", True: "on", False: "off", LOSSES_WHILE_REFINING: "while refining"}[rule]
+            default = {None: "?", True: "on", False: "off", LOSSES_UNTIL_POSES_RIGHT: "until the poses check right"}[rule]
             passes_text = "-" if passes is None else f"{passes:.0f}"
-            lines.append(f"| {scene} | {views} | {cell(off)} | {cell(on)} | {gain} | {steps} | {passes_text} | {default} |")
+            ran = group(rows, preset="fast", **base(scene, fraction=fraction, consistency=None, minutes=minutes))
+            lines.append(f"| {scene} | {views} | {cell(off)} | {cell(on)} | {gain} | {steps} | {passes_text} | {default} "
+                         f"| {losses_default_cell(ran)} |")
     return lines
+
+
+def losses_default_cell(runs: list[dict]) -> str:
+    """The default's runs of a losses-study row: their PSNR and, per seed, how long the losses
+    ran ("off", "on", or "to step N" where the pose check stopped them)."""
+    if not runs:
+        return "-"
+    what = ["off" if not r.get("multiview_losses") else f"to step {r['losses_until_step']}"
+            if r.get("losses_until_step") is not None else "on" for r in sorted(runs, key=lambda r: r["seed"])]
+    return f"{cell(runs)} ({', '.join(what)})"
 
 
 @functools.lru_cache(maxsize=None)
@@ -1117,8 +1132,8 @@ def tables_markdown(rows: list[dict], meta: dict) -> str:
         "", f"### The paper's multi-view losses with fewer views (fast; equal time, {meta.get('losses_minutes', 1.0):g} min "
         f"per run; seeds {meta.get('losses_seeds', '0,1')}; the default turns them on for deep scenes with at most "
         f"{CONSISTENCY_ALWAYS_MAX_VIEWS} training views when the budget passes over their pixels at least "
-        f"{LOSSES_MIN_PASSES:g} times, with up to {CONSISTENCY_MAX_VIEWS} only while training refines the poses or "
-        "the photos' colours, never for shallow scenes; the passes "
+        f"{LOSSES_MIN_PASSES:g} times, with up to {CONSISTENCY_MAX_VIEWS} until the pose check finds the poses right "
+        "(unless the photos' colours are learned), never for shallow scenes; the passes "
         "counted at the step rate the run measures; these runs have right poses)", "", *losses_table(rows),
         "", f"### Coarse to fine with fewer views (fast; the default turns it on with at most {COARSE_TO_FINE_MAX_VIEWS} "
         "training views)", "", *coarse_table(rows),
@@ -1174,7 +1189,7 @@ def update_markdown(path: Path, tables: str, begin: str = MARKER_BEGIN, end: str
 CSV_COLUMNS = ["scene", "preset", "fraction", "pose_degrees", "appearance", "refine_poses", "consistency", "minutes",
                "coarse_to_fine", "colour_start", "coarse_to_fine_used", "appearance_used", "appearance_default", "exposure_difference_stops",
                "pose_check_refining", "pose_check_degrees", "pose_check_halfway", "field_restarted", "start_kept", "discarded_steps", "members", "member_poses",
-               "sweep_fade", "deep_scene", "multiview_losses", "losses_from_step", "back_surface", "back_surface_blend", "pixel_jitter", "seed", "status", "psnr", "ssim",
+               "sweep_fade", "deep_scene", "multiview_losses", "losses_until_step", "back_surface", "back_surface_blend", "pixel_jitter", "seed", "status", "psnr", "ssim",
                "psnr_matched", "psnr_half_fit", "psnr_pose_fitted", "pose_fit_degrees", "psnr_per_view", "train_views", "held_out", "steps", "steps_done", "train_seconds",
                "wall_seconds", "warnings", "warning_text", "nonfinite_pixels", "error", "scale", "path", "truth"]
 

@@ -156,8 +156,8 @@ def _final_model_defaults(scene: Scene, config: TrainConfig, progress) -> TrainC
         decided = default_consistency(slab, train_views, config)
         if decided is None:  # a minutes budget: how many steps it buys is measured, as train() does
             decided = default_consistency(slab, train_views, config, _steps_per_minute(scene, config))
-        config = replace(config, consistency=decided)  # (LOSSES_WHILE_REFINING: each run's own pose check decides)
-        if config.consistency is True:
+        config = replace(config, consistency=decided)  # (LOSSES_UNTIL_POSES_RIGHT: each run's pose check ends them)
+        if config.consistency:
             announce_default_losses(progress, len(train_views))
     return config
 

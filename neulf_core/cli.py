@@ -413,8 +413,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--far", type=float)
     p.add_argument("--consistency", action=argparse.BooleanOptionalAction, default=None,
                    help="the paper's multi-view photometric and depth losses (default: fast/auto turn them on for deep "
-                        "scenes with at most 20 training views when the budget passes over the training pixels at "
-                        "least 20 times, where they were measured "
+                        "scenes with at most 10 training views when the budget passes over the training pixels at "
+                        "least 20 times, and with 11 to 20 views until the pose check finds the poses right (unless "
+                        "the photos' colours are learned), where they were measured "
                         "to help; docs/DEPTH.md, docs/STABILITY.md)")
     p.add_argument("--appearance", action=argparse.BooleanOptionalAction, default=None,
                    help="learn a colour transform per photo, for captures whose exposure or white balance changes "

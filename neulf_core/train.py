@@ -112,7 +112,8 @@ class TrainConfig:
     far: float | None = None
     field_overrides: dict = field(default_factory=dict)
     device: str | None = None
-    consistency: bool | None = None     # the paper's multi-view losses L_mp, L_d (None: the preset's default)
+    consistency: bool | str | None = None  # the paper's multi-view losses L_mp, L_d (None: the preset's default;
+                                        # LOSSES_UNTIL_POSES_RIGHT: on until the pose check finds the poses right)
     consistency_rays: int = CONSISTENCY_RAYS  # rays per step that get them (each costs K more field queries)
     neighbours: int = 5                 # K nearest training cameras
     appearance: bool | None = None      # learn a per-photo colour transform (exposure, white balance; None: on when
@@ -230,17 +231,20 @@ def default_back_surface(slab: Slab) -> bool:
 # noise (0.2 / 0.4 / 2.6 with the held-out poses fitted) and 5.8 dB on exposure-jittered photos
 # as rendered (docs/STABILITY.md, forty-seventh session).  So the limit stays at 20.
 CONSISTENCY_MAX_VIEWS = 20
-# With 11 to 20 photos, only where training refines something that can drift the frame: the
-# camera poses (the pose check kept refining them, or --refine-poses) or a colour transform per
-# photo (exposures differ).  With the texture-feature blend of the back surface (fifty-second
-# session) the synthetic scene's 14 right-posed photos lost with the losses at every budget
-# measured: 1 minute, eight seeds, 31.18 off against 30.80 on (-0.38 dB); 5 minutes, seeds
-# 0 / 1, -0.27 dB (docs/STABILITY.md).  Where the pose check kept refining (0.1-2 degrees of
-# noise) or the colours were learned, the losses held what training without them lost (above).
-# Up to 10 photos they gained with right poses too: fern's 8 / 4 +0.26 / +0.80 dB, the
-# synthetic scene's 7 / 4 +0.13 / +1.29 (four seeds, 1 minute).
+# With 11 to 20 photos they stop where the pose check finds the poses right (and no colour
+# transform per photo is learned): with the texture-feature blend of the back surface
+# (fifty-second session) the synthetic scene's 14 right-posed photos lost with the losses at
+# every budget measured, 1 minute, eight seeds, 31.18 off against 30.80 on (-0.38 dB); 5
+# minutes, seeds 0 / 1, -0.27 dB (docs/STABILITY.md).  Where the photos disagree they hold the
+# frame (above), so they train from the start and stay on where the check keeps refining the
+# poses, where no check ran (--refine-poses / --no-refine-poses) and where exposures differ.
+# Starting them only after the check instead cost 0.91 dB at 2 degrees of pose noise (27.94 ->
+# 27.03, 1000 steps, three seeds; fifty-third session), and leaving them off with
+# --no-refine-poses 0.5-1.2 dB under pose noise.  Up to 10 photos they gained with right poses
+# too: fern's 8 / 4 +0.26 / +0.80 dB, the synthetic scene's 7 / 4 +0.13 / +1.29 (four seeds,
+# 1 minute).
 CONSISTENCY_ALWAYS_MAX_VIEWS = 10
-LOSSES_WHILE_REFINING = "while-refining"  # TrainConfig.consistency: the rule's verdict for 11 to 20 photos
+LOSSES_UNTIL_POSES_RIGHT = "until-poses-right"  # TrainConfig.consistency: the rule's verdict for 11 to 20 photos
 # ... and only when the budget passes over every training pixel often enough for the field
 # to start overfitting what the losses hold.  Fern's 17 views at 504x378, seed 0, off / on side
 # by side (PSNR, LPIPS): 1.5 minutes (~8 passes as counted below) 21.35 / 21.26 dB, LPIPS
@@ -284,21 +288,17 @@ def budget_passes(config: TrainConfig, batch: int, train_pixels: int,
 def losses_by_default(deep: bool, n_train_views: int, passes: float = math.inf) -> bool | str:
     """Whether the default trains with the multi-view losses: few photos of a deep scene and a
     budget that passes over them often enough (shallow scenes: never, see above); with 11 to 20
-    photos LOSSES_WHILE_REFINING, on only while training refines the poses or the colours."""
+    photos LOSSES_UNTIL_POSES_RIGHT: on until the pose check finds the poses right."""
     if not (deep and 2 <= n_train_views <= CONSISTENCY_MAX_VIEWS and passes >= LOSSES_MIN_PASSES):
         return False
-    return True if n_train_views <= CONSISTENCY_ALWAYS_MAX_VIEWS else LOSSES_WHILE_REFINING
+    return True if n_train_views <= CONSISTENCY_ALWAYS_MAX_VIEWS else LOSSES_UNTIL_POSES_RIGHT
 
 
-def losses_while_refining(rule: bool | str | None, refining_colours: bool, refining_poses: bool | None) -> bool | None:
-    """The losses a run trains with, from the rule's verdict (`rule`, or None: not decided):
-    LOSSES_WHILE_REFINING turns them on where a colour transform per photo is learned or the
-    poses are refined (`refining_poses` None: the pose check has not decided yet)."""
-    if rule != LOSSES_WHILE_REFINING:
-        return rule
-    if refining_colours:
-        return True
-    return refining_poses
+def losses_stop_at_pose_check(rule: bool | str | None, colours_learned: bool, poses_found_right: bool) -> bool:
+    """Whether a run training with the losses by `rule` goes on without them once the pose
+    check has found the poses right: LOSSES_UNTIL_POSES_RIGHT, unless a colour transform per
+    photo is learned (its drift is theirs to hold too)."""
+    return rule == LOSSES_UNTIL_POSES_RIGHT and poses_found_right and not colours_learned
 
 
 # Coarse to fine (DisparityConfig.geometry_coarse_to_fine): with few photos the finer geometry
@@ -603,7 +603,8 @@ def _train(scene, model_dir: Path, config: TrainConfig, images_dir, resume: bool
     batch = config.batch_size or preset.batch_size
     n_rays = len(train_rays)
     step_limit = pass_step_limit(config, field_module.field_name, len(train_views), n_rays, batch)
-    config, fixed_poses = _first_members_poses(config, resumed, slab, train_views, device)
+    config, fixed_poses, poses_found_right = _first_members_poses(config, resumed, slab, train_views, device)
+    poses_found_right = poses_found_right or (resumed or {}).get("pose_check", {}).get("refining") is False
     if config.refine_poses is None and not _pose_check_possible(config, preset, step_limit, resumed):
         config = replace(config, refine_poses=False)
     pose_check_pending = config.refine_poses is None
@@ -612,18 +613,22 @@ def _train(scene, model_dir: Path, config: TrainConfig, images_dir, resume: bool
     if poses is not None and resumed and resumed.get("poses"):
         poses.load_state_dict(resumed["poses"])
     losses_rule = config.consistency if config.consistency is not None else preset.consistency
-    announce_losses = losses_rule is None or losses_rule == LOSSES_WHILE_REFINING  # (the user's own choice: no)
+    losses_stopped_at = (resumed or {}).get("multiview_losses_until_step")  # (by the pose check's verdict)
+    losses_pending = False  # the default waits for the measured rate (LOSSES_DECISION_STEP)
     if losses_rule is None:
         # A resumed model keeps what it was trained with (models saved before the rule: off;
         # None: saved before the run had decided, which it then does as a new one).
         saved = resumed.get("multiview_losses", False) if resumed else None
-        losses_rule = bool(saved) if saved is not None else default_consistency(slab, train_views, config)
-    # The default waits for the measured rate (LOSSES_DECISION_STEP) or the pose check.
-    losses_pending = _losses_now(losses_rule, config, pose_check_pending, poses) is None
-    consistency = None
-    if not losses_pending:
-        consistency = _start_losses(_losses_now(losses_rule, config, pose_check_pending, poses), losses_rule,
-                                    announce_losses, train_views, slab, config, device, progress)
+        if saved is not None:  # (on until the pose check's verdict: so it stays)
+            saved = resumed.get("multiview_losses_rule") if saved and resumed.get("multiview_losses_rule") else bool(saved)
+        losses_rule = saved if saved is not None else default_consistency(slab, train_views, config)
+        losses_pending = losses_rule is None
+    if losses_stopped_at is None and losses_stop_at_pose_check(losses_rule, bool(config.appearance), poses_found_right):
+        losses_stopped_at = 0  # a later member: the first one's check found the poses right
+    if config.consistency is None and preset.consistency is None and losses_rule and losses_stopped_at is None:
+        announce_default_losses(progress, len(train_views))
+    consistency = (_consistency_inputs(train_views, slab, config, device)
+                   if losses_rule and losses_stopped_at is None else None)
     beta2 = APPEARANCE_ADAM_BETA2 if appearance is not None else preset.adam_beta2
     optimizer = _optimizer(field_module, preset.lr, beta2, appearance, poses)
     step, elapsed_before, history = 0, 0.0, []
@@ -651,9 +656,9 @@ def _train(scene, model_dir: Path, config: TrainConfig, images_dir, resume: bool
         },
         "train_config": asdict(config),
         # What the default decided, when train_config.consistency is None (None: not yet).
-        "multiview_losses": None if losses_pending else consistency is not None,
-        **({"multiview_losses_from_step": (resumed or {}).get("multiview_losses_from_step", step)}
-           if consistency is not None else {}),
+        "multiview_losses": None if losses_pending else bool(losses_rule),
+        **({"multiview_losses_rule": losses_rule} if losses_rule == LOSSES_UNTIL_POSES_RIGHT else {}),
+        **({"multiview_losses_until_step": losses_stopped_at} if losses_stopped_at is not None else {}),
         # How far neighbouring photos' exposures differ (stops), and whether that turns the
         # per-photo colour transform on by default (train_config.appearance says what ran).
         "exposure_difference_stops": round(exposure_stops, 4),
@@ -725,6 +730,9 @@ def _train(scene, model_dir: Path, config: TrainConfig, images_dir, resume: bool
             meta["pose_check"] = {"halfway_step": step, "halfway_degrees": round(poses.own_part_degrees(), 4)}
         if pose_check_pending and step >= _pose_look_step(meta):
             poses, pose_check_pending = _pose_check(poses, optimizer, meta, progress, step)
+            poses_found_right = meta.get("pose_check", {}).get("refining") is False
+            if consistency is not None and losses_stop_at_pose_check(losses_rule, bool(config.appearance), poses_found_right):
+                consistency = step_consistency = _stop_losses(meta, progress, step, len(train_views))
             if poses is not None and not pose_check_pending and point_depth is not None:
                 point_depth = None  # the poses are off: so are the points placed through them
                 meta["point_depth"]["dropped_at_step"] = step
@@ -774,18 +782,12 @@ def _train(scene, model_dir: Path, config: TrainConfig, images_dir, resume: bool
             budget = _decide_members_at_measured_rate(config, budget, batch, n_rays, elapsed - members_mark,
                                                       meta, progress)
         if losses_pending and step - first_step >= LOSSES_DECISION_STEP:
-            if losses_rule is None:  # a minutes budget: its steps counted at the rate the run measured
-                steps_per_minute = measured_steps_per_minute(elapsed - rate_mark)
-                meta["losses_steps_per_minute"] = round(steps_per_minute)
-                losses_rule = default_consistency(slab, train_views, config, steps_per_minute)
-            decided = _losses_now(losses_rule, config, pose_check_pending, poses)
-            if decided is not None:
-                losses_pending = False
-                meta["multiview_losses"] = decided
-                if decided:
-                    meta["multiview_losses_from_step"] = step  # (after the pose check, or the rate measured)
-                consistency = _start_losses(decided, losses_rule, announce_losses, train_views, slab, config, device,
-                                            progress)
+            losses_pending = False
+            losses_rule, consistency = _decide_losses_at_measured_rate(slab, train_views, config, elapsed - rate_mark,
+                                                                       device, meta, progress)
+            if consistency is not None and losses_stop_at_pose_check(losses_rule, bool(config.appearance), poses_found_right):
+                # (the check came before: a resumed run, or a later member's first one)
+                consistency = _stop_losses(meta, progress, step, len(train_views))
         if now - last_validation >= config.validate_seconds or budget.budget_fraction(step, elapsed) >= 1.0:
             val = validation_psnr(field_module, val_rays) if val_rays is not None else None
             record = {"step": step, "elapsed": round(elapsed, 2), "loss": loss_value,
@@ -821,37 +823,40 @@ def _train(scene, model_dir: Path, config: TrainConfig, images_dir, resume: bool
 
 
 def _first_members_poses(config: TrainConfig, resumed: dict | None, slab: Slab, train_views: list,
-                         device) -> tuple[TrainConfig, PoseRefinement | None]:
+                         device) -> tuple[TrainConfig, PoseRefinement | None, bool]:
     """A member after the first (`config.poses_from`) follows the first member's verdict on the
     poses: its corrections, fixed, where it refined them; none, and no pose check of its own,
     where it did not (a check of its own could refine on a borderline capture, in a frame of its
-    own).  Returns the config (refine_poses settled) and the fixed corrections.  A member resumed
+    own).  Returns the config (refine_poses settled), the fixed corrections and whether the
+    first member's check found the poses right (for the multi-view losses).  A member resumed
     with corrections of its own -- started before the corrections were shared -- goes on so, and
     its config no longer names the first member (poses_from None)."""
     if not config.poses_from:
-        return config, None
+        return config, None, False
     if resumed and resumed.get("poses"):
-        return replace(config, poses_from=None), None
-    return replace(config, refine_poses=False), _poses_of(config.poses_from, slab, train_views, device)
+        return replace(config, poses_from=None), None, False
+    return replace(config, refine_poses=False), *_poses_of(config.poses_from, slab, train_views, device)
 
 
-def _poses_of(model_dir: str, slab: Slab, train_views: list, device) -> PoseRefinement | None:
+def _poses_of(model_dir: str, slab: Slab, train_views: list, device) -> tuple[PoseRefinement | None, bool]:
     """The camera corrections another model of this scene refined (members.py's first
-    member), fixed: None where it did not refine them."""
+    member), fixed: None where it did not refine them; and whether its pose check found the
+    poses right."""
     try:
         saved = load_checkpoint(Path(model_dir))
     except NeulfError as exc:
         raise NeulfError(f"a member after the first trains with the first one's pose corrections, and its checkpoint "
                          f"cannot be read: {exc}") from None
+    found_right = saved.get("pose_check", {}).get("refining") is False
     if not saved.get("poses"):
-        return None
+        return None, found_right
     if saved["scene"]["train"] != [v.name for v in train_views] or saved["slab"] != slab.to_dict():
         raise NeulfError(f"{model_dir} was trained on other photos or another slab than this run; its pose "
                          "corrections do not apply (train the members again with a new --out folder).")
     poses = PoseRefinement(slab, np.stack([v.center for v in train_views]))
     poses.load_state_dict(saved["poses"])
     poses.set_training_progress(1.0)  # the corrections as the first model ended with them, rig-wide part too
-    return poses.requires_grad_(False).to(device)
+    return poses.requires_grad_(False).to(device), found_right
 
 
 def _pose_check_possible(config: TrainConfig, preset, step_limit: int | None, resumed: dict | None) -> bool:
@@ -959,23 +964,30 @@ def _fill_unseen(field_module, train_rays: RaySet, chunk: int = 1 << 15) -> tupl
     return time.monotonic() - started, before
 
 
-def _losses_now(rule: bool | str | None, config: TrainConfig, pose_check_pending: bool, poses) -> bool | None:
-    """The multi-view losses from the rule's verdict at this point of the run (None: not yet):
-    LOSSES_WHILE_REFINING waits for the pose check, unless the colours are learned anyway."""
-    return losses_while_refining(rule, bool(config.appearance), None if pose_check_pending else poses is not None)
+def _decide_losses_at_measured_rate(slab: Slab, train_views, config: TrainConfig, seconds: float, device, meta: dict,
+                                    progress):
+    """The default's multi-view losses for a minutes budget, once the first steps have been
+    timed (`seconds` for the steps LOSSES_RATE_FROM_STEP to LOSSES_DECISION_STEP): the rule's
+    verdict and the consistency inputs from now on, or None.  Recorded in the model's metadata."""
+    steps_per_minute = measured_steps_per_minute(seconds)
+    rule = default_consistency(slab, train_views, config, steps_per_minute)
+    meta["multiview_losses"] = bool(rule)
+    if rule == LOSSES_UNTIL_POSES_RIGHT:
+        meta["multiview_losses_rule"] = rule
+    meta["losses_steps_per_minute"] = round(steps_per_minute)
+    if not rule:
+        return rule, None
+    announce_default_losses(progress, len(train_views))
+    return rule, _consistency_inputs(train_views, slab, config, device)
 
 
-def _start_losses(on: bool, rule: bool | str, announce: bool, train_views, slab: Slab, config: TrainConfig, device,
-                  progress):
-    """The consistency inputs the steps from now on train with (None: the losses stay off),
-    said to the user where the default turned them on."""
-    if not on:
-        return None
-    if announce:
-        why = ("" if rule != LOSSES_WHILE_REFINING else " with a colour transform each" if config.appearance
-               else " whose poses are being refined")
-        announce_default_losses(progress, len(train_views), why)
-    return _consistency_inputs(train_views, slab, config, device)
+def _stop_losses(meta: dict, progress, step: int, n_train_views: int) -> None:
+    """Record and say that training goes on without the losses; returns the consistency
+    inputs from now on: None."""
+    meta["multiview_losses_until_step"] = step
+    _emit(progress, event="stage", message=f"{n_train_views} photos whose poses agree: training on without the "
+          "multi-view losses, which pay with up to 10 photos or where poses or colours are refined (docs/STABILITY.md)")
+    return None
 
 
 def _members_share(config: TrainConfig, budget: TrainConfig, count: int) -> TrainConfig:

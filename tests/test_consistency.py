@@ -231,39 +231,37 @@ def test_a_run_saved_with_the_srgb_space_transform_resumes_in_it(tiny_scene, tmp
 
 
 def test_losses_by_default_only_for_up_to_20_photos_of_a_deep_scene():
-    from neulf_core.train import CONSISTENCY_ALWAYS_MAX_VIEWS, CONSISTENCY_MAX_VIEWS, LOSSES_WHILE_REFINING, losses_by_default
+    from neulf_core.train import CONSISTENCY_ALWAYS_MAX_VIEWS, CONSISTENCY_MAX_VIEWS, LOSSES_UNTIL_POSES_RIGHT, losses_by_default
 
     assert losses_by_default(True, 4) is True                        # the synthetic scene's 25 % (+1.29 dB)
     assert losses_by_default(True, 8) is True                        # fern's half (+0.26 dB)
     assert losses_by_default(True, CONSISTENCY_ALWAYS_MAX_VIEWS) is True
     # 11 to 20: only while training refines the poses or the colours (the synthetic 14 with
     # right poses: -0.38 dB at 1 minute over eight seeds; with pose noise they hold the frame).
-    assert losses_by_default(True, CONSISTENCY_ALWAYS_MAX_VIEWS + 1) == LOSSES_WHILE_REFINING
-    assert losses_by_default(True, 17) == LOSSES_WHILE_REFINING      # all of fern's
-    assert losses_by_default(True, CONSISTENCY_MAX_VIEWS) == LOSSES_WHILE_REFINING
+    assert losses_by_default(True, CONSISTENCY_ALWAYS_MAX_VIEWS + 1) == LOSSES_UNTIL_POSES_RIGHT
+    assert losses_by_default(True, 17) == LOSSES_UNTIL_POSES_RIGHT      # all of fern's
+    assert losses_by_default(True, CONSISTENCY_MAX_VIEWS) == LOSSES_UNTIL_POSES_RIGHT
     assert losses_by_default(True, CONSISTENCY_MAX_VIEWS + 1) is False  # more views: off (28 views: -0.27 dB at 1 min)
     # Shallow: never (6 photos at ~100 passes, four seeds: CanClip -0.20 dB, Statue -0.43).
     assert not any(losses_by_default(False, n, passes) for n in (2, 6, 13, 26) for passes in (42.0, 100.0, math.inf))
     assert losses_by_default(True, 1) is False                       # no neighbour to compare with
 
 
-def test_losses_while_refining_wait_for_the_pose_check_unless_colours_are_learned():
-    from neulf_core.train import LOSSES_WHILE_REFINING, losses_while_refining
+def test_losses_until_the_poses_are_right_stop_at_the_check_unless_colours_are_learned():
+    from neulf_core.train import LOSSES_UNTIL_POSES_RIGHT, losses_stop_at_pose_check
 
-    rule = LOSSES_WHILE_REFINING
-    assert losses_while_refining(rule, refining_colours=False, refining_poses=None) is None  # not checked yet
-    assert losses_while_refining(rule, refining_colours=False, refining_poses=True) is True
-    assert losses_while_refining(rule, refining_colours=False, refining_poses=False) is False
-    assert losses_while_refining(rule, refining_colours=True, refining_poses=None) is True   # exposures differ
-    for verdict in (True, False, None):  # the rule's other verdicts pass through
-        assert losses_while_refining(verdict, refining_colours=True, refining_poses=True) is verdict
+    rule = LOSSES_UNTIL_POSES_RIGHT
+    assert losses_stop_at_pose_check(rule, colours_learned=False, poses_found_right=True)
+    assert not losses_stop_at_pose_check(rule, colours_learned=False, poses_found_right=False)  # off, or not checked
+    assert not losses_stop_at_pose_check(rule, colours_learned=True, poses_found_right=True)    # exposures differ
+    assert not losses_stop_at_pose_check(True, colours_learned=False, poses_found_right=True)   # up to 10 photos, or asked
 
 
 def test_losses_by_default_need_a_budget_that_passes_over_the_photos_often_enough():
     """Fern's 17 views: at 504x378 for 1.5 minutes the losses did not pay, at 252x189 for 1
     minute they did; a step budget counts as it is, a minutes budget at the rate the run
     measured (None until it has)."""
-    from neulf_core.train import LOSSES_MIN_PASSES, LOSSES_WHILE_REFINING as refining, TrainConfig, budget_passes, default_consistency
+    from neulf_core.train import LOSSES_MIN_PASSES, LOSSES_UNTIL_POSES_RIGHT as until_right, TrainConfig, budget_passes, default_consistency
 
     def slab(near, far):
         return Slab(np.eye(3), np.zeros(3), 0.0, (near + far) / 2, near, far, -np.ones(4), np.ones(4))
@@ -280,12 +278,12 @@ def test_losses_by_default_need_a_budget_that_passes_over_the_photos_often_enoug
     assert default_consistency(slab(16.8, 77.8), fern, TrainConfig(minutes=1.5, scale=1.0)) is None
     assert not default_consistency(slab(16.8, 77.8), fern, TrainConfig(minutes=1.5, scale=1.0), intel)   # ~7 passes
     assert not default_consistency(slab(16.8, 77.8), fern, TrainConfig(minutes=3.0, scale=1.0), intel)   # ~14: LPIPS worse
-    assert default_consistency(slab(16.8, 77.8), fern, TrainConfig(minutes=1.0, scale=0.5), intel) == refining  # ~20
+    assert default_consistency(slab(16.8, 77.8), fern, TrainConfig(minutes=1.0, scale=0.5), intel) == until_right  # ~20
     assert not default_consistency(slab(16.8, 77.8), fern, TrainConfig(minutes=1.0, scale=0.5), amd)     # ~9: -0.13 dB measured
-    assert default_consistency(slab(16.8, 77.8), fern, TrainConfig(minutes=5.0, scale=1.0), intel) == refining  # 5 min
+    assert default_consistency(slab(16.8, 77.8), fern, TrainConfig(minutes=5.0, scale=1.0), intel) == until_right  # 5 min
     assert not default_consistency(slab(16.8, 77.8), fern, TrainConfig(minutes=5.0, scale=1.0), amd)     # ~12 passes there
     enough = math.ceil(LOSSES_MIN_PASSES * pixels / 8192)
-    assert default_consistency(slab(16.8, 77.8), fern, TrainConfig(steps=enough, scale=1.0)) == refining
+    assert default_consistency(slab(16.8, 77.8), fern, TrainConfig(steps=enough, scale=1.0)) == until_right
     assert not default_consistency(slab(16.8, 77.8), fern, TrainConfig(steps=enough - 1, scale=1.0))
     # Where the views say off, the budget needs no measuring.
     assert default_consistency(slab(10.0, 17.1), fern, TrainConfig(minutes=5.0, scale=1.0)) is False  # shallow
@@ -400,17 +398,17 @@ def test_a_resumed_model_keeps_what_the_default_decided(tiny_scene, tmp_path, mo
     assert len(calls) == 4
 
 
-@pytest.mark.parametrize("poses_off, appearance, first_step", [
-    (False, False, None),   # the pose check drops the corrections: the losses stay off
-    (True, False, "check"),  # it keeps refining: on from the step after its look
-    (False, True, 0),       # a colour per photo is learned: on from the start
+@pytest.mark.parametrize("refine_poses, poses_off, appearance, stops", [
+    (None, False, False, True),   # the pose check finds the poses right: the losses stop there
+    (None, True, False, False),   # it keeps refining them: they stay on
+    (None, False, True, False),   # a colour per photo is learned: they stay on
+    (False, None, False, False),  # no check (the user's word on the poses): they stay on
 ])
-def test_losses_while_refining_follow_the_pose_check_and_the_colours(tiny_scene, tmp_path, monkeypatch,
-                                                                     poses_off, appearance, first_step):
+def test_losses_until_the_poses_are_right_follow_the_pose_check(tiny_scene, tmp_path, monkeypatch,
+                                                                refine_poses, poses_off, appearance, stops):
     """With more photos than CONSISTENCY_ALWAYS_MAX_VIEWS the default trains with the losses
-    only while it refines something that can drift the frame: the steps after the pose check
-    found the poses off, or every step where the photos' colours are learned.  The verdict is
-    recorded and said."""
+    from the start and goes on without them once the pose check finds the poses right, unless
+    the photos' colours are learned.  The stop is recorded and said."""
     import neulf_core.poses as poses_module
     import neulf_core.train as train_module
 
@@ -428,17 +426,46 @@ def test_losses_while_refining_follow_the_pose_check_and_the_colours(tiny_scene,
     monkeypatch.setattr(train_module, "multiview_losses", counting)
     steps = 2 * train_module.POSE_CHECK_STEP + 4
     config = train_module.TrainConfig(preset="fast", steps=steps, near=1.0, far=6.0, batch_size=64, consistency_rays=16,
-                                      appearance=appearance, validate_seconds=1e9, teacher=False, point_depth=False,
-                                      field_overrides={"texture_size": [16, 16]})
+                                      appearance=appearance, refine_poses=refine_poses, validate_seconds=1e9,
+                                      teacher=False, point_depth=False, field_overrides={"texture_size": [16, 16]})
     train_module.train(tiny_scene, tmp_path / "m", config, progress=events.append)
     meta = json.loads((tmp_path / "m" / "model.json").read_text())
-    assert meta["train_config"]["consistency"] is None and meta["multiview_losses"] is (first_step is not None)
-    start = {None: steps, "check": train_module.POSE_CHECK_STEP + 1, 0: 0}[first_step]
-    assert steps_with_losses == list(range(start, steps))
-    assert meta.get("multiview_losses_from_step") == (start if first_step is not None else None)
-    said = [e["message"] for e in events if e.get("event") == "losses"]
-    assert len(said) == (first_step is not None)
-    assert all(("poses are being refined" in m) == poses_off for m in said)
+    assert meta["multiview_losses"] is True and meta["multiview_losses_rule"] == train_module.LOSSES_UNTIL_POSES_RIGHT
+    check = train_module.POSE_CHECK_STEP
+    assert steps_with_losses == list(range(check if stops else steps))
+    assert meta.get("multiview_losses_until_step") == (check if stops else None)
+    said = [e["message"] for e in events if "without the multi-view losses" in e.get("message", "")]
+    assert len(said) == stops
+    assert len([e for e in events if e.get("event") == "losses"]) == 1  # on from the start, said once
+
+
+def test_a_resumed_run_keeps_the_losses_stopped_or_waiting_for_the_check(tiny_scene, tmp_path, monkeypatch):
+    """A checkpoint written before the pose check resumes with the losses on until it; one
+    written after the check stopped them resumes without them."""
+    import neulf_core.poses as poses_module
+    import neulf_core.train as train_module
+
+    monkeypatch.setattr(train_module, "CONSISTENCY_ALWAYS_MAX_VIEWS", 3)
+    monkeypatch.setattr(train_module, "LOSSES_MIN_PASSES", 0.0)
+    monkeypatch.setattr(poses_module, "poses_look_off", lambda degrees, second_look=False: False)
+    calls = []
+    real = train_module.multiview_losses
+    monkeypatch.setattr(train_module, "multiview_losses", lambda *a, **k: calls.append(1) or real(*a, **k))
+    check = train_module.POSE_CHECK_STEP
+    config = train_module.TrainConfig(preset="fast", steps=check * 2 + 4, near=1.0, far=6.0, batch_size=64,
+                                      consistency_rays=16, validate_seconds=1e9, teacher=False, point_depth=False,
+                                      field_overrides={"texture_size": [16, 16]})
+    train_module.train(tiny_scene, tmp_path / "m", config, should_stop=lambda: len(calls) >= check // 2)  # a cancel
+    meta = json.loads((tmp_path / "m" / "model.json").read_text())
+    assert meta["multiview_losses_rule"] == train_module.LOSSES_UNTIL_POSES_RIGHT and len(calls) == check // 2
+    assert "multiview_losses_until_step" not in meta
+    train_module.train(tiny_scene, tmp_path / "m", config, resume=True)
+    assert len(calls) == check  # on until the check, as an uninterrupted run
+    assert json.loads((tmp_path / "m" / "model.json").read_text())["multiview_losses_until_step"] == check
+    config.steps += 6
+    train_module.train(tiny_scene, tmp_path / "m", config, resume=True)
+    assert len(calls) == check  # stopped for good
+    assert json.loads((tmp_path / "m" / "model.json").read_text())["multiview_losses_until_step"] == check
 
 
 def test_photo_exposures_read_each_photos_stops_and_neighbours_compare_them():

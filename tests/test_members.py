@@ -164,7 +164,7 @@ def test_a_second_member_that_refined_its_own_poses_resumes_so(tiny_scene, tmp_p
 
     with monkeypatch.context() as patch:
         # as before the corrections were shared: each member refines and checks its own
-        patch.setattr(train_module, "_first_members_poses", lambda config, *args: (config, None))
+        patch.setattr(train_module, "_first_members_poses", lambda config, *args: (config, None, False))
         result, _ = run(tiny_scene, tmp_path / "old", cfg, stop_when=in_second_member)
     assert result.status == "cancelled"
     result, _ = run(tiny_scene, tmp_path / "old", config(steps=60, seed=3), resume=True)
@@ -339,3 +339,29 @@ def test_two_starts_count_a_members_share_of_the_minutes():
     # 60 s to the decision step of CanClip's 6 photos projects to 203 s in all: inside 4 minutes,
     # not inside the 2 minutes a member of two gets.
     assert minutes_budget_allows(4.0, 60.0, 2374) and not minutes_budget_allows(4.0 / watch.members, 60.0, 2374)
+
+
+@pytest.mark.parametrize("poses_off", [False, True])
+def test_a_later_member_follows_the_first_ones_verdict_on_the_losses(tiny_scene, tmp_path, monkeypatch, poses_off):
+    """With 11 to 20 photos (here the rule's limit lowered to the tiny scene's 7) the first
+    member stops the multi-view losses where its pose check finds the poses right; a later
+    member, which has no check of its own, trains without them from its start (with them
+    throughout where the first found the poses off)."""
+    import neulf_core.poses as poses_module
+    import neulf_core.train as train_module
+
+    monkeypatch.setattr(train_module, "CONSISTENCY_ALWAYS_MAX_VIEWS", 3)
+    monkeypatch.setattr(train_module, "LOSSES_MIN_PASSES", 0.0)
+    monkeypatch.setattr(poses_module, "poses_look_off", lambda degrees, second_look=False: poses_off)
+    calls = []
+    real = train_module.multiview_losses
+    monkeypatch.setattr(train_module, "multiview_losses", lambda *a, **k: calls.append(1) or real(*a, **k))
+    check = train_module.POSE_CHECK_STEP
+    each = 2 * check + 4
+    cfg = config(steps=2 * each, members=2, refine_poses=None, near=1.0, far=6.0, consistency_rays=16, batch_size=64)
+    run(tiny_scene, tmp_path / "m", cfg)
+    first = json.loads((tmp_path / "m" / "model.json").read_text())
+    assert len(calls) == (2 * each if poses_off else check)
+    assert first.get("multiview_losses_until_step") == (None if poses_off else check)
+    second = json.loads((member_dir(tmp_path / "m", 2) / "model.json").read_text())
+    assert second.get("multiview_losses_until_step") == (None if poses_off else 0)

@@ -416,10 +416,10 @@ def test_a_deep_scene_trained_with_other_surfaces_is_run_again(stability, tiny_s
 
 
 def test_a_run_whose_losses_the_rule_now_decides_otherwise_is_run_again(stability, tiny_scene, tmp_path):
-    """A fast run of 14 photos of a deep scene logged with the multi-view losses on is trained
-    again where it neither refined its poses nor learned its colours (the rule now leaves them
-    off there), and stands where it did either; runs whose losses were asked for, shallow
-    scenes' and minutes runs stand."""
+    """A fast run of 14 photos of a deep scene logged with the multi-view losses on to its end
+    is trained again where the pose check found its poses right and its colours were not learned
+    (the losses now stop there), and stands where the check kept refining, where none ran, or
+    where the colours were learned; runs whose losses were asked for, and minutes runs, stand."""
     from neulf_core.train import CONSISTENCY_ALWAYS_MAX_VIEWS
 
     # (88 steps: one member by the members rule; the surfaces and the fade as the default's now)
@@ -428,21 +428,30 @@ def test_a_run_whose_losses_the_rule_now_decides_otherwise_is_run_again(stabilit
            "pose_check_refining": False, "appearance_used": False, "sweep_fade": stability.sweep_fade("fast", 14),
            "back_surface": True, "back_surface_blend": "features"}
     assert stability.trained_with_another_losses_rule(run)
-    assert not stability.trained_with_another_losses_rule({**run, "multiview_losses": False})
-    refining = {**run, "pose_check_refining": True, "losses_from_step": 101}
-    assert not stability.trained_with_another_losses_rule(refining)                               # the check kept refining
-    # ... logged before the losses waited for the check: on from the start
-    assert stability.trained_with_another_losses_rule({**refining, "losses_from_step": None})
+    assert not stability.trained_with_another_losses_rule({**run, "losses_until_step": 100})      # stopped at the check
+    assert stability.trained_with_another_losses_rule({**run, "multiview_losses": False})          # off from the start
+    assert not stability.trained_with_another_losses_rule({**run, "pose_check_refining": True})   # the check kept refining
     assert not stability.trained_with_another_losses_rule({**run, "pose_check_refining": None, "refine_poses": True})
-    assert stability.trained_with_another_losses_rule({**run, "pose_check_refining": None, "refine_poses": False})
+    assert not stability.trained_with_another_losses_rule({**run, "pose_check_refining": None, "refine_poses": False})
     assert not stability.trained_with_another_losses_rule({**run, "appearance_used": True})       # colours learned
     assert not stability.trained_with_another_losses_rule({**run, "train_views": CONSISTENCY_ALWAYS_MAX_VIEWS})
     assert not stability.trained_with_another_losses_rule({**run, "consistency": True})           # asked for
     assert not stability.trained_with_another_losses_rule({**run, "minutes": 1.0})                # counted at its rate
-    assert stability.trained_with_another_losses_rule({**run, "deep_scene": False})               # shallow: off
+    assert stability.trained_with_another_losses_rule({**run, "deep_scene": False, "losses_until_step": 100})  # shallow
     assert not stability.trained_with_another_losses_rule({**run, "deep_scene": False, "multiview_losses": False})
+    refining = {**run, "pose_check_refining": True}
     assert stability.trained_with_another_losses_rule({**refining, "steps": 1})                   # too few passes: off
     assert not stability.trained_with_another_losses_rule({**refining, "steps": 1, "multiview_losses": False})
     log = tmp_path / "runs.jsonl"
-    log.write_text("".join(json.dumps(row) + "\n" for row in (run, {**run, "seed": 1, "multiview_losses": False})))
+    log.write_text("".join(json.dumps(row) + "\n" for row in (run, {**run, "seed": 1, "losses_until_step": 100})))
     assert [row["seed"] for row in stability.load_log(log).values()] == [1]
+
+
+def test_the_losses_table_says_how_long_the_defaults_losses_ran(stability):
+    runs = [{"seed": 1, "psnr": 31.0, "multiview_losses": True, "losses_until_step": 100},
+            {"seed": 0, "psnr": 31.2, "multiview_losses": True, "losses_until_step": None},
+            {"seed": 2, "psnr": 31.1, "multiview_losses": False}]
+    runs = [{**run, "status": "finished"} for run in runs]
+    assert stability.losses_default_cell(runs).endswith("(on, to step 100, off)")
+    assert stability.losses_default_cell(runs).startswith(stability.cell(runs))
+    assert stability.losses_default_cell([]) == "-"
