@@ -961,7 +961,7 @@ def losses_table(rows: list[dict]) -> list[str]:
                       if done_on and isinstance(views, int) else None)
             # What the default decides when its minutes buy the steps these runs made (train.default_consistency).
             rule = None if deep is None or passes is None else losses_by_default(deep, views, passes)
-            default = {None: "?", True: "on", False: "off", LOSSES_UNTIL_POSES_RIGHT: "until the poses check right"}[rule]
+            default = {None: "?", True: "on", False: "off", LOSSES_UNTIL_POSES_RIGHT: "on until the pose check"}[rule]
             passes_text = "-" if passes is None else f"{passes:.0f}"
             ran = group(rows, preset="fast", **base(scene, fraction=fraction, consistency=None, minutes=minutes))
             lines.append(f"| {scene} | {views} | {cell(off)} | {cell(on)} | {gain} | {steps} | {passes_text} | {default} "
