@@ -48,10 +48,18 @@ MAX_MEMBERS = 8
 # 1.44 times the frame time.
 MEMBERS_PASSES = 60.0
 RULE_MEMBERS = 2
-# A minutes budget learns its passes from the step rate, timed over these steps of member 1
-# (the first RATE_FROM_STEP warm up); its share of the minutes is set there.
-RATE_FROM_STEP = 10
-RATE_DECISION_STEP = 30
+# A minutes budget learns its passes from the step rate of member 1: the median time of its
+# steps after RATE_FROM_STEP up to RATE_DECISION_STEP; its share of the minutes is set there.
+# After the pose check (step 100, or 200 after an unsure first look), whose refinement -- and
+# the multi-view losses that stop at its verdict for 11 to 20 photos -- slow the first steps:
+# the synthetic shiny scene's 14 photos at 1 minute ran 2144 steps a minute over steps 10-30,
+# 1531 over 30-100 and 2621 over 110-300 (AMD EPYC, fifty-third session).  Timed over steps
+# 10-30 (until then) the rule read 65 passes for a run that made 78, and near its 60 gave one
+# member or two by the noise of those 20 steps: the study's 1-minute shiny runs with one
+# member scored 30.15-30.18 dB, with two 30.64-30.78.  The mean time of steps 110-160 still
+# gave one of four seeds one member (30.09 dB): a shared machine's hiccups land on a few steps.
+RATE_FROM_STEP = 110
+RATE_DECISION_STEP = 210
 
 
 def members_by_rule(passes: float | None) -> int | None:

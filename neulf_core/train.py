@@ -416,10 +416,10 @@ def measured_steps_per_minute(seconds: float) -> float:
     return 60.0 * (LOSSES_DECISION_STEP - LOSSES_RATE_FROM_STEP) / max(seconds, 1e-9) / LOSSES_STEP_COST
 
 
-def announce_default_losses(progress, n_train_views: int, why: str = "") -> None:
+def announce_default_losses(progress, n_train_views: int) -> None:
     """Tell the user (CLI line, Blender status) that the default turned the losses on."""
     _emit(progress, event="losses", train_views=n_train_views,
-          message=f"{n_train_views} photos{why}: training with the paper's multi-view losses, "
+          message=f"{n_train_views} photos: training with the paper's multi-view losses, "
           "about 1.4 times the time per step (--no-consistency turns them off; docs/DEPTH.md)")
 
 
@@ -708,7 +708,7 @@ def _train(scene, model_dir: Path, config: TrainConfig, images_dir, resume: bool
     val = history[-1]["val_psnr"] if history else None
     lr_scale, bad_steps, skipped = 1.0, 0, 0
     first_step, rate_mark = step, elapsed
-    members_mark = elapsed
+    members_step_seconds, last_elapsed = [], elapsed
     status = "finished"
     loss_value = float("nan")
     while budget.budget_fraction(step, elapsed) < 1.0:
@@ -775,11 +775,12 @@ def _train(scene, model_dir: Path, config: TrainConfig, images_dir, resume: bool
         elapsed = elapsed_before + (now - start_time)
         if losses_pending and step - first_step == LOSSES_RATE_FROM_STEP:
             rate_mark = elapsed
-        if members_pending and step - first_step == MEMBERS_RATE_FROM_STEP:
-            members_mark = elapsed
+        if members_pending and step - first_step > MEMBERS_RATE_FROM_STEP:
+            members_step_seconds.append(elapsed - last_elapsed)
+        last_elapsed = elapsed
         if members_pending and step - first_step >= MEMBERS_RATE_DECISION_STEP:
             members_pending = False
-            budget = _decide_members_at_measured_rate(config, budget, batch, n_rays, elapsed - members_mark,
+            budget = _decide_members_at_measured_rate(config, budget, batch, n_rays, members_step_seconds,
                                                       meta, progress)
         if losses_pending and step - first_step >= LOSSES_DECISION_STEP:
             losses_pending = False
@@ -1000,10 +1001,11 @@ def _members_share(config: TrainConfig, budget: TrainConfig, count: int) -> Trai
 
 
 def _decide_members_at_measured_rate(config: TrainConfig, budget: TrainConfig, batch: int, n_rays: int,
-                                     seconds: float, meta: dict, progress) -> TrainConfig:
+                                     step_seconds: list[float], meta: dict, progress) -> TrainConfig:
     """The members rule on a minutes budget: the passes the budget makes at the rate of the
-    steps MEMBERS_RATE_FROM_STEP to MEMBERS_RATE_DECISION_STEP decide the count (members.py)."""
-    rate = (MEMBERS_RATE_DECISION_STEP - MEMBERS_RATE_FROM_STEP) / max(seconds, 1e-9) * 60.0
+    steps after MEMBERS_RATE_FROM_STEP up to MEMBERS_RATE_DECISION_STEP decide the count
+    (members.py).  Their median time, since a shared machine's hiccups land on a few steps."""
+    rate = 60.0 / max(float(np.median(step_seconds)), 1e-9)
     passes = budget_passes(config, batch, n_rays, rate)
     count = members_by_rule(passes)
     meta["members_rule"] = {"count": count, "passes": round(passes, 1), "steps_per_minute": round(rate, 1)}

@@ -279,11 +279,22 @@ def test_the_rule_counts_the_passes_of_a_steps_budget(tiny_scene, tmp_path):
     assert not (tmp_path / "one" / STATE_NAME).exists()
 
 
+def _time_the_first_steps(monkeypatch) -> None:
+    """The rule's rate timed over steps 11-30 (not after the pose check): a tiny scene's short
+    minutes budget reaches its decision on a slow machine too."""
+    import neulf_core.train as train_module
+
+    monkeypatch.setattr(train_module, "MEMBERS_RATE_FROM_STEP", 10)
+    monkeypatch.setattr(train_module, "MEMBERS_RATE_DECISION_STEP", 30)
+
+
 def test_the_rule_on_a_minutes_budget_decides_from_the_step_rate(tiny_scene, tmp_path, monkeypatch):
     import neulf_core.members as members
 
     # Forced both ways (a measured rate differs between machines): the threshold at 0 passes
-    # makes two members, an unreachable one keeps one.
+    # makes two members, an unreachable one keeps one.  Timed early, so that a slow machine's
+    # 1.2 s still reach the decision.
+    _time_the_first_steps(monkeypatch)
     monkeypatch.setattr(members, "MEMBERS_PASSES", 0.0)
     result, events = run(tiny_scene, tmp_path / "two", config(minutes=0.04))
     assert result.status == "finished" and finished_members(tmp_path / "two") == [2]
@@ -304,6 +315,7 @@ def test_the_rule_on_a_minutes_budget_decides_from_the_step_rate(tiny_scene, tmp
 def test_a_minutes_budget_stopped_after_the_rule_resumes_as_an_ensemble(tiny_scene, tmp_path, monkeypatch):
     import neulf_core.members as members
 
+    _time_the_first_steps(monkeypatch)
     monkeypatch.setattr(members, "MEMBERS_PASSES", 0.0)
 
     def after_the_decision(events):
@@ -365,3 +377,18 @@ def test_a_later_member_follows_the_first_ones_verdict_on_the_losses(tiny_scene,
     assert first.get("multiview_losses_until_step") == (None if poses_off else check)
     second = json.loads((member_dir(tmp_path / "m", 2) / "model.json").read_text())
     assert second.get("multiview_losses_until_step") == (None if poses_off else 0)
+
+
+def test_the_rate_is_the_median_steps_so_a_few_slow_steps_do_not_decide():
+    """A shared machine's hiccup (here 5 of 100 steps taking 50 times as long) must not read as
+    a slow run: the rule times the median step."""
+    import neulf_core.train as train_module
+
+    steady, hiccups = [0.02] * 95, [1.0] * 5
+    meta = {}
+    budget = config(minutes=1.0)
+    train_module._decide_members_at_measured_rate(budget, budget, 8192, 268800, steady + hiccups, meta, None)
+    assert meta["members_rule"]["steps_per_minute"] == pytest.approx(3000.0)
+    assert meta["members_rule"]["passes"] == pytest.approx(3000 * 8192 / 268800, abs=0.1)
+    assert meta["members_rule"]["count"] == 2  # 91 passes; the mean step would read 36 and one member
+    assert train_module.MEMBERS_RATE_FROM_STEP >= train_module.POSE_CHECK_STEP  # timed after the pose check
