@@ -56,7 +56,6 @@ import traceback
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import asdict, dataclass, fields, replace
 from datetime import date
-from functools import lru_cache
 from multiprocessing import get_context
 from pathlib import Path
 
@@ -462,12 +461,6 @@ def trained_with_another_fade(row: dict) -> bool:
     return logged != sweep_fade(row["preset"], row["train_views"])
 
 
-@lru_cache(maxsize=None)
-def view_pixels(path: str, scale: float) -> int:
-    """Pixels of one of the scene's views at the training scale (a scene's views share a size)."""
-    return int(np.prod(scaled_size(load_any(path).views[0].size, scale)))
-
-
 def trained_with_another_losses_rule(row: dict) -> bool:
     """Whether a logged run whose multi-view losses the default decided (`consistency` empty,
     a preset that leaves them to train.losses_by_default) trained with them otherwise than the
@@ -506,7 +499,7 @@ def trained_with_other_members(row: dict) -> bool:
     if not steps:
         return False
     try:
-        pixels = int(row["train_views"]) * view_pixels(row["truth"], float(row["scale"]))
+        pixels = int(row["train_views"]) * image_pixels(row["truth"], float(row["scale"]))
     except NeulfError:
         return False  # a scene no longer at hand: the row stands as logged
     return members_by_rule(int(steps) * get_preset(row["preset"]).batch_size / pixels) != logged

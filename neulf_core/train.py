@@ -235,7 +235,10 @@ CONSISTENCY_MAX_VIEWS = 20
 # transform per photo is learned): with the texture-feature blend of the back surface
 # (fifty-second session) the synthetic scene's 14 right-posed photos lost with the losses at
 # every budget measured, 1 minute, eight seeds, 31.18 off against 30.80 on (-0.38 dB); 5
-# minutes, seeds 0 / 1, -0.27 dB (docs/STABILITY.md).  Where the photos disagree they hold the
+# minutes, seeds 0 / 1, -0.27 dB; fern's 17 at 5 minutes -0.12 / -0.15 (forty-seventh).  The
+# shiny scene's 14 gain from them (1000 steps +0.16 dB, 1 minute +0.14), and with this rule at
+# 1 minute the synthetic 14 came out +0.18 dB and shiny -0.04 against the losses throughout
+# (eight seeds each; fifty-third session, docs/STABILITY.md).  Where the photos disagree they hold the
 # frame (above), so they train from the start and stay on where the check keeps refining the
 # poses, where no check ran (--refine-poses / --no-refine-poses) and where exposures differ.
 # Starting them only after the check instead cost 0.91 dB at 2 degrees of pose noise (27.94 ->

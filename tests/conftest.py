@@ -203,3 +203,19 @@ def assert_same_weights(a: Path, b: Path) -> None:
     for group_a, group_b in zip(sa["optimizer"]["state"].values(), sb["optimizer"]["state"].values()):
         for key in group_a:
             assert torch.equal(torch.as_tensor(group_a[key]), torch.as_tensor(group_b[key])), f"optimizer {key} differs"
+
+
+def losses_as_for_11_to_20_photos(monkeypatch, poses_off: bool) -> list:
+    """The multi-view losses' rule for 11 to 20 photos on the tiny scene's 7 training views
+    (the limit lowered to 3, the passes rule aside), the pose check's verdict forced to
+    `poses_off`: returns a list that gets an item for every step trained with the losses."""
+    import neulf_core.poses as poses_module
+    import neulf_core.train as train_module
+
+    monkeypatch.setattr(train_module, "CONSISTENCY_ALWAYS_MAX_VIEWS", 3)
+    monkeypatch.setattr(train_module, "LOSSES_MIN_PASSES", 0.0)
+    monkeypatch.setattr(poses_module, "poses_look_off", lambda degrees, second_look=False: poses_off)
+    calls = []
+    real = train_module.multiview_losses
+    monkeypatch.setattr(train_module, "multiview_losses", lambda *a, **k: calls.append(1) or real(*a, **k))
+    return calls

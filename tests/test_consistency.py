@@ -442,15 +442,10 @@ def test_losses_until_the_poses_are_right_follow_the_pose_check(tiny_scene, tmp_
 def test_a_resumed_run_keeps_the_losses_stopped_or_waiting_for_the_check(tiny_scene, tmp_path, monkeypatch):
     """A checkpoint written before the pose check resumes with the losses on until it; one
     written after the check stopped them resumes without them."""
-    import neulf_core.poses as poses_module
     import neulf_core.train as train_module
+    from conftest import losses_as_for_11_to_20_photos
 
-    monkeypatch.setattr(train_module, "CONSISTENCY_ALWAYS_MAX_VIEWS", 3)
-    monkeypatch.setattr(train_module, "LOSSES_MIN_PASSES", 0.0)
-    monkeypatch.setattr(poses_module, "poses_look_off", lambda degrees, second_look=False: False)
-    calls = []
-    real = train_module.multiview_losses
-    monkeypatch.setattr(train_module, "multiview_losses", lambda *a, **k: calls.append(1) or real(*a, **k))
+    calls = losses_as_for_11_to_20_photos(monkeypatch, poses_off=False)
     check = train_module.POSE_CHECK_STEP
     config = train_module.TrainConfig(preset="fast", steps=check * 2 + 4, near=1.0, far=6.0, batch_size=64,
                                       consistency_rays=16, validate_seconds=1e9, teacher=False, point_depth=False,

@@ -359,15 +359,10 @@ def test_a_later_member_follows_the_first_ones_verdict_on_the_losses(tiny_scene,
     member stops the multi-view losses where its pose check finds the poses right; a later
     member, which has no check of its own, trains without them from its start (with them
     throughout where the first found the poses off)."""
-    import neulf_core.poses as poses_module
     import neulf_core.train as train_module
+    from conftest import losses_as_for_11_to_20_photos
 
-    monkeypatch.setattr(train_module, "CONSISTENCY_ALWAYS_MAX_VIEWS", 3)
-    monkeypatch.setattr(train_module, "LOSSES_MIN_PASSES", 0.0)
-    monkeypatch.setattr(poses_module, "poses_look_off", lambda degrees, second_look=False: poses_off)
-    calls = []
-    real = train_module.multiview_losses
-    monkeypatch.setattr(train_module, "multiview_losses", lambda *a, **k: calls.append(1) or real(*a, **k))
+    calls = losses_as_for_11_to_20_photos(monkeypatch, poses_off)
     check = train_module.POSE_CHECK_STEP
     each = 2 * check + 4
     cfg = config(steps=2 * each, members=2, refine_poses=None, near=1.0, far=6.0, consistency_rays=16, batch_size=64)
