@@ -350,6 +350,8 @@ def score_views(model_dir: Path, held: list[View], scale: float, fit_poses: bool
             "nonfinite_pixels": nonfinite, "deep_scene": bool(light_field.slab.is_deep),
             "multiview_losses": light_field.meta.get("multiview_losses"),
             "losses_until_step": light_field.meta.get("multiview_losses_until_step"),
+            # A minutes budget's passes as the members rule counted them (None: a steps budget).
+            "members_passes": (light_field.meta.get("members_rule") or {}).get("passes"),
             "coarse_to_fine_used": bool(field_config.get("geometry_coarse_to_fine", 0.0)),
             "back_surface": bool(field_config.get("back_surface", False)),
             "back_surface_blend": field_config.get("back_surface_blend", "colour") if field_config.get("back_surface") else None,
@@ -1181,7 +1183,7 @@ def update_markdown(path: Path, tables: str, begin: str = MARKER_BEGIN, end: str
 
 CSV_COLUMNS = ["scene", "preset", "fraction", "pose_degrees", "appearance", "refine_poses", "consistency", "minutes",
                "coarse_to_fine", "colour_start", "coarse_to_fine_used", "appearance_used", "appearance_default", "exposure_difference_stops",
-               "pose_check_refining", "pose_check_degrees", "pose_check_halfway", "field_restarted", "start_kept", "discarded_steps", "members", "member_poses",
+               "pose_check_refining", "pose_check_degrees", "pose_check_halfway", "field_restarted", "start_kept", "discarded_steps", "members", "members_passes", "member_poses",
                "sweep_fade", "deep_scene", "multiview_losses", "losses_until_step", "back_surface", "back_surface_blend", "pixel_jitter", "seed", "status", "psnr", "ssim",
                "psnr_matched", "psnr_half_fit", "psnr_pose_fitted", "pose_fit_degrees", "psnr_per_view", "train_views", "held_out", "steps", "steps_done", "train_seconds",
                "wall_seconds", "warnings", "warning_text", "nonfinite_pixels", "error", "scale", "path", "truth"]

@@ -119,6 +119,10 @@ def test_study_runs_end_to_end(stability, tiny_scene, tmp_path, monkeypatch):
     limit = pass_step_limit(TrainConfig(), "disparity", 4, 4 * TINY_WIDTH * TINY_HEIGHT, 8192)
     assert all(r["train_seconds"] >= 2.5 or r["steps_done"] == (r.get("members") or 1) * limit for r in timed), \
         [(r["train_seconds"], r["steps_done"], r.get("members"), limit) for r in timed]
+    # The members rule's passes are logged where it counted them at a measured pace (a minutes
+    # budget that reached its timing), never for a steps budget.
+    assert all(r.get("members_passes") is None for r in rows if not r["minutes"])
+    assert all(r.get("members_passes") is None or r["members_passes"] > 0 for r in timed)
     losses_line = next(line for line in stability.losses_table(rows) if line.startswith("| tiny |"))
     assert "| 4 |" in losses_line  # the 4 training views of the half share
     # The default's column: what the rule says for 4 photos of a shallow scene at the passes
