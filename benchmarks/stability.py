@@ -478,10 +478,10 @@ def trained_with_another_losses_rule(row: dict) -> bool:
         return False
     rule = losses_by_default(bool(deep), int(views))
     if rule is not False:  # the budget counts too
-        if not Path(row["path"]).exists():
+        passes = logged_passes(row, row["steps"])
+        if passes is None:
             return False
-        pixels = int(views) * image_pixels(row["path"], row["scale"])
-        rule = losses_by_default(bool(deep), int(views), row["steps"] * get_preset(row["preset"]).batch_size / pixels)
+        rule = losses_by_default(bool(deep), int(views), passes)
     found_right = row.get("refine_poses") is None and row.get("pose_check_refining") is False
     stops = losses_stop_at_pose_check(rule, bool(row.get("appearance_used")), found_right)
     return bool(rule) != bool(logged) or (stops and row.get("losses_until_step") is None)
@@ -500,11 +500,18 @@ def trained_with_other_members(row: dict) -> bool:
     steps = row.get("steps_done") if row.get("minutes") else row.get("steps")
     if not steps:
         return False
+    passes = logged_passes(row, steps)
+    return passes is not None and members_by_rule(passes) != logged  # (no scene at hand: it stands)
+
+
+def logged_passes(row: dict, steps: int) -> float | None:
+    """How many times `steps` of the logged run's preset's batch pass over its training pixels;
+    None where its scene is no longer at hand to count them."""
     try:
         pixels = int(row["train_views"]) * image_pixels(row["truth"], float(row["scale"]))
     except NeulfError:
-        return False  # a scene no longer at hand: the row stands as logged
-    return members_by_rule(int(steps) * get_preset(row["preset"]).batch_size / pixels) != logged
+        return None
+    return int(steps) * get_preset(row["preset"]).batch_size / pixels
 
 
 def trained_with_members_own_poses(row: dict) -> bool:

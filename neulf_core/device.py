@@ -53,8 +53,8 @@ def keep_freed_cpu_memory() -> bool:
     and over.  By default glibc serves such buffers with fresh mmaps or trims them off the
     heap, so every chunk page-faults its buffers in again: 4,000-13,000 faults and about 10 %
     of the CPU time of a 480x270 frame (docs/BENCHMARKS.md).  Buffers up to 32 MB from the
-    heap, and up to 256 MB of freed heap kept, make that zero.  Once per process; glibc (Linux) only, a
-    no-op elsewhere.  Returns whether the setting is in effect."""
+    heap, and up to 256 MB of freed heap kept, make that zero.  Once per process; glibc
+    (Linux) only, a no-op elsewhere.  Returns whether the setting is in effect."""
     global _allocator_tuned
     if _allocator_tuned is None:
         _allocator_tuned = _set_glibc_malloc_thresholds()

@@ -735,7 +735,8 @@ def _train(scene, model_dir: Path, config: TrainConfig, images_dir, resume: bool
             poses, pose_check_pending = _pose_check(poses, optimizer, meta, progress, step)
             poses_found_right = meta.get("pose_check", {}).get("refining") is False
             if consistency is not None and losses_stop_at_pose_check(losses_rule, bool(config.appearance), poses_found_right):
-                consistency = step_consistency = _stop_losses(meta, progress, step, len(train_views))
+                _stop_losses(meta, progress, step, len(train_views))
+                consistency = step_consistency = None
             if poses is not None and not pose_check_pending and point_depth is not None:
                 point_depth = None  # the poses are off: so are the points placed through them
                 meta["point_depth"]["dropped_at_step"] = step
@@ -791,7 +792,8 @@ def _train(scene, model_dir: Path, config: TrainConfig, images_dir, resume: bool
                                                                        device, meta, progress)
             if consistency is not None and losses_stop_at_pose_check(losses_rule, bool(config.appearance), poses_found_right):
                 # (the check came before: a resumed run, or a later member's first one)
-                consistency = _stop_losses(meta, progress, step, len(train_views))
+                _stop_losses(meta, progress, step, len(train_views))
+                consistency = None
         if now - last_validation >= config.validate_seconds or budget.budget_fraction(step, elapsed) >= 1.0:
             val = validation_psnr(field_module, val_rays) if val_rays is not None else None
             record = {"step": step, "elapsed": round(elapsed, 2), "loss": loss_value,
@@ -986,12 +988,10 @@ def _decide_losses_at_measured_rate(slab: Slab, train_views, config: TrainConfig
 
 
 def _stop_losses(meta: dict, progress, step: int, n_train_views: int) -> None:
-    """Record and say that training goes on without the losses; returns the consistency
-    inputs from now on: None."""
+    """Record and say that training goes on without the losses from `step`."""
     meta["multiview_losses_until_step"] = step
     _emit(progress, event="stage", message=f"{n_train_views} photos whose poses agree: training on without the "
           "multi-view losses, which pay with up to 10 photos or where poses or colours are refined (docs/STABILITY.md)")
-    return None
 
 
 def _members_share(config: TrainConfig, budget: TrainConfig, count: int) -> TrainConfig:
