@@ -70,7 +70,7 @@ from neulf_core.errors import NeulfError  # noqa: E402
 from neulf_core.images import save_rgb  # noqa: E402
 from neulf_core.members import finished_members, members_by_rule, work_done  # noqa: E402
 from neulf_core.metrics import psnr, ssim  # noqa: E402
-from neulf_core.poses import (POSE_CHECK_DEGREES, POSE_CHECK_STEP, POSE_CHECK_UNSURE_DEGREES,  # noqa: E402
+from neulf_core.poses import (DEPTH_LIKE_GAUGE, POSE_CHECK_DEGREES, POSE_CHECK_STEP, POSE_CHECK_UNSURE_DEGREES,  # noqa: E402
                               POSE_SECOND_LOOK_DEGREES, POSE_SECOND_LOOK_STEP, fit_view_pose)
 from neulf_core.presets import get_preset  # noqa: E402
 from neulf_core.render import LightField  # noqa: E402
@@ -357,6 +357,8 @@ def score_views(model_dir: Path, held: list[View], scale: float, fit_poses: bool
             "back_surface_blend": field_config.get("back_surface_blend", "colour") if field_config.get("back_surface") else None,
             "appearance_used": bool(light_field.meta.get("train_config", {}).get("appearance")),
             "pose_check_refining": light_field.meta.get("pose_check", {}).get("refining"),
+            # How the pose corrections held their depth-like part (None: not refined, or before it was logged).
+            "pose_gauge": (light_field.meta.get("pose_corrections") or {}).get("depth_like"),
             "pose_check_degrees": light_field.meta.get("pose_check", {}).get("median_degrees"),
             "pose_check_halfway": light_field.meta.get("pose_check", {}).get("halfway_degrees"),
             "field_restarted": "field_restart" in light_field.meta,  # far-off poses (train.FAR_OFF_POSE_DEGREES)
@@ -485,6 +487,14 @@ def trained_with_another_losses_rule(row: dict) -> bool:
     found_right = row.get("refine_poses") is None and row.get("pose_check_refining") is False
     stops = losses_stop_at_pose_check(rule, bool(row.get("appearance_used")), found_right)
     return bool(rule) != bool(logged) or (stops and row.get("losses_until_step") is None)
+
+
+def trained_with_another_pose_gauge(row: dict) -> bool:
+    """Whether a logged run that refined its poses held the corrections' depth-like part
+    otherwise than the code now does (poses.DEPTH_LIKE_GAUGE; rows logged before it was
+    recorded held it by a weak prior): the study runs it again."""
+    refined = row.get("pose_check_refining") is True or row.get("refine_poses") is True
+    return refined and row.get("pose_gauge") != DEPTH_LIKE_GAUGE
 
 
 def trained_with_other_members(row: dict) -> bool:
@@ -1190,7 +1200,7 @@ def update_markdown(path: Path, tables: str, begin: str = MARKER_BEGIN, end: str
 
 CSV_COLUMNS = ["scene", "preset", "fraction", "pose_degrees", "appearance", "refine_poses", "consistency", "minutes",
                "coarse_to_fine", "colour_start", "coarse_to_fine_used", "appearance_used", "appearance_default", "exposure_difference_stops",
-               "pose_check_refining", "pose_check_degrees", "pose_check_halfway", "field_restarted", "start_kept", "discarded_steps", "members", "members_passes", "member_poses",
+               "pose_check_refining", "pose_check_degrees", "pose_check_halfway", "pose_gauge", "field_restarted", "start_kept", "discarded_steps", "members", "members_passes", "member_poses",
                "sweep_fade", "deep_scene", "multiview_losses", "losses_until_step", "back_surface", "back_surface_blend", "pixel_jitter", "seed", "status", "psnr", "ssim",
                "psnr_matched", "psnr_half_fit", "psnr_pose_fitted", "pose_fit_degrees", "psnr_per_view", "train_views", "held_out", "steps", "steps_done", "train_seconds",
                "wall_seconds", "warnings", "warning_text", "nonfinite_pixels", "error", "scale", "path", "truth"]
@@ -1367,7 +1377,7 @@ def load_log(log: Path, older_surface: dict | None = None) -> dict:
             row = json.loads(line)
             if row.get("status") in ("finished", "crashed") and not trained_with_another_fade(row) \
                     and not trained_with_other_members(row) and not trained_with_members_own_poses(row) \
-                    and not trained_with_another_losses_rule(row):
+                    and not trained_with_another_losses_rule(row) and not trained_with_another_pose_gauge(row):
                 into = done
                 if trained_with_another_surface_mix(row):
                     if older_surface is None:

@@ -29,7 +29,7 @@ from .lock import training_lock
 from .members import MEMBERS_PASSES, RATE_DECISION_STEP as MEMBERS_RATE_DECISION_STEP, \
     RATE_FROM_STEP as MEMBERS_RATE_FROM_STEP, member_budget, members_by_rule
 from . import poses as poses_module
-from .poses import POSE_CHECK_STEP, POSE_SECOND_LOOK_STEP, PoseRefinement
+from .poses import DEPTH_LIKE_GAUGE, POSE_CHECK_STEP, POSE_SECOND_LOOK_STEP, PoseRefinement
 from .presets import APPEARANCE_ADAM_BETA2, APPEARANCE_GEOMETRY, DEFAULT_PRESET, get_preset
 from .scene import Scene, load_scene, scaled_size, split_views
 from .slab import Slab, fit_slab
@@ -757,8 +757,6 @@ def _train(scene, model_dir: Path, config: TrainConfig, images_dir, resume: bool
                 step_consistency = (consistency[0], consistency[1].with_centres(corrected.corrected_centres()))
         loss, objective = _objective(field_module, uvst, target, view_index, appearance, step_consistency, config,
                                      depth_teacher, depth_points)
-        if poses is not None and poses.holds_depth_like_part:
-            objective = objective + poses.depth_like_prior()
         optimizer.zero_grad(set_to_none=True)
         if not torch.isfinite(objective):
             # A NaN/inf step is skipped; repeated ones halve the learning rate (reported).
@@ -818,6 +816,7 @@ def _train(scene, model_dir: Path, config: TrainConfig, images_dir, resume: bool
     if poses is not None and not pose_check_pending:  # (stopped before the check: provisional, not reported)
         meta["pose_corrections"] = poses.summary()
         _emit(progress, event="poses", **meta["pose_corrections"])
+        meta["pose_corrections"]["depth_like"] = DEPTH_LIKE_GAUGE  # (the study re-runs rows refined otherwise)
     # The fill is for rendering: training resumes from the weights before it, since texels
     # unseen now may be read once the geometry moves (a paused run then trains on exactly
     # as an uninterrupted one: a cancel, or the better of two starts' pause at its choice).

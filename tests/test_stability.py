@@ -94,6 +94,10 @@ def test_study_runs_end_to_end(stability, tiny_scene, tmp_path, monkeypatch):
     assert len(fitted) == 4 and all(not r["minutes"] and r["coarse_to_fine"] is None and r["fraction"] == 1.0 for r in fitted)
     assert all(math.isfinite(r["psnr_pose_fitted"]) and len(r["pose_fit_degrees"].split(";")) == 2 for r in fitted)
     assert "held-out poses fitted" in tables and "| fast + `--refine-poses`, tiny |" in tables
+    # Runs that refine log how the corrections held their depth-like part, so they stand.
+    refined = [r for r in rows if r["refine_poses"] is True or r.get("pose_check_refining") is True]
+    assert refined and all(r["pose_gauge"] == stability.DEPTH_LIKE_GAUGE for r in refined)
+    assert all(r["pose_gauge"] is None for r in rows if r["refine_poses"] is False)
     few = stability.Job("tiny", str(tiny_scene), str(tiny_scene), 1.0, "fast", 3, 0, fraction=stability.POSE_FEW_VIEWS)
     assert stability.in_pose_study(few) and not stability.in_pose_study(stability.replace(few, fraction=0.5))
     # A fresh machine has no run log: it starts from the committed CSV, and every run is found again.
@@ -174,7 +178,8 @@ def test_a_log_written_before_a_job_field_existed_still_counts(stability, tmp_pa
                 "status": "finished", "psnr": 30.0}
 
     log = tmp_path / "runs.jsonl"
-    log.write_text("\n".join(json.dumps(row) for row in (logged(1000), logged(1000, refine_poses=True), logged(3))) + "\n")
+    refined = {**logged(1000, refine_poses=True), "pose_gauge": stability.DEPTH_LIKE_GAUGE}  # (else run again)
+    log.write_text("\n".join(json.dumps(row) for row in (logged(1000), refined, logged(3))) + "\n")
     done = stability.load_log(log)
     job = stability.Job("tiny", "a", "a", 1.0, "fast", 1000, 0)
     assert stability.replace(job, refine_poses=False).key in done and job.key not in done
@@ -269,6 +274,25 @@ def test_a_run_with_another_member_count_than_the_rule_now_gives_is_run_again(st
     log = tmp_path / "runs.jsonl"
     log.write_text(json.dumps(row(89)) + "\n" + json.dumps({**row(89, members=2), "seed": 1}) + "\n")
     assert len(stability.load_log(log)) == 1
+
+
+def test_a_run_that_refined_its_poses_with_the_depth_like_part_held_otherwise_is_run_again(stability, tiny_scene, tmp_path):
+    """poses.DEPTH_LIKE_GAUGE: a logged run that refined its poses (by the check's verdict or
+    forced) and held the corrections' depth-like part otherwise -- rows logged before it was
+    recorded held it by a weak prior -- is run again; one that did not refine stands."""
+    job = stability.Job("tiny", str(tiny_scene), str(tiny_scene), 1.0, "fast", 80, 0, pose_degrees=1.0)
+    base = {**stability.asdict(job), "train_views": 7, "status": "finished", "psnr": 30.0,
+            "sweep_fade": stability.sweep_fade("fast", 7)}
+    held = stability.DEPTH_LIKE_GAUGE
+    assert stability.trained_with_another_pose_gauge({**base, "pose_check_refining": True})
+    assert stability.trained_with_another_pose_gauge({**base, "pose_check_refining": None, "refine_poses": True})
+    assert not stability.trained_with_another_pose_gauge({**base, "pose_check_refining": True, "pose_gauge": held})
+    assert not stability.trained_with_another_pose_gauge({**base, "pose_check_refining": False})
+    assert not stability.trained_with_another_pose_gauge({**base, "pose_check_refining": None, "refine_poses": False})
+    log = tmp_path / "runs.jsonl"
+    log.write_text(json.dumps({**base, "pose_check_refining": True}) + "\n"
+                   + json.dumps({**base, "seed": 1, "pose_check_refining": True, "pose_gauge": held}) + "\n")
+    assert [row["seed"] for row in stability.load_log(log).values()] == [1]
 
 
 def test_members_that_refined_their_poses_apart_are_run_again(stability, tiny_scene, tmp_path):
