@@ -1134,6 +1134,7 @@ def tables_markdown(rows: list[dict], meta: dict) -> str:
         f"Generated {meta['date']} on {meta['machine']}; fast: {meta['fast_steps']} steps, paper: "
         f"{meta['paper_steps']} steps; seeds {meta['seeds']}; cells: mean ± spread (max - min) of the held-out PSNR "
         "in dB over the seeds, n = number of seeds where fewer than 3.", *random_start_note(rows), *older_surface_note(rows),
+        *older_pose_gauge_note(rows),
         "", "### Fewer views", "", f"Training views kept ({', '.join(map(lambda f: f'{f:.0%}', FRACTIONS))}): "
         f"{train_view_counts(rows)}.", "", *views_table(rows),
         "", "### View-dependent effects and fine texture (synthetic scene, all training views)", "", *variants_table(rows),
@@ -1185,6 +1186,17 @@ def older_surface_note(rows: list[dict]) -> list[str]:
                 f"({len(one)} with one surface, `back_surface` empty in docs/stability.csv; {len(old) - len(one)} blending "
                 f"colours, `back_surface_blend` empty or `colour`: {runs_by_study(old)}); their rows stand until "
                 "the study re-runs them.**"]
+
+
+def older_pose_gauge_note(rows: list[dict]) -> list[str]:
+    """Which runs refined their poses with the corrections' depth-like part held otherwise than
+    the code now holds it (poses.DEPTH_LIKE_GAUGE) and were not re-run since, by study."""
+    old = [r for r in rows if trained_with_another_pose_gauge(r)]
+    if not old:
+        return []
+    return ["", f"**{len(old)} runs that refined their poses held the corrections' depth-like part by the weak "
+                f"prior it had before (`pose_gauge` empty in docs/stability.csv: {runs_by_study(old)}); their rows "
+                "stand until the study re-runs them.**"]
 
 
 def update_markdown(path: Path, tables: str, begin: str = MARKER_BEGIN, end: str = MARKER_END) -> None:
@@ -1367,22 +1379,23 @@ def seed_log_from_csv(log: Path, table: Path) -> int:
     return len(rows)
 
 
-def load_log(log: Path, older_surface: dict | None = None) -> dict:
-    """key -> row of the logged runs the study counts as done.  `older_surface`, a dict: gets the
-    runs that stand but for their surfaces (trained_with_another_surface_mix), for the report
-    until the study re-runs them."""
+def load_log(log: Path, older: dict | None = None) -> dict:
+    """key -> row of the logged runs the study counts as done.  `older`, a dict: gets the runs
+    that stand but for their surfaces (trained_with_another_surface_mix) or their pose
+    corrections' depth-like part (trained_with_another_pose_gauge), for the report until the
+    study re-runs them."""
     done = {}
     if log.is_file():
         for line in log.read_text().splitlines():
             row = json.loads(line)
             if row.get("status") in ("finished", "crashed") and not trained_with_another_fade(row) \
                     and not trained_with_other_members(row) and not trained_with_members_own_poses(row) \
-                    and not trained_with_another_losses_rule(row) and not trained_with_another_pose_gauge(row):
+                    and not trained_with_another_losses_rule(row):
                 into = done
-                if trained_with_another_surface_mix(row):
-                    if older_surface is None:
+                if trained_with_another_surface_mix(row) or trained_with_another_pose_gauge(row):
+                    if older is None:
                         continue
-                    into = older_surface
+                    into = older
                 if "pose_check_refining" not in row:  # logged before the pose check: trained without refinement
                     row.setdefault("refine_poses", False)  # unless it says so
                     if row["refine_poses"] is False and not row.get("minutes") and row["steps"] < 2 * POSE_CHECK_STEP:
@@ -1393,10 +1406,10 @@ def load_log(log: Path, older_surface: dict | None = None) -> dict:
     return done
 
 
-def report_rows(done: dict, jobs: list[Job], older_surface: dict | None = None) -> list[dict]:
+def report_rows(done: dict, jobs: list[Job], older: dict | None = None) -> list[dict]:
     """The logged rows of `jobs`.  A configuration not yet re-run with every seed since deep
-    scenes' surfaces last changed reports its runs as they were (`older_surface`, from
-    load_log), and one not re-run since the learned colour start its runs
+    scenes' surfaces or the pose corrections' depth-like part last changed reports its runs as
+    they were (`older`, from load_log), and one not re-run since the learned colour start its runs
     with the random start (logged before; the tables say how many), so no spread mixes the
     two."""
     configs: dict[str, list[Job]] = {}
@@ -1404,8 +1417,8 @@ def report_rows(done: dict, jobs: list[Job], older_surface: dict | None = None) 
         configs.setdefault(job.configuration, []).append(job)
     rows = []
     for runs in configs.values():
-        if not all(job.key in done for job in runs) and any(job.key in (older_surface or {}) for job in runs):
-            rows += [older_surface[job.key] for job in runs if job.key in older_surface]
+        if not all(job.key in done for job in runs) and any(job.key in (older or {}) for job in runs):
+            rows += [older[job.key] for job in runs if job.key in older]
             continue
         if not all(job.key in done for job in runs):
             runs = [replace(job, colour_start="random") for job in runs]
@@ -1504,10 +1517,10 @@ def main(argv=None) -> None:
     log = args.cache / "runs.jsonl"
     if not args.fresh and (seeded := seed_log_from_csv(log, args.docs / "stability.csv")):
         print(f"no run log in {args.cache}: started it from {args.docs / 'stability.csv'} ({seeded} runs)", flush=True)
-    older_surface = {}
-    done = {} if args.fresh else load_log(log, older_surface)
+    older = {}
+    done = {} if args.fresh else load_log(log, older)
     if args.report_only:
-        rows = report_rows(done, jobs, older_surface)
+        rows = report_rows(done, jobs, older)
     else:
         rows = run_jobs(jobs, args.workers, done, log, by_configuration=args.by_configuration)
     meta = {**generation(args), "fast_steps": args.fast_steps,

@@ -293,6 +293,10 @@ def test_a_run_that_refined_its_poses_with_the_depth_like_part_held_otherwise_is
     log.write_text(json.dumps({**base, "pose_check_refining": True}) + "\n"
                    + json.dumps({**base, "seed": 1, "pose_check_refining": True, "pose_gauge": held}) + "\n")
     assert [row["seed"] for row in stability.load_log(log).values()] == [1]
+    older = {}  # the report shows the stale row until the study re-runs it, and says so
+    stability.load_log(log, older)
+    assert [row["seed"] for row in older.values()] == [0]
+    assert "1 runs that refined their poses" in " ".join(stability.older_pose_gauge_note(list(older.values())))
 
 
 def test_members_that_refined_their_poses_apart_are_run_again(stability, tiny_scene, tmp_path):
