@@ -81,7 +81,7 @@ DEPTH_LIKE_GAUGE = "held"
 # - Statue's COLMAP poses 0.062-0.076 (0.099-0.137 before the learned colour start).
 # Until the thirty-fifth session the corrections also had to be no smaller than 0.8 times
 # their size at step 50: Statue's shrink (0.50-0.73 times), and refining there cost 0.2 dB at
-# the benchmark's 1.5 minutes.  With the depth-like prior above it no longer costs: Statue
+# the benchmark's 1.5 minutes.  With the depth-like part held (then by the prior) it no longer costs: Statue
 # refined against not, 1000 steps at scale 0.25, seeds 0 / 1 / 2, -0.05 / -0.01 / +0.20 dB; at
 # 1.5 minutes at scale 0.5, seed 1 (where the old rule dropped it), +0.42 dB.  And the
 # condition dropped real errors too, where their corrections happened to shrink (0.68-0.79
