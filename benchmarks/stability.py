@@ -77,8 +77,9 @@ from neulf_core.render import LightField  # noqa: E402
 from neulf_core.scene import Scene, View, camera_spacing, find_model_dir, load_scene, scaled_size, split_views  # noqa: E402
 from neulf_core.teacher import TEACHER_FADE, teacher_fade  # noqa: E402
 from neulf_core.train import (COARSE_TO_FINE_MAX_VIEWS, CONSISTENCY_MAX_VIEWS, FAR_OFF_POSE_DEGREES,  # noqa: E402
-                              CONSISTENCY_ALWAYS_MAX_VIEWS, LOSSES_MIN_PASSES, LOSSES_UNTIL_POSES_RIGHT, TrainConfig,
-                              losses_by_default, losses_stop_at_pose_check, train)
+                              CONSISTENCY_ALWAYS_MAX_VIEWS, LOSSES_MIN_PASSES,
+                              LOSSES_UNTIL_POSES_RIGHT, MANY_PHOTOS_FAR_OFF_POSE_DEGREES, TrainConfig,
+                              losses_by_default, losses_stop_at_pose_check, poses_far_off, train)
 
 DOCS = REPO / "docs"
 CANCLIP = REPO.parent / "shared" / "data" / "canclip"
@@ -361,7 +362,10 @@ def score_views(model_dir: Path, held: list[View], scale: float, fit_poses: bool
             "pose_gauge": (light_field.meta.get("pose_corrections") or {}).get("depth_like"),
             "pose_check_degrees": light_field.meta.get("pose_check", {}).get("median_degrees"),
             "pose_check_halfway": light_field.meta.get("pose_check", {}).get("halfway_degrees"),
-            "field_restarted": "field_restart" in light_field.meta,  # far-off poses (train.FAR_OFF_POSE_DEGREES)
+            "field_restarted": "field_restart" in light_field.meta,  # far-off poses (train.poses_far_off)
+            # What that check measured (None: not checked, or logged before it was recorded).
+            "far_off_degrees": (light_field.meta.get("far_off_check") or {}).get("median_degrees"),
+            "far_off_points_held": (light_field.meta.get("far_off_check") or {}).get("points_held"),
             "appearance_default": light_field.meta.get("appearance_default"),
             "exposure_difference_stops": light_field.meta.get("exposure_difference_stops")}
 
@@ -495,6 +499,28 @@ def trained_with_another_pose_gauge(row: dict) -> bool:
     recorded held it by a weak prior): the study runs it again."""
     refined = row.get("pose_check_refining") is True or row.get("refine_poses") is True
     return refined and row.get("pose_gauge") != DEPTH_LIKE_GAUGE
+
+
+def trained_with_another_restart_rule(row: dict) -> bool:
+    """Whether a logged run that refined its poses on a scene that is not deep started its
+    field again (`field_restarted`) otherwise than train.poses_far_off now decides from what
+    the far-off check measured (`far_off_degrees`, `far_off_points_held`): the study runs it
+    again.  Rows logged before the fifty-fifth session restarted from 0.4 degrees whatever
+    their photo count and logged neither; the default's (its pose check; the preset's SfM
+    points pulling until then) are judged by the pose check's statistic at the same step, and
+    runs with the refinement forced on (no points) decided as the rule still does."""
+    refined = row.get("pose_check_refining") is True or row.get("refine_poses") is True
+    views = row.get("train_views")
+    if not refined or row.get("deep_scene") is not False or not views or get_preset(row["preset"]).field != "disparity":
+        return False
+    degrees, held = row.get("far_off_degrees"), row.get("far_off_points_held")
+    if degrees is None:
+        if row.get("refine_poses") is True or (row.get("pose_check_degrees") or 0) < POSE_CHECK_DEGREES:
+            return False  # (forced: the old rule's decision; an unsure first look: another step's statistic)
+        degrees = row["pose_check_degrees"]
+    if held is None:  # (logged before it was: the preset's points pull until the pose check, never when forced)
+        held = row.get("refine_poses") is None and get_preset(row["preset"]).point_depth
+    return bool(row.get("field_restarted")) != poses_far_off(float(degrees), int(views), bool(held))
 
 
 def trained_with_other_members(row: dict) -> bool:
@@ -882,7 +908,9 @@ def pose_table(rows: list[dict]) -> list[str]:
                       f"{POSE_CHECK_UNSURE_DEGREES:g}-{POSE_CHECK_DEGREES:g}° and at least {POSE_SECOND_LOOK_DEGREES:g}° "
                       f"after {POSE_SECOND_LOOK_STEP}): " + "; ".join(kept) + "."]
         lines += ["", "Runs in which the default then started the field again with smoother geometry (median correction "
-                      f"at least {FAR_OFF_POSE_DEGREES:g}° on a scene that is not deep; rows logged before the rule: 0): "
+                      f"at least {MANY_PHOTOS_FAR_OFF_POSE_DEGREES:g}° with more than {COARSE_TO_FINE_MAX_VIEWS} photos "
+                      f"whose first steps the SfM points held, {FAR_OFF_POSE_DEGREES:g}° otherwise, on a scene that is not "
+                      "deep; rows logged before the rule: 0): "
                       + "; ".join(restarted) + "."]
     fitted = pose_fitted_table(rows)
     if fitted:
@@ -1135,6 +1163,7 @@ def tables_markdown(rows: list[dict], meta: dict) -> str:
         f"{meta['paper_steps']} steps; seeds {meta['seeds']}; cells: mean ± spread (max - min) of the held-out PSNR "
         "in dB over the seeds, n = number of seeds where fewer than 3.", *random_start_note(rows), *older_surface_note(rows),
         *older_pose_gauge_note(rows),
+        *older_restart_rule_note(rows),
         "", "### Fewer views", "", f"Training views kept ({', '.join(map(lambda f: f'{f:.0%}', FRACTIONS))}): "
         f"{train_view_counts(rows)}.", "", *views_table(rows),
         "", "### View-dependent effects and fine texture (synthetic scene, all training views)", "", *variants_table(rows),
@@ -1199,6 +1228,17 @@ def older_pose_gauge_note(rows: list[dict]) -> list[str]:
                 "stand until the study re-runs them.**"]
 
 
+def older_restart_rule_note(rows: list[dict]) -> list[str]:
+    """Which runs started their field again for far-off poses otherwise than train.poses_far_off
+    now decides, and were not re-run since, by study."""
+    old = [r for r in rows if trained_with_another_restart_rule(r)]
+    if not old:
+        return []
+    return ["", f"**{len(old)} runs started their field again for far-off poses otherwise than the rule now "
+                f"decides (before the fifty-fifth session from {FAR_OFF_POSE_DEGREES:g}° whatever the photo count: "
+                f"{runs_by_study(old)}); their rows stand until the study re-runs them.**"]
+
+
 def update_markdown(path: Path, tables: str, begin: str = MARKER_BEGIN, end: str = MARKER_END) -> None:
     """Replace the generated block (between `begin` and `end`) in `path`, keeping the
     hand-written text around it."""
@@ -1212,7 +1252,7 @@ def update_markdown(path: Path, tables: str, begin: str = MARKER_BEGIN, end: str
 
 CSV_COLUMNS = ["scene", "preset", "fraction", "pose_degrees", "appearance", "refine_poses", "consistency", "minutes",
                "coarse_to_fine", "colour_start", "coarse_to_fine_used", "appearance_used", "appearance_default", "exposure_difference_stops",
-               "pose_check_refining", "pose_check_degrees", "pose_check_halfway", "pose_gauge", "field_restarted", "start_kept", "discarded_steps", "members", "members_passes", "member_poses",
+               "pose_check_refining", "pose_check_degrees", "pose_check_halfway", "pose_gauge", "field_restarted", "far_off_degrees", "far_off_points_held", "start_kept", "discarded_steps", "members", "members_passes", "member_poses",
                "sweep_fade", "deep_scene", "multiview_losses", "losses_until_step", "back_surface", "back_surface_blend", "pixel_jitter", "seed", "status", "psnr", "ssim",
                "psnr_matched", "psnr_half_fit", "psnr_pose_fitted", "pose_fit_degrees", "psnr_per_view", "train_views", "held_out", "steps", "steps_done", "train_seconds",
                "wall_seconds", "warnings", "warning_text", "nonfinite_pixels", "error", "scale", "path", "truth"]
@@ -1392,7 +1432,8 @@ def load_log(log: Path, older: dict | None = None) -> dict:
                     and not trained_with_other_members(row) and not trained_with_members_own_poses(row) \
                     and not trained_with_another_losses_rule(row):
                 into = done
-                if trained_with_another_surface_mix(row) or trained_with_another_pose_gauge(row):
+                if trained_with_another_surface_mix(row) or trained_with_another_pose_gauge(row) \
+                        or trained_with_another_restart_rule(row):
                     if older is None:
                         continue
                     into = older

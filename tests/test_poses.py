@@ -552,6 +552,23 @@ def test_a_held_out_cameras_pose_is_fitted_to_its_photo(tiny_scene, tmp_path, ca
 # ----------------------------------------------------------------------------- far-off poses restart the field
 
 
+def test_the_far_off_bar_is_higher_for_many_photos_the_points_held():
+    """train.poses_far_off: with more than COARSE_TO_FINE_MAX_VIEWS photos whose first steps
+    the SfM points' depth held, the field starts again only from MANY_PHOTOS_FAR_OFF_POSE_DEGREES
+    (there the corrections do not stall at moderate error: docs/STABILITY.md); with fewer
+    photos, or nothing holding the first steps (`--refine-poses`), from FAR_OFF_POSE_DEGREES."""
+    from neulf_core.train import (COARSE_TO_FINE_MAX_VIEWS, FAR_OFF_POSE_DEGREES, MANY_PHOTOS_FAR_OFF_POSE_DEGREES,
+                                  poses_far_off)
+
+    few, many = COARSE_TO_FINE_MAX_VIEWS, COARSE_TO_FINE_MAX_VIEWS + 1
+    assert FAR_OFF_POSE_DEGREES < MANY_PHOTOS_FAR_OFF_POSE_DEGREES
+    between = (FAR_OFF_POSE_DEGREES + MANY_PHOTOS_FAR_OFF_POSE_DEGREES) / 2
+    assert not poses_far_off(between, many, points_held=True)
+    assert poses_far_off(between, few, points_held=True) and poses_far_off(between, many, points_held=False)
+    assert poses_far_off(FAR_OFF_POSE_DEGREES, few, True) and not poses_far_off(FAR_OFF_POSE_DEGREES * 0.99, few, True)
+    assert poses_far_off(MANY_PHOTOS_FAR_OFF_POSE_DEGREES, many, True) and poses_far_off(2.0, 70, True)
+
+
 @pytest.mark.parametrize("threshold, deep, restarts, few", [(0.0, False, True, False), (0.0, False, True, True),
                                                            (90.0, False, False, False), (0.0, True, False, False)])
 def test_far_off_poses_restart_the_field_with_smoother_geometry(tiny_scene, tmp_path, monkeypatch, threshold, deep,
@@ -570,6 +587,7 @@ def test_far_off_poses_restart_the_field_with_smoother_geometry(tiny_scene, tmp_
 
     monkeypatch.setattr(train_module, "POSE_CHECK_STEP", 5)
     monkeypatch.setattr(train_module, "FAR_OFF_POSE_DEGREES", threshold)
+    monkeypatch.setattr(train_module, "MANY_PHOTOS_FAR_OFF_POSE_DEGREES", threshold)
     monkeypatch.setattr(Slab, "is_deep", property(lambda self: deep))
     monkeypatch.setattr(train_module, "FEW_PHOTOS_TEXTURE_MAX_VIEWS", 7 if few else 6)
     real, seen = train_module._restart_for_far_off_poses, {}
@@ -593,6 +611,11 @@ def test_far_off_poses_restart_the_field_with_smoother_geometry(tiny_scene, tmp_
     meta = json.loads((tmp_path / "m" / "model.json").read_text())
     assert bool(restart_events) is restarts and ("field_restart" in meta) is restarts
     assert bool(seen) is (not deep)  # (deep scenes are not even measured)
+    assert ("far_off_check" in meta) is (not deep)  # what the check measured, restart or not
+    if not deep:
+        check = meta["far_off_check"]
+        assert check["step"] == 5 and check["train_views"] == 7
+        assert check["points_held"] is False  # (refinement forced on: no points from the first step)
     if not restarts:
         assert meta["field_config"]["tv_weight"] == seen.get("tv_before", meta["field_config"]["tv_weight"])
         return

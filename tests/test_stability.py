@@ -487,3 +487,40 @@ def test_the_losses_table_says_how_long_the_defaults_losses_ran(stability):
     assert stability.losses_default_cell(runs).endswith("(on, to step 100, off)")
     assert stability.losses_default_cell(runs).startswith(stability.cell(runs))
     assert stability.losses_default_cell([]) == "-"
+
+
+def test_a_run_that_started_its_field_again_otherwise_than_the_rule_now_decides_is_run_again(stability, tiny_scene,
+                                                                                             tmp_path):
+    """train.poses_far_off: a logged run of a shallow scene that refined its poses and started
+    its field again (or not) otherwise than the rule now decides from what it logged is run
+    again.  Rows logged before the far-off check was: the default's judged by its pose check's
+    statistic (the preset's points held its first steps), forced ones stand (no points: the
+    old rule's bar)."""
+    from neulf_core.train import FAR_OFF_POSE_DEGREES, MANY_PHOTOS_FAR_OFF_POSE_DEGREES
+
+    job = stability.Job("tiny", str(tiny_scene), str(tiny_scene), 1.0, "fast", 80, 0, pose_degrees=0.5)
+    between = (FAR_OFF_POSE_DEGREES + MANY_PHOTOS_FAR_OFF_POSE_DEGREES) / 2
+    base = {**stability.asdict(job), "train_views": 26, "status": "finished", "psnr": 30.0, "deep_scene": False,
+            "sweep_fade": stability.sweep_fade("fast", 26), "pose_gauge": stability.DEPTH_LIKE_GAUGE,
+            "pose_check_refining": True}
+    stale = stability.trained_with_another_restart_rule
+    assert stale({**base, "field_restarted": True, "pose_check_degrees": between})  # many photos, points: no longer
+    assert not stale({**base, "field_restarted": False, "pose_check_degrees": between})
+    assert not stale({**base, "field_restarted": True, "pose_check_degrees": between, "train_views": 13})  # few: still
+    assert stale({**base, "field_restarted": False, "far_off_degrees": between, "train_views": 13})
+    assert not stale({**base, "field_restarted": False, "far_off_degrees": between, "far_off_points_held": True})
+    assert stale({**base, "field_restarted": False, "far_off_degrees": between, "far_off_points_held": False})
+    assert not stale({**base, "field_restarted": True, "far_off_degrees": MANY_PHOTOS_FAR_OFF_POSE_DEGREES})
+    assert not stale({**base, "field_restarted": True, "pose_check_degrees": between, "deep_scene": True})
+    forced = {**base, "pose_check_refining": None, "refine_poses": True, "pose_check_degrees": None}
+    assert not stale({**forced, "field_restarted": True})  # logged before: the old bar, which forced runs keep
+    assert stale({**forced, "field_restarted": False, "far_off_degrees": between})  # no points: restarts
+    assert not stale({**base, "pose_check_refining": False, "field_restarted": False, "pose_check_degrees": 0.02})
+    log = tmp_path / "runs.jsonl"
+    log.write_text(json.dumps({**base, "field_restarted": True, "pose_check_degrees": between}) + "\n"
+                   + json.dumps({**base, "seed": 1, "field_restarted": False, "far_off_degrees": between}) + "\n")
+    assert [row["seed"] for row in stability.load_log(log).values()] == [1]
+    older = {}  # the report shows the stale row until the study re-runs it, and says so
+    stability.load_log(log, older)
+    assert [row["seed"] for row in older.values()] == [0]
+    assert "1 runs started their field again" in " ".join(stability.older_restart_rule_note(list(older.values())))
