@@ -1,7 +1,7 @@
 """How wide three seeds fall by chance: the default trained on some of the stability study's
 configurations with more seeds than its three, and the scatter summarised.
 
-    python benchmarks/seed_scatter.py --workers 2                  # 9 configurations x 8 seeds, 1000 steps
+    python benchmarks/seed_scatter.py --workers 2                  # 11 configurations x 8 seeds, 1000 steps
     python benchmarks/seed_scatter.py --configurations synthetic,shiny --seeds 0-7 --steps 3000
     python benchmarks/seed_scatter.py --configurations canclip-6-photos-0.25deg --steps 3000 \
         --two-starts off --cache /tmp/one_start --docs /tmp/one_start    # a default switched off, beside it
@@ -53,6 +53,10 @@ CONFIGURATIONS = {
     "synthetic-0.1deg": {"scene": "lambertian", "pose_degrees": 0.1},
     "shiny": {"scene": "shiny"},
     "fine": {"scene": "fine"},
+    # The default's widest three-seed spreads in the study (fifty-fifth session): the restarted
+    # field of far-off poses, and the synthetic scene's smaller pose noise.
+    "canclip-1deg": {"scene": "canclip", "pose_degrees": 1.0},
+    "synthetic-0.25deg": {"scene": "lambertian", "pose_degrees": 0.25},
     # Few photos with pose noise, where the poses are refined (thirty-ninth session: the better
     # of two starts there, where the training loss also measures the poses' fit; not kept).
     "canclip-6-photos-0.25deg": {"scene": "canclip", "fraction": 0.25, "pose_degrees": 0.25},
@@ -63,7 +67,7 @@ CONFIGURATIONS = {
 # --two-starts -> TrainConfig.two_starts: the default's rule, always, never.
 TWO_STARTS = {"rule": None, "on": True, "off": False}
 # What a run with no --configurations trains (the few-photo pose-noise ones are asked for by name).
-DEFAULT_CONFIGURATIONS = list(CONFIGURATIONS)[:9]
+DEFAULT_CONFIGURATIONS = list(CONFIGURATIONS)[:11]
 
 
 def parse_seeds(text: str) -> list[int]:
