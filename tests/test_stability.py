@@ -289,14 +289,20 @@ def test_a_run_that_refined_its_poses_with_the_depth_like_part_held_otherwise_is
     assert not stability.trained_with_another_pose_gauge({**base, "pose_check_refining": True, "pose_gauge": held})
     assert not stability.trained_with_another_pose_gauge({**base, "pose_check_refining": False})
     assert not stability.trained_with_another_pose_gauge({**base, "pose_check_refining": None, "refine_poses": False})
-    log = tmp_path / "runs.jsonl"
-    log.write_text(json.dumps({**base, "pose_check_refining": True}) + "\n"
-                   + json.dumps({**base, "seed": 1, "pose_check_refining": True, "pose_gauge": held}) + "\n")
-    assert [row["seed"] for row in stability.load_log(log).values()] == [1]
-    older = {}  # the report shows the stale row until the study re-runs it, and says so
+    assert_stale_row_reported_until_run_again(stability, tmp_path / "runs.jsonl", {**base, "pose_check_refining": True},
+                                              {**base, "seed": 1, "pose_check_refining": True, "pose_gauge": held},
+                                              stability.older_pose_gauge_note, "1 runs that refined their poses")
+
+
+def assert_stale_row_reported_until_run_again(stability, log, stale_row: dict, fresh_row: dict, note, words: str):
+    """load_log: of the two logged rows the stale one is not done (the study runs it again),
+    and the report shows it from `older` until then, its note saying `words`."""
+    log.write_text(json.dumps(stale_row) + "\n" + json.dumps(fresh_row) + "\n")
+    assert [row["seed"] for row in stability.load_log(log).values()] == [fresh_row["seed"]]
+    older = {}
     stability.load_log(log, older)
-    assert [row["seed"] for row in older.values()] == [0]
-    assert "1 runs that refined their poses" in " ".join(stability.older_pose_gauge_note(list(older.values())))
+    assert [row["seed"] for row in older.values()] == [stale_row["seed"]]
+    assert words in " ".join(note(list(older.values())))
 
 
 def test_members_that_refined_their_poses_apart_are_run_again(stability, tiny_scene, tmp_path):
@@ -516,11 +522,7 @@ def test_a_run_that_started_its_field_again_otherwise_than_the_rule_now_decides_
     assert not stale({**forced, "field_restarted": True})  # logged before: the old bar, which forced runs keep
     assert stale({**forced, "field_restarted": False, "far_off_degrees": between})  # no points: restarts
     assert not stale({**base, "pose_check_refining": False, "field_restarted": False, "pose_check_degrees": 0.02})
-    log = tmp_path / "runs.jsonl"
-    log.write_text(json.dumps({**base, "field_restarted": True, "pose_check_degrees": between}) + "\n"
-                   + json.dumps({**base, "seed": 1, "field_restarted": False, "far_off_degrees": between}) + "\n")
-    assert [row["seed"] for row in stability.load_log(log).values()] == [1]
-    older = {}  # the report shows the stale row until the study re-runs it, and says so
-    stability.load_log(log, older)
-    assert [row["seed"] for row in older.values()] == [0]
-    assert "1 runs started their field again" in " ".join(stability.older_restart_rule_note(list(older.values())))
+    assert_stale_row_reported_until_run_again(
+        stability, tmp_path / "runs.jsonl", {**base, "field_restarted": True, "pose_check_degrees": between},
+        {**base, "seed": 1, "field_restarted": False, "far_off_degrees": between},
+        stability.older_restart_rule_note, "1 runs started their field again")
