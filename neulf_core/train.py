@@ -79,7 +79,8 @@ POSE_LR = 3e-4
 # - CanClip's 26 photos, 0.5 degrees (statistic 0.45-0.47): restarted 34.21 dB, range 0.83
 #   over seeds 0-5, against 34.66, range 0.35, trained on; residual 0.083-0.089 against
 #   0.082-0.086 degrees; 0.75 degrees 33.32 against 33.56 (seeds 0-2); at 1 degree (0.90) the
-#   restart wins, 32.16 against 31.98 with a range of 1.02; HCI's 70 at 0.5 degrees 41.65
+#   restart wins, 32.16 against 31.98 with a range of 1.02; CanClip's 20 photos at 0.5 degrees
+#   (0.46-0.47) 29.96 against 30.09, residual alike (0.10); HCI's 70 at 0.5 degrees 41.65
 #   against 41.85;
 # - the same 26 photos at 0.5 degrees with `--refine-poses` (no points from the first step):
 #   restarted 34.38, range 0.09, trained on 34.16, range 1.23;
