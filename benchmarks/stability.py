@@ -1204,39 +1204,39 @@ def random_start_note(rows: list[dict]) -> list[str]:
                 "study re-runs them.**"]
 
 
+def stale_rows_note(old: list[dict], trained: str) -> list[str]:
+    """The report's note on `old`, logged rows that stand until the study re-runs them:
+    `trained` says how they were trained, ending in an open bracket that the runs by study
+    close."""
+    if not old:
+        return []
+    return ["", f"**{len(old)} {trained}: {runs_by_study(old)}); their rows stand until the study re-runs them.**"]
+
+
 def older_surface_note(rows: list[dict]) -> list[str]:
     """Which runs of deep scenes were trained with one surface, or with the surfaces blended
     otherwise than the default now blends them, and not re-run since, by study."""
     old = [r for r in rows if trained_with_another_surface_mix(r)]
-    if not old:
-        return []
-    one = [r for r in old if r.get("back_surface") is None]
-    return ["", f"**{len(old)} runs of deep scenes were trained before their default's surfaces "
-                f"({len(one)} with one surface, `back_surface` empty in docs/stability.csv; {len(old) - len(one)} blending "
-                f"colours, `back_surface_blend` empty or `colour`: {runs_by_study(old)}); their rows stand until "
-                "the study re-runs them.**"]
+    one = sum(r.get("back_surface") is None for r in old)
+    return stale_rows_note(old, f"runs of deep scenes were trained before their default's surfaces ({one} with one "
+                                f"surface, `back_surface` empty in docs/stability.csv; {len(old) - one} blending "
+                                "colours, `back_surface_blend` empty or `colour`")
 
 
 def older_pose_gauge_note(rows: list[dict]) -> list[str]:
     """Which runs refined their poses with the corrections' depth-like part held otherwise than
     the code now holds it (poses.DEPTH_LIKE_GAUGE) and were not re-run since, by study."""
-    old = [r for r in rows if trained_with_another_pose_gauge(r)]
-    if not old:
-        return []
-    return ["", f"**{len(old)} runs that refined their poses held the corrections' depth-like part by the weak "
-                f"prior it had before (`pose_gauge` empty in docs/stability.csv: {runs_by_study(old)}); their rows "
-                "stand until the study re-runs them.**"]
+    return stale_rows_note([r for r in rows if trained_with_another_pose_gauge(r)],
+                           "runs that refined their poses held the corrections' depth-like part by the weak prior "
+                           "it had before (`pose_gauge` empty in docs/stability.csv")
 
 
 def older_restart_rule_note(rows: list[dict]) -> list[str]:
     """Which runs started their field again for far-off poses otherwise than train.poses_far_off
     now decides, and were not re-run since, by study."""
-    old = [r for r in rows if trained_with_another_restart_rule(r)]
-    if not old:
-        return []
-    return ["", f"**{len(old)} runs started their field again for far-off poses otherwise than the rule now "
-                f"decides (before the fifty-fifth session from {FAR_OFF_POSE_DEGREES:g}° whatever the photo count: "
-                f"{runs_by_study(old)}); their rows stand until the study re-runs them.**"]
+    return stale_rows_note([r for r in rows if trained_with_another_restart_rule(r)],
+                           "runs started their field again for far-off poses otherwise than the rule now decides "
+                           f"(before the fifty-fifth session from {FAR_OFF_POSE_DEGREES:g}° whatever the photo count")
 
 
 def update_markdown(path: Path, tables: str, begin: str = MARKER_BEGIN, end: str = MARKER_END) -> None:
