@@ -79,7 +79,9 @@ def test_report_names_each_budget_and_pairs_the_seeds_of_a_drop(view_dependence)
             logged_row(view_dependence, "light field, equal time", "lambertian", 0, steps=1000, minutes=7.5)]
     assert view_dependence.labels(rows) == ["light field, 1000 steps", "light field, 7.5 min", "volume, 2400 steps"]
     before = logged_row(view_dependence, "light field", "lambertian", 0, psnr=29.0, config=ONE_SURFACE)
-    assert view_dependence.labels(rows + [before])[0] == "light field, one surface, 1000 steps"
+    colours = logged_row(view_dependence, "light field", "lambertian", 0, psnr=29.5, config={"back_surface": "by rule"})
+    assert view_dependence.labels(rows + [colours, before])[:3] == [
+        "light field, one surface, 1000 steps", "light field, colours blended, 1000 steps", "light field, 1000 steps"]
     # shiny has seed 0 only: its drop is against the Lambertian seed 0 (30.0), not the mean of 0 and 1
     assert view_dependence.drop(rows, "light field, 1000 steps", "shiny", "psnr") == "-1.00"
     assert view_dependence.drop(rows, "volume, 2400 steps", "shiny", "psnr") == "--"
