@@ -211,6 +211,9 @@ def run_all(args, scenes: dict[str, Path], truths: dict, masks: dict) -> None:
                            **score(images, truths[variant], masks), "date": date.today().isoformat(),
                            "machine": stability.machine()}
                     save_renders(args.cache / "view_dependence", budget_label(method, steps, minutes), variant, seed, images)
+                    # Scored now, from the renders just saved: a later run whose label takes the
+                    # same file names (a newer rule's) must not take this row's score with it.
+                    add_far_scores([row], truths, masks, args.cache / "view_dependence")
                     with open(log, "a") as handle:
                         handle.write(json.dumps(row) + "\n")
                     done[key] = row
@@ -357,20 +360,21 @@ def chart(rows: list[dict], truths: dict, masks: dict, folder: Path, path: Path)
 
 def add_far_scores(rows: list[dict], truths: dict, masks: dict, folder: Path) -> None:
     """Each row's PSNR far from the objects (outside the mask grown by FAR_MARGIN pixels), read
-    from its saved 8-bit renders (nan where a later run of the same name replaced them)."""
+    from its saved 8-bit renders.  A row logged with its score keeps it (runs log it since the
+    fifty-sixth session, and a run from the CSV has it); an older row without one is scored
+    from the renders of its label, nan where they are gone."""
     from PIL import Image
 
     for row in rows:
+        if np.isfinite(row.get("psnr_far") or float("nan")):
+            continue
         scores = []
         for name, target in truths[row["variant"]].items():
             render = render_path(folder, label_of(row), row["variant"], row["seed"], name)
             if render.is_file():
                 image = np.asarray(Image.open(render), dtype=np.float32) / 255.0
                 scores.append(masked_psnr(image, target, ~dilate(masks[name], FAR_MARGIN)))
-        if len(scores) == len(truths[row["variant"]]):
-            row["psnr_far"] = float(np.mean(scores))
-        elif row.get("psnr_far") is None:  # (a run from the CSV keeps the score it was logged with)
-            row["psnr_far"] = float("nan")
+        row["psnr_far"] = float(np.mean(scores)) if len(scores) == len(truths[row["variant"]]) else float("nan")
 
 
 def report(args, rows: list[dict], truths: dict, masks: dict) -> str:

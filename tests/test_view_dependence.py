@@ -108,3 +108,23 @@ def test_a_fresh_machine_starts_the_log_from_the_csv_with_the_same_runs_and_labe
     assert sorted(again) == sorted(row["key"] for row in rows)
     assert sorted(map(view_dependence.label_of, again.values())) == sorted(map(view_dependence.label_of, rows))
     assert all(row["psnr_far"] == 37.5 and row["seed"] in (0, 1) for row in again.values())
+
+
+def test_a_logged_far_score_survives_a_newer_run_taking_its_render_names(view_dependence, tmp_path):
+    """Renders are named by label, and a newer rule's runs take the plain label an older rule's
+    runs had: a row logged with its far-from-the-objects score keeps it, an older row without
+    one is scored from its label's renders, or nan where they are gone."""
+    from neulf_core.images import save_rgb
+
+    target = np.full((30, 30, 3), 0.5, dtype=np.float32)
+    mask = np.zeros((30, 30), dtype=bool)
+    mask[:5, :5] = True                     # the objects: far from them is the rest but a margin
+    truths, masks = {"lambertian": {"v.png": target}}, {"v.png": mask}
+    newer = logged_row(view_dependence, "light field", "lambertian", 0)
+    render = np.clip(target + 0.1, 0, 1)    # an error of 0.1 everywhere: 20 dB
+    save_rgb(view_dependence.render_path(tmp_path, view_dependence.label_of(newer), "lambertian", 0, "v.png"), render)
+    logged = {**logged_row(view_dependence, "light field", "lambertian", 0), "psnr_far": 38.0}  # the same names
+    gone = logged_row(view_dependence, "light field", "lambertian", 1, config={"back_surface": "by rule"})
+    view_dependence.add_far_scores([newer, logged, gone], truths, masks, tmp_path)
+    assert newer["psnr_far"] == pytest.approx(20.0, abs=0.2)
+    assert logged["psnr_far"] == 38.0 and np.isnan(gone["psnr_far"])
