@@ -425,7 +425,7 @@ def build_parser() -> argparse.ArgumentParser:
                         "steps, then kept only where the corrections found are at least 0.06 degrees, the poses "
                         "being off; dropped under 0.04; between, looked at again after 200 steps; budgets under "
                         "200 steps train without it, as do the published networks (--preset authors, paper); the rig fanning out and its baseline growing, which a light field cannot tell from "
-                        "a change of depth, are held at zero by a weak prior; docs/STABILITY.md)")
+                        "a change of depth, are projected out of the corrections, as their mean is; docs/STABILITY.md)")
     p.add_argument("--sweep-teacher", action=argparse.BooleanOptionalAction, default=None,
                    help="pull the early depth toward the classic plane sweep's (default: the preset's choice; on "
                         "for fast): better depth maps and refocus, docs/DEPTH.md")
