@@ -339,14 +339,16 @@ def chart(rows: list[dict], truths: dict, masks: dict, folder: Path, path: Path)
         for j, (variant, column) in enumerate(BARS):
             values = cells(rows, method, variant, column)
             if values:
-                bars.bar(j + i * width, np.mean(values), width, color=f"C{i}", label=method if j == 0 else None)
+                # (tab20: a colour per label, where the default cycle repeats after ten)
+                bars.bar(j + i * width, np.mean(values), width, color=plt.get_cmap("tab20")(i % 20),
+                         label=method if j == 0 else None)
                 bars.scatter([j + i * width] * len(values), values, color="k", s=8, zorder=3)
     bars.set_xticks([j + width * (len(methods) - 1) / 2 for j in range(len(BARS))],
                     [f"{variant}, {'whole' if column == 'psnr' else 'in the mask'}" for variant, column in BARS])
     low = min(row[c] for row in rows for c in ("psnr", "psnr_mask"))
     bars.set_ylim(low - 2, None)
     bars.set_ylabel("held-out PSNR (dB)")
-    bars.legend(loc="lower left", fontsize=8, ncol=2)
+    bars.legend(loc="lower center", bbox_to_anchor=(0.5, 1.0), fontsize=8, ncol=4)  # above the bars
     for r, variant in enumerate(MASKED):
         for k, (title, image) in enumerate(crops[variant]):
             axis = figure.add_subplot(grid[1 + r, k])
@@ -354,7 +356,7 @@ def chart(rows: list[dict], truths: dict, masks: dict, folder: Path, path: Path)
             axis.set_title(f"{variant}: {title}", fontsize=8)
             axis.axis("off")
     figure.tight_layout()
-    figure.savefig(path, dpi=90)
+    figure.savefig(path, dpi=90, bbox_inches="tight")
     plt.close(figure)
 
 
