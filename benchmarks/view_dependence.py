@@ -62,7 +62,8 @@ CSV_COLUMNS = ["label", "method", "variant", "seed", "steps", "train_seconds", "
 # and decoded once, since the fifty-second session).  Earlier keys name the runs of older rules:
 # no config, one surface; the back surface alone, the two surfaces' colours blended.
 LIGHT_FIELD_CONFIG = {"back_surface": "by rule", "back_surface_blend": "features"}
-OLDER_LIGHT_FIELDS = {json.dumps(None): "one surface", json.dumps({"back_surface": "by rule"}, sort_keys=True): "colours blended"}
+OLDER_LIGHT_FIELDS = {json.dumps(None): "one surface",
+                      json.dumps({"back_surface": "by rule"}, sort_keys=True): "colours blended"}
 
 
 # ----------------------------------------------------------------------------- the mask and the scores
