@@ -1,0 +1,53 @@
+"""benchmarks/study_probe.py: a probe runs the stability study's job with a patch executed
+first and the pose noise drawn from the seed asked for, and summarises the seeds."""
+
+import json
+
+import pytest
+
+
+@pytest.fixture(scope="module")
+def probe(benchmark_script):
+    return benchmark_script("study_probe")
+
+
+def test_a_probe_runs_the_patch_then_the_job_under_its_noise_draw(probe, tiny_scene, tmp_path, monkeypatch):
+    import stability  # (the module run_one imports: benchmarks/ is on sys.path)
+
+    monkeypatch.setattr(stability, "POSE_NOISE_SEED", stability.POSE_NOISE_SEED)  # run_one sets it; restored after
+    marker = tmp_path / "patched"
+    patch = tmp_path / "patch.py"
+    patch.write_text(f"import pathlib\npathlib.Path({str(marker)!r}).write_text('ran')\n")
+    job = stability.Job("tiny", str(tiny_scene), str(tiny_scene), 1.0, "fast", 3, 0, pose_degrees=1.0)
+    from dataclasses import asdict
+
+    row = probe.run_one((asdict(job), str(patch), 101, str(probe.HERE.parent)))
+    assert marker.read_text() == "ran"
+    assert row["status"] == "finished" and row["draw"] == 101 and row["steps_done"] == 3
+    # The draw is the study's noise seed while the job runs: another draw turns the cameras otherwise.
+    train = stability.split_views(stability.load_any(tiny_scene))[0]
+    spacing = stability.rig_spacing(train)
+    turned = {}
+    for draw in (101, 202):
+        monkeypatch.setattr(stability, "POSE_NOISE_SEED", draw)
+        turned[draw] = stability.perturb_poses(train, 1.0, spacing)[0].R
+    assert abs(turned[101] - turned[202]).max() > 1e-4
+
+
+def test_the_summary_gives_each_noise_and_draw_its_seeds_mean_and_spread(probe):
+    rows = [{"pose_degrees": 0.5, "draw": 1234, "seed": s, "status": "finished", "psnr": p}
+            for s, p in ((1, 30.2), (0, 30.0))]
+    rows.append({"pose_degrees": 0.5, "draw": 101, "seed": 0, "status": "crashed", "psnr": float("nan"),
+                 "error": "RuntimeError: boom"})
+    lines = probe.summary_lines(rows, "try")
+    assert lines[0] == "try: pose noise 0.5°, noise draw 101, seeds 0:  (1 did not finish: RuntimeError: boom)"
+    assert lines[1] == "try: pose noise 0.5°, noise draw 1234, seeds 0,1: 30.00 / 30.20: 30.10 ± 0.141 sd, range 0.20"
+
+
+def test_the_command_line_refuses_a_missing_patch_or_checkout(probe, tmp_path):
+    with pytest.raises(SystemExit, match="no file"):
+        probe.main(["--patch", str(tmp_path / "missing.py")])
+    with pytest.raises(SystemExit, match="holds no neulf_core"):
+        probe.main(["--root", str(tmp_path)])
+    assert json.dumps(probe.parse_list("0-3", int)) == "[0, 1, 2, 3]"
+    assert probe.parse_list("0.25,0.5") == [0.25, 0.5]
