@@ -79,7 +79,7 @@ from neulf_core.teacher import TEACHER_FADE, teacher_fade  # noqa: E402
 from neulf_core.train import (COARSE_TO_FINE_MAX_VIEWS, CONSISTENCY_MAX_VIEWS, FAR_OFF_POSE_DEGREES,  # noqa: E402
                               CONSISTENCY_ALWAYS_MAX_VIEWS, LOSSES_MIN_PASSES,
                               LOSSES_UNTIL_POSES_RIGHT, MANY_PHOTOS_FAR_OFF_POSE_DEGREES, TrainConfig,
-                              losses_by_default, losses_stop_at_pose_check, poses_far_off, train)
+                              losses_by_default, losses_stop_at_pose_check, many_photos_held, poses_far_off, train)
 
 DOCS = REPO / "docs"
 CANCLIP = REPO.parent / "shared" / "data" / "canclip"
@@ -363,6 +363,8 @@ def score_views(model_dir: Path, held: list[View], scale: float, fit_poses: bool
             "pose_check_degrees": light_field.meta.get("pose_check", {}).get("median_degrees"),
             "pose_check_halfway": light_field.meta.get("pose_check", {}).get("halfway_degrees"),
             "field_restarted": "field_restart" in light_field.meta,  # far-off poses (train.poses_far_off)
+            # Only the geometry started again (train.many_photos_held; None: not restarted, or logged before).
+            "restart_geometry_only": (light_field.meta.get("field_restart") or {}).get("geometry_only"),
             # What that check measured (None: not checked, or logged before it was recorded).
             "far_off_degrees": (light_field.meta.get("far_off_check") or {}).get("median_degrees"),
             "far_off_points_held": (light_field.meta.get("far_off_check") or {}).get("points_held"),
@@ -520,7 +522,11 @@ def trained_with_another_restart_rule(row: dict) -> bool:
         degrees = row["pose_check_degrees"]
     if held is None:  # (logged before it was: the preset's points pull until the pose check, never when forced)
         held = row.get("refine_poses") is None and get_preset(row["preset"]).point_depth
-    return bool(row.get("field_restarted")) != poses_far_off(float(degrees), int(views), bool(held))
+    if bool(row.get("field_restarted")) != poses_far_off(float(degrees), int(views), bool(held)):
+        return True
+    # Since the fifty-sixth session a restart with many photos the points held starts only the
+    # geometry again; rows restarted before (no `restart_geometry_only`) started everything.
+    return bool(row.get("field_restarted")) and bool(row.get("restart_geometry_only")) != many_photos_held(int(views), bool(held))
 
 
 def trained_with_other_members(row: dict) -> bool:
@@ -1252,7 +1258,7 @@ def update_markdown(path: Path, tables: str, begin: str = MARKER_BEGIN, end: str
 
 CSV_COLUMNS = ["scene", "preset", "fraction", "pose_degrees", "appearance", "refine_poses", "consistency", "minutes",
                "coarse_to_fine", "colour_start", "coarse_to_fine_used", "appearance_used", "appearance_default", "exposure_difference_stops",
-               "pose_check_refining", "pose_check_degrees", "pose_check_halfway", "pose_gauge", "field_restarted", "far_off_degrees", "far_off_points_held", "start_kept", "discarded_steps", "members", "members_passes", "member_poses",
+               "pose_check_refining", "pose_check_degrees", "pose_check_halfway", "pose_gauge", "field_restarted", "far_off_degrees", "far_off_points_held", "restart_geometry_only", "start_kept", "discarded_steps", "members", "members_passes", "member_poses",
                "sweep_fade", "deep_scene", "multiview_losses", "losses_until_step", "back_surface", "back_surface_blend", "pixel_jitter", "seed", "status", "psnr", "ssim",
                "psnr_matched", "psnr_half_fit", "psnr_pose_fitted", "pose_fit_degrees", "psnr_per_view", "train_views", "held_out", "steps", "steps_done", "train_seconds",
                "wall_seconds", "warnings", "warning_text", "nonfinite_pixels", "error", "scale", "path", "truth"]

@@ -91,6 +91,15 @@ POSE_LR = 3e-4
 FAR_OFF_POSE_DEGREES = 0.4
 MANY_PHOTOS_FAR_OFF_POSE_DEGREES = 0.6
 FAR_OFF_GEOMETRY_TV = 10.0
+# Where the bar is MANY_PHOTOS_FAR_OFF_POSE_DEGREES (more photos, the points held their first
+# steps), only the geometry starts again: the texture and the colour decoder keep what the first
+# steps learned, which the photos' agreement made usable, and the new start's draw decides less.
+# With fewer photos that texture is not: everything starts again.  Measured (fifty-sixth session,
+# `python benchmarks/study_probe.py --scene canclip --pose-degrees 1 --seeds 0-7 --patch ...`,
+# 1000 steps): CanClip's 26 photos at 1 degree 32.11 +- 0.27 (sd) -> 32.54 +- 0.21 dB, with the
+# held-out poses fitted 35.59 -> 35.57 (seeds 0-2); at 2 degrees (seeds 0-2) 29.45 -> 29.80 dB,
+# fitted 34.54 -> 34.99, its range 0.25 -> 0.12.  CanClip's 6 photos at 1 degree lost 0.92 dB with
+# the texture kept (22.98 -> 22.06), at 0.5 degrees level (26.00 -> 26.00).
 # ... and with at most FEW_PHOTOS_TEXTURE_MAX_VIEWS photos, the restarted field's texture
 # sharpens coarse to fine: its finer levels fade in over the next FEW_PHOTOS_TEXTURE_COARSE_TO_FINE
 # of the budget (DisparityConfig.texture_coarse_to_fine), as BARF fades in its encoding.  With
@@ -955,8 +964,18 @@ def poses_far_off(degrees: float, n_train_views: int, points_held: bool) -> bool
     far enough off for the field to start again: MANY_PHOTOS_FAR_OFF_POSE_DEGREES for more than
     COARSE_TO_FINE_MAX_VIEWS photos whose first steps the SfM points' depth held (`points_held`),
     FAR_OFF_POSE_DEGREES otherwise."""
-    many_held = points_held and n_train_views > COARSE_TO_FINE_MAX_VIEWS
+    many_held = many_photos_held(n_train_views, points_held)
     return degrees >= (MANY_PHOTOS_FAR_OFF_POSE_DEGREES if many_held else FAR_OFF_POSE_DEGREES)
+
+
+GEOMETRY_PREFIX = "geometry."  # the disparity field's geometry: its planes and their decoder
+
+
+def many_photos_held(n_train_views: int, points_held: bool) -> bool:
+    """More than COARSE_TO_FINE_MAX_VIEWS photos whose first steps the SfM points held: there
+    the far-off restart has the higher bar (poses_far_off) and starts only the geometry again,
+    the texture and the colour decoder kept."""
+    return points_held and n_train_views > COARSE_TO_FINE_MAX_VIEWS
 
 
 def _restart_for_far_off_poses(field_module, optimizer, poses: PoseRefinement, meta: dict, progress, step: int,
@@ -975,12 +994,17 @@ def _restart_for_far_off_poses(field_module, optimizer, poses: PoseRefinement, m
     with torch.random.fork_rng(devices=[]):  # a fresh start of its own; the ray order goes on as it was
         torch.manual_seed(seed + 1)
         fresh = build_field(field_module.field_name, make_config(field_module.field_name, field_module.field_config))
-    field_module.load_state_dict(fresh.state_dict())
-    for parameter in field_module.parameters():
-        optimizer.state.pop(parameter, None)
+    geometry_only = many_photos_held(n_train_views, points_held)
+    started = {name: value for name, value in fresh.state_dict().items()
+               if not geometry_only or name.startswith(GEOMETRY_PREFIX)}
+    field_module.load_state_dict(started, strict=not geometry_only)
+    for name, parameter in field_module.named_parameters():
+        if not geometry_only or name.startswith(GEOMETRY_PREFIX):
+            optimizer.state.pop(parameter, None)
     field_module.set_geometry_tv(FAR_OFF_GEOMETRY_TV * field_module.config.tv_weight)  # (meta holds the field's
     # own field_config record, which this updates, so the saved model carries the weight)
-    meta["field_restart"] = {"step": step, "median_degrees": round(found, 4), "geometry_tv": field_module.config.tv_weight}
+    meta["field_restart"] = {"step": step, "median_degrees": round(found, 4), "geometry_tv": field_module.config.tv_weight,
+                             "geometry_only": geometry_only}
     texture = ""
     if n_train_views <= FEW_PHOTOS_TEXTURE_MAX_VIEWS and hasattr(field_module, "start_texture_coarse_to_fine"):
         # (done before the budget ends, even where the check falls late in a short one)
@@ -989,8 +1013,9 @@ def _restart_for_far_off_poses(field_module, optimizer, poses: PoseRefinement, m
         meta["field_restart"]["texture_coarse_to_fine"] = round(ramp, 4)
         texture = ", its texture sharpening coarse to fine (few photos)"
     _emit(progress, event="field_restart", step=step, median_degrees=found,
-          message=f"the camera poses are far off (median correction {found:.2f} deg after {step} steps): the light field "
-                  f"starts again with smoother geometry{texture} while they are corrected (docs/STABILITY.md)")
+          message=f"the camera poses are far off (median correction {found:.2f} deg after {step} steps): the light "
+                  f"field's {'geometry starts' if geometry_only else 'starts'} again, smoother{texture}, while they are "
+                  "corrected (docs/STABILITY.md)")
 
 
 def _fill_unseen(field_module, train_rays: RaySet, chunk: int = 1 << 15) -> tuple[float, dict | None]:

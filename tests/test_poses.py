@@ -569,6 +569,40 @@ def test_the_far_off_bar_is_higher_for_many_photos_the_points_held():
     assert poses_far_off(MANY_PHOTOS_FAR_OFF_POSE_DEGREES, many, True) and poses_far_off(2.0, 70, True)
 
 
+@pytest.mark.parametrize("views, points_held, geometry_only", [(26, True, True), (26, False, False), (13, True, False)])
+def test_the_far_off_restart_keeps_the_texture_for_many_photos_the_points_held(views, points_held, geometry_only):
+    """With more than COARSE_TO_FINE_MAX_VIEWS photos whose first steps the SfM points held,
+    the far-off restart starts only the geometry again (fresh, its Adam moments gone); the
+    texture and the colour decoder keep their weights and moments.  Otherwise all starts again."""
+    import neulf_core.train as train_module
+    from neulf_core.fields import build_field, make_config
+
+    torch.manual_seed(0)
+    field = build_field("disparity", make_config("disparity", {}))
+    optimizer = torch.optim.Adam(field.parameters(), lr=1e-2)
+    field(torch.rand(64, 4) * 2 - 1)[0].sum().backward()
+    optimizer.step()
+    before = {k: v.clone() for k, v in field.state_dict().items()}
+
+    class FarOff:  # the pose corrections as the check reads them: 1 degree, far off
+        def own_part_degrees(self):
+            return 1.0
+
+    meta = {"point_depth": {"rays": 10}} if points_held else {}
+    train_module._restart_for_far_off_poses(field, optimizer, FarOff(), meta, None, 100, 0, fraction=0.1,
+                                            n_train_views=views)
+    assert meta["field_restart"]["geometry_only"] is geometry_only
+    with torch.random.fork_rng(devices=[]):
+        torch.manual_seed(1)
+        fresh = build_field("disparity", make_config("disparity", field.field_config)).state_dict()
+    after = field.state_dict()
+    for name, parameter in field.named_parameters():
+        started = not geometry_only or name.startswith(train_module.GEOMETRY_PREFIX)
+        assert torch.equal(after[name], fresh[name] if started else before[name]), name
+        assert (optimizer.state.get(parameter) in (None, {})) is started, name
+    assert torch.equal(after["textures.0"], before["textures.0"]) is geometry_only
+
+
 @pytest.mark.parametrize("threshold, deep, restarts, few", [(0.0, False, True, False), (0.0, False, True, True),
                                                            (90.0, False, False, False), (0.0, True, False, False)])
 def test_far_off_poses_restart_the_field_with_smoother_geometry(tiny_scene, tmp_path, monkeypatch, threshold, deep,

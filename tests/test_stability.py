@@ -516,7 +516,10 @@ def test_a_run_that_started_its_field_again_otherwise_than_the_rule_now_decides_
     assert stale({**base, "field_restarted": False, "far_off_degrees": between, "train_views": 13})
     assert not stale({**base, "field_restarted": False, "far_off_degrees": between, "far_off_points_held": True})
     assert stale({**base, "field_restarted": False, "far_off_degrees": between, "far_off_points_held": False})
-    assert not stale({**base, "field_restarted": True, "far_off_degrees": MANY_PHOTOS_FAR_OFF_POSE_DEGREES})
+    far = {**base, "field_restarted": True, "far_off_degrees": MANY_PHOTOS_FAR_OFF_POSE_DEGREES}
+    assert not stale({**far, "restart_geometry_only": True})
+    assert stale(far)  # restarted before the fifty-sixth session: everything started again, not the geometry alone
+    assert stale({**far, "restart_geometry_only": True, "train_views": 13, "far_off_degrees": 1.0})  # few: everything
     assert not stale({**base, "field_restarted": True, "pose_check_degrees": between, "deep_scene": True})
     forced = {**base, "pose_check_refining": None, "refine_poses": True, "pose_check_degrees": None}
     assert not stale({**forced, "field_restarted": True})  # logged before: the old bar, which forced runs keep
