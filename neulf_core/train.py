@@ -981,8 +981,9 @@ def many_photos_held(n_train_views: int, points_held: bool) -> bool:
 def _restart_for_far_off_poses(field_module, optimizer, poses: PoseRefinement, meta: dict, progress, step: int,
                                seed: int, *, fraction: float, n_train_views: int) -> None:
     """Where the poses are far off (poses_far_off), start the field again with
-    smoother geometry, so it cannot bend its depth around their error; the corrections and
-    their optimizer state go on.  Recorded in the model (meta["field_restart"], and the
+    smoother geometry, so it cannot bend its depth around their error (with many photos the
+    points held, many_photos_held, the geometry alone); the corrections and their optimizer
+    state go on.  Recorded in the model (meta["field_restart"], and the
     field config's geometry weight), so a resumed run trains on as it was; what it measured
     is recorded either way (meta["far_off_check"])."""
     found = poses.own_part_degrees()
@@ -1012,10 +1013,10 @@ def _restart_for_far_off_poses(field_module, optimizer, poses: PoseRefinement, m
         field_module.start_texture_coarse_to_fine(fraction, ramp)
         meta["field_restart"]["texture_coarse_to_fine"] = round(ramp, 4)
         texture = ", its texture sharpening coarse to fine (few photos)"
+    started_again = "the light field's geometry" if geometry_only else "the light field"
     _emit(progress, event="field_restart", step=step, median_degrees=found,
-          message=f"the camera poses are far off (median correction {found:.2f} deg after {step} steps): the light "
-                  f"field's {'geometry starts' if geometry_only else 'starts'} again, smoother{texture}, while they are "
-                  "corrected (docs/STABILITY.md)")
+          message=f"the camera poses are far off (median correction {found:.2f} deg after {step} steps): {started_again} "
+                  f"starts again, smoother{texture}, while they are corrected (docs/STABILITY.md)")
 
 
 def _fill_unseen(field_module, train_rays: RaySet, chunk: int = 1 << 15) -> tuple[float, dict | None]:
