@@ -522,11 +522,12 @@ def trained_with_another_restart_rule(row: dict) -> bool:
         degrees = row["pose_check_degrees"]
     if held is None:  # (logged before it was: the preset's points pull until the pose check, never when forced)
         held = row.get("refine_poses") is None and get_preset(row["preset"]).point_depth
-    if bool(row.get("field_restarted")) != poses_far_off(float(degrees), int(views), bool(held)):
+    restarted = bool(row.get("field_restarted"))
+    if restarted != poses_far_off(float(degrees), int(views), bool(held)):
         return True
     # Since the fifty-sixth session a restart with many photos the points held starts only the
     # geometry again; rows restarted before (no `restart_geometry_only`) started everything.
-    return bool(row.get("field_restarted")) and bool(row.get("restart_geometry_only")) != many_photos_held(int(views), bool(held))
+    return restarted and bool(row.get("restart_geometry_only")) != many_photos_held(int(views), bool(held))
 
 
 def trained_with_other_members(row: dict) -> bool:
@@ -1239,10 +1240,11 @@ def older_pose_gauge_note(rows: list[dict]) -> list[str]:
 
 def older_restart_rule_note(rows: list[dict]) -> list[str]:
     """Which runs started their field again for far-off poses otherwise than train.poses_far_off
-    now decides, and were not re-run since, by study."""
+    and train.many_photos_held now decide, and were not re-run since, by study."""
     return stale_rows_note([r for r in rows if trained_with_another_restart_rule(r)],
                            "runs started their field again for far-off poses otherwise than the rule now decides "
-                           f"(before the fifty-fifth session from {FAR_OFF_POSE_DEGREES:g}° whatever the photo count")
+                           f"(before the fifty-fifth session from {FAR_OFF_POSE_DEGREES:g}° whatever the photo count; "
+                           "before the fifty-sixth all of it, not the geometry alone, with many photos")
 
 
 def update_markdown(path: Path, tables: str, begin: str = MARKER_BEGIN, end: str = MARKER_END) -> None:

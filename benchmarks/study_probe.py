@@ -60,7 +60,8 @@ def run_one(task: tuple[dict, str, int | None, str]) -> dict:
 
 
 def parse_list(text: str, kind=float) -> list:
-    """'0-3' or '0,1,2' for integers; '0.25,0.5' otherwise."""
+    """'0-3' or '0,1,2' for integers; '0.25,0.5' otherwise.  (Not seed_scatter.parse_seeds: importing
+    it would import the study from this checkout before --root's.)"""
     values = []
     for part in filter(None, text.split(",")):
         first, _, last = part.partition("-")
