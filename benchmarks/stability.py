@@ -77,7 +77,7 @@ from neulf_core.render import LightField  # noqa: E402
 from neulf_core.scene import Scene, View, camera_spacing, find_model_dir, load_scene, scaled_size, split_views  # noqa: E402
 from neulf_core.teacher import TEACHER_FADE, teacher_fade  # noqa: E402
 from neulf_core.train import (COARSE_TO_FINE_MAX_VIEWS, CONSISTENCY_MAX_VIEWS, FAR_OFF_POSE_DEGREES,  # noqa: E402
-                              CONSISTENCY_ALWAYS_MAX_VIEWS, LOSSES_MIN_PASSES,
+                              CONSISTENCY_ALWAYS_MAX_VIEWS, DEPTH_LAYERS_MIN_VIEWS, LOSSES_MIN_PASSES,
                               LOSSES_UNTIL_POSES_RIGHT, MANY_PHOTOS_FAR_OFF_POSE_DEGREES, TrainConfig,
                               losses_by_default, losses_stop_at_pose_check, many_photos_held, poses_far_off, train)
 
@@ -365,6 +365,8 @@ def score_views(model_dir: Path, held: list[View], scale: float, fit_poses: bool
             "field_restarted": "field_restart" in light_field.meta,  # far-off poses (train.poses_far_off)
             # Only the geometry started again (train.many_photos_held; None: not restarted, or logged before).
             "restart_geometry_only": (light_field.meta.get("field_restart") or {}).get("geometry_only"),
+            # Whether it started the depth layers again too, smoother (None: not restarted, or logged before).
+            "restart_depth_layers": (light_field.meta.get("field_restart") or {}).get("depth_layers"),
             # What that check measured (None: not checked, or logged before it was recorded).
             "far_off_degrees": (light_field.meta.get("far_off_check") or {}).get("median_degrees"),
             "far_off_points_held": (light_field.meta.get("far_off_check") or {}).get("points_held"),
@@ -515,6 +517,10 @@ def trained_with_another_restart_rule(row: dict) -> bool:
     views = row.get("train_views")
     if not refined or row.get("deep_scene") is not False or not views or get_preset(row["preset"]).field != "disparity":
         return False
+    # Since the fifty-seventh session the depth layers (DEPTH_LAYERS_MIN_VIEWS photos or more) start
+    # again with the geometry, smoother; rows restarted before (no `restart_depth_layers`) did not.
+    if row.get("field_restarted") and int(views) >= DEPTH_LAYERS_MIN_VIEWS and row.get("restart_depth_layers") is None:
+        return True
     degrees, held = row.get("far_off_degrees"), row.get("far_off_points_held")
     if degrees is None:
         if row.get("refine_poses") is True or (row.get("pose_check_degrees") or 0) < POSE_CHECK_DEGREES:
@@ -1244,7 +1250,8 @@ def older_restart_rule_note(rows: list[dict]) -> list[str]:
     return stale_rows_note([r for r in rows if trained_with_another_restart_rule(r)],
                            "runs started their field again for far-off poses otherwise than the rule now decides "
                            f"(before the fifty-fifth session from {FAR_OFF_POSE_DEGREES:g}° whatever the photo count; "
-                           "before the fifty-sixth all of it, not the geometry alone, with many photos")
+                           "before the fifty-sixth all of it, not the geometry alone, with many photos; before the "
+                           "fifty-seventh without starting the depth layers again, smoother")
 
 
 def update_markdown(path: Path, tables: str, begin: str = MARKER_BEGIN, end: str = MARKER_END) -> None:
@@ -1260,7 +1267,7 @@ def update_markdown(path: Path, tables: str, begin: str = MARKER_BEGIN, end: str
 
 CSV_COLUMNS = ["scene", "preset", "fraction", "pose_degrees", "appearance", "refine_poses", "consistency", "minutes",
                "coarse_to_fine", "colour_start", "coarse_to_fine_used", "appearance_used", "appearance_default", "exposure_difference_stops",
-               "pose_check_refining", "pose_check_degrees", "pose_check_halfway", "pose_gauge", "field_restarted", "far_off_degrees", "far_off_points_held", "restart_geometry_only", "start_kept", "discarded_steps", "members", "members_passes", "member_poses",
+               "pose_check_refining", "pose_check_degrees", "pose_check_halfway", "pose_gauge", "field_restarted", "far_off_degrees", "far_off_points_held", "restart_geometry_only", "restart_depth_layers", "start_kept", "discarded_steps", "members", "members_passes", "member_poses",
                "sweep_fade", "deep_scene", "multiview_losses", "losses_until_step", "back_surface", "back_surface_blend", "pixel_jitter", "seed", "status", "psnr", "ssim",
                "psnr_matched", "psnr_half_fit", "psnr_pose_fitted", "pose_fit_degrees", "psnr_per_view", "train_views", "held_out", "steps", "steps_done", "train_seconds",
                "wall_seconds", "warnings", "warning_text", "nonfinite_pixels", "error", "scale", "path", "truth"]

@@ -100,6 +100,13 @@ FAR_OFF_GEOMETRY_TV = 10.0
 # held-out poses fitted 35.59 -> 35.57 (seeds 0-2); at 2 degrees (seeds 0-2) 29.45 -> 29.80 dB,
 # fitted 34.54 -> 34.99, its range 0.25 -> 0.12.  CanClip's 6 photos at 1 degree lost 0.92 dB with
 # the texture kept (22.98 -> 22.06), at 0.5 degrees level (26.00 -> 26.00).
+# The geometry is the depth layers too (DisparityField.GEOMETRY_PARAMETERS): since the
+# fifty-seventh session they start again with the planes, and their smoothness rises with the
+# planes' (DisparityField.smooth_geometry).  Kept, they carried what they had learned under the
+# far-off poses: CanClip's 26 photos at 1 degree, seed 0, drew the pliers' tip at the
+# background's depth in the held-out img009 (-1.66 dB there).  Same probe, seeds 0-7: 32.54 +-
+# 0.215 (sd) -> 32.77 +- 0.09 dB; 2 degrees (seeds 0-3) 29.80 -> 29.81; the layers started
+# again alone 32.71 +- 0.15 (seeds 0-3), smoother alone 32.63 +- 0.22.
 # ... and with at most FEW_PHOTOS_TEXTURE_MAX_VIEWS photos, the restarted field's texture
 # sharpens coarse to fine: its finer levels fade in over the next FEW_PHOTOS_TEXTURE_COARSE_TO_FINE
 # of the budget (DisparityConfig.texture_coarse_to_fine), as BARF fades in its encoding.  With
@@ -716,7 +723,7 @@ def _train(scene, model_dir: Path, config: TrainConfig, images_dir, resume: bool
     meta.update(record or {})
     # (a run resumed past the check step has decided: its saved field config says how smooth)
     restart_pending = (poses is not None and step < POSE_CHECK_STEP and not slab.is_deep
-                       and hasattr(field_module, "set_geometry_tv"))
+                       and hasattr(field_module, "smooth_geometry"))
 
     def save(status: str, val: float | None, before_fill: dict | None = None):
         payload = {**meta, "state_dict": field_module.state_dict(), "optimizer": optimizer.state_dict(),
@@ -968,9 +975,6 @@ def poses_far_off(degrees: float, n_train_views: int, points_held: bool) -> bool
     return degrees >= (MANY_PHOTOS_FAR_OFF_POSE_DEGREES if many_held else FAR_OFF_POSE_DEGREES)
 
 
-GEOMETRY_PREFIX = "geometry."  # the disparity field's geometry: its planes and their decoder
-
-
 def many_photos_held(n_train_views: int, points_held: bool) -> bool:
     """More than COARSE_TO_FINE_MAX_VIEWS photos whose first steps the SfM points held: there
     the far-off restart has the higher bar (poses_far_off) and starts only the geometry again,
@@ -996,16 +1000,19 @@ def _restart_for_far_off_poses(field_module, optimizer, poses: PoseRefinement, m
         torch.manual_seed(seed + 1)
         fresh = build_field(field_module.field_name, make_config(field_module.field_name, field_module.field_config))
     geometry_only = many_photos_held(n_train_views, points_held)
+    geometry = field_module.GEOMETRY_PARAMETERS  # (the depth layers too: they decide the depth as the planes do)
     started = {name: value for name, value in fresh.state_dict().items()
-               if not geometry_only or name.startswith(GEOMETRY_PREFIX)}
+               if not geometry_only or name.startswith(geometry)}
     field_module.load_state_dict(started, strict=not geometry_only)
     for name, parameter in field_module.named_parameters():
-        if not geometry_only or name.startswith(GEOMETRY_PREFIX):
+        if not geometry_only or name.startswith(geometry):
             optimizer.state.pop(parameter, None)
-    field_module.set_geometry_tv(FAR_OFF_GEOMETRY_TV * field_module.config.tv_weight)  # (meta holds the field's
-    # own field_config record, which this updates, so the saved model carries the weight)
+    field_module.smooth_geometry(FAR_OFF_GEOMETRY_TV)  # (meta holds the field's own field_config record,
+    # which this updates, so the saved model carries the weights)
+    layers = bool(field_module.config.geometry_layers)
     meta["field_restart"] = {"step": step, "median_degrees": round(found, 4), "geometry_tv": field_module.config.tv_weight,
-                             "geometry_only": geometry_only}
+                             "geometry_only": geometry_only, "depth_layers": layers,
+                             **({"depth_layer_tv": field_module.config.geometry_layer_tv} if layers else {})}
     texture = ""
     if n_train_views <= FEW_PHOTOS_TEXTURE_MAX_VIEWS and hasattr(field_module, "start_texture_coarse_to_fine"):
         # (done before the budget ends, even where the check falls late in a short one)

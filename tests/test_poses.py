@@ -573,12 +573,14 @@ def test_the_far_off_bar_is_higher_for_many_photos_the_points_held():
 def test_the_far_off_restart_keeps_the_texture_for_many_photos_the_points_held(views, points_held, geometry_only):
     """With more than COARSE_TO_FINE_MAX_VIEWS photos whose first steps the SfM points held,
     the far-off restart starts only the geometry again (fresh, its Adam moments gone); the
-    texture and the colour decoder keep their weights and moments.  Otherwise all starts again."""
+    texture and the colour decoder keep their weights and moments.  Otherwise all starts again.
+    The geometry is the depth layers too; their smoothness rises with the planes'."""
     import neulf_core.train as train_module
     from neulf_core.fields import build_field, make_config
 
     torch.manual_seed(0)
-    field = build_field("disparity", make_config("disparity", {}))
+    field = build_field("disparity", make_config("disparity", {"geometry_layers": 2}))
+    tv, layer_tv = field.config.tv_weight, field.config.geometry_layer_tv
     optimizer = torch.optim.Adam(field.parameters(), lr=1e-2)
     field(torch.rand(64, 4) * 2 - 1)[0].sum().backward()
     optimizer.step()
@@ -597,10 +599,16 @@ def test_the_far_off_restart_keeps_the_texture_for_many_photos_the_points_held(v
         fresh = build_field("disparity", make_config("disparity", field.field_config)).state_dict()
     after = field.state_dict()
     for name, parameter in field.named_parameters():
-        started = not geometry_only or name.startswith(train_module.GEOMETRY_PREFIX)
+        started = not geometry_only or name.startswith(field.GEOMETRY_PARAMETERS)
         assert torch.equal(after[name], fresh[name] if started else before[name]), name
         assert (optimizer.state.get(parameter) in (None, {})) is started, name
     assert torch.equal(after["textures.0"], before["textures.0"]) is geometry_only
+    assert not torch.equal(after["layers"], before["layers"])  # (geometry: started again either way)
+    factor = train_module.FAR_OFF_GEOMETRY_TV
+    assert field.field_config["tv_weight"] == pytest.approx(factor * tv)
+    assert field.field_config["geometry_layer_tv"] == pytest.approx(factor * layer_tv)
+    assert meta["field_restart"]["depth_layers"] is True
+    assert meta["field_restart"]["depth_layer_tv"] == pytest.approx(factor * layer_tv)
 
 
 @pytest.mark.parametrize("threshold, deep, restarts, few", [(0.0, False, True, False), (0.0, False, True, True),

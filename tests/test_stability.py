@@ -517,12 +517,14 @@ def test_a_run_that_started_its_field_again_otherwise_than_the_rule_now_decides_
     assert not stale({**base, "field_restarted": False, "far_off_degrees": between, "far_off_points_held": True})
     assert stale({**base, "field_restarted": False, "far_off_degrees": between, "far_off_points_held": False})
     far = {**base, "field_restarted": True, "far_off_degrees": MANY_PHOTOS_FAR_OFF_POSE_DEGREES}
-    assert not stale({**far, "restart_geometry_only": True})
+    assert not stale({**far, "restart_geometry_only": True, "restart_depth_layers": True})
+    assert stale({**far, "restart_geometry_only": True})  # before the fifty-seventh: the depth layers kept
     assert stale(far)  # restarted before the fifty-sixth session: everything started again, not the geometry alone
     assert stale({**far, "restart_geometry_only": True, "train_views": 13, "far_off_degrees": 1.0})  # few: everything
     assert not stale({**base, "field_restarted": True, "pose_check_degrees": between, "deep_scene": True})
     forced = {**base, "pose_check_refining": None, "refine_poses": True, "pose_check_degrees": None}
-    assert not stale({**forced, "field_restarted": True})  # logged before: the old bar, which forced runs keep
+    assert not stale({**forced, "field_restarted": True, "restart_depth_layers": True})  # the old bar, which forced runs keep
+    assert stale({**forced, "field_restarted": True})  # ... but its depth layers were not made smoother then
     assert stale({**forced, "field_restarted": False, "far_off_degrees": between})  # no points: restarts
     assert not stale({**base, "pose_check_refining": False, "field_restarted": False, "pose_check_degrees": 0.02})
     assert_stale_row_reported_until_run_again(

@@ -202,6 +202,10 @@ def slab_geometry(slab) -> dict:
 
 
 class DisparityField(nn.Module):
+    # What of the state dict is geometry: the planes and their decoder, and the depth layers
+    # (the trainer's far-off restart starts these again where it keeps the texture).
+    GEOMETRY_PARAMETERS = ("geometry.", "layers")
+
     def __init__(self, config: DisparityConfig):
         super().__init__()
         if config.back_surface_blend not in BACK_SURFACE_BLENDS:
@@ -451,13 +455,16 @@ class DisparityField(nn.Module):
             per_scale.append(product.t())
         return _rows(per_scale)
 
-    def set_geometry_tv(self, weight: float) -> None:
-        """The geometry planes' total-variation weight from now on (the trainer raises it when
-        it restarts the field for far-off poses); kept in the config, so a model resumed
-        later trains on with it."""
-        self.config.tv_weight = weight
-        self.geometry.config.tv_weight = weight
-        self.field_config["tv_weight"] = weight
+    def smooth_geometry(self, factor: float) -> None:
+        """The geometry's total-variation weights times `factor` from now on, the planes' and
+        the depth layers' alike (the trainer raises them when it restarts the field for far-off
+        poses); kept in the config, so a model resumed later trains on with them."""
+        self.config.tv_weight *= factor
+        self.geometry.config.tv_weight = self.config.tv_weight
+        self.field_config["tv_weight"] = self.config.tv_weight
+        if self.config.geometry_layers:
+            self.config.geometry_layer_tv *= factor
+            self.field_config["geometry_layer_tv"] = self.config.geometry_layer_tv
 
     def regularisation(self) -> torch.Tensor:
         total = self.geometry.regularisation()
