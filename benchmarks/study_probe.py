@@ -144,8 +144,15 @@ def main(argv=None) -> None:
     args.canclip, args.hci = args.canclip or stability.CANCLIP, args.hci or stability.HCI
     tasks = plan(args, stability)
     # One job per process (spawned, so a patch or another checkout never leaks into the next).
-    with get_context("spawn").Pool(args.workers, maxtasksperchild=1) as pool:
+    pool = get_context("spawn").Pool(args.workers, maxtasksperchild=1)
+    try:
         rows = pool.map(run_one, tasks)
+    except BaseException:
+        pool.terminate()
+        raise
+    # The workers exit by themselves (terminated, pycolmap's signal handler prints a stack trace).
+    pool.close()
+    pool.join()
     args.log.parent.mkdir(parents=True, exist_ok=True)
     with open(args.log, "a") as handle:
         for row in rows:

@@ -73,8 +73,17 @@ def save_checkpoint(model_dir: Path, payload: dict) -> Path:
     atomic_write_bytes(path, _torch_bytes(payload))
     save_render_model(model_dir, payload)
     metadata = {k: v for k, v in payload.items() if k not in NOT_FOR_RENDERING}
-    atomic_write_bytes(Path(model_dir) / METADATA_NAME, json.dumps(metadata, indent=2, default=str).encode())
+    atomic_write_bytes(Path(model_dir) / METADATA_NAME, json.dumps(metadata, indent=2, default=_json_value).encode())
     return path
+
+
+def _json_value(value) -> str:
+    """model.json's text for what JSON cannot hold: a tensor (the pose corrections, the photos'
+    colour transforms) is named by its shape, not printed -- torch's print shortens large ones
+    with "...", which read as the values; the values are in model.pt and checkpoint.pt."""
+    if isinstance(value, torch.Tensor):
+        return f"tensor of shape {list(value.shape)} (in model.pt)"
+    return str(value)
 
 
 def half_state_dict(state_dict: dict) -> dict:

@@ -221,8 +221,12 @@ def test_training_with_refinement_saves_and_resumes_the_corrections(tiny_scene, 
     first = load_checkpoint(tmp_path / "m")
     assert first["poses"]["rotation"].shape == (len(first["scene"]["train"]), 3)
     assert first["poses"]["rotation"].abs().max() > 0  # they moved
-    summary = json.loads((tmp_path / "m" / "model.json").read_text())["pose_corrections"]
+    metadata = json.loads((tmp_path / "m" / "model.json").read_text())
+    summary = metadata["pose_corrections"]
     assert 0 < summary["median_degrees"] <= summary["max_degrees"] < 1.0
+    # model.json names the corrections' tensors by shape (their values are in model.pt), not a shortened print
+    n = len(first["scene"]["train"])
+    assert metadata["poses"]["rotation"] == f"tensor of shape [{n}, 3] (in model.pt)"
     assert [e for e in events if e["event"] == "poses"]
 
     result = train(tiny_scene, tmp_path / "m", TrainConfig(steps=20), resume=True)
