@@ -47,7 +47,7 @@ POSE_LR = 3e-4
 # Poses far off on a shallow scene: at the pose check's step, where the corrections found so
 # far (the check's statistic, PoseRefinement.own_part_degrees) reach FAR_OFF_POSE_DEGREES and
 # the scene is not deep (Slab.is_deep), the field starts again from a new random start with
-# its geometry planes FAR_OFF_GEOMETRY_TV times smoother, while the corrections keep what they
+# its geometry (planes, and depth layers where on) FAR_OFF_GEOMETRY_TV times smoother, while the corrections keep what they
 # have found.  Why: a field whose geometry may vary from camera to camera bends each photo's
 # depth until the photo fits where its wrong pose puts it; the corrections stall (CanClip, 2
 # degrees of noise, seed 0: 0.39 degrees left from step 500 on, and with the field frozen a
