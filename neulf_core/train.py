@@ -1000,12 +1000,13 @@ def _restart_for_far_off_poses(field_module, optimizer, poses: PoseRefinement, m
         torch.manual_seed(seed + 1)
         fresh = build_field(field_module.field_name, make_config(field_module.field_name, field_module.field_config))
     geometry_only = many_photos_held(n_train_views, points_held)
-    geometry = field_module.GEOMETRY_PARAMETERS  # (the depth layers too: they decide the depth as the planes do)
-    started = {name: value for name, value in fresh.state_dict().items()
-               if not geometry_only or name.startswith(geometry)}
-    field_module.load_state_dict(started, strict=not geometry_only)
+    def starts_again(name: str) -> bool:  # (the geometry includes the depth layers: they decide the depth too)
+        return not geometry_only or name.startswith(field_module.GEOMETRY_PARAMETERS)
+
+    field_module.load_state_dict({name: value for name, value in fresh.state_dict().items() if starts_again(name)},
+                                 strict=not geometry_only)
     for name, parameter in field_module.named_parameters():
-        if not geometry_only or name.startswith(geometry):
+        if starts_again(name):
             optimizer.state.pop(parameter, None)
     field_module.smooth_geometry(FAR_OFF_GEOMETRY_TV)  # (meta holds the field's own field_config record,
     # which this updates, so the saved model carries the weights)
