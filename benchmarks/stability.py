@@ -74,6 +74,7 @@ from neulf_core.poses import (DEPTH_LIKE_GAUGE, POSE_CHECK_DEGREES, POSE_CHECK_S
                               POSE_SECOND_LOOK_DEGREES, POSE_SECOND_LOOK_STEP, fit_view_pose)
 from neulf_core.presets import get_preset  # noqa: E402
 from neulf_core.render import LightField  # noqa: E402
+from neulf_core.slab import slab_frame  # noqa: E402
 from neulf_core.scene import Scene, View, camera_spacing, find_model_dir, load_scene, scaled_size, split_views  # noqa: E402
 from neulf_core.teacher import TEACHER_FADE, teacher_fade  # noqa: E402
 from neulf_core.train import (COARSE_TO_FINE_MAX_VIEWS, CONSISTENCY_MAX_VIEWS, FAR_OFF_POSE_DEGREES,  # noqa: E402
@@ -271,11 +272,12 @@ def rotation_about(axis: np.ndarray, degrees: float) -> np.ndarray:
     return np.eye(3) + math.sin(angle) * k + (1 - math.cos(angle)) * (k @ k)
 
 
-def perturb_poses(views: list[View], degrees: float, spacing: float) -> list[View]:
-    """Copies of `views`, each turned about its centre and moved: by `degrees` about a random
-    axis and by SHIFT_PER_DEGREE * degrees * spacing in a random direction, less the mean of
-    those turns and moves over the views.  The axes and directions are drawn from a fixed
-    seed, so a level differs from the next only in size.
+def pose_noise(views: list[View], degrees: float, spacing: float) -> tuple[np.ndarray, np.ndarray]:
+    """(turns, moves), (V, 3) each, world frame: the noise perturb_poses gives `views`.  Each
+    camera's turn is `degrees` about a random axis (the vector's length, in degrees) and its
+    move SHIFT_PER_DEGREE * degrees * spacing in a random direction, less the mean of those
+    over the views.  The axes and directions are drawn from a fixed seed, so a level differs
+    from the next only in size.
 
     Centred because a reconstruction's error is each camera's disagreement with the others:
     the held-out and render cameras come from the same model, so a turn or move shared by
@@ -287,14 +289,64 @@ def perturb_poses(views: list[View], degrees: float, spacing: float) -> list[Vie
     turns = np.array([axis / np.linalg.norm(axis) * degrees for axis, _ in draws])
     moves = np.array([direction / np.linalg.norm(direction) * SHIFT_PER_DEGREE * degrees * spacing
                       for _, direction in draws])
-    turns, moves = turns - turns.mean(0), moves - moves.mean(0)
-    noisy = []
-    for view, turn_vector, move in zip(views, turns, moves):
-        angle = float(np.linalg.norm(turn_vector))
-        turn = rotation_about(turn_vector, angle) if angle > 0 else np.eye(3)
-        R = view.R @ turn.T  # camera-to-world R^T becomes turn @ R^T
-        noisy.append(replace(view, R=R, t=-R @ (view.center + move)))
-    return noisy
+    return turns - turns.mean(0), moves - moves.mean(0)
+
+
+def moved_view(view: View, turn_vector: np.ndarray, move: np.ndarray) -> View:
+    """`view` turned about its centre by `turn_vector` (world frame, its length in degrees)
+    and moved by `move`."""
+    angle = float(np.linalg.norm(turn_vector))
+    turn = rotation_about(turn_vector, angle) if angle > 0 else np.eye(3)
+    R = view.R @ turn.T  # camera-to-world R^T becomes turn @ R^T
+    return replace(view, R=R, t=-R @ (view.center + move))
+
+
+def perturb_poses(views: list[View], degrees: float, spacing: float) -> list[View]:
+    """Copies of `views`, each turned and moved by its share of pose_noise."""
+    turns, moves = pose_noise(views, degrees, spacing)
+    return [moved_view(view, turn, move) for view, turn, move in zip(views, turns, moves)]
+
+
+def depth_like_part(train_views: list[View], degrees: float, spacing: float):
+    """The part of the training views' pose noise (pose_noise) along the two rig-wide
+    directions the pose refinement holds (poses.DEPTH_LIKE_GAUGE): the turns' fanning (a
+    turn toward +u growing with the camera's u, toward +v with its v) and the moves'
+    baseline (a move away from the rig's middle, growing with the distance).  The photos
+    hardly tell either from a change of the scene's depth, so no refinement removes them,
+    and the light field takes them in as depth; held-out cameras at their exact poses then
+    see that depth from the wrong place.  Returns a function of a view giving (turn vector,
+    move) of that part at its position on the uv plane, the two directions extended
+    linearly: moving held-out views by it scores them as if their reconstruction had the
+    same rig-wide error, which a real capture's held-out cameras share (STABILITY.md, the
+    fifty-ninth session)."""
+    turns, moves = pose_noise(train_views, degrees, spacing)
+    rotation, origin = slab_frame(train_views)
+
+    def uv_of(centres: np.ndarray) -> np.ndarray:
+        return ((np.atleast_2d(centres) - origin) @ rotation.T)[:, :2]
+
+    middle = uv_of(np.array([v.center for v in train_views])).mean(0)
+    u, v = (uv_of(np.array([view.center for view in train_views])) - middle).T
+    fanning, baseline = np.stack([-v, u, 0 * u], 1), np.stack([u, v, 0 * u], 1)
+    # Least-squares coefficients of the slab-frame noise along each direction.
+    turn_per_unit = float(((turns @ rotation.T) * fanning).sum() / max((fanning ** 2).sum(), 1e-24))
+    move_per_unit = float(((moves @ rotation.T) * baseline).sum() / max((baseline ** 2).sum(), 1e-24))
+
+    def at(view: View) -> tuple[np.ndarray, np.ndarray]:
+        pu, pv = uv_of(view.center)[0] - middle
+        return (turn_per_unit * np.array([-pv, pu, 0.0]) @ rotation,
+                move_per_unit * np.array([pu, pv, 0.0]) @ rotation)
+    return at
+
+
+def held_with_noise_part(job: Job, held: list[View]) -> list[View]:
+    """The held-out views moved by the depth-like part of the job's pose noise
+    (depth_like_part), from the same training views prepare() perturbs."""
+    train_views, _ = split_views(load_any(job.truth))
+    spacing = rig_spacing(train_views)
+    train_views = spread_subset(train_views, max(2, round(job.fraction * len(train_views))))
+    part = depth_like_part(train_views, job.pose_degrees, spacing)
+    return [moved_view(view, *part(view)) for view in held]
 
 
 def with_images_from(views: list[View], other: Scene) -> list[View]:
@@ -372,6 +424,16 @@ def score_views(model_dir: Path, held: list[View], scale: float, fit_poses: bool
             "far_off_points_held": (light_field.meta.get("far_off_check") or {}).get("points_held"),
             "appearance_default": light_field.meta.get("appearance_default"),
             "exposure_difference_stops": light_field.meta.get("exposure_difference_stops")}
+
+
+def noise_part_scores(model_dir: Path, moved_held: list[View], scale: float) -> dict:
+    """Held-out PSNR with the held-out views moved by the pose noise's depth-like part
+    (held_with_noise_part): the frame error no refinement can see left out."""
+    light_field = LightField.load(model_dir, "cpu", precision="full")
+    psnrs = [psnr(np.nan_to_num(light_field.render_view(view, scale, depth=False).rgb, nan=0.0),
+                  view.load_image(scale).astype(np.float32) / 255.0) for view in moved_held]
+    return {"psnr_noise_part_aligned": float(np.mean(psnrs)),
+            "psnr_per_view_noise_part_aligned": ";".join(f"{v.stem}={p:.2f}" for v, p in zip(moved_held, psnrs))}
 
 
 def starts_cost(model_dir: Path) -> tuple[str | None, int, float]:
@@ -601,6 +663,8 @@ def run_job(job: Job, threads: int = 1) -> dict:
                        start_kept=kept, discarded_steps=discarded_steps, members=members,
                        member_poses=MEMBER_POSES if members > 1 else None)
             row.update(score_views(Path(model_dir), held, job.scale, fit_poses=in_pose_study(job)))
+            if job.pose_degrees:
+                row.update(noise_part_scores(Path(model_dir), held_with_noise_part(job, held), job.scale))
         row["status"] = result.status
     except Exception as exc:  # recorded and reported; the study goes on
         row["error"] = f"{type(exc).__name__}: {exc}"

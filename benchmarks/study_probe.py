@@ -105,6 +105,12 @@ def summary_lines(rows: list[dict], tag: str) -> list[str]:
         lines.append(f"{tag}: pose noise {key[0]:g}°, noise draw {key[1]}, seeds "
                      f"{','.join(str(row['seed']) for row in group)}: {text}"
                      + (f" ({failed} did not finish: {group[0].get('error', '')})" if failed else ""))
+        for column, what in (("psnr_pose_fitted", "held-out poses fitted"),
+                             ("psnr_noise_part_aligned", "held-out views moved by the noise's depth-like part")):
+            values = [row[column] for row in group if row.get("status") == "finished" and row.get(column) is not None]
+            if len(values) >= 2:
+                lines.append(f"    {what}: " + " / ".join(f"{v:.2f}" for v in values)
+                             + f": {statistics.mean(values):.2f} ± {statistics.stdev(values):.3f} sd")
     return lines
 
 

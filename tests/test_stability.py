@@ -4,6 +4,7 @@ scene edits, a few training steps per run, scoring, and the CSV / chart / tables
 from __future__ import annotations
 
 import csv
+from dataclasses import replace
 import json
 import importlib.util
 import math
@@ -48,6 +49,38 @@ def test_pose_noise_has_the_requested_size_and_moves_no_camera_on_average(stabil
     assert np.allclose(np.mean(turns, axis=0), 0.0, atol=1e-6) and np.allclose(np.mean(moves, axis=0), 0.0, atol=1e-9)
     half = stability.perturb_poses(scene.views, 1.0, spacing)  # the same draws, half the size
     assert rotation_angle_degrees(half[0].R, scene.views[0].R) == pytest.approx(rotation_angle_degrees(noisy[0].R, scene.views[0].R) / 2, rel=1e-6)
+
+
+def test_the_noise_s_depth_like_part_is_what_the_refinement_cannot_correct_extended_to_any_camera(stability, tiny_scene):
+    """The part of the drawn noise along the pose refinement's two held directions (the turns'
+    fanning, the moves' baseline): what is left of the noise has none of either, and the part
+    grows linearly with a camera's place on the uv plane, so a held-out camera between two
+    training cameras gets their mean."""
+    from neulf_core.slab import slab_frame
+
+    train, held = stability.split_views(stability.load_any(tiny_scene))
+    spacing = stability.rig_spacing(train)
+    turns, moves = stability.pose_noise(train, 2.0, spacing)
+    part = stability.depth_like_part(train, 2.0, spacing)
+    rotation, origin = slab_frame(train)
+    uv = ((np.array([v.center for v in train]) - origin) @ rotation.T)[:, :2]
+    u, v = (uv - uv.mean(0)).T
+    fanning, baseline = np.stack([-v, u, 0 * u], 1), np.stack([u, v, 0 * u], 1)
+    part_turns, part_moves = (np.array(x) for x in zip(*(part(view) for view in train)))
+    assert np.abs(part_turns).max() > 1e-3  # (this draw has some fanning)
+    assert ((turns - part_turns) @ rotation.T * fanning).sum() == pytest.approx(0.0, abs=1e-9)
+    assert ((moves - part_moves) @ rotation.T * baseline).sum() == pytest.approx(0.0, abs=1e-12)
+    assert np.allclose(part_turns @ rotation.T, (part_turns @ rotation.T * fanning).sum(1, keepdims=True)
+                       * fanning / np.maximum((fanning ** 2).sum(1, keepdims=True), 1e-24), atol=1e-9)
+    between = replace(train[0], R=train[0].R, t=-train[0].R @ ((train[0].center + train[1].center) / 2))
+    assert np.allclose(part(between)[0], (part_turns[0] + part_turns[1]) / 2, atol=1e-9)
+    assert np.allclose(part(between)[1], (part_moves[0] + part_moves[1]) / 2, atol=1e-12)
+    # Scored that way, a held-out camera turns with its part; without pose noise it stays.
+    job = stability.Job("tiny", str(tiny_scene), str(tiny_scene), 1.0, "fast", 2, 0, pose_degrees=2.0)
+    moved = stability.held_with_noise_part(job, held)
+    assert any(not np.allclose(a.R, b.R) for a, b in zip(moved, held))
+    still = stability.held_with_noise_part(replace(job, pose_degrees=0.0), held)
+    assert all(np.allclose(a.R, b.R) and np.allclose(a.t, b.t) for a, b in zip(still, held))
 
 
 def test_prepare_edits_only_training_views(stability, tiny_scene):

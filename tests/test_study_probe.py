@@ -2,6 +2,7 @@
 first and the pose noise drawn from the seed asked for, and summarises the seeds."""
 
 import json
+import math
 
 import pytest
 
@@ -24,6 +25,8 @@ def test_a_probe_runs_the_patch_then_the_job_under_its_noise_draw(probe, tiny_sc
     row = probe.run_one((asdict(job), str(patch), 101, str(probe.HERE.parent)))
     assert marker.read_text() == "ran"
     assert row["status"] == "finished" and row["draw"] == 101 and row["steps_done"] == 3
+    # A pose-noise job is also scored with the held-out views moved by the noise's depth-like part.
+    assert math.isfinite(row["psnr_noise_part_aligned"]) and row["psnr_per_view_noise_part_aligned"].count("=") == 2
     # The draw is the study's noise seed while the job runs: another draw turns the cameras otherwise.
     train = stability.split_views(stability.load_any(tiny_scene))[0]
     spacing = stability.rig_spacing(train)
@@ -42,6 +45,11 @@ def test_the_summary_gives_each_noise_and_draw_its_seeds_mean_and_spread(probe):
     lines = probe.summary_lines(rows, "try")
     assert lines[0] == "try: pose noise 0.5°, noise draw 101, seeds 0:  (1 did not finish: RuntimeError: boom)"
     assert lines[1] == "try: pose noise 0.5°, noise draw 1234, seeds 0,1: 30.00 / 30.20: 30.10 ± 0.141 sd, range 0.20"
+    assert len(lines) == 2  # (no other scores in these rows)
+    for row, aligned in zip(rows, (31.0, 31.4)):
+        row["psnr_noise_part_aligned"] = aligned
+    lines = probe.summary_lines(rows, "try")
+    assert lines[2] == "    held-out views moved by the noise's depth-like part: 31.40 / 31.00: 31.20 ± 0.283 sd"
 
 
 def test_the_command_line_refuses_a_missing_patch_or_checkout(probe, tmp_path):
