@@ -559,6 +559,14 @@ def trained_with_another_losses_rule(row: dict) -> bool:
     return bool(rule) != bool(logged) or (stops and row.get("losses_until_step") is None)
 
 
+def scored_without_noise_part(row: dict) -> bool:
+    """A default pose-noise run logged before the study scored the held-out views moved by the
+    noise's depth-like part (noise_part_scores): the study runs it again for that score and
+    reports it as logged until then."""
+    return (row.get("preset") == "fast" and bool(row.get("pose_degrees")) and row.get("refine_poses") is None
+            and row.get("scene") in POSE_SCENES and not row.get("minutes") and "psnr_noise_part_aligned" not in row)
+
+
 def trained_with_another_pose_gauge(row: dict) -> bool:
     """Whether a logged run that refined its poses held the corrections' depth-like part
     otherwise than the code now does (poses.DEPTH_LIKE_GAUGE; rows logged before it was
@@ -996,6 +1004,15 @@ def pose_table(rows: list[dict]) -> list[str]:
                       "puts the scene in. The noise's isotropic fanning of the rig, which to a light field is a "
                       "change of depth, cannot be seen in the photos; with exact held-out poses it decides part of "
                       "the score above.", "", *fitted]
+    aligned = pose_score_table(rows, "psnr_noise_part_aligned", "held-out views moved by the noise's depth-like part",
+                               zero_column="psnr")
+    if aligned:
+        lines += ["", "Scored with each held-out camera moved by the part of the training cameras' noise that the "
+                      "refinement holds by design (the turns' fanning and the moves' baseline, "
+                      "`depth_like_part`, extended linearly to the held-out camera's place): a real capture's "
+                      "held-out and render cameras come from the same reconstruction and share such a rig-wide "
+                      "error, as they share its mean, which the noise already leaves out. The difference from "
+                      "the first table is what that part costs; the 0° column (no noise, nothing to move) is the first table's.", "", *aligned]
     exact, refined = group(rows, **base("canclip", "fast", refine_poses=False)), group(rows, **base("canclip", "fast", refine_poses=True))
     if refined:
         lines += ["", f"CanClip (COLMAP's own poses, all views): {cell(exact)} dB without refinement, {cell(refined)} dB "
@@ -1019,16 +1036,23 @@ def pose_cells(rows: list[dict], scene: str, fraction: float, refine: bool | Non
 
 
 def pose_fitted_table(rows: list[dict]) -> list[str]:
-    """The pose table's cells scored with the held-out poses fitted (rows logged before that
-    score existed read 'not scored')."""
+    """The pose table's cells scored with the held-out poses fitted."""
+    return pose_score_table(rows, "psnr_pose_fitted", "held-out poses fitted")
+
+
+def pose_score_table(rows: list[dict], column: str, title: str, zero_column: str | None = None) -> list[str]:
+    """The pose table's cells scored by `column` (rows logged before that score existed read
+    'not scored'; table rows none of whose noisy runs has it are left out); the 0° cells by
+    `zero_column` where given (a score that equals it without noise)."""
     lines = []
     for label, scene, fraction, refine in pose_settings():
         cells = pose_cells(rows, scene, fraction, refine)
-        if any(r.get("psnr_pose_fitted") is not None for c in cells[1:] for r in c):
-            texts = [cell(c, "psnr_pose_fitted") if any(r.get("psnr_pose_fitted") is not None for r in c)
-                     else "not scored" for c in cells]
+        if any(r.get(column) is not None for c in cells[1:] for r in c):
+            columns = [zero_column or column] + [column] * (len(cells) - 1)
+            texts = [cell(c, name) if any(r.get(name) is not None for r in c) else "not scored"
+                     for c, name in zip(cells, columns)]
             lines.append(f"| {label} | " + " | ".join(texts) + " |")
-    header = ["| pose noise, held-out poses fitted | " + " | ".join(f"{d:g}° / {SHIFT_PER_DEGREE * d:.0%}" for d in POSE_DEGREES)
+    header = [f"| pose noise, {title} | " + " | ".join(f"{d:g}° / {SHIFT_PER_DEGREE * d:.0%}" for d in POSE_DEGREES)
               + " |", "|---|" + "---|" * len(POSE_DEGREES)]
     return header + lines if lines else []
 
@@ -1512,7 +1536,7 @@ def load_log(log: Path, older: dict | None = None) -> dict:
                     and not trained_with_another_losses_rule(row):
                 into = done
                 if trained_with_another_surface_mix(row) or trained_with_another_pose_gauge(row) \
-                        or trained_with_another_restart_rule(row):
+                        or trained_with_another_restart_rule(row) or scored_without_noise_part(row):
                     if older is None:
                         continue
                     into = older

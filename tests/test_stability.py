@@ -338,6 +338,30 @@ def assert_stale_row_reported_until_run_again(stability, log, stale_row: dict, f
     assert words in " ".join(note(list(older.values())))
 
 
+def test_a_default_pose_noise_run_scored_before_the_noise_s_depth_like_part_is_run_again(stability, tmp_path):
+    """A default pose-noise run logged without the score with the held-out views moved by the
+    noise's depth-like part is run again for it (reported as logged until then); forced
+    refinement, no noise, or the score present: it stands.  The table then reads the score,
+    its 0° cell the plain one."""
+    job = stability.Job("lambertian", "x", "x", 1.0, "fast", 80, 0, pose_degrees=1.0)
+    row = {**stability.asdict(job), "status": "finished", "psnr": 28.0}
+    assert stability.scored_without_noise_part(row)
+    assert not stability.scored_without_noise_part({**row, "psnr_noise_part_aligned": 29.0})
+    assert not stability.scored_without_noise_part({**row, "refine_poses": True})
+    assert not stability.scored_without_noise_part({**row, "pose_degrees": 0.0})
+    log = tmp_path / "runs.jsonl"
+    log.write_text(json.dumps(row) + "\n" + json.dumps({**row, "seed": 1, "psnr_noise_part_aligned": 29.0}) + "\n")
+    older = {}
+    assert [r["seed"] for r in stability.load_log(log, older).values()] == [1]
+    assert [r["seed"] for r in older.values()] == [0]
+    rows = [{**row, "seed": s, "psnr_noise_part_aligned": 29.0 + s / 10} for s in range(3)]
+    rows += [{**row, "seed": s, "pose_degrees": 0.0, "psnr": 31.0 + s / 10} for s in range(3)]
+    table = stability.pose_score_table(rows, "psnr_noise_part_aligned", "moved", zero_column="psnr")
+    line = next(text for text in table if text.startswith(f"| {stability.POSE_SETTING_LABELS[None]}, lambertian |"))
+    cells = [c.strip() for c in line.strip("|").split("|")][1:]
+    assert cells[0] == "31.10 ± 0.20" and cells[stability.POSE_DEGREES.index(1.0)] == "29.10 ± 0.20"
+
+
 def test_members_that_refined_their_poses_apart_are_run_again(stability, tiny_scene, tmp_path):
     """Since the later members follow the first one's verdict on the poses (members.py), a
     logged run of several members that refined poses apart, or whose second member checked
