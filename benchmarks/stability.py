@@ -1529,11 +1529,12 @@ def seed_log_from_csv(log: Path, table: Path) -> int:
     return len(rows)
 
 
-def load_log(log: Path, older: dict | None = None) -> dict:
+def load_log(log: Path, older: dict | None = None, rescore: bool = False) -> dict:
     """key -> row of the logged runs the study counts as done.  `older`, a dict: gets the runs
     that stand but for their surfaces (trained_with_another_surface_mix) or their pose
     corrections' depth-like part (trained_with_another_pose_gauge), for the report until the
-    study re-runs them."""
+    study re-runs them; with `rescore` (the study's own log) also those that lack a score the
+    study's tables now read (scored_without_noise_part)."""
     done = {}
     if log.is_file():
         for line in log.read_text().splitlines():
@@ -1543,7 +1544,7 @@ def load_log(log: Path, older: dict | None = None) -> dict:
                     and not trained_with_another_losses_rule(row):
                 into = done
                 if trained_with_another_surface_mix(row) or trained_with_another_pose_gauge(row) \
-                        or trained_with_another_restart_rule(row) or scored_without_noise_part(row):
+                        or trained_with_another_restart_rule(row) or (rescore and scored_without_noise_part(row)):
                     if older is None:
                         continue
                     into = older
@@ -1669,7 +1670,7 @@ def main(argv=None) -> None:
     if not args.fresh and (seeded := seed_log_from_csv(log, args.docs / "stability.csv")):
         print(f"no run log in {args.cache}: started it from {args.docs / 'stability.csv'} ({seeded} runs)", flush=True)
     older = {}
-    done = {} if args.fresh else load_log(log, older)
+    done = {} if args.fresh else load_log(log, older, rescore=True)
     if args.report_only:
         rows = report_rows(done, jobs, older)
     else:

@@ -352,8 +352,9 @@ def test_a_default_pose_noise_run_scored_before_the_noise_s_depth_like_part_is_r
     log = tmp_path / "runs.jsonl"
     log.write_text(json.dumps(row) + "\n" + json.dumps({**row, "seed": 1, "psnr_noise_part_aligned": 29.0}) + "\n")
     older = {}
-    assert [r["seed"] for r in stability.load_log(log, older).values()] == [1]
+    assert [r["seed"] for r in stability.load_log(log, older, rescore=True).values()] == [1]
     assert [r["seed"] for r in older.values()] == [0]
+    assert len(stability.load_log(log)) == 2  # (other scripts' logs, e.g. seed_scatter's, keep their rows)
     rows = [{**row, "seed": s, "psnr_noise_part_aligned": 29.0 + s / 10} for s in range(3)]
     rows += [{**row, "seed": s, "pose_degrees": 0.0, "psnr": 31.0 + s / 10} for s in range(3)]
     table = stability.pose_score_table(rows, "psnr_noise_part_aligned", "moved", zero_column="psnr")
