@@ -14,7 +14,9 @@ noise from `--noise-draws` instead of the study's one fixed draw (stability.POSE
 and imports neulf_core and the study from `--root` (another checkout) when given.  The
 unpatched default reproduces the study's rows to the digit.
 
-Prints each (pose noise, noise draw)'s PSNRs by seed, their mean, sd and range; appends every
+Prints each (pose noise, noise draw)'s PSNRs by seed, their mean, sd and range (and, where the runs
+have them, the held-out scores with poses fitted and with the views moved by the noise's
+depth-like part, stability.depth_like_part); appends every
 run to `--log` (JSON lines: the study's row plus tag, patch, draw and root).  It writes no docs:
 a probe's numbers go into docs/STABILITY.md's lab notebook with the command that made them.
 """
