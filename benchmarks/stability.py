@@ -325,8 +325,9 @@ def depth_like_part(train_views: list[View], degrees: float, spacing: float):
     def uv_of(centres: np.ndarray) -> np.ndarray:
         return ((np.atleast_2d(centres) - origin) @ rotation.T)[:, :2]
 
-    middle = uv_of(np.array([v.center for v in train_views])).mean(0)
-    u, v = (uv_of(np.array([view.center for view in train_views])) - middle).T
+    rig = uv_of(np.array([view.center for view in train_views]))
+    middle = rig.mean(0)
+    u, v = (rig - middle).T
     fanning, baseline = np.stack([-v, u, 0 * u], 1), np.stack([u, v, 0 * u], 1)
     # Least-squares coefficients of the slab-frame noise along each direction.
     turn_per_unit = float(((turns @ rotation.T) * fanning).sum() / max((fanning ** 2).sum(), 1e-24))
@@ -373,9 +374,12 @@ def prepare(job: Job) -> tuple[Scene, list[View], list[View]]:
 # ----------------------------------------------------------------------------- one run
 
 
-def score_views(model_dir: Path, held: list[View], scale: float, fit_poses: bool = False) -> dict:
+def score_views(model_dir: Path, held: list[View], scale: float, fit_poses: bool = False,
+                moved_held: list[View] | None = None) -> dict:
     """Held-out scores; with `fit_poses` also after fitting each held-out camera's pose to its
-    photo with the field frozen (poses.fit_view_pose, BARF's protocol for pose-refined models)."""
+    photo with the field frozen (poses.fit_view_pose, BARF's protocol for pose-refined models);
+    with `moved_held` (held_with_noise_part) also of those views: the frame error no refinement
+    can see left out."""
     light_field = LightField.load(model_dir, "cpu", precision="full")
     field_config = light_field.meta.get("field_config", {})
     psnrs, ssims, matched, half_fit, nonfinite = [], [], [], [], 0
@@ -397,6 +401,11 @@ def score_views(model_dir: Path, held: list[View], scale: float, fit_poses: bool
             fitted_degrees.append(degrees)
     fitted = {"psnr_pose_fitted": float(np.mean(fitted_psnrs)),
               "pose_fit_degrees": ";".join(f"{d:.3f}" for d in fitted_degrees)} if fit_poses else {}
+    if moved_held:
+        moved = [psnr(np.nan_to_num(light_field.render_view(view, scale, depth=False).rgb, nan=0.0),
+                      view.load_image(scale).astype(np.float32) / 255.0) for view in moved_held]
+        fitted.update(psnr_noise_part_aligned=float(np.mean(moved)),
+                      psnr_per_view_noise_part_aligned=";".join(f"{v.stem}={p:.2f}" for v, p in zip(moved_held, moved)))
     return {"psnr": float(np.mean(psnrs)), "ssim": float(np.mean(ssims)), "psnr_matched": float(np.mean(matched)),
             "psnr_half_fit": float(np.mean(half_fit)), **fitted,
             "psnr_per_view": ";".join(f"{view.stem}={p:.2f}" for view, p in zip(held, psnrs)),
@@ -424,16 +433,6 @@ def score_views(model_dir: Path, held: list[View], scale: float, fit_poses: bool
             "far_off_points_held": (light_field.meta.get("far_off_check") or {}).get("points_held"),
             "appearance_default": light_field.meta.get("appearance_default"),
             "exposure_difference_stops": light_field.meta.get("exposure_difference_stops")}
-
-
-def noise_part_scores(model_dir: Path, moved_held: list[View], scale: float) -> dict:
-    """Held-out PSNR with the held-out views moved by the pose noise's depth-like part
-    (held_with_noise_part): the frame error no refinement can see left out."""
-    light_field = LightField.load(model_dir, "cpu", precision="full")
-    psnrs = [psnr(np.nan_to_num(light_field.render_view(view, scale, depth=False).rgb, nan=0.0),
-                  view.load_image(scale).astype(np.float32) / 255.0) for view in moved_held]
-    return {"psnr_noise_part_aligned": float(np.mean(psnrs)),
-            "psnr_per_view_noise_part_aligned": ";".join(f"{v.stem}={p:.2f}" for v, p in zip(moved_held, psnrs))}
 
 
 def starts_cost(model_dir: Path) -> tuple[str | None, int, float]:
@@ -561,7 +560,7 @@ def trained_with_another_losses_rule(row: dict) -> bool:
 
 def scored_without_noise_part(row: dict) -> bool:
     """A default pose-noise run logged before the study scored the held-out views moved by the
-    noise's depth-like part (noise_part_scores): the study runs it again for that score and
+    noise's depth-like part (score_views' moved_held): the study runs it again for that score and
     reports it as logged until then."""
     return (row.get("preset") == "fast" and bool(row.get("pose_degrees")) and row.get("refine_poses") is None
             and row.get("scene") in POSE_SCENES and not row.get("minutes") and "psnr_noise_part_aligned" not in row)
@@ -670,9 +669,8 @@ def run_job(job: Job, threads: int = 1) -> dict:
             row.update(steps_done=steps_done, train_seconds=round(seconds + discarded_seconds, 2),
                        start_kept=kept, discarded_steps=discarded_steps, members=members,
                        member_poses=MEMBER_POSES if members > 1 else None)
-            row.update(score_views(Path(model_dir), held, job.scale, fit_poses=in_pose_study(job)))
-            if job.pose_degrees:
-                row.update(noise_part_scores(Path(model_dir), held_with_noise_part(job, held), job.scale))
+            moved = held_with_noise_part(job, held) if job.pose_degrees else None
+            row.update(score_views(Path(model_dir), held, job.scale, fit_poses=in_pose_study(job), moved_held=moved))
         row["status"] = result.status
     except Exception as exc:  # recorded and reported; the study goes on
         row["error"] = f"{type(exc).__name__}: {exc}"
@@ -1057,7 +1055,7 @@ def pose_score_table(rows: list[dict], column: str, title: str, zero_column: str
     return header + lines if lines else []
 
 
-def pose_fitted_spreads(rows: list[dict], column: str = "psnr_pose_fitted") -> list[tuple[float, dict]]:
+def pose_score_spreads(rows: list[dict], column: str = "psnr_pose_fitted") -> list[tuple[float, dict]]:
     """(spread over seeds, configuration) of the pose study's default runs, scored by `column`
     (default: with the held-out poses fitted)."""
     out = []
@@ -1188,19 +1186,11 @@ def targets(rows: list[dict]) -> list[str]:
                    f"{within} of {len(spreads)} configurations within 0.2 dB (target ≤ 0.2): "
                    f"{'met' if worst[0] <= 0.2 else 'MISSED'}")
         out += [f"  - {line}" for line in spread_by_setting(spreads)]
-        fitted = pose_fitted_spreads(rows)
-        if fitted:
-            within = sum(s <= 0.2 for s, _ in fitted)
-            widest = "; ".join(f"{describe(m)}: {s:.2f}" for s, m in sorted(fitted, key=lambda x: -x[0])[:3] if s > 0.2)
-            out.append(f"  - the default's pose-noise configurations scored with the held-out poses fitted (BARF's "
-                       f"protocol): {within} of {len(fitted)} within 0.2 dB" + (f" (widest: {widest})" if widest else ""))
-        aligned = [(s, m) for s, m in pose_fitted_spreads(rows, "psnr_noise_part_aligned") if m["pose_degrees"]]
-        if aligned:
-            within = sum(s <= 0.2 for s, _ in aligned)
-            widest = "; ".join(f"{describe(m)}: {s:.2f}" for s, m in sorted(aligned, key=lambda x: -x[0])[:3] if s > 0.2)
-            out.append(f"  - the default's noisy-pose configurations scored with the held-out views moved by the "
-                       f"noise's depth-like part: {within} of {len(aligned)} within 0.2 dB"
-                       + (f" (widest: {widest})" if widest else ""))
+        out += spread_line(pose_score_spreads(rows), "the default's pose-noise configurations scored with the "
+                           "held-out poses fitted (BARF's protocol)")
+        out += spread_line([(s, m) for s, m in pose_score_spreads(rows, "psnr_noise_part_aligned") if m["pose_degrees"]],
+                           "the default's noisy-pose configurations scored with the held-out views moved by the "
+                           "noise's depth-like part")
     for name, nominal_scene, jittered in EXPOSURE_SCENES:
         out += exposure_targets(rows, name, nominal_scene, jittered)
     crashed = sum(r.get("status") == "crashed" for r in rows)
@@ -1209,6 +1199,16 @@ def targets(rows: list[dict]) -> list[str]:
     out.append(f"- NaN/crash: {crashed} crashed runs, {warned} non-finite-loss warnings, {nonfinite} non-finite pixels "
                f"in {len(rows)} runs: {'met' if not (crashed or warned or nonfinite) else 'MISSED'}")
     return out
+
+
+def spread_line(spreads: list[tuple[float, dict]], what: str) -> list[str]:
+    """The targets' line for (spread, configuration) pairs scored otherwise: how many are within
+    0.2 dB, and the widest three beyond it ([] without pairs)."""
+    if not spreads:
+        return []
+    within = sum(s <= 0.2 for s, _ in spreads)
+    widest = "; ".join(f"{describe(m)}: {s:.2f}" for s, m in sorted(spreads, key=lambda x: -x[0])[:3] if s > 0.2)
+    return [f"  - {what}: {within} of {len(spreads)} within 0.2 dB" + (f" (widest: {widest})" if widest else "")]
 
 
 def setting_of(match: dict, rows: list[dict] = ()) -> str:
