@@ -138,6 +138,10 @@ def test_study_runs_end_to_end(stability, tiny_scene, tmp_path, monkeypatch):
     assert stability.seed_log_from_csv(fresh_log, tmp_path / "docs" / "stability.csv") == len(jobs)
     assert set(stability.load_log(fresh_log)) == {job.key for job in jobs}
     assert stability.seed_log_from_csv(fresh_log, tmp_path / "docs" / "stability.csv") == 0  # never overwritten
+    # ... and the tables made from it are the ones made from the runs, to the digit: the CSV keeps
+    # every score they read (the moved views' included) and its floats in full.
+    assert "moved by the noise's depth-like part" in tables
+    assert stability.write_outputs(list(stability.load_log(fresh_log).values()), tmp_path / "fresh_docs", meta) == tables
     markdown = (tmp_path / "docs" / "STABILITY.md").read_text()
     assert stability.MARKER_BEGIN in markdown and tables in markdown
     # --report-only trains nothing: its header keeps the machine and date the runs came from.
