@@ -25,6 +25,7 @@ from __future__ import annotations
 import argparse
 import csv
 import math
+import re
 import statistics
 import sys
 import tempfile
@@ -171,6 +172,14 @@ def earlier_rows(path: Path, labels: list[str]) -> dict[str, list[dict]]:
     return kept
 
 
+def block_generation(page: Path, begin: str) -> dict | None:
+    """The date and machine in the header of `page`'s generated block that starts at `begin`
+    (None: no such block or header)."""
+    text = page.read_text() if page.is_file() else ""
+    found = re.match(r"\s*Generated (\S+) on (.+?); fast: ", text.split(begin, 1)[1]) if begin in text else None
+    return {"date": found.group(1), "machine": found.group(2)} if found else None
+
+
 def add_scene_arguments(parser: argparse.ArgumentParser) -> None:
     """Where plan_for finds the scenes (and their training scales), and the docs folder; also
     benchmarks/pixel_samples.py's and benchmarks/members.py's."""
@@ -289,15 +298,27 @@ def main(argv=None) -> None:
     every = [job for runs in jobs.values() for job in runs]
     args.cache.mkdir(parents=True, exist_ok=True)
     log = args.cache / "runs.jsonl"
+    csv_name, begin, end = outputs_for(args.steps)
+    # A fresh machine has no run log: start it from the committed CSV, so that its runs are
+    # neither trained again nor dropped from the page.
+    if seeded := stability.seed_log_from_csv(log, args.docs / csv_name):
+        print(f"no run log in {args.cache}: started it from {args.docs / csv_name} ({seeded} runs)", flush=True)
     done = stability.load_log(log)
     if not args.report_only:  # run_jobs returns every job's row, in order, the logged ones included
         done = {job.key: row for job, row in zip(every, stability.run_jobs(every, args.workers, done, log))}
-    csv_name, begin, end = outputs_for(args.steps)
-    earlier = earlier_rows(args.docs / csv_name, labels)
-    rows = [row for runs in earlier.values() for row in runs] + [done[job.key] for job in every if job.key in done]
+    # A report keeps the CSV's rows of a configuration it has no logged run of (runs made on
+    # another machine, whose scene paths key them otherwise) instead of emptying its line.
+    reported = [label for label in labels if any(job.key in done for job in jobs[label])]
+    earlier = earlier_rows(args.docs / csv_name, reported)
+    jobs = {label: runs for label, runs in jobs.items() if label in reported}
+    rows = [row for runs in earlier.values() for row in runs] + \
+        [done[job.key] for runs in jobs.values() for job in runs if job.key in done]
     stability.write_csv(sorted(rows, key=lambda row: list(CONFIGURATIONS).index(label_of(row) or labels[0])),
                         args.docs / csv_name)
-    header = (f"Generated {date.today().isoformat()} on {args.machine or stability.machine()}; fast: {args.steps} steps; seeds "
+    generated = {"date": date.today().isoformat(), "machine": stability.machine()}
+    if args.report_only:  # nothing trained here: the date and machines the block was reported with
+        generated = block_generation(args.docs / "SEED_SCATTER.md", begin) or generated
+    header = (f"Generated {generated['date']} on {args.machine or generated['machine']}; fast: {args.steps} steps; seeds "
               f"{args.seeds}; a configuration's PSNRs in seed order.")
     text = f"{header}\n\n{table(done, jobs, earlier)}"
     stability.update_markdown(args.docs / "SEED_SCATTER.md", text, begin, end)

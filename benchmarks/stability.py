@@ -1370,7 +1370,7 @@ def update_markdown(path: Path, tables: str, begin: str = MARKER_BEGIN, end: str
 CSV_COLUMNS = ["scene", "preset", "fraction", "pose_degrees", "appearance", "refine_poses", "consistency", "minutes",
                "coarse_to_fine", "colour_start", "coarse_to_fine_used", "appearance_used", "appearance_default", "exposure_difference_stops",
                "pose_check_refining", "pose_check_degrees", "pose_check_halfway", "pose_gauge", "field_restarted", "far_off_degrees", "far_off_points_held", "restart_geometry_only", "restart_depth_layers", "start_kept", "discarded_steps", "members", "members_passes", "member_poses",
-               "sweep_fade", "deep_scene", "multiview_losses", "losses_until_step", "back_surface", "back_surface_blend", "pixel_jitter", "seed", "status", "psnr", "ssim",
+               "sweep_fade", "deep_scene", "multiview_losses", "losses_until_step", "back_surface", "back_surface_blend", "pixel_jitter", "two_starts", "seed", "status", "psnr", "ssim",
                "psnr_matched", "psnr_half_fit", "psnr_pose_fitted", "pose_fit_degrees", "psnr_per_view", "psnr_noise_part_aligned",
                "psnr_per_view_noise_part_aligned", "train_views", "held_out", "steps", "steps_done", "train_seconds",
                "wall_seconds", "warnings", "warning_text", "nonfinite_pixels", "error", "scale", "path", "truth"]

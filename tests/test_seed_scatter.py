@@ -154,3 +154,29 @@ def test_one_start_against_two_reads_both_logs_seed_by_seed(scatter, tmp_path):
     assert scatter.comparison_outputs(3000)[1] in text
     rows = (docs / "seed_scatter_starts_3000.csv").read_text().splitlines()
     assert len(rows) == 1 + 6 and sum(",second," in row for row in rows) == 3
+
+
+def test_a_fresh_machine_reports_the_committed_rows_again(scatter, tmp_path):
+    """--report-only without the run log (a fresh clone) starts it from the committed CSV, so the
+    page and the CSV come out as they were; runs the plan keys otherwise (made on another
+    machine, its scenes elsewhere) keep their lines instead of emptying them."""
+    capture, cache, docs = logged_runs(scatter, tmp_path, [("canclip", 1000, 36.2), ("canclip-6-photos", 1000, 34.8)])
+    (docs / "SEED_SCATTER.md").write_text("# By hand\n")
+    labels = ["--configurations", "canclip,canclip-6-photos"]
+    scatter.main(labels + report_arguments(capture, cache, docs))
+    page, table = (docs / "SEED_SCATTER.md").read_text(), (docs / "seed_scatter.csv").read_text()
+    assert "| canclip | 36.20 36.21 36.22 |" in page and "| canclip-6-photos | 34.80 34.81 34.82 |" in page
+
+    (cache / "runs.jsonl").unlink()
+    scatter.main(labels + report_arguments(capture, cache, docs))
+    assert (docs / "SEED_SCATTER.md").read_text() == page and (docs / "seed_scatter.csv").read_text() == table
+    assert len((cache / "runs.jsonl").read_text().splitlines()) == 6
+
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    scatter.main(labels + report_arguments(elsewhere, tmp_path / "another_cache", docs))
+    assert (docs / "SEED_SCATTER.md").read_text() == page and (docs / "seed_scatter.csv").read_text() == table
+    # ... and a report trains nothing, so its header keeps the date and machine the block had
+    (docs / "SEED_SCATTER.md").write_text(page.replace("Generated ", "Generated 2026-01-02 on a GPU; fast: 1 steps. Was "))
+    scatter.main(labels + report_arguments(capture, cache, docs))
+    assert "Generated 2026-01-02 on a GPU; fast: 1000 steps; seeds 0-2;" in (docs / "SEED_SCATTER.md").read_text()

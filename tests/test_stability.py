@@ -135,6 +135,7 @@ def test_study_runs_end_to_end(stability, tiny_scene, tmp_path, monkeypatch):
     assert stability.in_pose_study(few) and not stability.in_pose_study(stability.replace(few, fraction=0.5))
     # A fresh machine has no run log: it starts from the committed CSV, and every run is found again.
     fresh_log = tmp_path / "fresh" / "runs.jsonl"
+    assert {f.name for f in stability.fields(stability.Job)} <= set(stability.CSV_COLUMNS)  # every field a run is keyed by
     assert stability.seed_log_from_csv(fresh_log, tmp_path / "docs" / "stability.csv") == len(jobs)
     assert set(stability.load_log(fresh_log)) == {job.key for job in jobs}
     assert stability.seed_log_from_csv(fresh_log, tmp_path / "docs" / "stability.csv") == 0  # never overwritten
