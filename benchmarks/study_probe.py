@@ -5,6 +5,7 @@
     python benchmarks/study_probe.py --scene lambertian --fraction 0.25 --pose-degrees 0.25,0.5 --seeds 0,1 \
         --noise-draws 1234,101,202,303 --tag held
     python benchmarks/study_probe.py ... --root /tmp/old --tag prior      # a git worktree of an older commit
+    python benchmarks/study_probe.py --scene lambertian --fraction 0.75 --seeds 0,4 --keep /tmp/models  # keep the models
 
 Each run is a stability-study job (benchmarks/stability.py: its scenes, held-out views, pose
 noise, training config and scores, `fast` preset, one torch thread) in a process of its own,
@@ -26,6 +27,7 @@ from __future__ import annotations
 import argparse
 import json
 import runpy
+import shutil
 import statistics
 import sys
 import tempfile
@@ -44,9 +46,31 @@ def use_checkout(root: Path) -> None:
             sys.path.insert(0, str(path))
 
 
-def run_one(task: tuple[dict, str, int | None, str]) -> dict:
-    """One job in this (fresh) process: the checkout, the patch, the noise draw, then the study's run."""
-    job_fields, patch, draw, root = task
+def kept_model_dir(keep: Path, job_fields: dict, draw: int | None) -> Path:
+    """Where --keep puts a job's model: one folder per scene, share of the views, pose noise,
+    noise draw and seed."""
+    name = f"{job_fields['scene']}-views{job_fields['fraction']:g}-pose{job_fields['pose_degrees']:g}deg"
+    return keep / (name + (f"-draw{draw}" if draw is not None else "") + f"-seed{job_fields['seed']}")
+
+
+def keep_trained_models(stability, folder: Path) -> None:
+    """Make the study's run copy the model it trains into `folder` before its temporary folder
+    goes (to render, diff or probe it afterwards)."""
+    train = stability.train
+
+    def train_and_keep(scene, model_dir, config, **kwargs):
+        result = train(scene, model_dir, config, **kwargs)
+        shutil.rmtree(folder, ignore_errors=True)
+        shutil.copytree(model_dir, folder)
+        return result
+
+    stability.train = train_and_keep
+
+
+def run_one(task: tuple[dict, str, int | None, str, str]) -> dict:
+    """One job in this (fresh) process: the checkout, the patch, the noise draw, then the study's
+    run (its model copied out where `keep` names a folder)."""
+    job_fields, patch, draw, root, keep = task
     use_checkout(Path(root))
     import neulf_core
     import stability
@@ -57,6 +81,8 @@ def run_one(task: tuple[dict, str, int | None, str]) -> dict:
         runpy.run_path(patch)
     if draw is not None:
         stability.POSE_NOISE_SEED = draw
+    if keep:
+        keep_trained_models(stability, kept_model_dir(Path(keep), job_fields, draw))
     row = stability.run_job(stability.Job(**job_fields))
     return {**row, "draw": draw if draw is not None else stability.POSE_NOISE_SEED}
 
@@ -89,7 +115,8 @@ def plan(args, study) -> list[tuple[dict, str, int | None, str]]:
                 job = study.Job(args.scene, str(path), str(path), scale, "fast", args.steps, seed,
                                 fraction=args.fraction, pose_degrees=degrees,
                                 colour_start=study.preset_colour_start("fast"), appearance=False)
-                tasks.append((asdict(job), str(Path(args.patch).resolve()) if args.patch else "", draw, str(args.root)))
+                tasks.append((asdict(job), str(Path(args.patch).resolve()) if args.patch else "", draw, str(args.root),
+                              str(args.keep.resolve()) if args.keep else ""))
     return tasks
 
 
@@ -126,6 +153,8 @@ def parse_args(argv=None) -> argparse.Namespace:
     parser.add_argument("--noise-draws", default="", help="comma-separated seeds of the pose noise (default: the study's)")
     parser.add_argument("--patch", help="a Python file run in each worker before its job")
     parser.add_argument("--root", type=Path, default=HERE.parent, help="the checkout whose code runs")
+    parser.add_argument("--keep", type=Path, help="copy each trained model into a folder of its own here "
+                                                   "(<scene>-views<share>-pose<noise>deg[-draw<draw>]-seed<seed>)")
     parser.add_argument("--tag", default="probe", help="names the runs in the output and the log")
     parser.add_argument("--workers", type=int, default=2)
     parser.add_argument("--log", type=Path, default=DEFAULT_LOG)

@@ -22,8 +22,15 @@ def test_a_probe_runs_the_patch_then_the_job_under_its_noise_draw(probe, tiny_sc
     job = stability.Job("tiny", str(tiny_scene), str(tiny_scene), 1.0, "fast", 3, 0, pose_degrees=1.0)
     from dataclasses import asdict
 
-    row = probe.run_one((asdict(job), str(patch), 101, str(probe.HERE.parent)))
+    original_train = stability.train
+    monkeypatch.setattr(stability, "train", original_train)  # run_one wraps it to keep the model; restored after
+    row = probe.run_one((asdict(job), str(patch), 101, str(probe.HERE.parent), str(tmp_path / "kept")))
     assert marker.read_text() == "ran"
+    # --keep: the trained model survives the study's temporary folder, and it renders the row's score
+    kept = probe.kept_model_dir(tmp_path / "kept", asdict(job), 101)
+    assert kept.name == "tiny-views1-pose1deg-draw101-seed0" and (kept / "model.pt").is_file()
+    held = stability.split_views(stability.load_any(tiny_scene))[1]
+    assert stability.score_views(kept, held, 1.0)["psnr"] == pytest.approx(row["psnr"], abs=1e-9)
     assert row["status"] == "finished" and row["draw"] == 101 and row["steps_done"] == 3
     # A pose-noise job is also scored with the held-out views moved by the noise's depth-like part.
     assert math.isfinite(row["psnr_noise_part_aligned"]) and row["psnr_per_view_noise_part_aligned"].count("=") == 2
