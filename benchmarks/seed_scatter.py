@@ -310,9 +310,9 @@ def main(argv=None) -> None:
     # another machine, whose scene paths key them otherwise) instead of emptying its line.
     reported = [label for label in labels if any(job.key in done for job in jobs[label])]
     earlier = earlier_rows(args.docs / csv_name, reported)
-    jobs = {label: runs for label, runs in jobs.items() if label in reported}
+    logged = {label: jobs[label] for label in reported}
     rows = [row for runs in earlier.values() for row in runs] + \
-        [done[job.key] for runs in jobs.values() for job in runs if job.key in done]
+        [done[job.key] for runs in logged.values() for job in runs if job.key in done]
     stability.write_csv(sorted(rows, key=lambda row: list(CONFIGURATIONS).index(label_of(row) or labels[0])),
                         args.docs / csv_name)
     generated = {"date": date.today().isoformat(), "machine": stability.machine()}
@@ -320,7 +320,7 @@ def main(argv=None) -> None:
         generated = block_generation(args.docs / "SEED_SCATTER.md", begin) or generated
     header = (f"Generated {generated['date']} on {args.machine or generated['machine']}; fast: {args.steps} steps; seeds "
               f"{args.seeds}; a configuration's PSNRs in seed order.")
-    text = f"{header}\n\n{table(done, jobs, earlier)}"
+    text = f"{header}\n\n{table(done, logged, earlier)}"
     stability.update_markdown(args.docs / "SEED_SCATTER.md", text, begin, end)
     print(text)
 

@@ -97,7 +97,7 @@ def parse_list(text: str, kind=float) -> list:
     return values
 
 
-def plan(args, study) -> list[tuple[dict, str, int | None, str]]:
+def plan(args, study) -> list[tuple[dict, str, int | None, str, str]]:
     """The tasks: every pose noise x noise draw x seed of the asked configuration."""
     scenes = {"canclip": (args.canclip, args.canclip_scale), "hci": (args.hci, args.hci_scale)}
     for variant in ("lambertian", "shiny", "fine"):
