@@ -343,11 +343,16 @@ def depth_like_part(train_views: list[View], degrees: float, spacing: float):
 def held_with_noise_part(job: Job, held: list[View]) -> list[View]:
     """The held-out views moved by the depth-like part of the job's pose noise
     (depth_like_part), from the same training views prepare() perturbs."""
-    train_views, _ = split_views(load_any(job.truth))
-    spacing = rig_spacing(train_views)
-    train_views = spread_subset(train_views, max(2, round(job.fraction * len(train_views))))
+    train_views, spacing = kept_share(split_views(load_any(job.truth))[0], job.fraction)
     part = depth_like_part(train_views, job.pose_degrees, spacing)
     return [moved_view(view, *part(view)) for view in held]
+
+
+def kept_share(train_views: list[View], fraction: float) -> tuple[list[View], float]:
+    """(the `fraction` of the training views a job keeps (spread_subset), the spacing of the
+    whole rig, which sizes its pose noise)."""
+    spacing = rig_spacing(train_views)
+    return spread_subset(train_views, max(2, round(fraction * len(train_views)))), spacing
 
 
 def with_images_from(views: list[View], other: Scene) -> list[View]:
@@ -362,9 +367,7 @@ def prepare(job: Job) -> tuple[Scene, list[View], list[View]]:
     train_views, held = split_views(truth)
     if job.path != job.truth:
         train_views = with_images_from(train_views, load_any(job.path))
-    spacing = rig_spacing(train_views)
-    count = max(2, round(job.fraction * len(train_views)))
-    train_views = spread_subset(train_views, count)
+    train_views, spacing = kept_share(train_views, job.fraction)
     if job.pose_degrees:
         train_views = perturb_poses(train_views, job.pose_degrees, spacing)
     views = sorted(held + train_views, key=lambda v: v.name)
@@ -385,7 +388,8 @@ def score_views(model_dir: Path, held: list[View], scale: float, fit_poses: bool
     psnrs, ssims, matched, half_fit, nonfinite = [], [], [], [], 0
     fitted_psnrs, fitted_degrees = [], []
     spacing = camera_spacing(np.asarray(light_field.meta["rig"]["centres"]))  # the training rig's (pose fits)
-    for view in held:
+    moved = []
+    for i, view in enumerate(held):
         target = view.load_image(scale).astype(np.float32) / 255.0
         image = light_field.render_view(view, scale, depth=False).rgb
         nonfinite += int((~np.isfinite(image)).sum())
@@ -399,11 +403,11 @@ def score_views(model_dir: Path, held: list[View], scale: float, fit_poses: bool
             fitted_image = np.nan_to_num(light_field.render_view(fitted, scale, depth=False).rgb, nan=0.0)
             fitted_psnrs.append(psnr(fitted_image, target))
             fitted_degrees.append(degrees)
+        if moved_held:  # (the same photo, seen from the moved camera)
+            moved.append(psnr(np.nan_to_num(light_field.render_view(moved_held[i], scale, depth=False).rgb, nan=0.0), target))
     fitted = {"psnr_pose_fitted": float(np.mean(fitted_psnrs)),
               "pose_fit_degrees": ";".join(f"{d:.3f}" for d in fitted_degrees)} if fit_poses else {}
     if moved_held:
-        moved = [psnr(np.nan_to_num(light_field.render_view(view, scale, depth=False).rgb, nan=0.0),
-                      view.load_image(scale).astype(np.float32) / 255.0) for view in moved_held]
         fitted.update(psnr_noise_part_aligned=float(np.mean(moved)),
                       psnr_per_view_noise_part_aligned=";".join(f"{v.stem}={p:.2f}" for v, p in zip(moved_held, moved)))
     return {"psnr": float(np.mean(psnrs)), "ssim": float(np.mean(ssims)), "psnr_matched": float(np.mean(matched)),
