@@ -272,16 +272,41 @@ def comparison_table(one: dict[str, list], two: dict[str, list]) -> str:
     return "\n".join(lines)
 
 
+def comparison_rows_from_csv(path: Path, labels: list[str], seeds: list[int]) -> tuple[dict, dict]:
+    """(one start, two starts): label -> rows in seed order, read from the comparison's CSV, whose
+    rows of one start have no start kept.  What a fresh machine, without the two run logs in the
+    temp folder, reports from."""
+    one: dict[str, list] = {label: [None] * len(seeds) for label in labels}
+    two: dict[str, list] = {label: [None] * len(seeds) for label in labels}
+    if path.is_file():
+        with open(path, newline="") as handle:
+            for row in csv.DictReader(handle):
+                label, seed = label_of(row), int(row["seed"])
+                if label in labels and seed in seeds:
+                    (two if row.get("start_kept") else one)[label][seeds.index(seed)] = row
+    return one, two
+
+
 def report_comparison(args: argparse.Namespace, labels: list[str]) -> None:
-    """--against-one-start: the two logs side by side (CSV of both, and a block of the page)."""
+    """--against-one-start: the two logs side by side (CSV of both, and a block of the page).
+    Where neither log holds these runs (a fresh machine), the block is made again from the CSV,
+    with the date and machine it had, and the CSV is left as it is."""
     jobs = plan_for(labels, args)
     one_jobs = {label: [stability.replace(job, two_starts=False) for job in runs] for label, runs in jobs.items()}
     done, one_done = stability.load_log(args.cache / "runs.jsonl"), stability.load_log(args.against_one_start / "runs.jsonl")
     two = {label: [done.get(job.key) for job in runs] for label, runs in jobs.items()}
     one = {label: [one_done.get(job.key) for job in runs] for label, runs in one_jobs.items()}
     csv_name, begin, end = comparison_outputs(args.steps)
-    stability.write_csv([row for rows in (one, two) for runs in rows.values() for row in runs if row], args.docs / csv_name)
-    header = (f"Generated {date.today().isoformat()} on {args.machine or stability.machine()}; fast: {args.steps} steps; "
+    generated = {"date": date.today().isoformat(), "machine": stability.machine()}
+    if any(row for rows in (one, two) for runs in rows.values() for row in runs):
+        stability.write_csv([row for rows in (one, two) for runs in rows.values() for row in runs if row],
+                            args.docs / csv_name)
+    else:
+        one, two = comparison_rows_from_csv(args.docs / csv_name, labels, parse_seeds(args.seeds))
+        generated = block_generation(args.docs / "SEED_SCATTER.md", begin) or generated
+        print(f"no runs of these configurations in {args.cache} or {args.against_one_start}: "
+              f"reported from {args.docs / csv_name}", flush=True)
+    header = (f"Generated {generated['date']} on {args.machine or generated['machine']}; fast: {args.steps} steps; "
               f"seeds {args.seeds}; one start (`--two-starts off`) against two (`--two-starts {args.two_starts}`); "
               f"start kept: 1 the first, 2 the second (seed + 100). Rows of both: docs/{csv_name} (start_kept empty: one start).")
     text = f"{header}\n\n{comparison_table(one, two)}"

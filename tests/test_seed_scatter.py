@@ -155,6 +155,17 @@ def test_one_start_against_two_reads_both_logs_seed_by_seed(scatter, tmp_path):
     rows = (docs / "seed_scatter_starts_3000.csv").read_text().splitlines()
     assert len(rows) == 1 + 6 and sum(",second," in row for row in rows) == 3
 
+    # A fresh machine has neither log: the block comes again from the CSV, dated as it was
+    table = (docs / "seed_scatter_starts_3000.csv").read_text()
+    (docs / "SEED_SCATTER.md").write_text(text.replace("Generated ", "Generated 2026-01-02 on a GPU; fast: 1 steps. Was "))
+    scatter.main(["--configurations", label, "--seeds", "0-2", "--steps", "3000", "--canclip", str(capture),
+                  "--cache", str(tmp_path / "no_log"), "--against-one-start", str(tmp_path / "no_log_either"),
+                  "--docs", str(docs)])
+    again = (docs / "SEED_SCATTER.md").read_text()
+    assert "Generated 2026-01-02 on a GPU; fast: 3000 steps; seeds 0-2; one start" in again
+    assert again.split("Rows of both")[1] == text.split("Rows of both")[1]  # the table, line for line
+    assert (docs / "seed_scatter_starts_3000.csv").read_text() == table
+
 
 def test_a_fresh_machine_reports_the_committed_rows_again(scatter, tmp_path):
     """--report-only without the run log (a fresh clone) starts it from the committed CSV, so the
