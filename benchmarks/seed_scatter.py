@@ -86,9 +86,10 @@ def parse_seeds(text: str) -> list[int]:
 
 
 def plan(labels: list[str], seeds: list[int], steps: int, scenes: dict[str, Path],
-         scales: dict[str, float], two_starts: bool | None = None, pixel_jitter: float = 0.0) -> dict[str, list]:
+         scales: dict[str, float], two_starts: bool | None = None, pixel_jitter: float = 0.0,
+         members_split: str | None = None) -> dict[str, list]:
     """Label -> its runs, one per seed (`two_starts`: the better of two starts forced on / off,
-    None: the default's rule)."""
+    None: the default's rule; `members_split`: TrainConfig.members_split, None: the default's)."""
     jobs = {}
     for label in labels:
         edits = dict(CONFIGURATIONS[label])
@@ -96,7 +97,7 @@ def plan(labels: list[str], seeds: list[int], steps: int, scenes: dict[str, Path
         path = str(scenes[scene])
         jobs[label] = [stability.Job(scene, path, path, scales[scene], "fast", steps, seed,
                                      colour_start=stability.preset_colour_start("fast"), two_starts=two_starts,
-                                     pixel_jitter=pixel_jitter, **edits)
+                                     pixel_jitter=pixel_jitter, members_split=members_split, **edits)
                        for seed in seeds]
     return jobs
 
@@ -202,6 +203,8 @@ def add_plan_arguments(parser: argparse.ArgumentParser, configurations: str, see
     add_scene_arguments(parser)
     parser.add_argument("--pixel-jitter", type=float, default=0.0, metavar="W",
                         help="train with pixel jitter W (TrainConfig.pixel_jitter; logged under keys of their own)")
+    parser.add_argument("--members-split", choices=["steps", "batch"],
+                        help="how members share the budget (TrainConfig.members_split; logged under keys of their own)")
     parser.add_argument("--two-starts", choices=list(TWO_STARTS), default="rule",
                         help="the better of two starts as the default decides (rule), always, or never; runs forced "
                              "on or off are logged under keys of their own, so give them a --cache and --docs of their own")
@@ -233,7 +236,8 @@ def plan_for(labels: list[str], args: argparse.Namespace) -> dict[str, list]:
     scenes["canclip"] = args.canclip
     scales = {"canclip": args.canclip_scale, "lambertian": args.synth_scale, "shiny": args.synth_scale,
               "fine": args.synth_scale}
-    return plan(labels, parse_seeds(args.seeds), args.steps, scenes, scales, TWO_STARTS[args.two_starts], args.pixel_jitter)
+    return plan(labels, parse_seeds(args.seeds), args.steps, scenes, scales, TWO_STARTS[args.two_starts], args.pixel_jitter,
+                getattr(args, "members_split", None))
 
 
 def outputs_for(steps: int) -> tuple[str, str, str]:

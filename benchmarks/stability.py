@@ -155,6 +155,7 @@ class Job:
     colour_start: str = "random"
     two_starts: bool | None = None  # the better of two starts forced on / off (TrainConfig.two_starts; None: its rule)
     pixel_jitter: float = 0.0  # each training ray at a random point of a square this many pixels wide (TrainConfig)
+    members_split: str | None = None  # how members share the budget (TrainConfig.members_split; None: the default's)
 
     @property
     def key(self) -> str:
@@ -499,6 +500,8 @@ def train_config(job: Job, held: list[View]) -> TrainConfig:
         options["two_starts"] = job.two_starts
     if job.pixel_jitter:
         options["pixel_jitter"] = float(job.pixel_jitter)
+    if job.members_split:
+        options["members_split"] = job.members_split
     if job.colour_start != preset_colour_start(job.preset):
         options["field_overrides"] = {"colour_start": "" if job.colour_start == "random" else job.colour_start}
     return TrainConfig(**options)
@@ -623,7 +626,8 @@ def trained_with_other_members(row: dict) -> bool:
     if not steps:
         return False
     passes = logged_passes(row, steps)
-    return passes is not None and members_by_rule(passes) != logged  # (no scene at hand: it stands)
+    return passes is not None and members_by_rule(passes, row.get("members_split") or "steps") != logged
+    # (no scene at hand: it stands)
 
 
 def logged_passes(row: dict, steps: int) -> float | None:
@@ -1374,7 +1378,7 @@ def update_markdown(path: Path, tables: str, begin: str = MARKER_BEGIN, end: str
 CSV_COLUMNS = ["scene", "preset", "fraction", "pose_degrees", "appearance", "refine_poses", "consistency", "minutes",
                "coarse_to_fine", "colour_start", "coarse_to_fine_used", "appearance_used", "appearance_default", "exposure_difference_stops",
                "pose_check_refining", "pose_check_degrees", "pose_check_halfway", "pose_gauge", "field_restarted", "far_off_degrees", "far_off_points_held", "restart_geometry_only", "restart_depth_layers", "start_kept", "discarded_steps", "members", "members_passes", "member_poses",
-               "sweep_fade", "deep_scene", "multiview_losses", "losses_until_step", "back_surface", "back_surface_blend", "pixel_jitter", "two_starts", "seed", "status", "psnr", "ssim",
+               "sweep_fade", "deep_scene", "multiview_losses", "losses_until_step", "back_surface", "back_surface_blend", "pixel_jitter", "two_starts", "members_split", "seed", "status", "psnr", "ssim",
                "psnr_matched", "psnr_half_fit", "psnr_pose_fitted", "pose_fit_degrees", "psnr_per_view", "psnr_noise_part_aligned",
                "psnr_per_view_noise_part_aligned", "train_views", "held_out", "steps", "steps_done", "train_seconds",
                "wall_seconds", "warnings", "warning_text", "nonfinite_pixels", "error", "scale", "path", "truth"]

@@ -78,7 +78,7 @@ def cmd_train(args) -> int:
         field_overrides=overrides,
         refine_poses=args.refine_poses, coarse_to_fine=args.coarse_to_fine, back_surface=args.back_surface,
         max_passes=args.max_passes,
-        two_starts=args.two_starts, pixel_jitter=args.pixel_jitter, members=args.members,
+        two_starts=args.two_starts, pixel_jitter=args.pixel_jitter, members=args.members, members_split=args.members_split,
     )
     stop = {"signal": None, "reader_gone": False}
 
@@ -464,6 +464,11 @@ def build_parser() -> argparse.ArgumentParser:
                         "the mean of their colours: better and steadier where one run has stopped gaining from more "
                         "steps, N times the render time (default: 2 where the budget passes over the training "
                         "pixels at least 60 times, else 1; a resumed model keeps its count): docs/MEMBERS.md")
+    p.add_argument("--members-split", choices=["steps", "batch"],
+                   help="how members share the budget: steps (default: each 1/N of the steps) or batch (each all the "
+                        "steps with 1/N of the rays a step; then 2 members at any budget unless --members says; on a "
+                        "CPU about one run's training time, better and steadier in the stability study at 1000 steps): "
+                        "docs/MEMBERS.md")
     p.add_argument("--device", help="cpu, cuda, mps (default: the fastest available)")
     p.set_defaults(run=cmd_train)
 

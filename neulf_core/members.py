@@ -60,14 +60,41 @@ RULE_MEMBERS = 2
 # gave one of four seeds one member (30.09 dB): a shared machine's hiccups land on a few steps.
 RATE_FROM_STEP = 110
 RATE_DECISION_STEP = 210
+# How members share a budget (TrainConfig.members_split).  "steps": each trains 1/N of the steps
+# with the preset's batch (the rule above was measured so).  "batch": each trains all the steps
+# with 1/N of the rays a step -- on a CPU, where a step's time grows with its rays, about 1/N of
+# the time, so the members together see the rays of one run in about its time -- and the rule
+# then trains RULE_MEMBERS at any budget.  Measured on the stability study's jobs, 1000 steps,
+# eight seeds, AMD EPYC, two members of 4096 rays x 1000 steps against one run of 8192 x 1000
+# (docs/MEMBERS.md, sixty-first session): the synthetic scene's 10 photos 31.08 +- 0.171 ->
+# 31.41 +- 0.084 dB, shiny 30.30 +- 0.122 -> 30.71 +- 0.074, CanClip 36.37 +- 0.071 -> 36.42 +-
+# 0.054; one run of 4096 rays gave 31.14 +- 0.127 at 1000 steps and 31.12 +- 0.187 at 2000, so the
+# gain is the mean of two fields, not the smaller batch.
+SPLITS = ("steps", "batch")
 
 
-def members_by_rule(passes: float | None) -> int | None:
+def members_by_rule(passes: float | None, split: str = "steps") -> int | None:
     """The rule's member count for a budget of `passes` over the training pixels (None: not
-    known yet -- a minutes budget before the step rate is measured)."""
+    known yet -- a minutes budget before the step rate is measured); members that split the
+    batch: RULE_MEMBERS at any budget."""
+    if split == "batch":
+        return RULE_MEMBERS
     if passes is None:
         return None
     return RULE_MEMBERS if passes >= MEMBERS_PASSES else 1
+
+
+def member_split(config, model_dir: Path | None = None) -> str:
+    """How the members of this run share its budget: a model's own split when it has members
+    already (members.json; models before the choice existed split the steps), else as asked
+    (`config.members_split`; None: the steps)."""
+    state = read_state(model_dir) if model_dir is not None else None
+    if state is not None:
+        return state.get("split", "steps")
+    split = getattr(config, "members_split", None) or "steps"
+    if split not in SPLITS:
+        raise NeulfError(f"--members-split takes {' or '.join(SPLITS)}, not {split!r}.")
+    return split
 
 
 def member_dir(model_dir: Path, member: int) -> Path:
@@ -79,16 +106,25 @@ def member_seed(seed: int, member: int) -> int:
     return seed + (member - 1) * MEMBER_SEED_OFFSET
 
 
-def member_budget(config, count: int, member: int):
-    """(steps, minutes) of one member: the budget split evenly (the first members take a steps
-    budget's remainder)."""
+def member_budget(config, count: int, member: int, split: str = "steps"):
+    """(steps, minutes, batch size) of one member: a minutes budget split evenly; a steps
+    budget split evenly (the first members take the remainder) with the preset's batch, or, when
+    the members split the batch, all the steps each with 1/count of the batch (batch size None:
+    the preset's)."""
+    minutes = config.minutes / count if config.minutes else None
+    if split == "batch":
+        from .presets import get_preset
+
+        batch = (config.batch_size or get_preset(config.preset).batch_size) // count
+        if batch < 1:
+            raise NeulfError(f"a batch of {config.batch_size} rays cannot be shared by {count} members.")
+        return config.steps, minutes, batch
     steps = None
     if config.steps:
         steps = config.steps // count + (1 if member <= config.steps % count else 0)
         if steps < 1:
             raise NeulfError(f"{config.steps} steps cannot be shared by {count} members; give at least one step each.")
-    minutes = config.minutes / count if config.minutes else None
-    return steps, minutes
+    return steps, minutes, config.batch_size
 
 
 def read_state(model_dir: Path) -> dict | None:
@@ -105,8 +141,8 @@ def finished_members(model_dir: Path) -> list[int]:
     return [int(m) for m in state.get("finished", []) if int(m) > 1] if state else []
 
 
-def _start_state(model_dir: Path, count: int, seed: int) -> dict:
-    state = {"count": count, "seed": seed, "finished": []}
+def _start_state(model_dir: Path, count: int, seed: int, split: str = "steps") -> dict:
+    state = {"count": count, "seed": seed, "split": split, "finished": []}
     Path(model_dir).mkdir(parents=True, exist_ok=True)
     _write_state(model_dir, state)
     return state
@@ -173,11 +209,17 @@ def training_pixels(scene, config) -> int:
 
 def _decide_upfront(scene, config, progress) -> int | None:
     """The rule's count where the budget says it before training (a steps budget alone)."""
-    if config.minutes:
+    if config.minutes and member_split(config) != "batch":
         return None  # learnt from the step rate in the first member (train._train)
     from .presets import get_preset
     from .train import budget_passes
 
+    if member_split(config) == "batch":
+        count = members_by_rule(None, "batch")
+        if progress is not None:
+            progress({"event": "stage", "message": f"{count} members, each with 1/{count} of the rays a step "
+                                                   "(--members 1 for one)", "members": count})
+        return count
     batch = config.batch_size or get_preset(config.preset).batch_size
     passes = budget_passes(config, batch, training_pixels(scene, config))
     count = members_by_rule(passes)
@@ -245,15 +287,16 @@ def train_members(train_one: Callable, scene, model_dir: Path, config, images_di
         if result.status != "finished" or state is None:
             return replace(result, model_dir=model_dir)  # one member, or stopped: --resume goes on
         count, first_done = state["count"], True
+    split = member_split(config, model_dir if state is not None else None)
     if state is None:
         if not checkpoint_path(model_dir).is_file():  # members left by a model deleted since
             shutil.rmtree(model_dir / MEMBERS_DIR, ignore_errors=True)
-        state = _start_state(model_dir, count, config.seed)
+        state = _start_state(model_dir, count, config.seed, split)
     for member in range(2 if first_done else 1, count + 1):
         folder = member_dir(model_dir, member)
         folder.mkdir(parents=True, exist_ok=True)
         remove_stale_temporaries(folder)
-        steps, minutes = member_budget(config, count, member)
+        steps, minutes, batch = member_budget(config, count, member, split)
         # A member after the first follows the first one's verdict on the poses
         # (train._first_members_poses): the corrections it refined, fixed, or none and no check
         # of its own.  Each refining its own settles the scene in a frame of its own (the
@@ -264,7 +307,7 @@ def train_members(train_one: Callable, scene, model_dir: Path, config, images_di
         # degree 30.23 -> 31.35, at 2 degrees 23.46 -> 23.76; refining on from the first's
         # corrections instead (1 degree, seed 0) 31.20 against 32.06 with them fixed.
         member_config = replace(config, seed=member_seed(state["seed"], member), steps=steps, minutes=minutes,
-                                members=count, poses_from=str(model_dir) if member > 1 else None)
+                                batch_size=batch, members=count, poses_from=str(model_dir) if member > 1 else None)
         # Member 1 is the folder the user named: resumed only when asked; the others whenever
         # they hold a checkpoint (a run of this model stopped while training them).
         member_resume = resume if member == 1 else checkpoint_path(folder).is_file()

@@ -176,6 +176,9 @@ class TrainConfig:
                                         # None: the rule -- 2 where the budget passes over the training
                                         # pixels at least 60 times, else 1 -- or a resumed model's count);
                                         # they share the budget
+    members_split: str | None = None    # how members share it (members.SPLITS): "steps" (None) -- each 1/N of
+                                        # the steps -- or "batch": each all the steps with 1/N of the rays a
+                                        # step, two members then at any budget (about one run's time on a CPU)
     poses_from: str | None = None       # a model folder whose refined camera poses this run trains with, fixed
                                         # (members.py: a member after the first, in the first one's frame;
                                         # None: its own, or none)
@@ -1068,7 +1071,7 @@ def _members_share(config: TrainConfig, budget: TrainConfig, count: int) -> Trai
     (a pass limit stays each member's own)."""
     if count <= 1:
         return budget
-    steps, minutes = member_budget(config, count, 1)
+    steps, minutes, _ = member_budget(config, count, 1)  # (the rate decides only where the members split the steps)
     return replace(budget, minutes=minutes, steps=min(budget.steps, steps) if steps else budget.steps)
 
 

@@ -48,11 +48,42 @@ def test_the_file_names_are_the_checkpoints():
 
 
 def test_the_budget_is_shared():
-    assert member_budget(config(steps=101), 2, 1) == (51, None)
-    assert member_budget(config(steps=101), 2, 2) == (50, None)
-    assert member_budget(config(minutes=3.0), 3, 2) == (None, 1.0)
+    assert member_budget(config(steps=101), 2, 1) == (51, None, 512)
+    assert member_budget(config(steps=101), 2, 2) == (50, None, 512)
+    assert member_budget(config(minutes=3.0), 3, 2) == (None, 1.0, 512)
     with pytest.raises(NeulfError, match="cannot be shared"):
         member_budget(config(steps=1), 2, 2)
+    # ... or by the batch: all the steps each, 1/N of the rays a step (the preset's batch by default)
+    assert member_budget(config(steps=101), 2, 2, "batch") == (101, None, 256)
+    assert member_budget(config(minutes=3.0), 3, 2, "batch") == (None, 1.0, 170)
+    assert member_budget(config(steps=101, batch_size=None), 2, 1, "batch") == (101, None, 4096)
+
+
+def test_members_that_split_the_batch_are_the_runs_alone_at_any_budget(tiny_scene, tmp_path):
+    """--members-split batch: two members by the rule whatever the passes (here about 3), each
+    the ordinary run with its seed, all the steps and half the batch; the split is kept in
+    members.json, so a resume goes on as the model began, and a bad split is a clear error."""
+    from neulf_core.members import member_split, members_by_rule
+
+    assert members_by_rule(None, "batch") == 2 and members_by_rule(1.0, "batch") == 2
+    result, events = run(tiny_scene, tmp_path / "ens", config(steps=30, seed=3, members_split="batch"))
+    assert result.status == "finished" and finished_members(tmp_path / "ens") == [2]
+    assert json.loads((tmp_path / "ens" / STATE_NAME).read_text())["split"] == "batch"
+    assert any(e.get("event") == "stage" and "1/2 of the rays" in e.get("message", "") for e in events)
+    run(tiny_scene, tmp_path / "a", config(steps=30, seed=3, batch_size=256))
+    run(tiny_scene, tmp_path / "b", config(steps=30, seed=3 + MEMBER_SEED_OFFSET, batch_size=256))
+    assert_same_weights(tmp_path / "ens", tmp_path / "a")
+    assert_same_weights(member_dir(tmp_path / "ens", 2), tmp_path / "b")
+    assert member_split(config(), tmp_path / "ens") == "batch"  # the model's own, whatever is asked now
+    assert member_split(config()) == "steps" and member_split(config(members_split="batch")) == "batch"
+    with pytest.raises(NeulfError, match="--members-split takes steps or batch"):
+        member_split(config(members_split="rays"))
+    # A minutes budget with the batch split needs no step rate: both members, half the minutes each.
+    result, _ = run(tiny_scene, tmp_path / "timed", config(minutes=0.02, members_split="batch"))
+    assert result.status == "finished" and finished_members(tmp_path / "timed") == [2]
+    budgets = [json.loads((member_dir(tmp_path / "timed", m) / "model.json").read_text())["train_config"]
+               for m in (1, 2)]
+    assert [(b["minutes"], b["batch_size"]) for b in budgets] == [(0.01, 256), (0.01, 256)]
 
 
 def test_members_are_the_runs_alone_and_render_as_their_mean(tiny_scene, tmp_path):
