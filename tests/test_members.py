@@ -418,3 +418,14 @@ def test_the_rate_is_the_median_steps_so_a_few_slow_steps_do_not_decide():
     assert meta["members_rule"]["passes"] == pytest.approx(3000 * 8192 / 268800, abs=0.1)
     assert meta["members_rule"]["count"] == 2  # 91 passes; the mean step would read 36 and one member
     assert train_module.MEMBERS_RATE_FROM_STEP >= train_module.POSE_CHECK_STEP  # timed after the pose check
+
+
+def test_members_that_split_the_batch_count_the_budgets_passes_together():
+    """A member of half the batch decides what counts passes (the multi-view losses) as one run
+    of the whole budget would: each counting its own half dropped the losses where one run keeps
+    them, and lost 6 dB under pose noise (train.budget_rays_per_step)."""
+    from neulf_core.train import budget_rays_per_step
+
+    assert budget_rays_per_step(config(batch_size=4096, members=2, members_split="batch")) == 8192
+    assert budget_rays_per_step(config(batch_size=4096, members=2)) == 4096  # members of the steps: their own batch
+    assert budget_rays_per_step(config(batch_size=None)) == 8192  # the preset's
