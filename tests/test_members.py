@@ -429,3 +429,13 @@ def test_members_that_split_the_batch_count_the_budgets_passes_together():
     assert budget_rays_per_step(config(batch_size=4096, members=2, members_split="batch")) == 8192
     assert budget_rays_per_step(config(batch_size=4096, members=2)) == 4096  # members of the steps: their own batch
     assert budget_rays_per_step(config(batch_size=None)) == 8192  # the preset's
+
+
+def test_the_command_line_asks_for_members_of_the_batch(tiny_scene, tmp_path):
+    from neulf_core.cli import main
+
+    model = tmp_path / "m"
+    assert main(["train", str(tiny_scene), "--out", str(model), "--steps", "4", "--batch-size", "128",
+                 "--members-split", "batch", "--progress", "json"]) == 0
+    assert json.loads((model / STATE_NAME).read_text())["split"] == "batch" and finished_members(model) == [2]
+    assert json.loads((member_dir(model, 2) / "model.json").read_text())["train_config"]["batch_size"] == 64
