@@ -307,7 +307,8 @@ def train_members(train_one: Callable, scene, model_dir: Path, config, images_di
         # degree 30.23 -> 31.35, at 2 degrees 23.46 -> 23.76; refining on from the first's
         # corrections instead (1 degree, seed 0) 31.20 against 32.06 with them fixed.
         member_config = replace(config, seed=member_seed(state["seed"], member), steps=steps, minutes=minutes,
-                                batch_size=batch, members=count, poses_from=str(model_dir) if member > 1 else None)
+                                batch_size=batch, members=count, members_split=split,  # (a resume may not say it)
+                                poses_from=str(model_dir) if member > 1 else None)
         # Member 1 is the folder the user named: resumed only when asked; the others whenever
         # they hold a checkpoint (a run of this model stopped while training them).
         member_resume = resume if member == 1 else checkpoint_path(folder).is_file()

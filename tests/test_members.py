@@ -439,3 +439,21 @@ def test_the_command_line_asks_for_members_of_the_batch(tiny_scene, tmp_path):
                  "--members-split", "batch", "--progress", "json"]) == 0
     assert json.loads((model / STATE_NAME).read_text())["split"] == "batch" and finished_members(model) == [2]
     assert json.loads((member_dir(model, 2) / "model.json").read_text())["train_config"]["batch_size"] == 64
+
+
+def test_members_of_the_batch_stopped_in_the_second_resume_as_they_began(tiny_scene, tmp_path):
+    """A resume that does not say --members-split goes on as the model began (members.json):
+    the second member with half the batch, and its rules counting the budget's rays together."""
+    run(tiny_scene, tmp_path / "whole", config(steps=30, seed=4, members_split="batch"))
+
+    def in_second_member(events):
+        return any(e.get("member") == 2 and e.get("event") == "step" and e["step"] >= 5 for e in events)
+
+    result, _ = run(tiny_scene, tmp_path / "cut", config(steps=30, seed=4, members_split="batch"),
+                    stop_when=in_second_member)
+    assert result.status == "cancelled" and finished_members(tmp_path / "cut") == []
+    result, _ = run(tiny_scene, tmp_path / "cut", config(steps=30, seed=4), resume=True)
+    assert result.status == "finished" and finished_members(tmp_path / "cut") == [2]
+    second = json.loads((member_dir(tmp_path / "cut", 2) / "model.json").read_text())["train_config"]
+    assert (second["batch_size"], second["members_split"]) == (256, "batch")
+    assert_same_weights(member_dir(tmp_path / "cut", 2), member_dir(tmp_path / "whole", 2))
