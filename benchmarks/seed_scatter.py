@@ -173,6 +173,41 @@ def earlier_rows(path: Path, labels: list[str]) -> dict[str, list[dict]]:
     return kept
 
 
+def csv_by_label(path: Path) -> dict[str, dict[int, dict]]:
+    """label -> seed -> the finished row of `path` (a seed scatter CSV)."""
+    rows: dict[str, dict[int, dict]] = {}
+    if path.is_file():
+        with open(path, newline="") as handle:
+            for row in csv.DictReader(handle):
+                label = label_of(row)
+                if label is not None and row.get("status") == "finished" and row.get("psnr") not in (None, ""):
+                    rows.setdefault(label, {})[int(row["seed"])] = row
+    return rows
+
+
+def against_default_table(default: dict[str, dict[int, dict]], other: dict[str, dict[int, dict]], name: str) -> str:
+    """Per configuration both CSVs hold: the default's scatter beside `name`'s over the seeds both
+    ran, the mean's change paired seed by seed, and each one's median training seconds."""
+    lines = [f"| configuration | the default: mean ± sd (dB) | triples inside 0.2 dB | {name}: mean ± sd | triples inside | "
+             "change of the mean (paired) | seeds up | training s a run (median, default / this) |",
+             "|---|---|---|---|---|---|---|---|"]
+    for label in [label for label in CONFIGURATIONS if label in default and label in other]:
+        seeds = sorted(default[label].keys() & other[label].keys())
+        if len(seeds) < 3:
+            continue
+        a, b = ([float(rows[label][seed]["psnr"]) for seed in seeds] for rows in (default, other))
+        sa, sb = summary(a), summary(b)
+        changes = [y - x for x, y in zip(a, b)]
+        seconds = [[float(row["train_seconds"]) for row in rows[label].values() if row.get("train_seconds") not in (None, "")]
+                   for rows in (default, other)]
+        seconds = [f"{statistics.median(values):.0f}" if values else "-" for values in seconds]
+        lines.append(f"| {label} | {sa['mean']:.2f} ± {sa['sd']:.3f} | {sa['triples_inside']} of {sa['triples']} | "
+                     f"{sb['mean']:.2f} ± {sb['sd']:.3f} | {sb['triples_inside']} of {sb['triples']} | "
+                     f"{statistics.mean(changes):+.2f} | {sum(c > 0 for c in changes)} of {len(changes)} | "
+                     f"{seconds[0]} / {seconds[1]} |")
+    return "\n".join(lines)
+
+
 def block_generation(page: Path, begin: str) -> dict | None:
     """The date and machine in the header of `page`'s generated block that starts at `begin`
     (None: no such block or header)."""
@@ -357,6 +392,11 @@ def main(argv=None) -> None:
     header = (f"Generated {generated['date']} on {args.machine or generated['machine']}; fast: {args.steps} steps{split}; "
               f"seeds {args.seeds}; a configuration's PSNRs in seed order.")
     text = f"{header}\n\n{table(done, logged, earlier)}"
+    if args.members_split:  # beside the default's runs of the same budget, seed by seed
+        default_csv = args.docs / outputs_for(args.steps)[0]
+        text += (f"\n\nBeside the default's runs ({default_csv.name}):\n\n" +
+                 against_default_table(csv_by_label(default_csv), csv_by_label(args.docs / csv_name),
+                                       f"members splitting the {args.members_split}"))
     stability.update_markdown(args.docs / "SEED_SCATTER.md", text, begin, end)
     print(text)
 

@@ -109,6 +109,7 @@ def test_another_budget_writes_its_own_block_and_csv_beside_the_studys(scatter, 
     assert scatter.outputs_for(3000, "batch")[0] == "seed_scatter_3000_members_batch.csv"
     assert scatter.outputs_for(1000, "batch")[1] in text and text.count("| canclip | 10.00 10.01 10.02 |") == 1
     assert text.count("| canclip | 50.00 50.01 50.02 |") == 1
+    assert "| canclip | 10.01 ± 0.010 | 1 of 1 | 50.01 ± 0.010 | 1 of 1 | +40.00 | 3 of 3 | - / - |" in text  # paired
     assert "fast: 1000 steps; members split the batch (`--members-split batch`); seeds 0-2" in text
     assert (docs / "seed_scatter_members_batch.csv").is_file()
 
