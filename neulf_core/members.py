@@ -116,10 +116,10 @@ def member_budget(config, count: int, member: int, split: str = "steps"):
     if split == "batch":
         from .presets import get_preset
 
-        batch = (config.batch_size or get_preset(config.preset).batch_size) // count
-        if batch < 1:
-            raise NeulfError(f"a batch of {config.batch_size} rays cannot be shared by {count} members.")
-        return config.steps, minutes, batch
+        whole = config.batch_size or get_preset(config.preset).batch_size
+        if whole < count:
+            raise NeulfError(f"a batch of {whole} rays cannot be shared by {count} members.")
+        return config.steps, minutes, whole // count
     steps = None
     if config.steps:
         steps = config.steps // count + (1 if member <= config.steps % count else 0)
@@ -210,13 +210,14 @@ def training_pixels(scene, config) -> int:
 
 def _decide_upfront(scene, config, progress) -> int | None:
     """The rule's count where the budget says it before training (a steps budget alone)."""
-    if config.minutes and member_split(config) != "batch":
+    split = member_split(config)
+    if config.minutes and split != "batch":
         return None  # learnt from the step rate in the first member (train._train)
     from .presets import get_preset
     from .train import budget_passes
 
-    if member_split(config) == "batch":
-        count = members_by_rule(None, "batch")
+    if split == "batch":  # two at any budget: no passes to count
+        count = members_by_rule(None, split)
         if progress is not None:
             progress({"event": "stage", "message": f"{count} members, each with 1/{count} of the rays a step "
                                                    "(--members 1 for one)", "members": count})
