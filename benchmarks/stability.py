@@ -68,7 +68,7 @@ sys.path.insert(0, str(REPO))
 from neulf_core.appearance import linear_to_srgb, srgb_to_linear  # noqa: E402
 from neulf_core.errors import NeulfError  # noqa: E402
 from neulf_core.images import save_rgb  # noqa: E402
-from neulf_core.members import finished_members, members_by_rule, work_done  # noqa: E402
+from neulf_core.members import default_split, finished_members, members_by_rule, read_state, work_done  # noqa: E402
 from neulf_core.metrics import psnr, ssim  # noqa: E402
 from neulf_core.poses import (DEPTH_LIKE_GAUGE, POSE_CHECK_DEGREES, POSE_CHECK_STEP, POSE_CHECK_UNSURE_DEGREES,  # noqa: E402
                               POSE_SECOND_LOOK_DEGREES, POSE_SECOND_LOOK_STEP, fit_view_pose)
@@ -612,22 +612,47 @@ def trained_with_another_restart_rule(row: dict) -> bool:
     return restarted and bool(row.get("restart_geometry_only")) != many_photos_held(int(views), bool(held))
 
 
+def split_used(row: dict) -> str:
+    """How the logged run's members shared its budget (members.SPLITS): as logged, else the split
+    its job asked for, else the steps (all runs before the sixty-second session that did not ask)."""
+    return row.get("members_split_used") or row.get("members_split") or "steps"
+
+
 def trained_with_other_members(row: dict) -> bool:
-    """Whether a logged run had another member count than the rule now gives its budget
-    (neulf_core/members.py; rows logged before members trained one): the study runs it again.
-    A minutes run logged since then decided its count at the pace it timed over its first
-    steps, so it stands whatever it logged (counted at the steps it made, a run that went
-    faster than it timed would read as another count: fern's 8 photos, one member, 80 passes);
-    one logged before is counted at the steps it made."""
+    """Whether a logged run had another member count, or members sharing the budget otherwise,
+    than the default now gives its budget on this machine (neulf_core/members.py; rows logged
+    before members trained one; on a CPU, rows whose members split the steps before the batch
+    became the default there): the study runs it again.  Where the members split the steps, a
+    minutes run logged since the rule decided its count at the pace it timed over its first
+    steps stands whatever it logged (counted at the steps it made, a run that went faster than
+    it timed would read as another count: fern's 8 photos, one member, 80 passes); one logged
+    before is counted at the steps it made."""
     logged = int(row.get("members") or 1)
-    if not row.get("train_views") or (row.get("minutes") and row.get("members") is not None):
+    if not row.get("train_views"):
+        return False
+    split_now = row.get("members_split") or default_split()
+    if split_now == "batch":  # two members at any budget, each with half the batch
+        return split_used(row) == "batch" and logged != members_by_rule(None, "batch")
+    if logged > 1 and split_used(row) != "steps":
+        return True
+    if row.get("minutes") and row.get("members") is not None:
         return False
     steps = row.get("steps_done") if row.get("minutes") else row.get("steps")
     if not steps:
         return False
     passes = logged_passes(row, steps)
-    return passes is not None and members_by_rule(passes, row.get("members_split") or "steps") != logged
+    return passes is not None and members_by_rule(passes) != logged
     # (no scene at hand: it stands)
+
+
+def trained_before_members_split_the_batch(row: dict) -> bool:
+    """Whether a logged run trained its members by splitting the steps (or by the rule's count of
+    them) where the default now trains two members of half the batch (on a CPU, since the
+    sixty-second session; neulf_core/members.py): it stands in the report until the study runs
+    it again, with a note saying how many."""
+    if not row.get("train_views") or row.get("members_split"):
+        return False
+    return default_split() == "batch" and split_used(row) != "batch"
 
 
 def logged_passes(row: dict, steps: int) -> float | None:
@@ -676,7 +701,8 @@ def run_job(job: Job, threads: int = 1) -> dict:
             steps_done, seconds = work_done(model_dir) if members > 1 else (result.step, result.elapsed)
             row.update(steps_done=steps_done, train_seconds=round(seconds + discarded_seconds, 2),
                        start_kept=kept, discarded_steps=discarded_steps, members=members,
-                       member_poses=MEMBER_POSES if members > 1 else None)
+                       member_poses=MEMBER_POSES if members > 1 else None,
+                       members_split_used=(read_state(Path(model_dir)) or {}).get("split") if members > 1 else None)
             moved = held_with_noise_part(job, held) if job.pose_degrees else None
             row.update(score_views(Path(model_dir), held, job.scale, fit_poses=in_pose_study(job), moved_held=moved))
         row["status"] = result.status
@@ -1287,6 +1313,7 @@ def tables_markdown(rows: list[dict], meta: dict) -> str:
         "in dB over the seeds, n = number of seeds where fewer than 3.", *random_start_note(rows), *older_surface_note(rows),
         *older_pose_gauge_note(rows),
         *older_restart_rule_note(rows),
+        *older_members_split_note(rows),
         "", "### Fewer views", "", f"Training views kept ({', '.join(map(lambda f: f'{f:.0%}', FRACTIONS))}): "
         f"{train_view_counts(rows)}.", "", *views_table(rows),
         "", "### View-dependent effects and fine texture (synthetic scene, all training views)", "", *variants_table(rows),
@@ -1364,6 +1391,14 @@ def older_restart_rule_note(rows: list[dict]) -> list[str]:
                            "fifty-seventh without starting the depth layers again, smoother")
 
 
+def older_members_split_note(rows: list[dict]) -> list[str]:
+    """Which runs trained their members by splitting the steps, where the default on this
+    machine now splits the batch, and were not re-run since, by study."""
+    return stale_rows_note([r for r in rows if trained_before_members_split_the_batch(r)],
+                           "runs were trained before the default's members split the batch on a CPU (one member, "
+                           "or two of half the steps each; `members_split_used` empty in docs/stability.csv")
+
+
 def update_markdown(path: Path, tables: str, begin: str = MARKER_BEGIN, end: str = MARKER_END) -> None:
     """Replace the generated block (between `begin` and `end`) in `path`, keeping the
     hand-written text around it."""
@@ -1377,7 +1412,7 @@ def update_markdown(path: Path, tables: str, begin: str = MARKER_BEGIN, end: str
 
 CSV_COLUMNS = ["scene", "preset", "fraction", "pose_degrees", "appearance", "refine_poses", "consistency", "minutes",
                "coarse_to_fine", "colour_start", "coarse_to_fine_used", "appearance_used", "appearance_default", "exposure_difference_stops",
-               "pose_check_refining", "pose_check_degrees", "pose_check_halfway", "pose_gauge", "field_restarted", "far_off_degrees", "far_off_points_held", "restart_geometry_only", "restart_depth_layers", "start_kept", "discarded_steps", "members", "members_passes", "member_poses",
+               "pose_check_refining", "pose_check_degrees", "pose_check_halfway", "pose_gauge", "field_restarted", "far_off_degrees", "far_off_points_held", "restart_geometry_only", "restart_depth_layers", "start_kept", "discarded_steps", "members", "members_passes", "member_poses", "members_split_used",
                "sweep_fade", "deep_scene", "multiview_losses", "losses_until_step", "back_surface", "back_surface_blend", "pixel_jitter", "two_starts", "members_split", "seed", "status", "psnr", "ssim",
                "psnr_matched", "psnr_half_fit", "psnr_pose_fitted", "pose_fit_degrees", "psnr_per_view", "psnr_noise_part_aligned",
                "psnr_per_view_noise_part_aligned", "train_views", "held_out", "steps", "steps_done", "train_seconds",
@@ -1562,7 +1597,8 @@ def load_log(log: Path, older: dict | None = None, rescore: bool = False) -> dic
                     and not trained_with_another_losses_rule(row):
                 into = done
                 if trained_with_another_surface_mix(row) or trained_with_another_pose_gauge(row) \
-                        or trained_with_another_restart_rule(row) or (rescore and scored_without_noise_part(row)):
+                        or trained_with_another_restart_rule(row) or trained_before_members_split_the_batch(row) \
+                        or (rescore and scored_without_noise_part(row)):
                     if older is None:
                         continue
                     into = older
