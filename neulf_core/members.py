@@ -72,9 +72,10 @@ RATE_DECISION_STEP = 210
 # 1 degree of pose noise (-0.23); one run of 4096 rays gave 31.14 +- 0.127 at 1000 steps and 31.12
 # +- 0.187 at 2000, so the gain is the mean of two fields, not the smaller batch.
 # The default (`members_split` None) is the batch on a CPU and the steps elsewhere: the batch
-# split's case rests on a CPU step costing about its rays (half the batch: 1.5 times as fast here),
-# which a GPU that is not full does not pay -- there two members of half the batch would take about
-# twice one run's time, and the rule above was measured so (docs/MEMBERS.md, sixty-second session).
+# split's case rests on a CPU step costing about its rays (half the batch: 1.5 times as fast here);
+# a GPU that a step does not fill pays about the same for half the rays, so there two members of
+# half the batch would near twice one run's time -- not measured on a GPU yet, where the rule
+# above was measured (an H200, docs/members_h200/MEMBERS.md; sixty-second session).
 SPLITS = ("steps", "batch")
 
 
