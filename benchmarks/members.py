@@ -69,9 +69,7 @@ def train_and_score(label: str, job, members: int, cache: Path) -> dict:
     folder = model_folder(cache, label, job.seed, job.steps, members)
     done = folder / "trained.json"
     if not done.is_file():
-        # Members of half the steps each, whatever the default split on this machine (the batch
-        # split is measured by benchmarks/seed_scatter.py --members-split batch).
-        result = train(scene, folder, replace(config, members=members, members_split="steps"))
+        result = train(scene, folder, replace(config, members=members))
         seconds = sum(json.loads((f / "model.json").read_text())["progress"]["elapsed"] for f in _member_folders(folder))
         steps = sum(json.loads((f / "model.json").read_text())["progress"]["step"] for f in _member_folders(folder))
         done.write_text(json.dumps({"status": result.status, "seconds": seconds, "steps": steps, "job": asdict(job)}))

@@ -68,7 +68,7 @@ sys.path.insert(0, str(REPO))
 from neulf_core.appearance import linear_to_srgb, srgb_to_linear  # noqa: E402
 from neulf_core.errors import NeulfError  # noqa: E402
 from neulf_core.images import save_rgb  # noqa: E402
-from neulf_core.members import default_split, finished_members, members_by_rule, read_state, work_done  # noqa: E402
+from neulf_core.members import finished_members, members_by_rule, read_state, work_done  # noqa: E402
 from neulf_core.metrics import psnr, ssim  # noqa: E402
 from neulf_core.poses import (DEPTH_LIKE_GAUGE, POSE_CHECK_DEGREES, POSE_CHECK_STEP, POSE_CHECK_UNSURE_DEGREES,  # noqa: E402
                               POSE_SECOND_LOOK_DEGREES, POSE_SECOND_LOOK_STEP, fit_view_pose)
@@ -614,27 +614,27 @@ def trained_with_another_restart_rule(row: dict) -> bool:
 
 def split_used(row: dict) -> str:
     """How the logged run's members shared its budget (members.SPLITS): as logged, else the split
-    its job asked for, else the steps (all runs before the sixty-second session that did not ask)."""
+    its job asked for, else the steps (the default's)."""
     return row.get("members_split_used") or row.get("members_split") or "steps"
 
 
 def trained_with_other_members(row: dict) -> bool:
     """Whether a logged run had another member count, or members sharing the budget otherwise,
-    than the default now gives its budget on this machine (neulf_core/members.py; rows logged
-    before members trained one; on a CPU, rows whose members split the steps before the batch
-    became the default there): the study runs it again.  Where the members split the steps, a
-    minutes run logged since the rule decided its count at the pace it timed over its first
-    steps stands whatever it logged (counted at the steps it made, a run that went faster than
-    it timed would read as another count: fern's 8 photos, one member, 80 passes); one logged
-    before is counted at the steps it made."""
+    than the default (or its job's split) now gives its budget (neulf_core/members.py; rows
+    logged before members trained one; the sixty-second session's runs of the default with its
+    members splitting the batch, docs/MEMBERS.md): the study runs it again.  A minutes run
+    logged since the rule decided its count at the pace it timed over its first steps stands
+    whatever it logged (counted at the steps it made, a run that went faster than it timed would
+    read as another count: fern's 8 photos, one member, 80 passes); one logged before is counted
+    at the steps it made."""
     logged = int(row.get("members") or 1)
     if not row.get("train_views"):
         return False
-    split_now = row.get("members_split") or default_split()
-    if split_now == "batch":  # two members at any budget, each with half the batch
-        return split_used(row) == "batch" and logged != members_by_rule(None, "batch")
-    if logged > 1 and split_used(row) != "steps":
+    split = row.get("members_split") or "steps"
+    if logged > 1 and split_used(row) != split:
         return True
+    if split == "batch":  # two members at any budget
+        return logged != members_by_rule(None, "batch")
     if row.get("minutes") and row.get("members") is not None:
         return False
     steps = row.get("steps_done") if row.get("minutes") else row.get("steps")
@@ -643,16 +643,6 @@ def trained_with_other_members(row: dict) -> bool:
     passes = logged_passes(row, steps)
     return passes is not None and members_by_rule(passes) != logged
     # (no scene at hand: it stands)
-
-
-def trained_before_members_split_the_batch(row: dict) -> bool:
-    """Whether a logged run trained its members by splitting the steps (or by the rule's count of
-    them) where the default now trains two members of half the batch (on a CPU, since the
-    sixty-second session; neulf_core/members.py): it stands in the report until the study runs
-    it again, with a note saying how many."""
-    if not row.get("train_views") or row.get("members_split"):
-        return False
-    return default_split() == "batch" and split_used(row) != "batch"
 
 
 def logged_passes(row: dict, steps: int) -> float | None:
@@ -1313,7 +1303,6 @@ def tables_markdown(rows: list[dict], meta: dict) -> str:
         "in dB over the seeds, n = number of seeds where fewer than 3.", *random_start_note(rows), *older_surface_note(rows),
         *older_pose_gauge_note(rows),
         *older_restart_rule_note(rows),
-        *older_members_split_note(rows),
         "", "### Fewer views", "", f"Training views kept ({', '.join(map(lambda f: f'{f:.0%}', FRACTIONS))}): "
         f"{train_view_counts(rows)}.", "", *views_table(rows),
         "", "### View-dependent effects and fine texture (synthetic scene, all training views)", "", *variants_table(rows),
@@ -1389,14 +1378,6 @@ def older_restart_rule_note(rows: list[dict]) -> list[str]:
                            f"(before the fifty-fifth session from {FAR_OFF_POSE_DEGREES:g}° whatever the photo count; "
                            "before the fifty-sixth all of it, not the geometry alone, with many photos; before the "
                            "fifty-seventh without starting the depth layers again, smoother")
-
-
-def older_members_split_note(rows: list[dict]) -> list[str]:
-    """Which runs trained their members by splitting the steps, where the default on this
-    machine now splits the batch, and were not re-run since, by study."""
-    return stale_rows_note([r for r in rows if trained_before_members_split_the_batch(r)],
-                           "runs were trained before the default's members split the batch on a CPU (one member, "
-                           "or two of half the steps each; `members_split_used` empty in docs/stability.csv")
 
 
 def update_markdown(path: Path, tables: str, begin: str = MARKER_BEGIN, end: str = MARKER_END) -> None:
@@ -1597,8 +1578,7 @@ def load_log(log: Path, older: dict | None = None, rescore: bool = False) -> dic
                     and not trained_with_another_losses_rule(row):
                 into = done
                 if trained_with_another_surface_mix(row) or trained_with_another_pose_gauge(row) \
-                        or trained_with_another_restart_rule(row) or trained_before_members_split_the_batch(row) \
-                        or (rescore and scored_without_noise_part(row)):
+                        or trained_with_another_restart_rule(row) or (rescore and scored_without_noise_part(row)):
                     if older is None:
                         continue
                     into = older

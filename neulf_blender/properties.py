@@ -90,9 +90,8 @@ class NeulfSceneSettings(bpy.types.PropertyGroup):
                          description="Light fields trained apart, each with an equal share of the time, rendered "
                                      "as the mean of their colours: better and steadier where one has stopped "
                                      "gaining from more training; renders take this many times longer. 0: "
-                                     "automatic (training on the CPU: 2, each with half the rays a step; on a "
-                                     "GPU: 2 when the time passes over the photos' pixels 60 times or more, else "
-                                     "1). A model being continued keeps its own count")
+                                     "automatic (2 when the time passes over the photos' pixels 60 times or more, "
+                                     "else 1). A model being continued keeps its own count")
     train_scale: FloatProperty(name="Image Scale", default=1.0, min=0.05, max=1.0,
                                description="Train on images resized by this factor")
     spiral_frames: IntProperty(name="Frames", default=60, min=3, max=2000, description="Frames of the spiral path")

@@ -71,20 +71,7 @@ RATE_DECISION_STEP = 210
 # 30.30 +- 0.122 -> 30.70 +- 0.064, CanClip 36.37 +- 0.071 -> 36.42 +- 0.054), down on CanClip at
 # 1 degree of pose noise (-0.23); one run of 4096 rays gave 31.14 +- 0.127 at 1000 steps and 31.12
 # +- 0.187 at 2000, so the gain is the mean of two fields, not the smaller batch.
-# The default (`members_split` None) is the batch on a CPU and the steps elsewhere: the batch
-# split's case rests on a CPU step costing about its rays (half the batch: 1.5 times as fast here);
-# a GPU that a step does not fill pays about the same for half the rays, so there two members of
-# half the batch would near twice one run's time -- not measured on a GPU yet, where the rule
-# above was measured (an H200, docs/members_h200/MEMBERS.md; sixty-second session).
 SPLITS = ("steps", "batch")
-
-
-def default_split(device_name: str | None = None) -> str:
-    """How members share the budget when the run does not say: the batch where training runs on
-    a CPU, the steps on a GPU (CUDA, MPS)."""
-    from .device import pick_device  # (torch: not imported by the Blender layer's work_done)
-
-    return "batch" if pick_device(device_name).type == "cpu" else "steps"
 
 
 def members_by_rule(passes: float | None, split: str = "steps") -> int | None:
@@ -101,11 +88,11 @@ def members_by_rule(passes: float | None, split: str = "steps") -> int | None:
 def member_split(config, model_dir: Path | None = None) -> str:
     """How the members of this run share its budget: a model's own split when it has members
     already (members.json; models before the choice existed split the steps), else as asked
-    (`config.members_split`; None: default_split on the run's device)."""
+    (`config.members_split`; None: the steps)."""
     state = read_state(model_dir) if model_dir is not None else None
     if state is not None:
         return state.get("split", "steps")
-    split = getattr(config, "members_split", None) or default_split(getattr(config, "device", None))
+    split = getattr(config, "members_split", None) or "steps"
     if split not in SPLITS:
         raise NeulfError(f"--members-split takes {' or '.join(SPLITS)}, not {split!r}.")
     return split

@@ -176,10 +176,9 @@ class TrainConfig:
                                         # None: the rule -- 2 where the budget passes over the training
                                         # pixels at least 60 times, else 1 -- or a resumed model's count);
                                         # they share the budget
-    members_split: str | None = None    # how members share it (members.SPLITS): "steps" -- each 1/N of the
-                                        # steps -- or "batch": each all the steps with 1/N of the rays a step,
-                                        # two members then at any budget (about one run's time on a CPU); None:
-                                        # the batch on a CPU, the steps on a GPU (members.default_split)
+    members_split: str | None = None    # how members share it (members.SPLITS): "steps" (None) -- each 1/N of
+                                        # the steps -- or "batch": each all the steps with 1/N of the rays a
+                                        # step, two members then at any budget (about one run's time on a CPU)
     poses_from: str | None = None       # a model folder whose refined camera poses this run trains with, fixed
                                         # (members.py: a member after the first, in the first one's frame;
                                         # None: its own, or none)

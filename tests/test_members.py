@@ -21,12 +21,8 @@ from neulf_core.train import TrainConfig, train
 
 
 def config(steps=None, **overrides) -> TrainConfig:
-    """A small run; its members split the steps unless a test says otherwise (the rule that counts
-    passes is what most tests here check -- the default on a CPU splits the batch: test_the_default_
-    split_is_the_batch_on_a_cpu_and_the_steps_on_a_gpu)."""
     options = dict(preset="fast", steps=steps, batch_size=512, field_overrides={"texture_size": [16, 16]},
-                   validate_seconds=1e9, checkpoint_seconds=1e9, teacher=False, refine_poses=False, two_starts=False,
-                   members_split="steps")
+                   validate_seconds=1e9, checkpoint_seconds=1e9, teacher=False, refine_poses=False, two_starts=False)
     options.update(overrides)
     return TrainConfig(**options)
 
@@ -80,7 +76,6 @@ def test_members_that_split_the_batch_are_the_runs_alone_at_any_budget(tiny_scen
     assert_same_weights(member_dir(tmp_path / "ens", 2), tmp_path / "b")
     assert member_split(config(), tmp_path / "ens") == "batch"  # the model's own, whatever is asked now
     assert member_split(config()) == "steps" and member_split(config(members_split="batch")) == "batch"
-    assert member_split(config(members_split=None, device="cpu")) == "batch"  # the default on a CPU
     with pytest.raises(NeulfError, match="--members-split takes steps or batch"):
         member_split(config(members_split="rays"))
     # A minutes budget with the batch split needs no step rate: both members, half the minutes each.
@@ -462,20 +457,3 @@ def test_members_of_the_batch_stopped_in_the_second_resume_as_they_began(tiny_sc
     second = json.loads((member_dir(tmp_path / "cut", 2) / "model.json").read_text())["train_config"]
     assert (second["batch_size"], second["members_split"]) == (256, "batch")
     assert_same_weights(member_dir(tmp_path / "cut", 2), member_dir(tmp_path / "whole", 2))
-
-
-def test_the_default_split_is_the_batch_on_a_cpu_and_the_steps_on_a_gpu(tiny_scene, tmp_path, monkeypatch):
-    """members_split None: two members of half the batch where training runs on a CPU (a step
-    there costs about its rays), the members rule of the steps on a GPU (where it does not)."""
-    import neulf_core.device as device
-    from neulf_core.members import default_split, member_split
-
-    assert default_split("cpu") == "batch"
-    result, events = run(tiny_scene, tmp_path / "cpu", config(steps=20, seed=1, members_split=None, device="cpu"))
-    assert result.status == "finished" and finished_members(tmp_path / "cpu") == [2]
-    assert json.loads((tmp_path / "cpu" / STATE_NAME).read_text())["split"] == "batch"
-    budgets = [json.loads((member_dir(tmp_path / "cpu", m) / "model.json").read_text())["train_config"]
-               for m in (1, 2)]
-    assert [(b["steps"], b["batch_size"], b["members_split"]) for b in budgets] == [(20, 256, "batch")] * 2
-    monkeypatch.setattr(device, "pick_device", lambda name=None: torch.device("cuda"))
-    assert default_split() == "steps" and member_split(config(members_split=None)) == "steps"

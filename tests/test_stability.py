@@ -26,14 +26,6 @@ def stability():
     return module
 
 
-@pytest.fixture
-def members_split_the_steps(stability, monkeypatch):
-    """The default as on a GPU, where members split the steps: the rows the tests of the other
-    re-run rules write are logged as runs of before the batch split became the default on a CPU,
-    which that rule would re-run whatever the others say (tested on its own below)."""
-    monkeypatch.setattr(stability, "default_split", lambda device_name=None: "steps")
-
-
 def rotation_angle_degrees(a: np.ndarray, b: np.ndarray) -> float:
     cosine = (np.trace(a @ b.T) - 1.0) / 2.0
     return float(np.degrees(np.arccos(np.clip(cosine, -1.0, 1.0))))
@@ -126,9 +118,7 @@ def test_study_runs_end_to_end(stability, tiny_scene, tmp_path, monkeypatch):
         written = list(csv.DictReader(handle))
     assert len(written) == len(jobs)
     for row in written:
-        # (two members of half the batch on a CPU, 3 steps each: the study counts both members' steps)
-        assert row["members"] == "2" and row["members_split_used"] == "batch"
-        assert row["steps_done"] == "6" or row["minutes"] == "0.05"
+        assert row["steps_done"] == "3" or row["minutes"] == "0.05"
         assert row["warnings"] == "0"
         for column in ("psnr", "ssim", "psnr_matched", "train_seconds"):
             assert math.isfinite(float(row[column])), (column, row)
@@ -279,7 +269,6 @@ def test_a_new_default_colour_start_re_runs_the_default_and_old_rows_stand_until
     assert paper.colour_start == "random" and stability.train_config(paper, held).field_overrides == {}
 
 
-@pytest.mark.usefixtures("members_split_the_steps")
 def test_a_run_whose_sweep_faded_otherwise_than_now_is_run_again(stability, tmp_path):
     """Rows logged before the fade depended on the photo count faded over TEACHER_FADE: a
     run of few photos is trained again, one of more photos and the paper's network (no sweep)
@@ -301,7 +290,6 @@ def test_a_run_whose_sweep_faded_otherwise_than_now_is_run_again(stability, tmp_
     assert jobs["fast", few].key in stability.load_log(log)
 
 
-@pytest.mark.usefixtures("members_split_the_steps")
 def test_a_run_with_another_member_count_than_the_rule_now_gives_is_run_again(stability, tiny_scene, tmp_path):
     """neulf_core/members.py: two members where the budget passes over the training pixels at
     least 60 times.  The tiny scene's 7 training views of 48 x 36 pixels at 8192 rays a step:
@@ -326,33 +314,23 @@ def test_a_run_with_another_member_count_than_the_rule_now_gives_is_run_again(st
     assert len(stability.load_log(log)) == 1
 
 
-def test_runs_whose_members_split_the_steps_stand_until_run_again_where_the_default_splits_the_batch(
-        stability, tiny_scene, tmp_path, monkeypatch):
-    """On a CPU the default trains two members of half the batch at any budget (members.default_split):
-    a run logged with its members splitting the steps (or one member by their rule) is reported
-    until the study runs it again, with a note; a run of the batch split with another count is run
-    again; a job that asked for a split is judged by it."""
-    monkeypatch.setattr(stability, "default_split", lambda device_name=None: "batch")
-
-    def row(seed, members=None, used=None, split=None):
-        job = stability.Job("tiny", str(tiny_scene), str(tiny_scene), 1.0, "fast", 1000, seed, members_split=split)
+def test_a_run_whose_members_split_the_budget_otherwise_than_its_job_says_is_run_again(stability, tiny_scene):
+    """The sixty-second session trained the default's jobs with members splitting the batch
+    (logged in `members_split_used`); the default splits the steps, so those rows are run again,
+    while a job that asked for the batch split stands with two members of it."""
+    def row(members, used=None, split=None):
+        job = stability.Job("tiny", str(tiny_scene), str(tiny_scene), 1.0, "fast", 1000, 0, members_split=split)
         return {**stability.asdict(job), "train_views": 7, "status": "finished", "psnr": 30.0,
                 "sweep_fade": stability.sweep_fade("fast", 7), "members": members, "members_split_used": used}
 
-    assert stability.trained_before_members_split_the_batch(row(0, 2))          # two of half the steps
-    assert stability.trained_before_members_split_the_batch(row(0, 1))          # one by their rule
-    assert not stability.trained_before_members_split_the_batch(row(0, 2, "batch"))
-    assert not stability.trained_with_other_members(row(0, 2, "batch"))
-    assert stability.trained_with_other_members(row(0, 1, "batch"))             # (a count the rule never gives)
-    assert not stability.trained_before_members_split_the_batch(row(0, 2, None, "steps"))  # asked for the steps
-    assert not stability.trained_with_other_members(row(0, 2, None, "steps"))
-    assert stability.split_used(row(0, 2, None, "batch")) == "batch"           # (rows of a forced split before the column)
-    assert_stale_row_reported_until_run_again(stability, tmp_path / "runs.jsonl", row(0, 2), row(1, 2, "batch"),
-                                              stability.older_members_split_note,
-                                              "1 runs were trained before the default's members split the batch")
+    assert stability.trained_with_other_members(row(2, "batch"))        # the default's job, the batch split
+    assert not stability.trained_with_other_members(row(2, "steps"))    # 1000 steps: 674 passes, two members
+    assert not stability.trained_with_other_members(row(2, "batch", "batch"))
+    assert not stability.trained_with_other_members(row(2, None, "batch"))  # (a forced split before the column)
+    assert stability.trained_with_other_members(row(1, None, "batch"))  # the batch split trains two
+    assert stability.split_used(row(2, None, "batch")) == "batch" and stability.split_used(row(1)) == "steps"
 
 
-@pytest.mark.usefixtures("members_split_the_steps")
 def test_a_run_that_refined_its_poses_with_the_depth_like_part_held_otherwise_is_run_again(stability, tiny_scene, tmp_path):
     """poses.DEPTH_LIKE_GAUGE: a logged run that refined its poses (by the check's verdict or
     forced) and held the corrections' depth-like part otherwise -- rows logged before it was
@@ -524,7 +502,6 @@ def test_the_fewer_views_target_states_its_standard_error(stability):
     assert "standard error" not in next(line for line in stability.targets(single) if "views on canclip" in line)
 
 
-@pytest.mark.usefixtures("members_split_the_steps")
 def test_a_deep_scene_trained_with_other_surfaces_is_run_again(stability, tiny_scene, tmp_path):
     """Since deep scenes train with a back surface (train.default_back_surface) whose features
     the fast preset blends (DisparityConfig.back_surface_blend), a fast run of one logged
@@ -556,7 +533,6 @@ def test_a_deep_scene_trained_with_other_surfaces_is_run_again(stability, tiny_s
     assert sorted(row["seed"] for row in older.values()) == [0, 2]  # kept for the report until re-run
 
 
-@pytest.mark.usefixtures("members_split_the_steps")
 def test_a_run_whose_losses_the_rule_now_decides_otherwise_is_run_again(stability, tiny_scene, tmp_path):
     """A fast run of 14 photos of a deep scene logged with the multi-view losses on to its end
     is trained again where the pose check found its poses right and its colours were not learned
@@ -599,7 +575,6 @@ def test_the_losses_table_says_how_long_the_defaults_losses_ran(stability):
     assert stability.losses_default_cell([]) == "-"
 
 
-@pytest.mark.usefixtures("members_split_the_steps")
 def test_a_run_that_started_its_field_again_otherwise_than_the_rule_now_decides_is_run_again(stability, tiny_scene,
                                                                                              tmp_path):
     """train.poses_far_off: a logged run of a shallow scene that refined its poses and started
