@@ -5,7 +5,8 @@ computes before its first step and counts in the training budget.
         [--repeats 3] [--threads 1] [--label NAME] [--out docs/sweep_time.csv]
 
 Sweeps the scene's training views (every 8th view held out, as training does) at the scale
-the trainer would (`teacher.sweep_depth_targets`), `--repeats` times in this process, and
+the trainer would (`teacher.compute_sweep_depth_targets`, which the trainer reaches through
+`sweep_depth_targets`, which keeps the last result), `--repeats` times in this process, and
 prints the median; appends one row per run to the CSV with `--label` (e.g. the commit), so
 two versions of the code can be compared on one machine. Also prints a checksum of the
 targets: two versions that agree to the bit print the same one.
@@ -29,7 +30,7 @@ sys.path.insert(0, str(REPO / "benchmarks"))
 
 from neulf_core.scene import load_scene, split_views  # noqa: E402
 from neulf_core.slab import fit_slab  # noqa: E402
-from neulf_core.teacher import sweep_depth_targets  # noqa: E402
+from neulf_core.teacher import compute_sweep_depth_targets  # noqa: E402
 from speed_accuracy import append_rows, hardware  # noqa: E402
 
 COLUMNS = ["date", "machine", "label", "scene", "scale", "train_views", "repeat", "seconds", "checksum"]
@@ -53,7 +54,7 @@ def main(argv=None) -> None:
     rows = []
     for repeat in range(args.repeats):
         started = time.perf_counter()
-        units, confidences = sweep_depth_targets(train_views, slab, args.scale)
+        units, confidences = compute_sweep_depth_targets(train_views, slab, args.scale)
         seconds = time.perf_counter() - started
         checksum = hashlib.sha1(units.numpy().tobytes() + confidences.numpy().tobytes()).hexdigest()[:12]
         rows.append({"date": date.today().isoformat(), "machine": hardware(torch.device("cpu")), "label": args.label,

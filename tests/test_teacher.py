@@ -3,6 +3,8 @@ surface, and training with it counts the sweep in the budget and resumes."""
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 import torch
@@ -17,6 +19,14 @@ from neulf_core import teacher
 from neulf_core.teacher import (TEACHER_FADE, TEACHER_FADE_FEW, TEACHER_FEW_VIEWS, TEACHER_FULL_VIEWS, sweep_depth_targets,
                                 teacher_fade, teacher_weight)
 from neulf_core.train import TrainConfig, train
+
+
+@pytest.fixture(autouse=True)
+def sweep_afresh():
+    """Each test sweeps its photos as a new process would: the trainer's sweeps are kept for the
+    next call with the same inputs (teacher.sweep_depth_targets), and the tests here read the
+    sweep's progress messages."""
+    teacher._last_sweep.clear()
 
 
 def _true_units(views, slab, scale: float) -> torch.Tensor:
@@ -43,6 +53,38 @@ def test_sweep_depth_per_training_ray_matches_the_surface(tiny_scene):
     assert float(trusted.float().mean()) > 0.3
     # 32 planes: one plane step is 1/31 of the unit range.
     assert float(error[trusted].median()) < 1.5 / 31, float(error[trusted].median())
+
+
+def test_the_same_photos_are_swept_once_and_other_poses_again(tiny_scene, monkeypatch):
+    """A model's members and the better of two starts sweep the same photos: the second call
+    gets the first one's result (copies, so a change to one leaves the kept result alone); a
+    photo's pose moved, or another scale, sweeps again."""
+    scene = load_scene(tiny_scene)
+    views, _ = split_views(scene, holdout_every=0)
+    slab = fit_slab(scene, views)
+    sweeps = []
+    original = teacher.compute_sweep_depth_targets
+    monkeypatch.setattr(teacher, "compute_sweep_depth_targets", lambda *a, **k: sweeps.append(1) or original(*a, **k))
+    first = sweep_depth_targets(views, slab, 1.0)
+    first[0].zero_()
+    again = sweep_depth_targets(views, slab, 1.0)
+    fresh = original(views, slab, 1.0)
+    assert len(sweeps) == 1 and torch.equal(again[0], fresh[0]) and torch.equal(again[1], fresh[1])
+    moved = [replace(views[0], t=views[0].t + 1e-3)] + views[1:]
+    sweep_depth_targets(moved, slab, 1.0)
+    sweep_depth_targets(moved, slab, 0.5)
+    assert len(sweeps) == 3
+
+
+def test_two_members_sweep_once(tiny_scene, tmp_path, monkeypatch):
+    sweeps = []
+    original = teacher.compute_sweep_depth_targets
+    monkeypatch.setattr(teacher, "compute_sweep_depth_targets", lambda *a, **k: sweeps.append(1) or original(*a, **k))
+    events = []
+    train(tiny_scene, tmp_path / "m", TrainConfig(steps=20, batch_size=256, teacher=True, members=2, two_starts=False,
+                                                  validate_seconds=1e9, checkpoint_seconds=1e9), progress=events.append)
+    assert len(sweeps) == 1
+    assert any(e.get("member") == 2 for e in events)
 
 
 def test_the_pull_fades_out_halfway():
@@ -76,6 +118,7 @@ def test_a_resumed_run_sweeps_again_while_its_own_fade_lasts(tiny_scene, tmp_pat
         out, events = tmp_path / f"m{kept}", []
         options = dict(batch_size=256, teacher=True, exclude=exclude, validate_seconds=1e9, checkpoint_seconds=1e9)
         train(tiny_scene, out, TrainConfig(steps=10, **options))
+        teacher._last_sweep.clear()  # (a resume is a new process: nothing kept of the first run's sweep)
         train(tiny_scene, out, TrainConfig(steps=30, **options), resume=True, progress=events.append)
         swept = [e for e in events if "sweep depth of" in e.get("message", "")]
         assert bool(swept) == sweeps, kept
@@ -135,6 +178,7 @@ def test_training_with_the_teacher_learns_the_depth_and_resumes(tiny_scene, tmp_
     assert float(error.median()) < 0.042, float(error.median())
     # Past the teacher's part of the budget a resumed run does not sweep again.
     events.clear()
+    teacher._last_sweep.clear()  # (as a new process: a sweep here would say so)
     train(tiny_scene, tmp_path / "m", TrainConfig(steps=150, teacher=True, validate_seconds=1e9), resume=True,
           progress=events.append)
     assert not any("sweep depth of" in e.get("message", "") for e in events)
