@@ -82,7 +82,8 @@ def sweep_scale_for(train_views, scale: float, slab: Slab) -> float:
 
 # The last sweep computed in this process, by its inputs (sweep_key): a model's members and
 # the better-of-two-starts rule train the same photos again, and each recomputed the same sweep
-# -- 7.7 s of HCI's 28 s run at the stability study's 1000 steps, one thread.  One entry: the
+# -- about 5 s of HCI's 28 s run at the stability study's 1000 steps, one thread (its two
+# members of half the batch: 51.7 -> 46.9 s, every PSNR to the digit; docs/MEMBERS.md).  One entry: the
 # targets are one float pair per training ray (HCI's 4.6 M rays: 37 MB).
 _last_sweep: dict[str, tuple[torch.Tensor, torch.Tensor]] = {}
 
