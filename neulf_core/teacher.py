@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+from contextlib import contextmanager
 
 import numpy as np
 import torch
@@ -80,12 +81,26 @@ def sweep_scale_for(train_views, scale: float, slab: Slab) -> float:
     return min(SWEEP_SCALE, (DEEP_SWEEP_PIXELS / (width * height)) ** 0.5)
 
 
-# The last sweep computed in this process, by its inputs (sweep_key): a model's members and
-# the better-of-two-starts rule train the same photos again, and each recomputed the same sweep
-# -- about 5 s of HCI's 28 s run at the stability study's 1000 steps, one thread (its two
-# members of half the batch: 51.7 -> 46.9 s, every PSNR to the digit; docs/MEMBERS.md).  One entry: the
-# targets are one float pair per training ray (HCI's 4.6 M rays: 37 MB).
+# The last sweep of a training call (train.train), by its inputs (sweep_key): a model's members
+# and the better-of-two-starts rule train the same photos again, and each recomputed the same
+# sweep -- about 5 s of HCI's 28 s run at the stability study's 1000 steps, one thread (its two
+# members of half the batch: 51.7 -> 46.9 s, every PSNR to the digit; docs/MEMBERS.md).  One
+# entry, and only while a training call runs (sweeps_kept): the targets are one float pair per
+# training ray (HCI's 4.6 M rays: 37 MB), a quarter of what the rays themselves hold.
 _last_sweep: dict[str, tuple[torch.Tensor, torch.Tensor]] = {}
+_keeping = [0]  # training calls under way in this process (nested: 0 or 1 in practice)
+
+
+@contextmanager
+def sweeps_kept():
+    """Within it the last sweep is kept for the next call with the same inputs; left, it is let go."""
+    _keeping[0] += 1
+    try:
+        yield
+    finally:
+        _keeping[0] -= 1
+        if not _keeping[0]:
+            _last_sweep.clear()
 
 
 def sweep_key(train_views, slab: Slab, scale: float, device, sweep_scale: float | None) -> str:
@@ -107,8 +122,10 @@ def sweep_key(train_views, slab: Slab, scale: float, device, sweep_scale: float 
 
 def sweep_depth_targets(train_views, slab: Slab, scale: float, device="cpu", on_view=None,
                         sweep_scale: float | None = None) -> tuple[torch.Tensor, torch.Tensor]:
-    """compute_sweep_depth_targets, or, for the same inputs as the last call in this process,
-    its result again (copies) without sweeping."""
+    """compute_sweep_depth_targets, or, within sweeps_kept and for the same inputs as the last
+    call there, its result again (copies) without sweeping."""
+    if not _keeping[0]:
+        return compute_sweep_depth_targets(train_views, slab, scale, device, on_view, sweep_scale)
     key = sweep_key(train_views, slab, scale, device, sweep_scale)
     if key in _last_sweep:
         unit, confidence = _last_sweep[key]

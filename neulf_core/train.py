@@ -33,7 +33,7 @@ from .poses import DEPTH_LIKE_GAUGE, POSE_CHECK_STEP, POSE_SECOND_LOOK_STEP, Pos
 from .presets import APPEARANCE_ADAM_BETA2, APPEARANCE_GEOMETRY, DEFAULT_PRESET, get_preset
 from .scene import Scene, load_scene, scaled_size, split_views
 from .slab import Slab, fit_slab
-from .teacher import strong_pull, sweep_depth_targets, teacher_fade, teacher_loss, teacher_weight
+from .teacher import strong_pull, sweep_depth_targets, sweeps_kept, teacher_fade, teacher_loss, teacher_weight
 from .point_depth import point_depth_loss, point_depth_targets
 
 VALIDATION_RAYS = 1 << 16
@@ -597,7 +597,7 @@ def train(scene: Scene | str | Path, model_dir: str | Path, config: TrainConfig,
     def train_one(scene, folder, config, images_dir, resume, progress, should_stop):
         return train_two_starts(_train, scene, folder, config, images_dir, resume, progress, should_stop)
 
-    with training_lock(model_dir):
+    with training_lock(model_dir), sweeps_kept():  # (members and starts sweep the same photos once)
         remove_stale_temporaries(model_dir)
         return train_members(train_one, scene, model_dir, config, images_dir, resume, progress, should_stop)
 

@@ -21,14 +21,6 @@ from neulf_core.teacher import (TEACHER_FADE, TEACHER_FADE_FEW, TEACHER_FEW_VIEW
 from neulf_core.train import TrainConfig, train
 
 
-@pytest.fixture(autouse=True)
-def sweep_afresh():
-    """Each test sweeps its photos as a new process would: the trainer's sweeps are kept for the
-    next call with the same inputs (teacher.sweep_depth_targets), and the tests here read the
-    sweep's progress messages."""
-    teacher._last_sweep.clear()
-
-
 def _true_units(views, slab, scale: float) -> torch.Tensor:
     """The slanted plane's slab-axis depth per ray (build_rayset's order), as a unit."""
     units = []
@@ -56,24 +48,29 @@ def test_sweep_depth_per_training_ray_matches_the_surface(tiny_scene):
 
 
 def test_the_same_photos_are_swept_once_and_other_poses_again(tiny_scene, monkeypatch):
-    """A model's members and the better of two starts sweep the same photos: the second call
-    gets the first one's result (copies, so a change to one leaves the kept result alone); a
-    photo's pose moved, or another scale, sweeps again."""
+    """A model's members and the better of two starts sweep the same photos: within a training
+    call the second sweep gets the first one's result (copies, so a change to one leaves the kept
+    result alone); a photo's pose moved, or another scale, sweeps again."""
     scene = load_scene(tiny_scene)
     views, _ = split_views(scene, holdout_every=0)
     slab = fit_slab(scene, views)
     sweeps = []
     original = teacher.compute_sweep_depth_targets
     monkeypatch.setattr(teacher, "compute_sweep_depth_targets", lambda *a, **k: sweeps.append(1) or original(*a, **k))
-    first = sweep_depth_targets(views, slab, 1.0)
-    first[0].zero_()
-    again = sweep_depth_targets(views, slab, 1.0)
-    fresh = original(views, slab, 1.0)
-    assert len(sweeps) == 1 and torch.equal(again[0], fresh[0]) and torch.equal(again[1], fresh[1])
-    moved = [replace(views[0], t=views[0].t + 1e-3)] + views[1:]
-    sweep_depth_targets(moved, slab, 1.0)
-    sweep_depth_targets(moved, slab, 0.5)
-    assert len(sweeps) == 3
+    with teacher.sweeps_kept():  # (what a training call holds)
+        first = sweep_depth_targets(views, slab, 1.0)
+        first[0].zero_()
+        again = sweep_depth_targets(views, slab, 1.0)
+        fresh = original(views, slab, 1.0)
+        assert len(sweeps) == 1 and torch.equal(again[0], fresh[0]) and torch.equal(again[1], fresh[1])
+        moved = [replace(views[0], t=views[0].t + 1e-3)] + views[1:]
+        sweep_depth_targets(moved, slab, 1.0)
+        sweep_depth_targets(moved, slab, 0.5)
+        assert len(sweeps) == 3 and teacher._last_sweep
+    assert not teacher._last_sweep  # let go when the training call ends
+    sweep_depth_targets(views, slab, 1.0)
+    sweep_depth_targets(views, slab, 1.0)
+    assert len(sweeps) == 5  # (outside one, each call sweeps)
 
 
 def test_two_members_sweep_once(tiny_scene, tmp_path, monkeypatch):
@@ -118,7 +115,6 @@ def test_a_resumed_run_sweeps_again_while_its_own_fade_lasts(tiny_scene, tmp_pat
         out, events = tmp_path / f"m{kept}", []
         options = dict(batch_size=256, teacher=True, exclude=exclude, validate_seconds=1e9, checkpoint_seconds=1e9)
         train(tiny_scene, out, TrainConfig(steps=10, **options))
-        teacher._last_sweep.clear()  # (a resume is a new process: nothing kept of the first run's sweep)
         train(tiny_scene, out, TrainConfig(steps=30, **options), resume=True, progress=events.append)
         swept = [e for e in events if "sweep depth of" in e.get("message", "")]
         assert bool(swept) == sweeps, kept
@@ -178,7 +174,6 @@ def test_training_with_the_teacher_learns_the_depth_and_resumes(tiny_scene, tmp_
     assert float(error.median()) < 0.042, float(error.median())
     # Past the teacher's part of the budget a resumed run does not sweep again.
     events.clear()
-    teacher._last_sweep.clear()  # (as a new process: a sweep here would say so)
     train(tiny_scene, tmp_path / "m", TrainConfig(steps=150, teacher=True, validate_seconds=1e9), resume=True,
           progress=events.append)
     assert not any("sweep depth of" in e.get("message", "") for e in events)
