@@ -37,8 +37,9 @@ sys.path.insert(0, str(REPO / "benchmarks"))
 from seed_scatter import parse_seeds as seed_list  # noqa: E402  ("0-7", "0,1" or a mix)
 DOCS = REPO / "docs"
 # The scenes (folders under --data): the scale each trains at and its photo folder (None: the
-# model's own), as the README's per-scene figures train them.
-SCENES = {"canclip": (0.5, None), "statue": (0.5, None), "fern": (1.0, "images_8")}
+# model's own), as the README's per-scene figures train them; HCI's dense 9 x 9 grid (81 views of
+# 512 x 512) at the stability study's half scale.
+SCENES = {"canclip": (0.5, None), "statue": (0.5, None), "fern": (1.0, "images_8"), "hci_antinous": (0.5, None)}
 
 
 def parse_setting(text: str) -> tuple[str, dict]:
