@@ -73,15 +73,22 @@ def test_the_same_photos_are_swept_once_and_other_poses_again(tiny_scene, monkey
     assert len(sweeps) == 5  # (outside one, each call sweeps)
 
 
-def test_two_members_sweep_once(tiny_scene, tmp_path, monkeypatch):
+def test_two_members_sweep_once_and_train_as_each_would_alone(tiny_scene, tmp_path, monkeypatch):
+    from conftest import assert_same_weights
+    from neulf_core.members import MEMBER_SEED_OFFSET, member_dir
+
     sweeps = []
     original = teacher.compute_sweep_depth_targets
     monkeypatch.setattr(teacher, "compute_sweep_depth_targets", lambda *a, **k: sweeps.append(1) or original(*a, **k))
+    options = dict(batch_size=256, teacher=True, two_starts=False, refine_poses=False, validate_seconds=1e9,
+                   checkpoint_seconds=1e9)
     events = []
-    train(tiny_scene, tmp_path / "m", TrainConfig(steps=20, batch_size=256, teacher=True, members=2, two_starts=False,
-                                                  validate_seconds=1e9, checkpoint_seconds=1e9), progress=events.append)
-    assert len(sweeps) == 1
-    assert any(e.get("member") == 2 for e in events)
+    train(tiny_scene, tmp_path / "m", TrainConfig(steps=20, members=2, seed=4, **options), progress=events.append)
+    assert len(sweeps) == 1 and any(e.get("member") == 2 for e in events)
+    # The second member, on the first one's sweep, is the run its seed and share give alone.
+    train(tiny_scene, tmp_path / "alone", TrainConfig(steps=10, members=1, seed=4 + MEMBER_SEED_OFFSET, **options))
+    assert len(sweeps) == 2
+    assert_same_weights(member_dir(tmp_path / "m", 2), tmp_path / "alone")
 
 
 def test_the_pull_fades_out_halfway():
