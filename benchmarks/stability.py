@@ -1545,14 +1545,19 @@ def csv_value(text: str):
     return text
 
 
+def read_csv_rows(table: Path) -> list[dict]:
+    """The runs of a CSV write_csv wrote, each value as it was logged (csv_value)."""
+    with open(table, newline="") as handle:
+        return [{k: csv_value(v) for k, v in row.items()} for row in csv.DictReader(handle)]
+
+
 def seed_log_from_csv(log: Path, table: Path) -> int:
     """Start a missing run log from the committed CSV (one row per run, every field a Job is
     keyed by): the log lives in the temp folder, which a fresh machine does not have, and
     without it the study would train all its runs again.  Returns the rows written."""
     if log.is_file() or not table.is_file():
         return 0
-    with open(table, newline="") as handle:
-        rows = [{k: csv_value(v) for k, v in row.items()} for row in csv.DictReader(handle)]
+    rows = read_csv_rows(table)
     for row in rows:
         # The CSV kept no `member_poses` before 2026-11-28; a run of several members it holds was
         # reported, so it stood: it was trained with the later members following the first.

@@ -16,7 +16,7 @@ is higher.  With `--doc` the table replaces the block between `<!-- MARKER begin
 from __future__ import annotations
 
 import argparse
-import csv
+import json
 import statistics
 import sys
 from pathlib import Path
@@ -29,22 +29,16 @@ import stability  # noqa: E402  (the study's job fields, CSV reading and configu
 SPREAD_TARGET = 0.2  # dB, issue 4's seed target (max - min over the seeds)
 
 
-def read_runs(path: Path) -> list[dict]:
-    with open(path, newline="") as handle:
-        return [{k: stability.csv_value(v) for k, v in row.items()} for row in csv.DictReader(handle)]
+def job_of(row: dict) -> "stability.Job":
+    return stability.Job(**{f.name: row.get(f.name) for f in stability.fields(stability.Job)})
 
 
-def configuration(row: dict) -> tuple:
-    """Everything of the run's job but its seed (stability.Job's fields, as logged)."""
-    return tuple((name, row.get(name)) for name in sorted(f.name for f in stability.fields(stability.Job))
-                 if name != "seed")
-
-
-def by_configuration(rows: list[dict]) -> dict[tuple, dict[int, dict]]:
-    found: dict[tuple, dict[int, dict]] = {}
+def by_configuration(rows: list[dict]) -> dict[str, dict[int, dict]]:
+    """Job.configuration (everything of the run's job but its seed) -> seed -> finished run."""
+    found: dict[str, dict[int, dict]] = {}
     for row in rows:
         if row.get("status") == "finished" and row.get("psnr") is not None:
-            found.setdefault(configuration(row), {})[int(row["seed"])] = row
+            found.setdefault(job_of(row).configuration, {})[int(row["seed"])] = row
     return found
 
 
@@ -52,10 +46,10 @@ def paired(base: list[dict], candidate: list[dict]) -> list[tuple[dict, list[dic
     """(job fields, base runs, candidate runs) of each configuration both ran, on the seeds both ran."""
     ours, theirs = by_configuration(base), by_configuration(candidate)
     out = []
-    for key in sorted(set(ours) & set(theirs), key=lambda k: tuple(str(v) for _, v in k)):
+    for key in sorted(set(ours) & set(theirs)):
         seeds = sorted(set(ours[key]) & set(theirs[key]))
         if len(seeds) >= 2:
-            out.append((dict(key), [ours[key][s] for s in seeds], [theirs[key][s] for s in seeds]))
+            out.append((json.loads(key), [ours[key][s] for s in seeds], [theirs[key][s] for s in seeds]))
     return out
 
 
@@ -104,7 +98,7 @@ def parse_args(argv=None) -> argparse.Namespace:
 
 def main(argv=None) -> None:
     args = parse_args(argv)
-    text = table(paired(read_runs(args.base), read_runs(args.candidate)), args.name)
+    text = table(paired(stability.read_csv_rows(args.base), stability.read_csv_rows(args.candidate)), args.name)
     if args.doc:
         write_block(args.doc, args.marker, text)
     print(text)
