@@ -6,6 +6,7 @@
         --noise-draws 1234,101,202,303 --tag held
     python benchmarks/study_probe.py ... --root /tmp/old --tag prior      # a git worktree of an older commit
     python benchmarks/study_probe.py --scene lambertian --fraction 0.75 --seeds 0,4 --keep /tmp/models  # keep the models
+    python benchmarks/study_probe.py --scene fern --fraction 0.25 --minutes 1 --seeds 0-3 --tag one-minute  # equal time
 
 Each run is a stability-study job (benchmarks/stability.py: its scenes, held-out views, pose
 noise, training config and scores, `fast` preset, one torch thread) in a process of its own,
@@ -99,21 +100,23 @@ def parse_list(text: str, kind=float) -> list:
 
 def plan(args, study) -> list[tuple[dict, str, int | None, str, str]]:
     """The tasks: every pose noise x noise draw x seed of the asked configuration."""
-    scenes = {"canclip": (args.canclip, args.canclip_scale), "hci": (args.hci, args.hci_scale)}
+    scenes = {"canclip": (args.canclip, args.canclip_scale), "hci": (args.hci, args.hci_scale),
+              "fern": (args.fern, args.fern_scale)}
     for variant in ("lambertian", "shiny", "fine"):
         if args.scene == variant:
             scenes[variant] = (study.render_synthetic(args.scenes_cache, variant), args.synth_scale)
     if args.scene not in scenes or not Path(scenes[args.scene][0]).is_dir():
-        raise SystemExit(f"no scene '{args.scene}' here; choose canclip, hci, lambertian, shiny or fine "
-                         "(the real captures from ../shared/data, or --canclip / --hci)")
+        raise SystemExit(f"no scene '{args.scene}' here; choose canclip, hci, fern, lambertian, shiny or fine "
+                         "(the real captures from ../shared/data, or --canclip / --hci / --fern)")
     path, scale = scenes[args.scene]
     draws = parse_list(args.noise_draws, int) if args.noise_draws else [None]
     tasks = []
     for degrees in parse_list(args.pose_degrees):
         for draw in draws:
             for seed in parse_list(args.seeds, int):
-                job = study.Job(args.scene, str(path), str(path), scale, "fast", args.steps, seed,
-                                fraction=args.fraction, pose_degrees=degrees,
+                # (a minutes budget as the study's losses jobs set it: no step count)
+                job = study.Job(args.scene, str(path), str(path), scale, "fast", 0 if args.minutes else args.steps, seed,
+                                fraction=args.fraction, pose_degrees=degrees, minutes=args.minutes or 0.0,
                                 colour_start=study.preset_colour_start("fast"), appearance=False)
                 tasks.append((asdict(job), str(Path(args.patch).resolve()) if args.patch else "", draw, str(args.root),
                               str(args.keep.resolve()) if args.keep else ""))
@@ -145,11 +148,13 @@ def summary_lines(rows: list[dict], tag: str) -> list[str]:
 
 def parse_args(argv=None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--scene", default="canclip", help="canclip, hci, lambertian, shiny or fine")
+    parser.add_argument("--scene", default="canclip", help="canclip, hci, fern, lambertian, shiny or fine")
     parser.add_argument("--fraction", type=float, default=1.0, help="share of the training views kept")
     parser.add_argument("--pose-degrees", default="0", help="comma-separated pose noises (degrees)")
     parser.add_argument("--seeds", default="0-2")
     parser.add_argument("--steps", type=int, default=1000)
+    parser.add_argument("--minutes", type=float, default=None,
+                        help="a minutes budget instead of --steps (as the study's losses jobs train)")
     parser.add_argument("--noise-draws", default="", help="comma-separated seeds of the pose noise (default: the study's)")
     parser.add_argument("--patch", help="a Python file run in each worker before its job")
     parser.add_argument("--root", type=Path, default=HERE.parent, help="the checkout whose code runs")
@@ -164,6 +169,8 @@ def parse_args(argv=None) -> argparse.Namespace:
     parser.add_argument("--canclip-scale", type=float, default=0.25)
     parser.add_argument("--hci", type=Path, default=None)
     parser.add_argument("--hci-scale", type=float, default=0.5)
+    parser.add_argument("--fern", type=Path, default=None)
+    parser.add_argument("--fern-scale", type=float, default=0.5, help="of fern's 504x378 images_8 (the study's)")
     parser.add_argument("--synth-scale", type=float, default=0.5)
     return parser.parse_args(argv)
 
@@ -179,6 +186,7 @@ def main(argv=None) -> None:
 
     args.scenes_cache = args.scenes_cache or stability.DEFAULT_CACHE
     args.canclip, args.hci = args.canclip or stability.CANCLIP, args.hci or stability.HCI
+    args.fern = args.fern or stability.FERN
     tasks = plan(args, stability)
     # One job per process (spawned, so a patch or another checkout never leaks into the next).
     pool = get_context("spawn").Pool(args.workers, maxtasksperchild=1)

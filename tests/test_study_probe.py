@@ -66,3 +66,25 @@ def test_the_command_line_refuses_a_missing_patch_or_checkout(probe, tmp_path):
         probe.main(["--root", str(tmp_path)])
     assert json.dumps(probe.parse_list("0-3", int)) == "[0, 1, 2, 3]"
     assert probe.parse_list("0.25,0.5") == [0.25, 0.5]
+
+
+def test_a_minutes_budget_and_fern_plan_the_study_s_jobs(probe, tmp_path):
+    import stability
+
+    fern = tmp_path / "fern"
+    fern.mkdir()
+    args = probe.parse_args(["--scene", "fern", "--fraction", "0.25", "--minutes", "1", "--seeds", "0-1",
+                             "--fern", str(fern)])
+    tasks = probe.plan(args, stability)
+    jobs = [stability.Job(**task[0]) for task in tasks]
+    assert [job.seed for job in jobs] == [0, 1]
+    # as the study's losses jobs: a minutes budget and no step count, at the study's scale of fern
+    assert all(job.minutes == 1.0 and job.steps == 0 and job.scale == 0.5 and job.path == str(fern) for job in jobs)
+    held = []
+    assert stability.train_config(jobs[0], held).minutes == 1.0 and stability.train_config(jobs[0], held).steps is None
+    # without --minutes the steps budget stands
+    steps_job = stability.Job(**probe.plan(probe.parse_args(["--scene", "fern", "--fern", str(fern), "--seeds", "0"]),
+                                           stability)[0][0])
+    assert steps_job.steps == 1000 and not steps_job.minutes
+    with pytest.raises(SystemExit, match="no scene 'fern'"):
+        probe.plan(probe.parse_args(["--scene", "fern", "--fern", str(tmp_path / "missing")]), stability)
