@@ -68,7 +68,7 @@ sys.path.insert(0, str(REPO))
 from neulf_core.appearance import linear_to_srgb, srgb_to_linear  # noqa: E402
 from neulf_core.errors import NeulfError  # noqa: E402
 from neulf_core.images import save_rgb  # noqa: E402
-from neulf_core.members import finished_members, members_by_rule, read_state, work_done  # noqa: E402
+from neulf_core.members import default_split, finished_members, members_by_rule, read_state, work_done  # noqa: E402
 from neulf_core.metrics import psnr, ssim  # noqa: E402
 from neulf_core.poses import (DEPTH_LIKE_GAUGE, POSE_CHECK_DEGREES, POSE_CHECK_STEP, POSE_CHECK_UNSURE_DEGREES,  # noqa: E402
                               POSE_SECOND_LOOK_DEGREES, POSE_SECOND_LOOK_STEP, fit_view_pose)
@@ -614,7 +614,7 @@ def trained_with_another_restart_rule(row: dict) -> bool:
 
 def split_used(row: dict) -> str:
     """How the logged run's members shared its budget (members.SPLITS): as logged, else the split
-    its job asked for, else the steps (the default's)."""
+    its job asked for, else the steps (the default's until the sixty-fourth session)."""
     return row.get("members_split_used") or row.get("members_split") or "steps"
 
 
@@ -630,10 +630,10 @@ def trained_with_other_members(row: dict) -> bool:
     logged = int(row.get("members") or 1)
     if not row.get("train_views"):
         return False
-    split = row.get("members_split") or "steps"
+    split = row.get("members_split") or default_split("cpu")  # (the study trains on a CPU)
     if logged > 1 and split_used(row) != split:
         return True
-    if split == "batch":  # two members at any budget
+    if row.get("members_split") == "batch":  # asked for: two members at any budget
         return logged != members_by_rule(None, "batch")
     if row.get("minutes") and row.get("members") is not None:
         return False

@@ -16,7 +16,7 @@ from .preferences import get_core, get_prefs, worker_python
 from .properties import CHOICE_OPTION
 from ..neulf_core.errors import NeulfError
 from ..neulf_core.lock import being_trained_message, training_holder
-from ..neulf_core.members import work_done
+from ..neulf_core.members import budget_done
 
 RENDER_IMAGE = "NeuLF Render"
 DEPTH_IMAGE = "NeuLF Depth"
@@ -275,8 +275,8 @@ def start_training(context, *, minutes=None, steps=None):
                                                              "to continue it"))
     resume = (Path(out) / "checkpoint.pt").is_file()
     resumed_from = None
-    if resume:  # budgets count from the start of training: add to what is done (all members together)
-        done_steps, done_seconds = work_done(out)
+    if resume:  # budgets count from the start of training: add to what is done (as the budget counts it)
+        done_steps, done_seconds = budget_done(out)
         resumed_from = done_steps
         if steps:
             steps = done_steps + int(steps)

@@ -75,6 +75,20 @@ RATE_DECISION_STEP = 210
 # kept 28 of 36 configurations' three seeds inside 0.2 dB against 29, and lost 0.41-0.46 dB on HCI,
 # whose fields lose 0.9 dB with half the rays where the mean of two gets back 0.44.
 SPLITS = ("steps", "batch")
+# The default's split (members_split None) where it trains several members: the batch on a CPU,
+# the steps elsewhere.  On a CPU a step of half the batch takes 0.5-0.75 of the time, so two
+# members of half the batch make more steps in the same minutes than two of the whole batch
+# and half the minutes each.  Where the rule gives two members (at least MEMBERS_PASSES) the
+# second field's frame time and size are paid either way, and the batch split gained at equal
+# time: the stability study's jobs at 1 minute, four seeds, AMD EPYC, 2 cores (docs/MEMBERS.md,
+# sixty-third session): 25 of 28 pairs up, +0.15 dB on average -- the synthetic scene's 10
+# photos 31.31 +- 0.091 -> 31.50 +- 0.040, shiny 30.71 -> 30.98, CanClip's 6 photos 35.56 ->
+# 35.78, fern's 4 photos 21.79 -> 21.85; at the study's 1000 steps its seven such
+# configurations -0.06 to +0.23 dB.  On a GPU a step's time hardly grows with its rays, so half
+# the batch would buy few more steps: the steps split stays there (measured on an H200,
+# docs/members_h200/MEMBERS.md).  Below MEMBERS_PASSES the default trains one member either way
+# (the batch split at every budget lost on HCI, above).
+DEFAULT_SPLIT_ON_CPU = "batch"
 
 
 def members_by_rule(passes: float | None, split: str = "steps") -> int | None:
@@ -88,14 +102,19 @@ def members_by_rule(passes: float | None, split: str = "steps") -> int | None:
     return RULE_MEMBERS if passes >= MEMBERS_PASSES else 1
 
 
-def member_split(config, model_dir: Path | None = None) -> str:
+def default_split(device_type: str) -> str:
+    """How the default's members share a budget on a device of this type ("cpu", "cuda", "mps")."""
+    return DEFAULT_SPLIT_ON_CPU if device_type == "cpu" else "steps"
+
+
+def member_split(config, model_dir: Path | None = None, device_type: str = "cpu") -> str:
     """How the members of this run share its budget: a model's own split when it has members
     already (members.json; models before the choice existed split the steps), else as asked
-    (`config.members_split`; None: the steps)."""
+    (`config.members_split`; None: the default's on this device type, default_split)."""
     state = read_state(model_dir) if model_dir is not None else None
     if state is not None:
         return state.get("split", "steps")
-    split = getattr(config, "members_split", None) or "steps"
+    split = getattr(config, "members_split", None) or default_split(device_type)
     if split not in SPLITS:
         raise NeulfError(f"--members-split takes {' or '.join(SPLITS)}, not {split!r}.")
     return split
@@ -193,6 +212,22 @@ def work_done(model_dir: str | Path) -> tuple[int, float]:
     return steps, seconds
 
 
+def budget_done(model_dir: str | Path) -> tuple[int, float]:
+    """(steps, seconds) of the budget used so far, in the units a budget counts: the seconds of
+    all the members; the steps of all of them where they split the steps, of the first where they
+    split the batch (each trains all the steps).  What Blender's Train adds its budget to when it
+    continues a model, and the step the end of training reports."""
+    steps, seconds = work_done(model_dir)
+    state = read_state(Path(model_dir))
+    if state is not None and state.get("split") == "batch":
+        try:
+            progress = json.loads((Path(model_dir) / METADATA_FILE).read_text()).get("progress", {})
+            steps = int(progress.get("step", 0))
+        except (OSError, ValueError):
+            steps = 0
+    return steps, seconds
+
+
 def _rule_pending(model_dir: Path) -> bool:
     """Whether the model's first member trains under the rule and has not decided it (a
     minutes budget stopped before the step rate was measured)."""
@@ -211,16 +246,17 @@ def training_pixels(scene, config) -> int:
     return sum(w * h for w, h in (scaled_size(view.size, config.scale) for view in train_views))
 
 
-def _decide_upfront(scene, config, progress) -> int | None:
-    """The rule's count where the budget says it before training (a steps budget alone)."""
-    split = member_split(config)
-    if config.minutes and split != "batch":
+def _decide_upfront(scene, config, progress, split: str) -> int | None:
+    """The rule's count where the budget says it before training: a steps budget, or members
+    asked to split the batch (two at any budget)."""
+    asked_batch = getattr(config, "members_split", None) == "batch"
+    if config.minutes and not asked_batch:
         return None  # learnt from the step rate in the first member (train._train)
     from .presets import get_preset
     from .train import budget_passes
 
-    if split == "batch":  # two at any budget: no passes to count
-        count = members_by_rule(None, split)
+    if asked_batch:  # two at any budget: no passes to count
+        count = members_by_rule(None, "batch")
         if progress is not None:
             progress({"event": "stage", "message": f"{count} members, each with 1/{count} of the rays a step "
                                                    "(--members 1 for one)", "members": count})
@@ -230,9 +266,16 @@ def _decide_upfront(scene, config, progress) -> int | None:
     count = members_by_rule(passes)
     if count > 1 and progress is not None:
         progress({"event": "stage", "message": f"{count} members: the budget passes over the training pixels "
-                                               f"{passes:.0f} times (at least {MEMBERS_PASSES:.0f}; --members 1 for one)",
-                  "members": count})
+                                               f"{passes:.0f} times (at least {MEMBERS_PASSES:.0f}; --members 1 for one)"
+                                               f"{share_words(split, count)}", "members": count})
     return count
+
+
+def share_words(split: str, count: int) -> str:
+    """How the members share the budget, for the message that announces them."""
+    if split == "batch":
+        return f", each all the steps with 1/{count} of the rays a step"
+    return f", each 1/{count} of the budget"
 
 
 class _MemberProgress:
@@ -247,7 +290,7 @@ class _MemberProgress:
         kind = event.get("event")
         if kind == "members" and self.on_decided is not None:  # the rule, decided in the first member
             self.count = int(event["count"])
-            self.on_decided(self.count)
+            self.on_decided(self.count, event.get("split", "steps"))
         if self.progress is None:
             return
         if "fraction" in event:
@@ -256,9 +299,9 @@ class _MemberProgress:
             event = {"event": "stage", "message": f"member {self.member} of {self.count} finished "
                                                   f"(step {event.get('step')})", "member": self.member}
         elif kind == "finished" and self.count > 1 and self.model_dir is not None:
-            # The model's end: all the members' steps and time, in the folder the user named (a
-            # member's own validation PSNR is not the mean's, so none is said).
-            steps, seconds = work_done(self.model_dir)
+            # The model's end: the budget's steps and all the members' time, in the folder the user
+            # named (a member's own validation PSNR is not the mean's, so none is said).
+            steps, seconds = budget_done(self.model_dir)
             event = {**event, "step": steps, "elapsed": seconds, "val_psnr": None, "model_dir": str(self.model_dir)}
         self.progress({**event, "member": self.member, "members": self.count})
 
@@ -271,20 +314,23 @@ def train_members(train_one: Callable, scene, model_dir: Path, config, images_di
     from .checkpoint import checkpoint_path, remove_stale_temporaries
     from .scene import Scene, load_scene
 
+    from .device import pick_device
+
     model_dir = Path(model_dir)
     count = member_count(config, model_dir, resume)
     state = read_state(model_dir) if resume else None
+    device_type = pick_device(config.device).type
     if not isinstance(scene, Scene):
         scene = load_scene(scene, images_dir)  # once for all the members
     if count is None and not (resume and checkpoint_path(model_dir).is_file()):
-        count = _decide_upfront(scene, config, progress)
+        count = _decide_upfront(scene, config, progress, member_split(config, None, device_type))
     if count is not None and count == 1 and state is None:
         return train_one(scene, model_dir, replace(config, members=1), images_dir, resume, progress, should_stop)
     first_done = False
     if count is None:  # a minutes budget: the first member learns its passes from its step rate
-        def on_decided(found: int) -> None:
+        def on_decided(found: int, split: str) -> None:
             if found > 1:  # from here on a stop resumes as an ensemble
-                _start_state(model_dir, found, config.seed)
+                _start_state(model_dir, found, config.seed, split)
 
         result = train_one(scene, model_dir, replace(config, members=None), images_dir, resume,
                            _MemberProgress(progress, 1, 1, on_decided), should_stop)
@@ -292,7 +338,7 @@ def train_members(train_one: Callable, scene, model_dir: Path, config, images_di
         if result.status != "finished" or state is None:
             return replace(result, model_dir=model_dir)  # one member, or stopped: --resume goes on
         count, first_done = state["count"], True
-    split = member_split(config, model_dir if state is not None else None)
+    split = member_split(config, model_dir if state is not None else None, device_type)
     if state is None:
         if not checkpoint_path(model_dir).is_file():  # members left by a model deleted since
             shutil.rmtree(model_dir / MEMBERS_DIR, ignore_errors=True)

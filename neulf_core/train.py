@@ -27,7 +27,7 @@ from .fields import build_field, count_parameters, make_config
 from .fields.disparity import DisparityConfig, slab_geometry, texture_size_for
 from .lock import training_lock
 from .members import MEMBERS_PASSES, RATE_DECISION_STEP as MEMBERS_RATE_DECISION_STEP, \
-    RATE_FROM_STEP as MEMBERS_RATE_FROM_STEP, member_budget, members_by_rule
+    RATE_FROM_STEP as MEMBERS_RATE_FROM_STEP, member_budget, member_split, members_by_rule, share_words
 from . import poses as poses_module
 from .poses import DEPTH_LIKE_GAUGE, POSE_CHECK_STEP, POSE_SECOND_LOOK_STEP, PoseRefinement
 from .presets import APPEARANCE_ADAM_BETA2, APPEARANCE_GEOMETRY, DEFAULT_PRESET, get_preset
@@ -176,9 +176,11 @@ class TrainConfig:
                                         # None: the rule -- 2 where the budget passes over the training
                                         # pixels at least 60 times, else 1 -- or a resumed model's count);
                                         # they share the budget
-    members_split: str | None = None    # how members share it (members.SPLITS): "steps" (None) -- each 1/N of
-                                        # the steps -- or "batch": each all the steps with 1/N of the rays a
-                                        # step, two members then at any budget (about one run's time on a CPU)
+    members_split: str | None = None    # how members share it (members.SPLITS): "steps" -- each 1/N of the
+                                        # steps -- or "batch": each all the steps with 1/N of the rays a step,
+                                        # two members then at any budget (about one run's time on a CPU);
+                                        # None: the rule's count, sharing the batch on a CPU and the steps
+                                        # elsewhere (members.default_split)
     poses_from: str | None = None       # a model folder whose refined camera poses this run trains with, fixed
                                         # (members.py: a member after the first, in the first one's frame;
                                         # None: its own, or none)
@@ -564,8 +566,8 @@ def learning_rate_factor(preset, fraction: float, epochs: float = 0.0) -> float:
     return preset.lr_final_ratio ** fraction
 
 
-def _set_learning_rate(optimizer, preset, step: int, n_rays: int, batch: int, fraction: float, lr_scale: float) -> float:
-    factor = learning_rate_factor(preset, fraction, step * batch / max(1, n_rays))
+def _set_learning_rate(optimizer, preset, rays_seen: int, n_rays: int, fraction: float, lr_scale: float) -> float:
+    factor = learning_rate_factor(preset, fraction, rays_seen / max(1, n_rays))
     for group in optimizer.param_groups:
         group["lr"] = group["initial_lr"] * factor * lr_scale
     return preset.lr * factor * lr_scale  # the field's base rate (the groups are multiples of it)
@@ -659,7 +661,13 @@ def _train(scene, model_dir: Path, config: TrainConfig, images_dir, resume: bool
     appearance = _view_appearance(len(train_views), exposures, resumed).to(device) if config.appearance else None
     batch = config.batch_size or preset.batch_size
     n_rays = len(train_rays)
-    step_limit = pass_step_limit(config, field_module.field_name, len(train_views), n_rays, batch)
+    # A first member whose rule split the batch part-way (BatchSwitch) goes on with its share.
+    switch = BatchSwitch.of((resumed or {}).get("members_rule"))
+    step_limit = pass_step_limit(config, field_module.field_name, len(train_views), n_rays,
+                                 switch.before if switch else batch)
+    if switch:
+        batch = switch.batch
+        step_limit = switch.steps_for(step_limit, batch) if step_limit else None
     config, fixed_poses, poses_found_right = _first_members_poses(config, resumed, slab, train_views, device)
     poses_found_right = poses_found_right or (resumed or {}).get("pose_check", {}).get("refining") is False
     if config.refine_poses is None and not _pose_check_possible(config, preset, step_limit, resumed):
@@ -759,7 +767,7 @@ def _train(scene, model_dir: Path, config: TrainConfig, images_dir, resume: bool
     # this run -- the first member -- trains its share of the minutes.
     members_pending = config.members is None and "members_rule" not in meta
     if config.members is None and "members_rule" in meta:
-        budget = _members_share(config, budget, meta["members_rule"]["count"])
+        budget = _members_share(config, budget, meta["members_rule"]["count"], meta["members_rule"].get("split", "steps"))
     start_time = time.monotonic()
     last_checkpoint = last_validation = start_time
     elapsed = elapsed_before
@@ -774,7 +782,8 @@ def _train(scene, model_dir: Path, config: TrainConfig, images_dir, resume: bool
             status = "cancelled"
             break
         fraction = budget.budget_fraction(step, elapsed)
-        lr = _set_learning_rate(optimizer, preset, step, n_rays, batch, fraction, lr_scale)
+        rays_seen = step * batch + (switch.extra_rays(batch) if switch else 0)
+        lr = _set_learning_rate(optimizer, preset, rays_seen, n_rays, fraction, lr_scale)
         if hasattr(field_module, "set_training_progress"):
             field_module.set_training_progress(fraction)
         index = torch.randint(n_rays, (batch,), generator=generator).to(device)
@@ -838,7 +847,16 @@ def _train(scene, model_dir: Path, config: TrainConfig, images_dir, resume: bool
         if members_pending and step - first_step >= MEMBERS_RATE_DECISION_STEP:
             members_pending = False
             budget = _decide_members_at_measured_rate(config, budget, batch, n_rays, members_step_seconds,
-                                                      meta, progress)
+                                                      meta, progress, device.type, step)
+            switch = BatchSwitch.of(meta["members_rule"])
+            if switch:  # from the next step on, this member's share of the batch
+                batch = switch.batch
+                if step_limit:
+                    step_limit = switch.steps_for(step_limit, batch)
+                    budget = replace(budget, steps=min(config.steps or step_limit, step_limit))
+                    _emit(progress, event="passes", steps=step_limit, train_views=len(train_views),
+                          message=f"with 1/{switch.count} of the rays a step, training stops at step {step_limit} "
+                                  "at the latest")
         if losses_pending and step - first_step >= LOSSES_DECISION_STEP:
             losses_pending = False
             losses_rule, consistency = _decide_losses_at_measured_rate(slab, train_views, config, elapsed - rate_mark,
@@ -1079,30 +1097,64 @@ def _stop_losses(meta: dict, progress, step: int, n_train_views: int) -> None:
           "multi-view losses, which pay with up to 10 photos or where poses or colours are refined (docs/STABILITY.md)")
 
 
-def _members_share(config: TrainConfig, budget: TrainConfig, count: int) -> TrainConfig:
+def _members_share(config: TrainConfig, budget: TrainConfig, count: int, split: str = "steps") -> TrainConfig:
     """The first member's share of the budget once the rule has decided on `count` members
     (a pass limit stays each member's own)."""
     if count <= 1:
         return budget
-    steps, minutes, _ = member_budget(config, count, 1)  # (the rate decides only where the members split the steps)
+    steps, minutes, _ = member_budget(config, count, 1, split)
     return replace(budget, minutes=minutes, steps=min(budget.steps, steps) if steps else budget.steps)
 
 
+@dataclass(frozen=True)
+class BatchSwitch:
+    """A first member whose minutes budget decided on members that split the batch (members.py):
+    it trained `step` steps of `before` rays, and goes on with 1/`count` of them a step.  Its
+    pass limit still counts rays, and so does the paper's schedule."""
+    step: int
+    before: int
+    count: int
+
+    @classmethod
+    def of(cls, rule: dict | None) -> "BatchSwitch | None":
+        switch = (rule or {}).get("batch_switch")
+        return cls(int(switch["step"]), int(switch["before"]), int(rule["count"])) if switch else None
+
+    @property
+    def batch(self) -> int:
+        return self.before // self.count
+
+    def extra_rays(self, batch: int) -> int:
+        """The rays the steps before the switch saw beyond `batch` a step."""
+        return self.step * (self.before - batch)
+
+    def steps_for(self, step_limit: int, batch: int) -> int:
+        """The pass limit of `step_limit` steps of the whole batch, in steps of this member's."""
+        return self.step + math.ceil(max(0, step_limit - self.step) * self.before / batch)
+
+
 def _decide_members_at_measured_rate(config: TrainConfig, budget: TrainConfig, batch: int, n_rays: int,
-                                     step_seconds: list[float], meta: dict, progress) -> TrainConfig:
+                                     step_seconds: list[float], meta: dict, progress, device_type: str,
+                                     step: int) -> TrainConfig:
     """The members rule on a minutes budget: the passes the budget makes at the rate of the
     steps after MEMBERS_RATE_FROM_STEP up to MEMBERS_RATE_DECISION_STEP decide the count
-    (members.py).  Their median time, since a shared machine's hiccups land on a few steps."""
+    (members.py).  Their median time, since a shared machine's hiccups land on a few steps.
+    Members that split the batch (the default on a CPU, members.default_split): this one goes on
+    with its share of the rays a step (meta's `batch_switch`, BatchSwitch)."""
     rate = 60.0 / max(float(np.median(step_seconds)), 1e-9)
     passes = budget_passes(config, batch, n_rays, rate)
     count = members_by_rule(passes)
-    meta["members_rule"] = {"count": count, "passes": round(passes, 1), "steps_per_minute": round(rate, 1)}
-    _emit(progress, event="members", count=count, passes=round(passes, 1))
+    split = member_split(config, None, device_type) if count > 1 else "steps"
+    meta["members_rule"] = {"count": count, "passes": round(passes, 1), "steps_per_minute": round(rate, 1),
+                            **({"split": split} if count > 1 else {})}
+    if split == "batch":
+        meta["members_rule"]["batch_switch"] = {"step": step, "before": batch}
+    _emit(progress, event="members", count=count, passes=round(passes, 1), split=split)
     if count > 1:
         _emit(progress, event="stage", message=f"{count} members: the budget passes over the training pixels "
                                                f"{passes:.0f} times at this pace (at least {MEMBERS_PASSES:.0f}; "
-                                               f"--members 1 for one)")
-    return _members_share(config, budget, count)
+                                               f"--members 1 for one){share_words(split, count)}")
+    return _members_share(config, budget, count, split)
 
 
 def _consistency_inputs(train_views, slab: Slab, config: TrainConfig, device):

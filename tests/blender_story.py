@@ -390,7 +390,8 @@ def run_story(setup: dict) -> None:  # noqa: C901 - one story, told in order
 
     @story.step("members", "train_blocking")
     def _():
-        # "Members" 2: two light fields, each with half the steps; the panel's render is their mean.
+        # "Members" 2: two light fields, each with all the steps and half the rays a step (the
+        # default's split on a CPU, members.default_split); the panel's render is their mean.
         props = bpy.context.scene.neulf
         saved = props.model_dir
         members_model = work / "model_members"
@@ -402,14 +403,14 @@ def run_story(setup: dict) -> None:  # noqa: C901 - one story, told in order
             assert state["count"] == 2 and state["finished"] == [2], state
             steps = [json.loads((folder / "model.json").read_text())["progress"]["step"]
                      for folder in (members_model, members_model / "members" / "2")]
-            assert steps == [10, 10], steps
+            assert steps == [20, 20] and state["split"] == "batch", (steps, state)
             assert props.last_status.startswith("finished at step 20"), props.last_status
             assert bpy.ops.neulf.render_camera() == {"FINISHED"}
             image = image_array("NeuLF Render")
             assert np.isfinite(image).all() and image.std() > 0.01
         finally:
             props.model_dir, props.members = saved, 0
-        return f"two members of 10 steps; {props.last_status.split(';')[0]}"
+        return f"two members of 20 steps of half the batch; {props.last_status.split(';')[0]}"
 
     @story.step("pixel_samples", "render_camera")
     def _():

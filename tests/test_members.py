@@ -21,8 +21,11 @@ from neulf_core.train import TrainConfig, train
 
 
 def config(steps=None, **overrides) -> TrainConfig:
+    """A small run; members split the steps unless a test says otherwise (members_split=None: the
+    default's split, the batch on a CPU)."""
     options = dict(preset="fast", steps=steps, batch_size=512, field_overrides={"texture_size": [16, 16]},
-                   validate_seconds=1e9, checkpoint_seconds=1e9, teacher=False, refine_poses=False, two_starts=False)
+                   validate_seconds=1e9, checkpoint_seconds=1e9, teacher=False, refine_poses=False, two_starts=False,
+                   members_split="steps")
     options.update(overrides)
     return TrainConfig(**options)
 
@@ -75,7 +78,11 @@ def test_members_that_split_the_batch_are_the_runs_alone_at_any_budget(tiny_scen
     assert_same_weights(tmp_path / "ens", tmp_path / "a")
     assert_same_weights(member_dir(tmp_path / "ens", 2), tmp_path / "b")
     assert member_split(config(), tmp_path / "ens") == "batch"  # the model's own, whatever is asked now
-    assert member_split(config()) == "steps" and member_split(config(members_split="batch")) == "batch"
+    assert member_split(config(members_split="steps")) == "steps" and member_split(config(members_split="batch")) == "batch"
+    # Unasked: the batch on a CPU, the steps on a GPU (members.default_split).
+    unasked = config(members_split=None)
+    assert member_split(unasked) == "batch" and member_split(unasked, None, "cuda") == "steps"
+    assert member_split(unasked, None, "mps") == "steps"
     with pytest.raises(NeulfError, match="--members-split takes steps or batch"):
         member_split(config(members_split="rays"))
     # A minutes budget with the batch split needs no step rate: both members, half the minutes each.
@@ -239,14 +246,22 @@ def test_cli_members(tiny_scene, tmp_path, capsys):
 
 
 def test_work_done_counts_every_member(tiny_scene, tmp_path):
-    from neulf_core.members import work_done
+    from neulf_core.members import budget_done, work_done
 
-    assert work_done(tmp_path / "none") == (0, 0.0)
+    assert work_done(tmp_path / "none") == (0, 0.0) == budget_done(tmp_path / "none")
     run(tiny_scene, tmp_path / "one", config(steps=20))
-    assert work_done(tmp_path / "one")[0] == 20
+    assert work_done(tmp_path / "one")[0] == 20 == budget_done(tmp_path / "one")[0]
     run(tiny_scene, tmp_path / "m", config(steps=30, members=3))
     steps, seconds = work_done(tmp_path / "m")
-    assert steps == 30 and seconds > 0  # what Blender's Continue Training adds its budget to
+    assert steps == 30 and seconds > 0 and budget_done(tmp_path / "m") == (steps, seconds)
+    # Members of half the batch each train all the steps: the budget counts them once, so that
+    # Blender's Train, which continues a model with what is done plus its budget, asks for 30 + 10.
+    result, events = run(tiny_scene, tmp_path / "b", config(steps=30, members=2, members_split="batch"))
+    assert work_done(tmp_path / "b")[0] == 60 and budget_done(tmp_path / "b")[0] == 30
+    assert next(e for e in events if e["event"] == "finished")["step"] == 30
+    run(tiny_scene, tmp_path / "b", config(steps=budget_done(tmp_path / "b")[0] + 10), resume=True)
+    assert [json.loads((member_dir(tmp_path / "b", m) / "model.json").read_text())["progress"]["step"]
+            for m in (1, 2)] == [40, 40]
 
 
 def test_the_benchmark_trains_both_ways_and_tables_the_spread(benchmark_script, tiny_scene, tmp_path):
@@ -361,6 +376,66 @@ def test_a_minutes_budget_stopped_after_the_rule_resumes_as_an_ensemble(tiny_sce
     assert first["train_config"]["minutes"] == pytest.approx(0.02)  # its share, not the whole (nor a quarter)
 
 
+def test_on_a_cpu_the_rules_members_share_the_batch(tiny_scene, tmp_path):
+    """The default (members_split None) on a CPU: where the passes call for two members, each
+    trains all the steps with half the batch -- the run its seed gives alone so."""
+    result, events = run(tiny_scene, tmp_path / "rule", config(steps=89, batch_size=16384, members_split=None))
+    assert result.status == "finished" and finished_members(tmp_path / "rule") == [2]  # 120 passes
+    assert json.loads((tmp_path / "rule" / STATE_NAME).read_text())["split"] == "batch"
+    assert any(e.get("event") == "stage" and "each all the steps with 1/2 of the rays" in e.get("message", "")
+               for e in events)
+    run(tiny_scene, tmp_path / "alone", config(steps=89, batch_size=8192, seed=0, members=1))
+    assert_same_weights(tmp_path / "rule", tmp_path / "alone")
+    # Under the rule's passes: one member of the whole batch, as before.
+    run(tiny_scene, tmp_path / "under", config(steps=40, members_split=None))
+    assert not (tmp_path / "under" / STATE_NAME).exists()
+
+
+def _rule_run(**overrides) -> TrainConfig:
+    """A minutes budget long enough that the pass limit (5 passes: 119 steps of 512 rays over the
+    tiny scene's pixels) ends each member, so that runs repeat to the weight."""
+    return config(minutes=10.0, max_passes=5.0, members_split=None, seed=5, **overrides)
+
+
+def test_a_minutes_budget_whose_rule_splits_the_batch_goes_on_with_half(tiny_scene, tmp_path, monkeypatch):
+    """On a minutes budget the rule decides at a step of the first member (here 30): from there it
+    trains with half the batch, its pass limit still counting rays; the second member trains with
+    half throughout.  Stopped after the decision and resumed, the first member goes on as it began."""
+    import neulf_core.members as members
+
+    _time_the_first_steps(monkeypatch)
+    monkeypatch.setattr(members, "MEMBERS_PASSES", 0.0)
+    result, events = run(tiny_scene, tmp_path / "whole", _rule_run())
+    assert result.status == "finished" and finished_members(tmp_path / "whole") == [2]
+    assert json.loads((tmp_path / "whole" / STATE_NAME).read_text())["split"] == "batch"
+    metas = [json.loads((member_dir(tmp_path / "whole", m) / "model.json").read_text()) for m in (1, 2)]
+    rule = metas[0]["members_rule"]
+    assert (rule["split"], rule["batch_switch"]) == ("batch", {"step": 30, "before": 512})
+    # 30 steps of 512 rays, then the rest of 119 x 512 rays in steps of 256: 30 + 178.
+    assert metas[0]["progress"]["step"] == 30 + 2 * (119 - 30)
+    assert (metas[1]["train_config"]["batch_size"], metas[1]["progress"]["step"]) == (256, 237)
+    assert any(e.get("event") == "passes" and e.get("steps") == 208 for e in events)
+
+    def after_the_decision(events):
+        return any(e.get("event") == "members" for e in events) and sum(e.get("event") == "step" for e in events) > 60
+
+    result, _ = run(tiny_scene, tmp_path / "cut", _rule_run(), stop_when=after_the_decision)
+    assert result.status == "cancelled" and finished_members(tmp_path / "cut") == []
+    result, _ = run(tiny_scene, tmp_path / "cut", _rule_run(), resume=True)
+    assert result.status == "finished" and finished_members(tmp_path / "cut") == [2]
+    assert_same_weights(tmp_path / "cut", tmp_path / "whole")
+    assert_same_weights(member_dir(tmp_path / "cut", 2), member_dir(tmp_path / "whole", 2))
+
+
+def test_a_switch_of_batch_counts_rays_for_the_pass_limit_and_the_schedule():
+    from neulf_core.train import BatchSwitch
+
+    switch = BatchSwitch.of({"count": 2, "batch_switch": {"step": 30, "before": 8192}})
+    assert switch.batch == 4096 and switch.steps_for(119, 4096) == 208 and switch.steps_for(20, 4096) == 30
+    assert switch.extra_rays(4096) == 30 * 4096  # step x 4096 + this: the rays seen
+    assert BatchSwitch.of({"count": 1}) is None and BatchSwitch.of(None) is None
+
+
 def test_render_speed_times_members_with_the_current_code_only(benchmark_script, tiny_scene, tmp_path):
     bench = benchmark_script("render_speed")
     run(tiny_scene, tmp_path / "two", config(steps=20, members=2))
@@ -413,7 +488,7 @@ def test_the_rate_is_the_median_steps_so_a_few_slow_steps_do_not_decide():
     steady, hiccups = [0.02] * 95, [1.0] * 5
     meta = {}
     budget = config(minutes=1.0)
-    train_module._decide_members_at_measured_rate(budget, budget, 8192, 268800, steady + hiccups, meta, None)
+    train_module._decide_members_at_measured_rate(budget, budget, 8192, 268800, steady + hiccups, meta, None, "cpu", 210)
     assert meta["members_rule"]["steps_per_minute"] == pytest.approx(3000.0)
     assert meta["members_rule"]["passes"] == pytest.approx(3000 * 8192 / 268800, abs=0.1)
     assert meta["members_rule"]["count"] == 2  # 91 passes; the mean step would read 36 and one member

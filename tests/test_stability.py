@@ -296,7 +296,8 @@ def test_a_run_with_another_member_count_than_the_rule_now_gives_is_run_again(st
     89 steps make 60 passes."""
     def row(steps, members=None, minutes=None, steps_done=None):
         job = stability.Job("tiny", str(tiny_scene), str(tiny_scene), 1.0, "fast", steps, 0, minutes=minutes)
-        extra = {"members": members} if members else {}
+        # (two members of the default share the batch on a CPU: members.default_split)
+        extra = {"members": members, "members_split_used": "batch" if members > 1 else None} if members else {}
         return {**stability.asdict(job), "train_views": 7, "status": "finished", "psnr": 30.0,
                 "sweep_fade": stability.sweep_fade("fast", 7), "steps_done": steps_done, **extra}
 
@@ -315,16 +316,19 @@ def test_a_run_with_another_member_count_than_the_rule_now_gives_is_run_again(st
 
 
 def test_a_run_whose_members_split_the_budget_otherwise_than_its_job_says_is_run_again(stability, tiny_scene):
-    """The sixty-second session trained the default's jobs with members splitting the batch
-    (logged in `members_split_used`); the default splits the steps, so those rows are run again,
-    while a job that asked for the batch split stands with two members of it."""
+    """Since the sixty-fourth session the default's members (where the rule gives two) share the
+    batch on a CPU, where the study trains: the default's rows whose two members split the steps
+    (logged so, or before the column: the default's split then) are run again; a job that asked
+    for a split stands with two members of it."""
     def row(members, used=None, split=None):
         job = stability.Job("tiny", str(tiny_scene), str(tiny_scene), 1.0, "fast", 1000, 0, members_split=split)
         return {**stability.asdict(job), "train_views": 7, "status": "finished", "psnr": 30.0,
                 "sweep_fade": stability.sweep_fade("fast", 7), "members": members, "members_split_used": used}
 
-    assert stability.trained_with_other_members(row(2, "batch"))        # the default's job, the batch split
-    assert not stability.trained_with_other_members(row(2, "steps"))    # 1000 steps: 674 passes, two members
+    assert not stability.trained_with_other_members(row(2, "batch"))    # 1000 steps: 674 passes, two of the batch
+    assert stability.trained_with_other_members(row(2, "steps"))        # ... logged with the steps split
+    assert stability.trained_with_other_members(row(2))                 # ... before the column: the steps
+    assert not stability.trained_with_other_members(row(2, "steps", "steps"))  # asked for
     assert not stability.trained_with_other_members(row(2, "batch", "batch"))
     assert not stability.trained_with_other_members(row(2, None, "batch"))  # (a forced split before the column)
     assert stability.trained_with_other_members(row(1, None, "batch"))  # the batch split trains two

@@ -113,7 +113,7 @@ def test_one_start_where_the_budget_does_not_pay_or_asked(tiny_scene, tmp_path):
     limit = pass_limit()
     shortest = math.ceil(SHORTEST_DECISION_SHARE * limit)
     for name, config in (("short", fast_config(steps=limit + shortest - 1)),
-                         ("off", fast_config(steps=10 * limit, two_starts=False)),
+                         ("off", fast_config(steps=10 * limit, two_starts=False, members=1)),
                          ("no-limit", fast_config(steps=limit + decision_step(limit), max_passes=0))):
         result, events = run(tiny_scene, tmp_path / name, config)
         meta = json.loads((tmp_path / name / "model.json").read_text())

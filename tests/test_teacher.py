@@ -85,8 +85,10 @@ def test_two_members_sweep_once_and_train_as_each_would_alone(tiny_scene, tmp_pa
     events = []
     train(tiny_scene, tmp_path / "m", TrainConfig(steps=20, members=2, seed=4, **options), progress=events.append)
     assert len(sweeps) == 1 and any(e.get("member") == 2 for e in events)
-    # The second member, on the first one's sweep, is the run its seed and share give alone.
-    train(tiny_scene, tmp_path / "alone", TrainConfig(steps=10, members=1, seed=4 + MEMBER_SEED_OFFSET, **options))
+    # The second member, on the first one's sweep, is the run its seed and share give alone (on a
+    # CPU the default's share: all the steps with half the batch).
+    train(tiny_scene, tmp_path / "alone", TrainConfig(steps=20, members=1, seed=4 + MEMBER_SEED_OFFSET,
+                                                      **{**options, "batch_size": 128}))
     assert len(sweeps) == 2
     assert_same_weights(member_dir(tmp_path / "m", 2), tmp_path / "alone")
 
