@@ -15,7 +15,10 @@ renders, so a frame costs as many field queries as there are members.
 Layout: the model folder is member 1 -- a complete model by itself, trained first, with the
 run's seed, so everything that reads a model folder reads it -- and member k > 1 trains in
 MEMBERS_DIR/<k> inside it with seed + (k - 1) x MEMBER_SEED_OFFSET.  Each trains with the
-budget's k-th share (steps split evenly, or minutes / N) through the ordinary trainer (its
+budget's k-th share (minutes / N; of a steps budget 1/N of the steps, or, where they split the
+batch -- the default on a CPU, default_split -- all the steps with 1/N of the rays a step;
+a minutes budget's first member switches to its share of the rays at the step where the rule
+decides, train.BatchSwitch) through the ordinary trainer (its
 pass limit, its starts, its checkpoints).  STATE_NAME lists the members that have finished;
 the renderer (render.LightField.load) averages member 1 and those, so a model renders all
 along, and a run cancelled or killed resumes in the member it was training.
