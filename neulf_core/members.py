@@ -198,21 +198,26 @@ def member_count(config, model_dir: Path, resume: bool) -> int | None:
     return count
 
 
-def work_done(model_dir: str | Path) -> tuple[int, float]:
-    """(steps, seconds) trained so far in all the members together (what a budget counts),
-    from their model.json files; (0, 0.0) for a folder without a model."""
+def members_progress(model_dir: str | Path) -> list[tuple[int, float]]:
+    """(steps, seconds) each member has trained so far, from their model.json files (a member
+    not started yet: none); [] for a folder without a model."""
     model_dir = Path(model_dir)
     state = read_state(model_dir)
-    folders = [member_dir(model_dir, m) for m in range(1, (state["count"] if state else 1) + 1)]
-    steps, seconds = 0, 0.0
-    for folder in folders:
+    done = []
+    for member in range(1, (state["count"] if state else 1) + 1):
         try:
-            progress = json.loads((folder / METADATA_FILE).read_text()).get("progress", {})
+            progress = json.loads((member_dir(model_dir, member) / METADATA_FILE).read_text()).get("progress", {})
         except (OSError, ValueError):
             continue
-        steps += int(progress.get("step", 0))
-        seconds += float(progress.get("elapsed", 0.0))
-    return steps, seconds
+        done.append((int(progress.get("step", 0)), float(progress.get("elapsed", 0.0))))
+    return done
+
+
+def work_done(model_dir: str | Path) -> tuple[int, float]:
+    """(steps, seconds) trained so far in all the members together, from their model.json
+    files; (0, 0.0) for a folder without a model."""
+    done = members_progress(model_dir)
+    return sum(steps for steps, _ in done), sum(seconds for _, seconds in done)
 
 
 def budget_done(model_dir: str | Path) -> tuple[int, float]:
@@ -220,15 +225,12 @@ def budget_done(model_dir: str | Path) -> tuple[int, float]:
     all the members; the steps of all of them where they split the steps, of the first where they
     split the batch (each trains all the steps).  What Blender's Train adds its budget to when it
     continues a model, and the step the end of training reports."""
-    steps, seconds = work_done(model_dir)
+    done = members_progress(model_dir)
     state = read_state(Path(model_dir))
+    seconds = sum(seconds for _, seconds in done)
     if state is not None and state.get("split") == "batch":
-        try:
-            progress = json.loads((Path(model_dir) / METADATA_FILE).read_text()).get("progress", {})
-            steps = int(progress.get("step", 0))
-        except (OSError, ValueError):
-            steps = 0
-    return steps, seconds
+        return (done[0][0] if done else 0), seconds
+    return sum(steps for steps, _ in done), seconds
 
 
 def _rule_pending(model_dir: Path) -> bool:
@@ -305,7 +307,9 @@ class _MemberProgress:
             # The model's end: the budget's steps and all the members' time, in the folder the user
             # named (a member's own validation PSNR is not the mean's, so none is said).
             steps, seconds = budget_done(self.model_dir)
-            event = {**event, "step": steps, "elapsed": seconds, "val_psnr": None, "model_dir": str(self.model_dir)}
+            event = {**event, "step": steps, "elapsed": seconds, "val_psnr": None, "model_dir": str(self.model_dir),
+                     "member_steps": [steps for steps, _ in members_progress(self.model_dir)],
+                     "members_split": (read_state(self.model_dir) or {}).get("split", "steps")}
         self.progress({**event, "member": self.member, "members": self.count})
 
 

@@ -90,7 +90,8 @@ class Bar:
                        f"{event['max_degrees']:.3f}) and shifted by {event['median_shift']:.1%} of the camera spacing")
         elif kind in ("finished", "cancelled"):
             val = f", held-out PSNR {event['val_psnr']:.2f} dB (ray sample)" if event.get("val_psnr") is not None else ""
-            self._line(f"{kind} after {event['step']} steps, {event['elapsed']:.0f} s{val}; model in {event['model_dir']}")
+            self._line(f"{kind} after {event['step']} steps{members_text(event)}, {event['elapsed']:.0f} s{val}; "
+                       f"model in {event['model_dir']}")
         elif kind in ("stage", "losses", "passes", "appearance", "pose_check", "field_restart"):
             self._line(event.get("message", ""))
 
@@ -99,6 +100,17 @@ class Bar:
         self.stream.write(("\r\033[K" if self.interactive else "") + text + "\n")
         self.stream.flush()
         _open_bar = None
+
+
+def members_text(event: dict) -> str:
+    """How a model of several members spent its budget, for the line that ends training: each
+    member's steps (members of a shared batch each train all the steps of a steps budget, so the
+    step count said is one member's)."""
+    steps = event.get("member_steps") or []
+    if len(steps) < 2:
+        return ""
+    share = f", each with 1/{len(steps)} of the rays a step" if event.get("members_split") == "batch" else ""
+    return f" ({' + '.join(str(s) for s in steps)} in its {len(steps)} members{share})"
 
 
 def make_reporter(mode: str):

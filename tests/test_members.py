@@ -258,7 +258,13 @@ def test_work_done_counts_every_member(tiny_scene, tmp_path):
     # Blender's Train, which continues a model with what is done plus its budget, asks for 30 + 10.
     result, events = run(tiny_scene, tmp_path / "b", config(steps=30, members=2, members_split="batch"))
     assert work_done(tmp_path / "b")[0] == 60 and budget_done(tmp_path / "b")[0] == 30
-    assert next(e for e in events if e["event"] == "finished")["step"] == 30
+    finished = next(e for e in events if e["event"] == "finished")
+    assert (finished["step"], finished["member_steps"], finished["members_split"]) == (30, [30, 30], "batch")
+    from neulf_core.progress import members_text
+
+    assert members_text(finished) == " (30 + 30 in its 2 members, each with 1/2 of the rays a step)"
+    assert members_text({"member_steps": [10, 10], "members_split": "steps"}) == " (10 + 10 in its 2 members)"
+    assert members_text({"step": 20}) == ""
     run(tiny_scene, tmp_path / "b", config(steps=budget_done(tmp_path / "b")[0] + 10), resume=True)
     assert [json.loads((member_dir(tmp_path / "b", m) / "model.json").read_text())["progress"]["step"]
             for m in (1, 2)] == [40, 40]
