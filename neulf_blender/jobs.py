@@ -228,7 +228,8 @@ class TrainJob(ProcessJob):
             state["poses"] = {k: event.get(k) for k in ("median_degrees", "max_degrees", "median_shift", "max_shift")}
         elif kind in ("finished", "cancelled"):
             state.update(step=event.get("step", state["step"]), elapsed=event.get("elapsed", state["elapsed"]),
-                         val_psnr=event.get("val_psnr", state["val_psnr"]), message=kind)
+                         val_psnr=event.get("val_psnr", state["val_psnr"]), message=kind,
+                         last_member_step=(event.get("member_steps") or [None])[-1])
             if kind == "cancelled":
                 self._cancelled = True
 
@@ -439,6 +440,8 @@ def job_status_text(state: dict) -> str:
         text += "; camera poses far off: restarted with smoother geometry at the pose check"
     if state.get("start_kept"):
         text += f"; the {state['start_kept']} of two random starts kept (few photos: the better fit)"
-    if state["status"] == "finished" and state.get("pass_limit") and state.get("step", 0) >= state["pass_limit"]:
+    # (the pass limit said last is the last member's: compared with its steps where there are members)
+    last_step = state.get("last_member_step") or state.get("step", 0)
+    if state["status"] == "finished" and state.get("pass_limit") and last_step >= state["pass_limit"]:
         text += "; stopped before the time was up: more training would only memorise so few photos"
     return text + pose_text(state.get("poses"))

@@ -313,6 +313,25 @@ class _MemberProgress:
         self.progress({**event, "member": self.member, "members": self.count})
 
 
+def _state_as_decided(model_dir: Path, seed: int) -> dict | None:
+    """members.json as the finished first member decided it on a minutes budget (model.json's
+    `members_rule`), or None for one member.  Where two starts each timed their own pace, the
+    one kept may have decided otherwise than the one whose verdict was written."""
+    try:
+        rule = json.loads((Path(model_dir) / METADATA_FILE).read_text()).get("members_rule") or {}
+    except (OSError, ValueError):
+        rule = {}
+    state = read_state(model_dir)
+    count = int(rule.get("count", state["count"] if state else 1))
+    if count <= 1:
+        (Path(model_dir) / STATE_NAME).unlink(missing_ok=True)
+        return None
+    split = rule.get("split", "steps") if rule else state.get("split", "steps")
+    if state is None or state["count"] != count or state.get("split", "steps") != split:
+        state = _start_state(model_dir, count, seed, split)
+    return state
+
+
 def train_members(train_one: Callable, scene, model_dir: Path, config, images_dir, resume: bool,
                   progress, should_stop):
     """`train_one(scene, model_dir, config, images_dir, resume, progress, should_stop)` trains
@@ -341,8 +360,8 @@ def train_members(train_one: Callable, scene, model_dir: Path, config, images_di
 
         result = train_one(scene, model_dir, replace(config, members=None), images_dir, resume,
                            _MemberProgress(progress, 1, 1, on_decided), should_stop)
-        state = read_state(model_dir)
-        if result.status != "finished" or state is None:
+        state = _state_as_decided(model_dir, config.seed) if result.status == "finished" else None
+        if state is None:
             return replace(result, model_dir=model_dir)  # one member, or stopped: --resume goes on
         count, first_done = state["count"], True
     split = member_split(config, model_dir if state is not None else None, device_type)

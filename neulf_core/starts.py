@@ -157,7 +157,8 @@ class _Watch:
             return self.stage != "rest" and self.two_starts and not self.user_stop()
         if kind == "passes":  # said once, by the first start
             return self.stage != "first"
-        return self.stage == "second" and kind in ("start", "checkpoint", "finished")
+        # (nor its members rule's verdict: the kept start's decides, members.train_members)
+        return self.stage == "second" and kind in ("start", "checkpoint", "finished", "members")
 
     def mean_loss(self) -> float:
         return sum(self.losses) / len(self.losses) if self.losses else math.inf

@@ -617,6 +617,7 @@ def _train(scene, model_dir: Path, config: TrainConfig, images_dir, resume: bool
 
     if not isinstance(scene, Scene):
         scene = load_scene(scene, images_dir)
+    asked = config
     if resumed is not None:
         config = _config_for_resume(resumed, config, scene)
     train_views, held_views = split_views(scene, config.holdout_every, config.exclude)
@@ -662,7 +663,7 @@ def _train(scene, model_dir: Path, config: TrainConfig, images_dir, resume: bool
     batch = config.batch_size or preset.batch_size
     n_rays = len(train_rays)
     # A first member whose rule split the batch part-way (BatchSwitch) goes on with its share.
-    switch = BatchSwitch.of((resumed or {}).get("members_rule"))
+    switch = BatchSwitch.of((resumed or {}).get("members_rule")) or _switch_on_resume(asked, resumed, batch)
     step_limit = pass_step_limit(config, field_module.field_name, len(train_views), n_rays,
                                  switch.before if switch else batch)
     if switch:
@@ -741,6 +742,9 @@ def _train(scene, model_dir: Path, config: TrainConfig, images_dir, resume: bool
             meta[made_once] = resumed[made_once]
     if resumed and resumed.get("members_rule"):
         meta["members_rule"] = resumed["members_rule"]
+    if switch and "batch_switch" not in meta.get("members_rule", {}):  # (decided while this run was stopped)
+        meta["members_rule"] = {**meta.get("members_rule", {}), "count": switch.count, "split": "batch",
+                                "batch_switch": {"step": switch.step, "before": switch.before}}
     if config.poses_from:
         meta["poses_from"] = {"model": config.poses_from, "refined": fixed_poses is not None,
                               **(fixed_poses.summary() if fixed_poses is not None else {})}
@@ -854,9 +858,7 @@ def _train(scene, model_dir: Path, config: TrainConfig, images_dir, resume: bool
                 if step_limit:
                     step_limit = switch.steps_for(step_limit, batch)
                     budget = replace(budget, steps=min(config.steps or step_limit, step_limit))
-                    _emit(progress, event="passes", steps=step_limit, train_views=len(train_views),
-                          message=f"with 1/{switch.count} of the rays a step, training stops at step {step_limit} "
-                                  "at the latest")
+                    announce_pass_limit(progress, config, field_module.field_name, len(train_views), step_limit, step)
         if losses_pending and step - first_step >= LOSSES_DECISION_STEP:
             losses_pending = False
             losses_rule, consistency = _decide_losses_at_measured_rate(slab, train_views, config, elapsed - rate_mark,
@@ -1131,6 +1133,18 @@ class BatchSwitch:
     def steps_for(self, step_limit: int, batch: int) -> int:
         """The pass limit of `step_limit` steps of the whole batch, in steps of this member's."""
         return self.step + math.ceil(max(0, step_limit - self.step) * self.before / batch)
+
+
+def _switch_on_resume(asked: TrainConfig, resumed: dict | None, saved_batch: int) -> BatchSwitch | None:
+    """A member resumed as one of members that split the batch (`asked`, from members.py) from a
+    checkpoint that trained with the whole batch and recorded no switch: the rule decided while
+    it was stopped (the first member killed between its decision and its next checkpoint, or a
+    second start stopped before its own decision).  It goes on with its share from here."""
+    if resumed is None or (asked.members or 1) < 2 or asked.members_split != "batch" or not asked.batch_size:
+        return None
+    if asked.batch_size >= saved_batch:
+        return None  # (it trained with its share from the start)
+    return BatchSwitch(int(resumed["progress"]["step"]), saved_batch, int(asked.members))
 
 
 def _decide_members_at_measured_rate(config: TrainConfig, budget: TrainConfig, batch: int, n_rays: int,

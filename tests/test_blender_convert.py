@@ -189,6 +189,15 @@ def test_train_job_parses_events(ext):
     assert "more training would only memorise so few photos" in ext.jobs.job_status_text(job.state)
     assert "a colour transform per photo (exposures differ by 0.31 stops)" in ext.jobs.job_status_text(job.state)
     assert "of two random starts" not in ext.jobs.job_status_text(job.state)
+    # Two members of half the batch: the step said is the first's, the limit said last the second's.
+    ended = ext.jobs.TrainJob.__new__(ext.jobs.TrainJob)
+    ended.state, ended._cancelled = {**job.state}, False
+    ended.on_stdout(json.dumps({"event": "finished", "step": 15, "elapsed": 9.0, "val_psnr": None,
+                                "member_steps": [15, 20], "members_split": "batch"}))
+    assert (ended.state["step"], ended.state["last_member_step"]) == (15, 20)
+    members = {**job.state, "step": 15, "last_member_step": 20}
+    assert "more training would only memorise" in ext.jobs.job_status_text(members)
+    assert "more training would only memorise" not in ext.jobs.job_status_text({**members, "last_member_step": 19})
     job.on_stdout(json.dumps({"event": "step", "step": 5, "elapsed": 1.0, "loss": 0.01, "fraction": 0.3, "start": 2}))
     assert job.state["message"] == "second start, step 5"
     job.on_stdout(json.dumps({"event": "stage", "message": "kept the second start (seed 101); training it on",

@@ -433,6 +433,51 @@ def test_a_minutes_budget_whose_rule_splits_the_batch_goes_on_with_half(tiny_sce
     assert_same_weights(member_dir(tmp_path / "cut", 2), member_dir(tmp_path / "whole", 2))
 
 
+def test_a_first_member_stopped_before_its_verdict_was_saved_goes_on_with_its_share(tiny_scene, tmp_path,
+                                                                                     monkeypatch):
+    """members.json can say "two members of the batch" while the first member's last checkpoint
+    predates the verdict (killed between the two, or a second start stopped before its own):
+    resumed, that member trains with its share of the batch from where it stood."""
+    import neulf_core.members as members
+
+    _time_the_first_steps(monkeypatch)
+    monkeypatch.setattr(members, "MEMBERS_PASSES", 0.0)
+
+    def before_the_decision(events):
+        return sum(e.get("event") == "step" for e in events) >= 15
+
+    result, _ = run(tiny_scene, tmp_path / "m", _rule_run(), stop_when=before_the_decision)
+    stopped = json.loads((tmp_path / "m" / "model.json").read_text())
+    assert result.status == "cancelled" and "members_rule" not in stopped
+    (tmp_path / "m" / STATE_NAME).write_text(json.dumps({"count": 2, "seed": 5, "split": "batch", "finished": []}))
+    result, _ = run(tiny_scene, tmp_path / "m", _rule_run(), resume=True)
+    assert result.status == "finished" and finished_members(tmp_path / "m") == [2]
+    first = json.loads((tmp_path / "m" / "model.json").read_text())
+    at = stopped["progress"]["step"]
+    assert first["members_rule"]["batch_switch"] == {"step": at, "before": 512}
+    assert first["progress"]["step"] == at + 2 * (119 - at)
+
+
+def test_the_kept_start_decides_the_members(tmp_path):
+    """Two starts time their own pace, so their verdicts on the members may differ: members.json
+    follows the kept one's (model.json), and a second start's verdict is not passed on."""
+    from neulf_core.members import _state_as_decided, read_state
+    from neulf_core.starts import _Watch
+
+    heard = []
+    watch = _Watch(heard.append, "second", 100, decision=42)
+    watch({"event": "members", "count": 2, "split": "batch"})
+    assert watch.members == 2 and heard == []
+    model = tmp_path / "m"
+    model.mkdir()
+    (model / "model.json").write_text(json.dumps({"members_rule": {"count": 2, "split": "batch"}}))
+    assert _state_as_decided(model, 7) == read_state(model) == {"count": 2, "seed": 7, "split": "batch", "finished": []}
+    (model / "model.json").write_text(json.dumps({"members_rule": {"count": 1}}))
+    assert _state_as_decided(model, 7) is None and read_state(model) is None
+    (model / "model.json").write_text(json.dumps({"progress": {"step": 10}}))  # the budget ended before the rule
+    assert _state_as_decided(model, 7) is None
+
+
 def test_a_switch_of_batch_counts_rays_for_the_pass_limit_and_the_schedule():
     from neulf_core.train import BatchSwitch
 
