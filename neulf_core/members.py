@@ -73,7 +73,7 @@ RATE_DECISION_STEP = 210
 # configurations (the synthetic scene's 10 photos 31.08 +- 0.171 -> 31.41 +- 0.084 dB, shiny
 # 30.30 +- 0.122 -> 30.70 +- 0.064, CanClip 36.37 +- 0.071 -> 36.42 +- 0.054), down on CanClip at
 # 1 degree of pose noise (-0.23); one run of 4096 rays gave 31.14 +- 0.127 at 1000 steps and 31.12
-# +- 0.187 at 2000, so the gain is the mean of two fields, not the smaller batch.  Not the default:
+# +- 0.187 at 2000, so the gain is the mean of two fields, not the smaller batch.  Not the default at every budget:
 # the whole stability study trained with it as the default (sixty-second session, docs/MEMBERS.md)
 # kept 28 of 36 configurations' three seeds inside 0.2 dB against 29, and lost 0.41-0.46 dB on HCI,
 # whose fields lose 0.9 dB with half the rays where the mean of two gets back 0.44.
@@ -87,9 +87,12 @@ SPLITS = ("steps", "batch")
 # sixty-third session): 25 of 28 pairs up, +0.15 dB on average -- the synthetic scene's 10
 # photos 31.31 +- 0.091 -> 31.50 +- 0.040, shiny 30.71 -> 30.98, CanClip's 6 photos 35.56 ->
 # 35.78, fern's 4 photos 21.79 -> 21.85; at the study's 1000 steps its seven such
-# configurations -0.06 to +0.23 dB.  On a GPU a step's time hardly grows with its rays, so half
-# the batch would buy few more steps: the steps split stays there (measured on an H200,
-# docs/members_h200/MEMBERS.md).  Below MEMBERS_PASSES the default trains one member either way
+# configurations -0.06 to +0.23 dB.  Built so (sixty-fourth session: a minutes budget's first
+# member switches at RATE_DECISION_STEP), the study's 1-minute runs it changes, paired seed by
+# seed: the default's configurations 15 of 18 pairs up, -0.13 to +0.35 dB.  On a GPU a step's
+# time hardly grows with its rays (an H200's step is bound by kernel launches, README), so half
+# the batch would buy few more steps: the steps split stays there, as the H200 measured it
+# (docs/members_h200/MEMBERS.md).  Below MEMBERS_PASSES the default trains one member either way
 # (the batch split at every budget lost on HCI, above).
 DEFAULT_SPLIT_ON_CPU = "batch"
 
