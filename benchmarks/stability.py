@@ -68,7 +68,8 @@ sys.path.insert(0, str(REPO))
 from neulf_core.appearance import linear_to_srgb, srgb_to_linear  # noqa: E402
 from neulf_core.errors import NeulfError  # noqa: E402
 from neulf_core.images import save_rgb  # noqa: E402
-from neulf_core.members import default_split, finished_members, members_by_rule, read_state, work_done  # noqa: E402
+from neulf_core.members import RATE_DECISION_STEP, RULE_MEMBERS, default_split, finished_members, \
+    members_by_rule, read_state, work_done  # noqa: E402
 from neulf_core.metrics import psnr, ssim  # noqa: E402
 from neulf_core.poses import (DEPTH_LIKE_GAUGE, POSE_CHECK_DEGREES, POSE_CHECK_STEP, POSE_CHECK_UNSURE_DEGREES,  # noqa: E402
                               POSE_SECOND_LOOK_DEGREES, POSE_SECOND_LOOK_STEP, fit_view_pose)
@@ -622,11 +623,11 @@ def trained_with_other_members(row: dict) -> bool:
     """Whether a logged run had another member count, or members sharing the budget otherwise,
     than the default (or its job's split) now gives its budget (neulf_core/members.py; rows
     logged before members trained one; the sixty-second session's runs of the default with its
-    members splitting the batch, docs/MEMBERS.md): the study runs it again.  A minutes run
-    logged since the rule decided its count at the pace it timed over its first steps stands
-    whatever it logged (counted at the steps it made, a run that went faster than it timed would
-    read as another count: fern's 8 photos, one member, 80 passes); one logged before is counted
-    at the steps it made."""
+    members splitting the batch, docs/MEMBERS.md): the study runs it again.  A minutes run is
+    judged by the passes its rule counted at the pace it timed over its first steps
+    (`members_passes`; counted at the steps it made, a run that went faster than it timed would
+    read as another count: fern's 8 photos, one member, 80 passes); one logged before those were
+    is counted at the steps it made, unless it trained two members (then it stands)."""
     logged = int(row.get("members") or 1)
     if not row.get("train_views"):
         return False
@@ -634,14 +635,17 @@ def trained_with_other_members(row: dict) -> bool:
     if logged > 1 and split_used(row) != split:
         return True
     if row.get("members_split") == "batch":  # asked for: two members at any budget
-        return logged != members_by_rule(None, "batch")
+        return logged != RULE_MEMBERS
     if row.get("minutes") and row.get("members") is not None:
-        return False
+        if row.get("members_passes") is not None:
+            return members_by_rule(float(row["members_passes"]), split) != logged  # the passes its rule counted
+        if logged > 1 or int(row.get("steps_done") or 0) <= RATE_DECISION_STEP:
+            return False  # two by their pace (at least 60), or a budget that ended before the rule decided
     steps = row.get("steps_done") if row.get("minutes") else row.get("steps")
     if not steps:
         return False
     passes = logged_passes(row, steps)
-    return passes is not None and members_by_rule(passes) != logged
+    return passes is not None and members_by_rule(passes, split) != logged
     # (no scene at hand: it stands)
 
 

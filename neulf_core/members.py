@@ -51,6 +51,16 @@ MAX_MEMBERS = 8
 # 1.44 times the frame time.
 MEMBERS_PASSES = 60.0
 RULE_MEMBERS = 2
+# Members that share the batch (the default on a CPU, DEFAULT_SPLIT_ON_CPU below) do not halve
+# each field's steps, so they pay from fewer passes: two from BATCH_MEMBERS_PASSES.  The
+# sixty-second session's study of two members of half the batch at every budget (1000 steps,
+# three seeds, AMD EPYC; docs/MEMBERS.md, docs/stability_members_batch.csv against
+# docs/stability_members_steps_base.csv): each of the 17 configurations at 30-43 passes gained
+# (+0.02 to +0.44 dB, the synthetic scene's 14 photos +0.38, shiny +0.44, fine texture +0.32,
+# its 10 photos +0.42, CanClip's 6 photos +0.04 to +0.23 at every pose noise), while at 19
+# passes and fewer it lost or was mixed (CanClip's 13 photos -0.07 at 19, its 26 at 1 degree of
+# pose noise -0.29 at 10, HCI -0.41 to -0.46 at 2-7).
+BATCH_MEMBERS_PASSES = 25.0
 # A minutes budget learns its passes from the step rate of member 1: the median time of its
 # steps after RATE_FROM_STEP up to RATE_DECISION_STEP; its share of the minutes is set there.
 # After the pose check (step 100, or 200 after an unsure first look), whose refinement -- and
@@ -97,15 +107,18 @@ SPLITS = ("steps", "batch")
 DEFAULT_SPLIT_ON_CPU = "batch"
 
 
+def passes_for_members(split: str) -> float:
+    """The passes from which the rule trains RULE_MEMBERS members that share the budget so."""
+    return BATCH_MEMBERS_PASSES if split == "batch" else MEMBERS_PASSES
+
+
 def members_by_rule(passes: float | None, split: str = "steps") -> int | None:
     """The rule's member count for a budget of `passes` over the training pixels (None: not
-    known yet -- a minutes budget before the step rate is measured); members that split the
-    batch: RULE_MEMBERS at any budget."""
-    if split == "batch":
-        return RULE_MEMBERS
+    known yet -- a minutes budget before the step rate is measured), for members that would
+    share it by `split`.  (Members asked to split the batch train RULE_MEMBERS at any budget.)"""
     if passes is None:
         return None
-    return RULE_MEMBERS if passes >= MEMBERS_PASSES else 1
+    return RULE_MEMBERS if passes >= passes_for_members(split) else 1
 
 
 def default_split(device_type: str) -> str:
@@ -264,17 +277,18 @@ def _decide_upfront(scene, config, progress, split: str) -> int | None:
     from .train import budget_passes
 
     if asked_batch:  # two at any budget: no passes to count
-        count = members_by_rule(None, "batch")
+        count = RULE_MEMBERS
         if progress is not None:
             progress({"event": "stage", "message": f"{count} members, each with 1/{count} of the rays a step "
                                                    "(--members 1 for one)", "members": count})
         return count
     batch = config.batch_size or get_preset(config.preset).batch_size
     passes = budget_passes(config, batch, training_pixels(scene, config))
-    count = members_by_rule(passes)
+    count = members_by_rule(passes, split)
     if count > 1 and progress is not None:
         progress({"event": "stage", "message": f"{count} members: the budget passes over the training pixels "
-                                               f"{passes:.0f} times (at least {MEMBERS_PASSES:.0f}; --members 1 for one)"
+                                               f"{passes:.0f} times (at least {passes_for_members(split):.0f}; "
+                                               "--members 1 for one)"
                                                f"{share_words(split, count)}", "members": count})
     return count
 

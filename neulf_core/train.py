@@ -26,8 +26,8 @@ from .errors import NeulfError
 from .fields import build_field, count_parameters, make_config
 from .fields.disparity import DisparityConfig, slab_geometry, texture_size_for
 from .lock import training_lock
-from .members import MEMBERS_PASSES, RATE_DECISION_STEP as MEMBERS_RATE_DECISION_STEP, \
-    RATE_FROM_STEP as MEMBERS_RATE_FROM_STEP, member_budget, member_split, members_by_rule, share_words
+from .members import RATE_DECISION_STEP as MEMBERS_RATE_DECISION_STEP, RATE_FROM_STEP as MEMBERS_RATE_FROM_STEP, \
+    member_budget, member_split, members_by_rule, passes_for_members, share_words
 from . import poses as poses_module
 from .poses import DEPTH_LIKE_GAUGE, POSE_CHECK_STEP, POSE_SECOND_LOOK_STEP, PoseRefinement
 from .presets import APPEARANCE_ADAM_BETA2, APPEARANCE_GEOMETRY, DEFAULT_PRESET, get_preset
@@ -1157,8 +1157,9 @@ def _decide_members_at_measured_rate(config: TrainConfig, budget: TrainConfig, b
     with its share of the rays a step (meta's `batch_switch`, BatchSwitch)."""
     rate = 60.0 / max(float(np.median(step_seconds)), 1e-9)
     passes = budget_passes(config, batch, n_rays, rate)
-    count = members_by_rule(passes)
-    split = member_split(config, None, device_type) if count > 1 else "steps"
+    split = member_split(config, None, device_type)
+    count = members_by_rule(passes, split)
+    split = split if count > 1 else "steps"
     meta["members_rule"] = {"count": count, "passes": round(passes, 1), "steps_per_minute": round(rate, 1),
                             **({"split": split} if count > 1 else {})}
     if split == "batch":
@@ -1166,7 +1167,7 @@ def _decide_members_at_measured_rate(config: TrainConfig, budget: TrainConfig, b
     _emit(progress, event="members", count=count, passes=round(passes, 1), split=split)
     if count > 1:
         _emit(progress, event="stage", message=f"{count} members: the budget passes over the training pixels "
-                                               f"{passes:.0f} times at this pace (at least {MEMBERS_PASSES:.0f}; "
+                                               f"{passes:.0f} times at this pace (at least {passes_for_members(split):.0f}; "
                                                f"--members 1 for one){share_words(split, count)}")
     return _members_share(config, budget, count, split)
 

@@ -68,7 +68,11 @@ def test_members_that_split_the_batch_are_the_runs_alone_at_any_budget(tiny_scen
     members.json, so a resume goes on as the model began, and a bad split is a clear error."""
     from neulf_core.members import member_split, members_by_rule
 
-    assert members_by_rule(None, "batch") == 2 and members_by_rule(1.0, "batch") == 2
+    from neulf_core.members import BATCH_MEMBERS_PASSES
+
+    # The rule counts passes for members of the batch too, from fewer of them; asked for, two at any budget.
+    assert members_by_rule(None, "batch") is None and members_by_rule(BATCH_MEMBERS_PASSES - 1, "batch") == 1
+    assert members_by_rule(BATCH_MEMBERS_PASSES, "batch") == 2
     result, events = run(tiny_scene, tmp_path / "ens", config(steps=30, seed=3, members_split="batch"))
     assert result.status == "finished" and finished_members(tmp_path / "ens") == [2]
     assert json.loads((tmp_path / "ens" / STATE_NAME).read_text())["split"] == "batch"
@@ -395,6 +399,12 @@ def test_on_a_cpu_the_rules_members_share_the_batch(tiny_scene, tmp_path):
     # Under the rule's passes: one member of the whole batch, as before.
     run(tiny_scene, tmp_path / "under", config(steps=40, members_split=None))
     assert not (tmp_path / "under" / STATE_NAME).exists()
+    # Members of the batch pay from 25 passes, members of the steps from 60: 45 steps of 8192
+    # rays make 30.5 passes over the tiny scene's pixels.
+    run(tiny_scene, tmp_path / "thirty", config(steps=45, batch_size=8192, members_split=None))
+    assert finished_members(tmp_path / "thirty") == [2]
+    run(tiny_scene, tmp_path / "thirty-steps", config(steps=45, batch_size=8192, members_split="steps"))
+    assert not (tmp_path / "thirty-steps" / STATE_NAME).exists()
 
 
 def _rule_run(**overrides) -> TrainConfig:
@@ -410,7 +420,7 @@ def test_a_minutes_budget_whose_rule_splits_the_batch_goes_on_with_half(tiny_sce
     import neulf_core.members as members
 
     _time_the_first_steps(monkeypatch)
-    monkeypatch.setattr(members, "MEMBERS_PASSES", 0.0)
+    monkeypatch.setattr(members, "BATCH_MEMBERS_PASSES", 0.0)
     result, events = run(tiny_scene, tmp_path / "whole", _rule_run())
     assert result.status == "finished" and finished_members(tmp_path / "whole") == [2]
     assert json.loads((tmp_path / "whole" / STATE_NAME).read_text())["split"] == "batch"
@@ -441,7 +451,7 @@ def test_a_first_member_stopped_before_its_verdict_was_saved_goes_on_with_its_sh
     import neulf_core.members as members
 
     _time_the_first_steps(monkeypatch)
-    monkeypatch.setattr(members, "MEMBERS_PASSES", 0.0)
+    monkeypatch.setattr(members, "BATCH_MEMBERS_PASSES", 0.0)
 
     def before_the_decision(events):
         return sum(e.get("event") == "step" for e in events) >= 15

@@ -292,8 +292,8 @@ def test_a_run_whose_sweep_faded_otherwise_than_now_is_run_again(stability, tmp_
 
 def test_a_run_with_another_member_count_than_the_rule_now_gives_is_run_again(stability, tiny_scene, tmp_path):
     """neulf_core/members.py: two members where the budget passes over the training pixels at
-    least 60 times.  The tiny scene's 7 training views of 48 x 36 pixels at 8192 rays a step:
-    89 steps make 60 passes."""
+    least 60 times (25 where they share the batch, the default on a CPU).  The tiny scene's 7
+    training views of 48 x 36 pixels at 8192 rays a step: 89 steps make 60 passes, 37 make 25."""
     def row(steps, members=None, minutes=None, steps_done=None):
         job = stability.Job("tiny", str(tiny_scene), str(tiny_scene), 1.0, "fast", steps, 0, minutes=minutes)
         # (two members of the default share the batch on a CPU: members.default_split)
@@ -301,14 +301,22 @@ def test_a_run_with_another_member_count_than_the_rule_now_gives_is_run_again(st
         return {**stability.asdict(job), "train_views": 7, "status": "finished", "psnr": 30.0,
                 "sweep_fade": stability.sweep_fade("fast", 7), "steps_done": steps_done, **extra}
 
-    assert not stability.trained_with_other_members(row(88))                  # one member, as then
-    assert stability.trained_with_other_members(row(89))                      # logged before members: one
-    assert not stability.trained_with_other_members(row(89, members=2))
-    assert stability.trained_with_other_members(row(88, members=2))
+    # Members of the default share the batch on a CPU, two from 25 passes: 37 steps.
+    assert not stability.trained_with_other_members(row(36))                  # one member, as then
+    assert stability.trained_with_other_members(row(37))                      # logged before members: one
+    assert not stability.trained_with_other_members(row(37, members=2))
+    assert stability.trained_with_other_members(row(36, members=2))
+    steps_rows = {"members_split": "steps"}  # a job asking for the steps split: two from 60 passes, 89 steps
+    assert not stability.trained_with_other_members({**row(88), **steps_rows})
+    assert stability.trained_with_other_members({**row(89), **steps_rows})
+    assert not stability.trained_with_other_members({**row(89, members=2), **steps_rows, "members_split_used": "steps"})
     assert stability.trained_with_other_members(row(1000, minutes=1.0, steps_done=500))  # its pace: 339 passes
     assert not stability.trained_with_other_members(row(1000, minutes=1.0, steps_done=500, members=2))
-    # logged since members: it chose one at the pace it timed, whatever steps it then made
-    assert not stability.trained_with_other_members(row(1000, minutes=1.0, steps_done=500, members=1))
+    # logged with the passes its rule counted at the pace it timed, whatever steps it then made
+    timed = {**row(1000, minutes=1.0, steps_done=500, members=1), "members_passes": 20.0}
+    assert not stability.trained_with_other_members(timed)
+    assert stability.trained_with_other_members({**timed, "members_passes": 30.0})  # two of the batch from 25
+    assert stability.trained_with_other_members(row(1000, minutes=1.0, steps_done=500, members=1))  # (not logged)
     assert not stability.trained_with_other_members({**row(89), "truth": str(tmp_path / "gone")})  # stands
     log = tmp_path / "runs.jsonl"
     log.write_text(json.dumps(row(89)) + "\n" + json.dumps({**row(89, members=2), "seed": 1}) + "\n")
@@ -339,7 +347,7 @@ def test_a_run_that_refined_its_poses_with_the_depth_like_part_held_otherwise_is
     """poses.DEPTH_LIKE_GAUGE: a logged run that refined its poses (by the check's verdict or
     forced) and held the corrections' depth-like part otherwise -- rows logged before it was
     recorded held it by a weak prior -- is run again; one that did not refine stands."""
-    job = stability.Job("tiny", str(tiny_scene), str(tiny_scene), 1.0, "fast", 80, 0, pose_degrees=1.0)
+    job = stability.Job("tiny", str(tiny_scene), str(tiny_scene), 1.0, "fast", 36, 0, pose_degrees=1.0)
     base = {**stability.asdict(job), "train_views": 7, "status": "finished", "psnr": 30.0,
             "sweep_fade": stability.sweep_fade("fast", 7)}
     held = stability.DEPTH_LIKE_GAUGE
@@ -512,8 +520,8 @@ def test_a_deep_scene_trained_with_other_surfaces_is_run_again(stability, tiny_s
     without `back_surface` (or with an empty CSV cell), or with a back surface but no blend or
     the colour blend, is trained again; one logged since, a shallow scene's, the paper
     network's and one that never recorded its depth stand."""
-    # (88 steps: one member by the members rule, so only the surface decides)
-    fast = {**stability.asdict(stability.Job("tiny", str(tiny_scene), str(tiny_scene), 1.0, "fast", 88, 0)),
+    # (36 steps: one member by the members rule, so only the surface decides)
+    fast = {**stability.asdict(stability.Job("tiny", str(tiny_scene), str(tiny_scene), 1.0, "fast", 36, 0)),
             "train_views": 7, "status": "finished", "psnr": 30.0, "sweep_fade": stability.sweep_fade("fast", 7)}
     current = {"back_surface": True, "back_surface_blend": "features"}
     for deep in (True, False):
@@ -544,8 +552,9 @@ def test_a_run_whose_losses_the_rule_now_decides_otherwise_is_run_again(stabilit
     where the colours were learned; runs whose losses were asked for, and minutes runs, stand."""
     from neulf_core.train import CONSISTENCY_ALWAYS_MAX_VIEWS
 
-    # (88 steps: one member by the members rule; the surfaces and the fade as the default's now)
-    run = {**stability.asdict(stability.Job("tiny", str(tiny_scene), str(tiny_scene), 1.0, "fast", 88, 0)),
+    # (66 steps, 22 passes: enough for the losses, one member by the members rule; the surfaces
+    # and the fade as the default's now)
+    run = {**stability.asdict(stability.Job("tiny", str(tiny_scene), str(tiny_scene), 1.0, "fast", 66, 0)),
            "train_views": 14, "deep_scene": True, "multiview_losses": True, "status": "finished",
            "pose_check_refining": False, "appearance_used": False, "sweep_fade": stability.sweep_fade("fast", 14),
            "back_surface": True, "back_surface_blend": "features"}
