@@ -55,7 +55,7 @@ RULE_MEMBERS = 2
 # each field's steps, so they pay from fewer passes: two from BATCH_MEMBERS_PASSES.  The
 # sixty-second session's study of two members of half the batch at every budget (1000 steps,
 # three seeds, AMD EPYC; docs/MEMBERS.md, docs/stability_members_batch.csv against
-# docs/stability_members_steps_base.csv): each of the 17 configurations at 30-43 passes gained
+# docs/stability_members_steps_base.csv): each of the 16 configurations at 30-43 passes gained
 # (+0.02 to +0.44 dB, the synthetic scene's 14 photos +0.38, shiny +0.44, fine texture +0.32,
 # its 10 photos +0.42, CanClip's 6 photos +0.04 to +0.23 at every pose noise), while at 19
 # passes and fewer it lost or was mixed (CanClip's 13 photos -0.07 at 19, its 26 at 1 degree of
