@@ -241,8 +241,11 @@ def budget_done(model_dir: str | Path) -> tuple[int, float]:
     all the members; the steps of all of them where they split the steps, of the first where they
     split the batch (each trains all the steps).  What Blender's Train adds its budget to when it
     continues a model, and the step the end of training reports."""
-    done = members_progress(model_dir)
-    state = read_state(Path(model_dir))
+    return _budget_of(members_progress(model_dir), read_state(Path(model_dir)))
+
+
+def _budget_of(done: list[tuple[int, float]], state: dict | None) -> tuple[int, float]:
+    """budget_done from the members' progress and members.json, already read."""
     seconds = sum(seconds for _, seconds in done)
     if state is not None and state.get("split") == "batch":
         return (done[0][0] if done else 0), seconds
@@ -323,10 +326,11 @@ class _MemberProgress:
         elif kind == "finished" and self.count > 1 and self.model_dir is not None:
             # The model's end: the budget's steps and all the members' time, in the folder the user
             # named (a member's own validation PSNR is not the mean's, so none is said).
-            steps, seconds = budget_done(self.model_dir)
+            done, state = members_progress(self.model_dir), read_state(self.model_dir)
+            steps, seconds = _budget_of(done, state)
             event = {**event, "step": steps, "elapsed": seconds, "val_psnr": None, "model_dir": str(self.model_dir),
-                     "member_steps": [steps for steps, _ in members_progress(self.model_dir)],
-                     "members_split": (read_state(self.model_dir) or {}).get("split", "steps")}
+                     "member_steps": [member_steps for member_steps, _ in done],
+                     "members_split": (state or {}).get("split", "steps")}
         self.progress({**event, "member": self.member, "members": self.count})
 
 
