@@ -62,6 +62,7 @@ def one_run(scene: str, images: str | None, scale: float, budget: dict, seed: in
     import torch
 
     from neulf_core.evaluate import evaluate_model
+    from neulf_core.members import finished_members
     from neulf_core.train import TrainConfig, train
 
     torch.set_num_threads(1)
@@ -69,8 +70,11 @@ def one_run(scene: str, images: str | None, scale: float, budget: dict, seed: in
     result = train(scene, out, config, images_dir=images)
     scores = evaluate_model(out, scene, images_dir=images, save_images=False, device=device)
     meta = json.loads((out / "model.json").read_text())
+    rule = meta.get("members_rule") or {}
     return {"steps": result.step, "train_seconds": round(result.elapsed, 1), "psnr": round(scores["mean_psnr"], 3),
-            "ssim": round(scores["mean_ssim"], 4), "point_rays": (meta.get("point_depth") or {}).get("rays", 0)}
+            "ssim": round(scores["mean_ssim"], 4), "point_rays": (meta.get("point_depth") or {}).get("rays", 0),
+            # the members trained, and the passes the members rule counted ("" where it did not run)
+            "members": 1 + len(finished_members(out)), "members_passes": rule.get("passes", "")}
 
 
 def pair(name: str, budget: dict, seed: int, settings: list[tuple[str, dict]], device: str | None,
@@ -104,7 +108,8 @@ def summary(rows: list[dict], baseline: str, candidate: str) -> list[str]:
     by_pair: dict[tuple, dict] = {}
     for row in rows:
         by_pair.setdefault((row["scene"], row["seed"]), {})[row["setting"]] = row
-    lines = [f"| scene | seed | {baseline} | {candidate} | change | steps | keypoint rays |", "|---|---|---|---|---|---|---|"]
+    lines = [f"| scene | seed | {baseline} | {candidate} | change | steps | members | keypoint rays |",
+             "|---|---|---|---|---|---|---|---|"]
     changes: dict[str, list[float]] = {}
     for (scene, seed), runs in by_pair.items():
         if baseline not in runs or candidate not in runs:
@@ -112,7 +117,8 @@ def summary(rows: list[dict], baseline: str, candidate: str) -> list[str]:
         base, new = runs[baseline], runs[candidate]
         changes.setdefault(scene, []).append(new["psnr"] - base["psnr"])
         lines.append(f"| {scene} | {seed} | {base['psnr']:.2f} | {new['psnr']:.2f} | {new['psnr'] - base['psnr']:+.2f} dB "
-                     f"| {base['steps']} / {new['steps']} | {base['point_rays']} / {new['point_rays']} |")
+                     f"| {base['steps']} / {new['steps']} | {base.get('members', '?')} / {new.get('members', '?')} "
+                     f"| {base['point_rays']} / {new['point_rays']} |")
     for scene, values in changes.items():
         error = statistics.stdev(values) / len(values) ** 0.5 if len(values) > 1 else float("nan")
         lines.append(f"\n{scene}: mean change {statistics.mean(values):+.3f} dB, standard error {error:.3f} "

@@ -91,14 +91,16 @@ def test_side_by_side_trains_both_settings_of_a_pair_and_scores_them(tiny_scene,
     out = tmp_path / "sub" / "pairs.csv"
     bench.main(["--scenes", tiny_scene.name, "--data", str(tiny_scene.parent), "--steps", "3", "--seeds", "0",
                 "--baseline", 'coarse={"field_overrides": {"geometry_spatial_res": [4, 8]}, "point_depth": false}',
-                "--candidate", "default={}", "--out", str(out)])
+                "--candidate", 'two={"members": 2}', "--out", str(out)])
     rows = list(csv.DictReader(open(out)))
-    assert [(r["setting"], r["seed"], r["steps"]) for r in rows] == [("coarse", "0", "3"), ("default", "0", "3")]
+    assert [(r["setting"], r["seed"], r["steps"]) for r in rows] == [("coarse", "0", "3"), ("two", "0", "3")]
+    assert [r["members"] for r in rows] == ["1", "2"]  # the members each model trained
     assert all(0 < float(r["psnr"]) < 100 for r in rows)
     if len(os.sched_getaffinity(0)) > 1:
         assert rows[0]["core"] != rows[1]["core"]  # each run pinned to a core of its own
     printed = capsys.readouterr().out
-    assert f"{tiny_scene.name}: mean change" in printed and "| coarse | default |" in printed
+    assert f"{tiny_scene.name}: mean change" in printed and "| coarse | two |" in printed
+    assert "| 3 / 3 | 1 / 2 |" in printed  # steps, then members, of the pair
     assert bench.parse_setting('off={"point_depth": false}') == ("off", {"point_depth": False})
     for wrong in ("no-equals-sign", "x=[1]", "x={bad json"):
         with pytest.raises(SystemExit):
