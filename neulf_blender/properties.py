@@ -90,7 +90,7 @@ class NeulfSceneSettings(bpy.types.PropertyGroup):
                          description="Light fields trained apart, each with an equal share of the time, rendered "
                                      "as the mean of their colours: better and steadier where one has stopped "
                                      "gaining from more training; renders take this many times longer. 0: "
-                                     "automatic (2 when the time passes over the photos' pixels 25 times or more on a CPU, 60 on a GPU, "
+                                     "automatic (2 when the time passes over the photos' pixels 12 times or more on a CPU, 60 on a GPU, "
                                      "else 1). A model being continued keeps its own count")
     train_scale: FloatProperty(name="Image Scale", default=1.0, min=0.05, max=1.0,
                                description="Train on images resized by this factor")

@@ -463,7 +463,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="train N light fields apart (seeds S, S+1000, ...), each with 1/N of the budget, and render "
                         "the mean of their colours: better and steadier where one run has stopped gaining from more "
                         "steps, N times the render time (default: 2 where the budget passes over the training "
-                        "pixels at least 25 times on a CPU, where they share the batch, or 60 on a GPU, else 1; a resumed "
+                        "pixels at least 12 times on a CPU, where they share the batch, or 60 on a GPU, else 1; a resumed "
                         "model keeps its count): docs/MEMBERS.md")
     p.add_argument("--members-split", choices=["steps", "batch"],
                    help="how members share the budget: steps (each 1/N of the steps, or of the minutes) or batch "

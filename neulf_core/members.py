@@ -56,11 +56,16 @@ RULE_MEMBERS = 2
 # sixty-second session's study of two members of half the batch at every budget (1000 steps,
 # three seeds, AMD EPYC; docs/MEMBERS.md, docs/stability_members_batch.csv against
 # docs/stability_members_steps_base.csv): each of the 16 configurations at 30-43 passes gained
-# (+0.02 to +0.44 dB, the synthetic scene's 14 photos +0.38, shiny +0.44, fine texture +0.32,
-# its 10 photos +0.42, CanClip's 6 photos +0.04 to +0.23 at every pose noise), while at 19
-# passes and fewer it lost or was mixed (CanClip's 13 photos -0.07 at 19, its 26 at 1 degree of
-# pose noise -0.29 at 10, HCI -0.41 to -0.46 at 2-7).
-BATCH_MEMBERS_PASSES = 25.0
+# (+0.02 to +0.44 dB), while at 19 passes and fewer it was mixed (CanClip's 20 photos +0.19 at 13,
+# its 13 -0.07 at 19, its 26 -0.29 to +0.21 at 10 by pose noise) or lost (HCI -0.41 to -0.46 at
+# 2-7).  The real captures at the size the README trains them, minutes budgets side by side
+# (sixty-fifth session, two seeds, benchmarks/side_by_side.py; docs/members_real_*.csv): fern,
+# CanClip and Statue gained at every budget, +0.07 to +0.38 dB at 1.5 minutes (6.5-7.7 passes as
+# the rule counts them; under the 0.3 dB the default's sizes count as a hair, for 1.8 times the
+# frame time), +0.22 to +0.98 at 2.5 (10.8-13.3 passes), +0.40 to +0.57 at 4 (19.4-22.0) and
+# +0.18 to +1.34 at 7 (25.1-39.8).  So two from 12 passes: above the study's mixed 10 and the
+# product's 1.5 minutes.
+BATCH_MEMBERS_PASSES = 12.0
 # A minutes budget learns its passes from the step rate of member 1: the median time of its
 # steps after RATE_FROM_STEP up to RATE_DECISION_STEP; its share of the minutes is set there.
 # After the pose check (step 100, or 200 after an unsure first look), whose refinement -- and

@@ -399,12 +399,14 @@ def test_on_a_cpu_the_rules_members_share_the_batch(tiny_scene, tmp_path):
     # Under the rule's passes: one member of the whole batch, as before.
     run(tiny_scene, tmp_path / "under", config(steps=40, members_split=None))
     assert not (tmp_path / "under" / STATE_NAME).exists()
-    # Members of the batch pay from 25 passes, members of the steps from 60: 45 steps of 8192
-    # rays make 30.5 passes over the tiny scene's pixels.
-    run(tiny_scene, tmp_path / "thirty", config(steps=45, batch_size=8192, members_split=None))
-    assert finished_members(tmp_path / "thirty") == [2]
-    run(tiny_scene, tmp_path / "thirty-steps", config(steps=45, batch_size=8192, members_split="steps"))
-    assert not (tmp_path / "thirty-steps" / STATE_NAME).exists()
+    # Members of the batch pay from 12 passes, members of the steps from 60: 18 steps of 8192
+    # rays make 12.2 passes over the tiny scene's pixels, 17 make 11.5.
+    run(tiny_scene, tmp_path / "twelve", config(steps=18, batch_size=8192, members_split=None))
+    assert finished_members(tmp_path / "twelve") == [2]
+    run(tiny_scene, tmp_path / "eleven", config(steps=17, batch_size=8192, members_split=None))
+    assert not (tmp_path / "eleven" / STATE_NAME).exists()
+    run(tiny_scene, tmp_path / "twelve-steps", config(steps=18, batch_size=8192, members_split="steps"))
+    assert not (tmp_path / "twelve-steps" / STATE_NAME).exists()
 
 
 def _rule_run(**overrides) -> TrainConfig:

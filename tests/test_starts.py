@@ -20,8 +20,9 @@ PASSES, BATCH = 12, 512
 
 
 def fast_config(steps: int | None = None, **overrides) -> TrainConfig:
+    # (one member: these budgets pass 12-30 times, from which the members rule would train two)
     options = dict(preset="fast", steps=steps, batch_size=BATCH, max_passes=PASSES, field_overrides={"texture_size": [16, 16]},
-                   validate_seconds=1e9, checkpoint_seconds=1e9, teacher=False, refine_poses=False)
+                   validate_seconds=1e9, checkpoint_seconds=1e9, teacher=False, refine_poses=False, members=1)
     options.update(overrides)
     return TrainConfig(**options)
 
