@@ -299,8 +299,8 @@ def test_a_run_whose_sweep_faded_otherwise_than_now_is_run_again(stability, tmp_
 
 def test_a_run_with_another_member_count_than_the_rule_now_gives_is_run_again(stability, tiny_scene, tmp_path):
     """neulf_core/members.py: two members where the budget passes over the training pixels at
-    least 60 times (25 where they share the batch, the default on a CPU).  The tiny scene's 7
-    training views of 48 x 36 pixels at 8192 rays a step: 89 steps make 60 passes, 37 make 25."""
+    least 60 times (12 where they share the batch, the default on a CPU).  The tiny scene's 7
+    training views of 48 x 36 pixels at 8192 rays a step: 89 steps make 60 passes, 18 make 12."""
     def row(steps, members=None, minutes=None, steps_done=None):
         job = stability.Job("tiny", str(tiny_scene), str(tiny_scene), 1.0, "fast", steps, 0, minutes=minutes)
         # (two members of the default share the batch on a CPU: members.default_split)
