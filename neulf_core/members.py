@@ -66,8 +66,10 @@ RULE_MEMBERS = 2
 # +0.18 to +1.34 at 7 (25.1-39.8).  So two from 12 passes: above the study's mixed 10 and the
 # product's 1.5 minutes.  Not counted: the multi-view losses' rays, which do not halve with the
 # batch -- CanClip's 26 photos with them forced on (never its default) lost 0.49-0.58 dB at 15-16
-# passes, each member making about half the one member's steps; fern's 8 photos (deep) with them
-# forced on still gained, +0.15 dB at 13-16 passes (docs/MEMBERS.md).
+# passes, each member making about half the one member's steps.  Deep scenes of at most 10 photos,
+# where the default does train with them, gained with them forced on at 11-24 passes (sixty-sixth
+# session, four seeds): fern's 8 +0.31 dB and 4 +0.27, the shiny scene's 7 +0.44 (12 of 12 pairs
+# up), the Lambertian scene's 7 -0.09 (1 of 4; docs/MEMBERS.md, "the deep scenes' band").
 BATCH_MEMBERS_PASSES = 12.0
 # A minutes budget learns its passes from the step rate of member 1: the median time of its
 # steps after RATE_FROM_STEP up to RATE_DECISION_STEP; its share of the minutes is set there.
