@@ -851,7 +851,7 @@ def _train(scene, model_dir: Path, config: TrainConfig, images_dir, resume: bool
         if members_pending and step - first_step >= MEMBERS_RATE_DECISION_STEP:
             members_pending = False
             budget = _decide_members_at_measured_rate(config, budget, batch, n_rays, members_step_seconds,
-                                                      meta, progress, device.type, step)
+                                                      meta, progress, device.type, step, elapsed)
             switch = BatchSwitch.of(meta["members_rule"])
             if switch:  # from the next step on, this member's share of the batch
                 batch = switch.batch
@@ -1147,21 +1147,36 @@ def _switch_on_resume(asked: TrainConfig, resumed: dict | None, saved_batch: int
     return BatchSwitch(int(resumed["progress"]["step"]), saved_batch, int(asked.members))
 
 
+def share_spent(minutes: float | None, count: int, elapsed: float) -> bool:
+    """Whether a minutes budget's first member, deciding on `count` members after `elapsed`
+    seconds, has already trained longer than its share: the second would then take its whole
+    share on top, past the budget (the study's 7-photo synthetic scenes at 0.22 minutes, whose
+    rate is timed by step 210, trained 14.4-19.1 s for 13.2; docs/MEMBERS.md).  So one member."""
+    return bool(minutes) and count > 1 and elapsed >= 60.0 * minutes / count
+
+
 def _decide_members_at_measured_rate(config: TrainConfig, budget: TrainConfig, batch: int, n_rays: int,
                                      step_seconds: list[float], meta: dict, progress, device_type: str,
-                                     step: int) -> TrainConfig:
+                                     step: int, elapsed: float) -> TrainConfig:
     """The members rule on a minutes budget: the passes the budget makes at the rate of the
     steps after MEMBERS_RATE_FROM_STEP up to MEMBERS_RATE_DECISION_STEP decide the count
     (members.py).  Their median time, since a shared machine's hiccups land on a few steps.
     Members that split the batch (the default on a CPU, members.default_split): this one goes on
-    with its share of the rays a step (meta's `batch_switch`, BatchSwitch)."""
+    with its share of the rays a step (meta's `batch_switch`, BatchSwitch).  A budget so short
+    that this member has used its share by `elapsed` seconds stays one member (share_spent)."""
     rate = 60.0 / max(float(np.median(step_seconds)), 1e-9)
     passes = budget_passes(config, batch, n_rays, rate)
     split = member_split(config, None, device_type)
     count = members_by_rule(passes, split)
+    spent = share_spent(config.minutes, count, elapsed)
+    if spent:
+        count = 1
+        _emit(progress, event="stage", message=f"one member: the budget passes over the training pixels {passes:.0f} "
+                                               f"times, but its first {elapsed:.0f} s were more than a member's share "
+                                               "of the minutes (give more minutes for two)")
     split = split if count > 1 else "steps"
     meta["members_rule"] = {"count": count, "passes": round(passes, 1), "steps_per_minute": round(rate, 1),
-                            **({"split": split} if count > 1 else {})}
+                            **({"split": split} if count > 1 else {}), **({"share_spent": True} if spent else {})}
     if split == "batch":
         meta["members_rule"]["batch_switch"] = {"step": step, "before": batch}
     _emit(progress, event="members", count=count, passes=round(passes, 1), split=split)

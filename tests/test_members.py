@@ -368,6 +368,33 @@ def test_the_rule_on_a_minutes_budget_decides_from_the_step_rate(tiny_scene, tmp
     assert meta["members_rule"]["count"] == 1 and not (tmp_path / "one" / STATE_NAME).exists()
 
 
+def test_a_first_member_past_its_share_at_the_decision_stays_one(tiny_scene, tmp_path, monkeypatch):
+    """Where the first member's steps up to the rule's decision took longer than its share of the
+    minutes, two members would overrun the budget (the second takes its whole share after): one."""
+    import time
+
+    import neulf_core.members as members
+    from neulf_core.train import share_spent
+
+    assert share_spent(1.0, 2, 30.0) and not share_spent(1.0, 2, 29.9) and not share_spent(1.0, 1, 50.0)
+    assert not share_spent(None, 2, 1e6)
+    _time_the_first_steps(monkeypatch)  # the decision at step 30
+    monkeypatch.setattr(members, "MEMBERS_PASSES", 0.0)  # two by the passes, at any pace
+    events = []
+
+    def slow_first_steps(event):  # 30 steps of at least 0.12 s: past 3 s, a member's share of 6
+        events.append(event)
+        if event.get("event") == "step" and event["step"] <= 30:
+            time.sleep(0.12)
+
+    result = train(tiny_scene, tmp_path / "m", config(minutes=0.1), progress=slow_first_steps)
+    assert result.status == "finished"
+    rule = json.loads((tmp_path / "m" / "model.json").read_text())["members_rule"]
+    assert rule["count"] == 1 and rule["share_spent"] is True
+    assert not (tmp_path / "m" / STATE_NAME).exists() and finished_members(tmp_path / "m") == []
+    assert any("more than a member's share" in e.get("message", "") for e in events)
+
+
 def test_a_minutes_budget_stopped_after_the_rule_resumes_as_an_ensemble(tiny_scene, tmp_path, monkeypatch):
     import neulf_core.members as members
 
