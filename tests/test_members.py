@@ -578,7 +578,8 @@ def test_the_rate_is_the_median_steps_so_a_few_slow_steps_do_not_decide():
     steady, hiccups = [0.02] * 95, [1.0] * 5
     meta = {}
     budget = config(minutes=1.0)
-    train_module._decide_members_at_measured_rate(budget, budget, 8192, 268800, steady + hiccups, meta, None, "cpu", 210)
+    train_module._decide_members_at_measured_rate(budget, budget, 8192, 268800, steady + hiccups, meta, None, "cpu", 210,
+                                                     elapsed=9.0)
     assert meta["members_rule"]["steps_per_minute"] == pytest.approx(3000.0)
     assert meta["members_rule"]["passes"] == pytest.approx(3000 * 8192 / 268800, abs=0.1)
     assert meta["members_rule"]["count"] == 2  # 91 passes; the mean step would read 36 and one member
