@@ -69,7 +69,9 @@ RULE_MEMBERS = 2
 # passes, each member making about half the one member's steps.  Deep scenes of at most 10 photos,
 # where the default does train with them, gained with them forced on at 11-24 passes (sixty-sixth
 # session, four seeds): fern's 8 +0.31 dB and 4 +0.27, the shiny scene's 7 +0.44 (12 of 12 pairs
-# up), the Lambertian scene's 7 -0.09 (1 of 4; docs/MEMBERS.md, "the deep scenes' band").
+# up), the Lambertian scene's 7 -0.09 (1 of 4; docs/MEMBERS.md, "the deep scenes' band").  All but
+# fern's 8 at budgets of 13 s, where the two members overran it (14.4-19.1 s) and which now keep
+# one (train.share_spent).
 BATCH_MEMBERS_PASSES = 12.0
 # A minutes budget learns its passes from the step rate of member 1: the median time of its
 # steps after RATE_FROM_STEP up to RATE_DECISION_STEP; its share of the minutes is set there.
@@ -363,6 +365,20 @@ def _state_as_decided(model_dir: Path, seed: int) -> dict | None:
     return state
 
 
+def _follow_the_kept_starts_verdict(model_dir: Path, seed: int) -> None:
+    """Before a resume, members.json as the first member's model.json decided it.  Of two starts
+    (starts.py) the first writes members.json when its rule decides, while the kept one's verdict
+    is the model's; a run stopped after the choice, before the first member finished, may hold
+    both, and they differ where the two starts' paces did (share_spent)."""
+    try:
+        rule = json.loads((model_dir / METADATA_FILE).read_text()).get("members_rule")
+    except (OSError, ValueError):
+        return
+    if rule:  # (once the first member has finished the two agree: this changes nothing)
+        state = read_state(model_dir)
+        _state_as_decided(model_dir, state["seed"] if state else seed)
+
+
 def train_members(train_one: Callable, scene, model_dir: Path, config, images_dir, resume: bool,
                   progress, should_stop):
     """`train_one(scene, model_dir, config, images_dir, resume, progress, should_stop)` trains
@@ -374,6 +390,8 @@ def train_members(train_one: Callable, scene, model_dir: Path, config, images_di
     from .device import pick_device
 
     model_dir = Path(model_dir)
+    if resume:
+        _follow_the_kept_starts_verdict(model_dir, config.seed)
     count = member_count(config, model_dir, resume)
     state = read_state(model_dir) if resume else None
     device_type = pick_device(config.device).type

@@ -141,7 +141,7 @@ class _Watch:
             self.elapsed = float(event.get("elapsed", self.elapsed))
             if event.get("loss") is not None and math.isfinite(event["loss"]):
                 self.losses = (self.losses + [float(event["loss"])])[-LOSS_WINDOW:]
-        if self.progress is None or self._not_the_models(kind):
+        if self.progress is None or self._not_the_models(kind, event):
             return
         if "fraction" in event:
             event = {**event, "fraction": self.overall(event["fraction"])}
@@ -149,16 +149,17 @@ class _Watch:
             event = {**event, "start": 2}
         self.progress(event)
 
-    def _not_the_models(self, kind: str) -> bool:
+    def _not_the_models(self, kind: str, event: dict) -> bool:
         """A start stopped at the decision step is paused, not cancelled (only the user
-        cancels); the second start's own start, checkpoints and pass limit are not the
-        model's; and the kept start says the pass limit again when it resumes."""
+        cancels); the second start's own start, checkpoints, pass limit and members verdict
+        are not the model's; and the kept start says the pass limit again when it resumes."""
         if kind == "cancelled":  # (after the choice a stop is the user's)
             return self.stage != "rest" and self.two_starts and not self.user_stop()
         if kind == "passes":  # said once, by the first start
             return self.stage != "first"
         # (nor its members rule's verdict: the kept start's decides, members.train_members)
-        return self.stage == "second" and kind in ("start", "checkpoint", "finished", "members")
+        return self.stage == "second" and (kind in ("start", "checkpoint", "finished", "members")
+                                           or event.get("verdict") == "members")
 
     def mean_loss(self) -> float:
         return sum(self.losses) / len(self.losses) if self.losses else math.inf

@@ -1171,9 +1171,9 @@ def _decide_members_at_measured_rate(config: TrainConfig, budget: TrainConfig, b
     spent = share_spent(config.minutes, count, elapsed)
     if spent:
         count = 1
-        _emit(progress, event="stage", message=f"one member: the budget passes over the training pixels {passes:.0f} "
-                                               f"times, but its first {elapsed:.0f} s were more than a member's share "
-                                               "of the minutes (give more minutes for two)")
+        _emit(progress, event="stage", verdict="members",
+              message=f"one member: the budget passes over the training pixels {passes:.0f} times, but its first "
+                      f"{elapsed:.0f} s were more than a member's share of the minutes (give more minutes for two)")
     split = split if count > 1 else "steps"
     meta["members_rule"] = {"count": count, "passes": round(passes, 1), "steps_per_minute": round(rate, 1),
                             **({"split": split} if count > 1 else {}), **({"share_spent": True} if spent else {})}
@@ -1181,9 +1181,9 @@ def _decide_members_at_measured_rate(config: TrainConfig, budget: TrainConfig, b
         meta["members_rule"]["batch_switch"] = {"step": step, "before": batch}
     _emit(progress, event="members", count=count, passes=round(passes, 1), split=split)
     if count > 1:
-        _emit(progress, event="stage", message=f"{count} members: the budget passes over the training pixels "
-                                               f"{passes:.0f} times at this pace (at least {passes_for_members(split):.0f}; "
-                                               f"--members 1 for one){share_words(split, count)}")
+        _emit(progress, event="stage", verdict="members",
+              message=f"{count} members: the budget passes over the training pixels {passes:.0f} times at this "
+                      f"pace (at least {passes_for_members(split):.0f}; --members 1 for one){share_words(split, count)}")
     return _members_share(config, budget, count, split)
 
 

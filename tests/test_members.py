@@ -382,7 +382,7 @@ def test_a_first_member_past_its_share_at_the_decision_stays_one(tiny_scene, tmp
     monkeypatch.setattr(members, "MEMBERS_PASSES", 0.0)  # two by the passes, at any pace
     events = []
 
-    def slow_first_steps(event):  # 30 steps of at least 0.12 s: past 3 s, a member's share of 6
+    def slow_first_steps(event):  # 29 steps of at least 0.12 s before it: past 3 s, a member's share of 6
         events.append(event)
         if event.get("event") == "step" and event["step"] <= 30:
             time.sleep(0.12)
@@ -393,6 +393,34 @@ def test_a_first_member_past_its_share_at_the_decision_stays_one(tiny_scene, tmp
     assert rule["count"] == 1 and rule["share_spent"] is True
     assert not (tmp_path / "m" / STATE_NAME).exists() and finished_members(tmp_path / "m") == []
     assert any("more than a member's share" in e.get("message", "") for e in events)
+
+
+@pytest.mark.parametrize("kept, written", [(1, 2), (2, 1)])
+def test_a_resume_follows_the_kept_starts_verdict_not_the_first_starts(tiny_scene, tmp_path, monkeypatch, kept, written):
+    """Of two starts the first writes members.json when its rule decides; the kept one's verdict
+    (model.json) is the model's.  Stopped before the first member finished with the two at odds,
+    the model resumes as the kept start decided (here the odds are written by hand)."""
+    import neulf_core.members as members
+
+    _time_the_first_steps(monkeypatch)
+    monkeypatch.setattr(members, "MEMBERS_PASSES", 0.0 if kept == 2 else 1e12)
+
+    def after_the_decision(events):
+        return any(e.get("event") == "members" for e in events) and sum(e.get("event") == "step" for e in events) > 40
+
+    folder = tmp_path / "m"
+    result, _ = run(tiny_scene, folder, config(minutes=0.04), stop_when=after_the_decision)
+    assert result.status == "cancelled"
+    assert json.loads((folder / "model.json").read_text())["members_rule"]["count"] == kept
+    if written == 2:
+        (folder / STATE_NAME).write_text(json.dumps({"count": 2, "seed": 0, "split": "steps", "finished": []}))
+    else:
+        (folder / STATE_NAME).unlink()
+    result, _ = run(tiny_scene, folder, config(minutes=0.04), resume=True)
+    assert result.status == "finished"
+    assert finished_members(folder) == ([2] if kept == 2 else []) and (folder / STATE_NAME).exists() == (kept == 2)
+    minutes = json.loads((folder / "model.json").read_text())["train_config"]["minutes"]
+    assert minutes == pytest.approx(0.04 / kept)  # the first member's share: the whole for one
 
 
 def test_a_minutes_budget_stopped_after_the_rule_resumes_as_an_ensemble(tiny_scene, tmp_path, monkeypatch):
@@ -547,6 +575,22 @@ def test_two_starts_count_a_members_share_of_the_minutes():
     # 60 s to the decision step of CanClip's 6 photos projects to 203 s in all: inside 4 minutes,
     # not inside the 2 minutes a member of two gets.
     assert minutes_budget_allows(4.0, 60.0, 2374) and not minutes_budget_allows(4.0 / watch.members, 60.0, 2374)
+
+
+def test_only_the_first_starts_members_verdict_reaches_the_user():
+    """The second of two starts decides its members too, but the kept start's verdict is the
+    model's (members.train_members): its event and its message stay inside."""
+    from neulf_core.starts import _Watch
+
+    for stage, shown in (("first", True), ("second", False)):
+        seen = []
+        watch = _Watch(seen.append, stage, 2374)
+        watch({"event": "stage", "verdict": "members", "message": "2 members: ..."})
+        watch({"event": "members", "count": 2})
+        watch({"event": "stage", "message": "sweep depth of view 1"})
+        assert watch.members == 2
+        assert [e.get("message") for e in seen if e.get("event") == "stage"] == (
+            ["2 members: ...", "sweep depth of view 1"] if shown else ["sweep depth of view 1"])
 
 
 @pytest.mark.parametrize("poses_off", [False, True])
