@@ -62,7 +62,7 @@ RULE_MEMBERS = 2
 # (sixty-fifth session, two seeds, benchmarks/side_by_side.py; docs/members_real_*.csv): fern,
 # CanClip and Statue gained at every budget, +0.07 to +0.38 dB at 1.5 minutes (6.5-7.7 passes as
 # the rule counts them; under the 0.3 dB the default's sizes count as a hair, for 1.8 times the
-# frame time), +0.22 to +0.98 at 2.5 (10.8-13.3 passes), +0.40 to +0.57 at 4 (19.4-22.0) and
+# frame time), +0.22 to +0.98 at 2.5 (10.8-13.3 passes), +0.39 to +0.57 at 4 (19.4-22.0) and
 # +0.18 to +1.34 at 7 (25.1-39.8).  So two from 12 passes: above the study's mixed 10 and the
 # product's 1.5 minutes.  Not counted: the multi-view losses' rays, which do not halve with the
 # batch -- CanClip's 26 photos with them forced on (never its default) lost 0.49-0.58 dB at 15-16

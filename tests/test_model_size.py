@@ -308,3 +308,14 @@ def test_auto_decides_the_depth_detail_reads_once_for_its_search_and_its_model(t
     assert reads == [(expected, tv, FAST_FIELD["decoder_lr_factor"], scales)] * 4  # 3 candidates and the final run
     assert passes == [train_module.FEW_PHOTOS_MAX_PASSES if expected == 2 else 0.0] * 4
     assert json.loads((tmp_path / "auto" / METADATA_NAME).read_text())["field_config"]["depth_detail_reads"] == expected
+
+
+def test_auto_is_the_fast_preset_with_its_texture_sized_per_scene():
+    """`auto` trains what `fast` trains (the sweep teacher, the pose check, the SfM points' pull)
+    and only sizes the texture: it was left without the teacher once, when `fast` gained it."""
+    from dataclasses import asdict
+
+    from neulf_core.presets import get_preset
+
+    fast, auto = asdict(get_preset("fast")), asdict(get_preset("auto"))
+    assert {key: value for key, value in fast.items() if auto[key] != value} == {"description": fast["description"]}
