@@ -61,20 +61,24 @@ def one_run(scene: str, images: str | None, scale: float, budget: dict, seed: in
     """Train and score one model in this process (the child's work); `budget` is {"minutes": m} or {"steps": n}."""
     import torch
 
+    from neulf_core.autosize import PRESET as AUTO_PRESET, train_auto
     from neulf_core.evaluate import evaluate_model
     from neulf_core.members import finished_members
     from neulf_core.train import TrainConfig, train
 
     torch.set_num_threads(1)
     config = TrainConfig(**budget, scale=scale, seed=seed, device=device, validate_seconds=1e9, **options)
-    result = train(scene, out, config, images_dir=images)
+    run = train_auto if config.preset == AUTO_PRESET else train  # as the CLI: auto searches the size first
+    result = run(scene, out, config, images_dir=images)
     scores = evaluate_model(out, scene, images_dir=images, save_images=False, device=device)
     meta = json.loads((out / "model.json").read_text())
     rule = meta.get("members_rule") or {}
     return {"steps": result.step, "train_seconds": round(result.elapsed, 1), "psnr": round(scores["mean_psnr"], 3),
             "ssim": round(scores["mean_ssim"], 4), "point_rays": (meta.get("point_depth") or {}).get("rays", 0),
             # the members trained, and the passes the members rule counted ("" where it did not run)
-            "members": 1 + len(finished_members(out)), "members_passes": rule.get("passes", "")}
+            "members": 1 + len(finished_members(out)), "members_passes": rule.get("passes", ""),
+            # the auto preset's chosen texture size, as a factor of the default's ("" for the other presets)
+            "texture_factor": ((meta.get("autosize") or {}).get("chosen") or {}).get("factor", "")}
 
 
 def pair(name: str, budget: dict, seed: int, settings: list[tuple[str, dict]], device: str | None,

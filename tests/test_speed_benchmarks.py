@@ -108,3 +108,19 @@ def test_side_by_side_trains_both_settings_of_a_pair_and_scores_them(tiny_scene,
     with pytest.raises(SystemExit):
         bench.main(["--scenes", "nowhere", "--baseline", "a={}"])
     assert load("point_depth").main.__module__ == "side_by_side"  # the same script, its two settings fixed
+
+
+def test_side_by_side_trains_the_auto_preset_as_the_command_line_does(tiny_scene, tmp_path):
+    """`{"preset": "auto"}` searches the texture size first (autosize.train_auto), and the row
+    says the size it chose; the other presets' rows leave it empty."""
+    bench = load("side_by_side")
+    bench.SCENES[tiny_scene.name] = (1.0, None)
+    out = tmp_path / "auto.csv"
+    bench.main(["--scenes", tiny_scene.name, "--data", str(tiny_scene.parent), "--steps", "30", "--seeds", "0",
+                "--baseline", 'fast={"members": 1}', "--candidate", 'auto={"preset": "auto", "members": 1}',
+                "--out", str(out)])
+    rows = {r["setting"]: r for r in csv.DictReader(open(out))}
+    assert rows["fast"]["texture_factor"] == ""
+    from neulf_core.autosize import FACTORS
+
+    assert float(rows["auto"]["texture_factor"]) in FACTORS
