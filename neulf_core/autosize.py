@@ -184,8 +184,12 @@ def _search(scene: Scene, config: TrainConfig, factors, progress, should_stop):
     steps, share = _candidate_steps(config, len(candidates)), SEARCH_SHARE / len(candidates)
     for i, candidate in enumerate(candidates):
         budget = {"steps": steps, "minutes": None} if steps else {"steps": None, "minutes": config.minutes * share}
+        # Sizes compared from one start, and without the sweep teacher: its early pull toward the sweep's
+        # depth evens the short candidates out, so the smallest wins -- with it CanClip's search picked
+        # x0.5 where it picks x0.7-x1, and the model lost 1.5 dB at 1.5 minutes (docs/BENCHMARKS.md,
+        # "The auto preset").  The final run trains with it as the preset says.
         run = replace(config, **budget, exclude=[v.name for v in held + validation], field_overrides=candidate.overrides,
-                      checkpoint_seconds=1e9, validate_seconds=1e9, two_starts=False)  # sizes compared from one start
+                      checkpoint_seconds=1e9, validate_seconds=1e9, two_starts=False, teacher=False)
         report = _rescaled(progress, i * share, share, f"x{candidate.factor:g}")
         if not _score_candidate(scene, run, candidate, validation, report, should_stop):
             return None

@@ -319,3 +319,22 @@ def test_auto_is_the_fast_preset_with_its_texture_sized_per_scene():
 
     fast, auto = asdict(get_preset("fast")), asdict(get_preset("auto"))
     assert {key: value for key, value in fast.items() if auto[key] != value} == {"description": fast["description"]}
+
+
+def test_auto_searches_the_size_without_the_sweep_teacher_and_trains_the_model_with_it(tiny_scene, tmp_path,
+                                                                                      monkeypatch):
+    """The teacher's early pull evens short candidates out (CanClip's search then picked the
+    smallest texture and lost 1.5 dB): the candidates train without it, the model as `fast` does."""
+    import neulf_core.autosize as autosize
+
+    teachers, real_train = [], autosize.train
+
+    def recording_train(scene, folder, config, **kwargs):
+        teachers.append(config.teacher)
+        return real_train(scene, folder, config, **kwargs)
+
+    monkeypatch.setattr(autosize, "train", recording_train)
+    events = []
+    train_auto(tiny_scene, tmp_path / "auto", fast_config(30, preset="auto"), progress=events.append)
+    assert teachers == [False, False, False, None]  # three candidates, then the model (None: the preset's, on)
+    assert any(e.get("message", "").startswith("sweep depth of") for e in events)  # the model's sweep ran
