@@ -119,8 +119,9 @@ PRESETS: dict[str, Preset] = {
     "fast": Preset("disparity", FAST_FIELD, **FAST_SCHEDULE, batch_size=8192, teacher=True, consistency=None, point_depth=True,
                    pose_check=True,
                    description="per-ray disparity shearing one shared st texture; trains in minutes on a CPU"),
-    # (the sweep teacher as `fast`: it came to `fast` the day `auto` was made, and `auto` was left without it
-    # until the sixty-sixth session)
+    # (the sweep teacher as `fast`, in the model it trains; its size search goes without, autosize._search.
+    # The teacher came to `fast` the day `auto` was made, and `auto` was left without it until the
+    # sixty-sixth session)
     "auto": Preset("disparity", FAST_FIELD, **FAST_SCHEDULE, batch_size=8192, teacher=True, consistency=None, point_depth=True,
                    pose_check=True, description="the fast field with its texture sized per scene on validation views (autosize.py)"),
     "planes": Preset("planes", {}, lr=2e-3, lr_final_ratio=0.1, batch_size=8192,
