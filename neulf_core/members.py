@@ -71,7 +71,7 @@ RULE_MEMBERS = 2
 # session, four seeds): fern's 8 +0.31 dB and 4 +0.27, the shiny scene's 7 +0.44 (12 of 12 pairs
 # up), the Lambertian scene's 7 -0.09 (1 of 4; docs/MEMBERS.md, "the deep scenes' band").  All but
 # fern's 8 at budgets of 13 s, where the two members overran it (14.4-19.1 s) and which now keep
-# one (train.share_spent).
+# one (share_spent).
 BATCH_MEMBERS_PASSES = 12.0
 # A minutes budget learns its passes from the step rate of member 1: the median time of its
 # steps after RATE_FROM_STEP up to RATE_DECISION_STEP; its share of the minutes is set there.
@@ -131,6 +131,14 @@ def members_by_rule(passes: float | None, split: str = "steps") -> int | None:
     if passes is None:
         return None
     return RULE_MEMBERS if passes >= passes_for_members(split) else 1
+
+
+def share_spent(minutes: float | None, count: int, elapsed: float) -> bool:
+    """Whether a minutes budget's first member, deciding on `count` members after `elapsed`
+    seconds, has already trained longer than its share: the second would then take its whole
+    share on top, past the budget (the study's 7-photo synthetic scenes at 0.22 minutes, whose
+    rate is timed by step 210, trained 14.4-19.1 s for 13.2; docs/MEMBERS.md).  So one member."""
+    return bool(minutes) and count > 1 and elapsed >= 60.0 * minutes / count
 
 
 def default_split(device_type: str) -> str:
@@ -346,14 +354,19 @@ class _MemberProgress:
         self.progress({**event, "member": self.member, "members": self.count})
 
 
-def _state_as_decided(model_dir: Path, seed: int) -> dict | None:
-    """members.json as the finished first member decided it on a minutes budget (model.json's
-    `members_rule`), or None for one member.  Where two starts each timed their own pace, the
-    one kept may have decided otherwise than the one whose verdict was written."""
+def _members_rule(model_dir: Path) -> dict:
+    """model.json's `members_rule`: the first member's verdict on a minutes budget ({} for none)."""
     try:
-        rule = json.loads((Path(model_dir) / METADATA_FILE).read_text()).get("members_rule") or {}
+        return json.loads((Path(model_dir) / METADATA_FILE).read_text()).get("members_rule") or {}
     except (OSError, ValueError):
-        rule = {}
+        return {}
+
+
+def _state_as_decided(model_dir: Path, seed: int, rule: dict | None = None) -> dict | None:
+    """members.json as the first member decided it on a minutes budget (`rule`: model.json's
+    `members_rule`, read when not given), or None for one member.  Where two starts each timed
+    their own pace, the one kept may have decided otherwise than the one whose verdict was written."""
+    rule = _members_rule(model_dir) if rule is None else rule
     state = read_state(model_dir)
     count = int(rule.get("count", state["count"] if state else 1))
     if count <= 1:
@@ -361,22 +374,8 @@ def _state_as_decided(model_dir: Path, seed: int) -> dict | None:
         return None
     split = rule.get("split", "steps") if rule else state.get("split", "steps")
     if state is None or state["count"] != count or state.get("split", "steps") != split:
-        state = _start_state(model_dir, count, seed, split)
+        state = _start_state(model_dir, count, state["seed"] if state else seed, split)
     return state
-
-
-def _follow_the_kept_starts_verdict(model_dir: Path, seed: int) -> None:
-    """Before a resume, members.json as the first member's model.json decided it.  Of two starts
-    (starts.py) the first writes members.json when its rule decides, while the kept one's verdict
-    is the model's; a run stopped after the choice, before the first member finished, may hold
-    both, and they differ where the two starts' paces did (share_spent)."""
-    try:
-        rule = json.loads((model_dir / METADATA_FILE).read_text()).get("members_rule")
-    except (OSError, ValueError):
-        return
-    if rule:  # (once the first member has finished the two agree: this changes nothing)
-        state = read_state(model_dir)
-        _state_as_decided(model_dir, state["seed"] if state else seed)
 
 
 def train_members(train_one: Callable, scene, model_dir: Path, config, images_dir, resume: bool,
@@ -390,8 +389,9 @@ def train_members(train_one: Callable, scene, model_dir: Path, config, images_di
     from .device import pick_device
 
     model_dir = Path(model_dir)
-    if resume:
-        _follow_the_kept_starts_verdict(model_dir, config.seed)
+    rule = _members_rule(model_dir) if resume else {}
+    if rule:  # (of two starts the kept one's verdict, which members.json may not say yet: _state_as_decided)
+        _state_as_decided(model_dir, config.seed, rule)
     count = member_count(config, model_dir, resume)
     state = read_state(model_dir) if resume else None
     device_type = pick_device(config.device).type

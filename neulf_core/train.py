@@ -27,7 +27,7 @@ from .fields import build_field, count_parameters, make_config
 from .fields.disparity import DisparityConfig, slab_geometry, texture_size_for
 from .lock import training_lock
 from .members import RATE_DECISION_STEP as MEMBERS_RATE_DECISION_STEP, RATE_FROM_STEP as MEMBERS_RATE_FROM_STEP, \
-    member_budget, member_split, members_by_rule, passes_for_members, share_words
+    member_budget, member_split, members_by_rule, passes_for_members, share_spent, share_words
 from . import poses as poses_module
 from .poses import DEPTH_LIKE_GAUGE, POSE_CHECK_STEP, POSE_SECOND_LOOK_STEP, PoseRefinement
 from .presets import APPEARANCE_ADAM_BETA2, APPEARANCE_GEOMETRY, DEFAULT_PRESET, get_preset
@@ -1145,14 +1145,6 @@ def _switch_on_resume(asked: TrainConfig, resumed: dict | None, saved_batch: int
     if asked.batch_size >= saved_batch:
         return None  # (it trained with its share from the start)
     return BatchSwitch(int(resumed["progress"]["step"]), saved_batch, int(asked.members))
-
-
-def share_spent(minutes: float | None, count: int, elapsed: float) -> bool:
-    """Whether a minutes budget's first member, deciding on `count` members after `elapsed`
-    seconds, has already trained longer than its share: the second would then take its whole
-    share on top, past the budget (the study's 7-photo synthetic scenes at 0.22 minutes, whose
-    rate is timed by step 210, trained 14.4-19.1 s for 13.2; docs/MEMBERS.md).  So one member."""
-    return bool(minutes) and count > 1 and elapsed >= 60.0 * minutes / count
 
 
 def _decide_members_at_measured_rate(config: TrainConfig, budget: TrainConfig, batch: int, n_rays: int,

@@ -374,7 +374,7 @@ def test_a_first_member_past_its_share_at_the_decision_stays_one(tiny_scene, tmp
     import time
 
     import neulf_core.members as members
-    from neulf_core.train import share_spent
+    from neulf_core.members import share_spent
 
     assert share_spent(1.0, 2, 30.0) and not share_spent(1.0, 2, 29.9) and not share_spent(1.0, 1, 50.0)
     assert not share_spent(None, 2, 1e6)
