@@ -104,8 +104,28 @@ def test_choose_takes_the_smallest_within_tolerance():
 def test_validation_views_come_from_the_training_views(tiny_scene):
     fit, validation, held = validation_split(load_scene(tiny_scene), TrainConfig())
     names = lambda views: {v.name for v in views}  # noqa: E731
-    assert names(held) == {"view_00.png", "view_08.png"} and names(validation) == {"view_01.png"}
+    assert names(held) == {"view_00.png", "view_08.png"} and names(validation) == {"view_04.png"}
     assert not names(fit) & (names(held) | names(validation)) and len(fit) == 6
+
+
+def test_validation_views_lie_half_way_between_held_out_views(tiny_scene):
+    """Like a held-out view, a validation view has training views on both sides (its neighbours
+    in name order are ones the candidates train on), so it scores them at the gaps the model has."""
+    scene = load_scene(tiny_scene)
+    fit, validation, _ = validation_split(scene, TrainConfig())
+    order = [v.name for v in scene.views]
+    for view in validation:
+        i = order.index(view.name)
+        assert {order[i - 1], order[i + 1]} <= {v.name for v in fit}
+
+
+@pytest.mark.parametrize("options", [{"exclude": ["view_02.png"]}, {"holdout_every": 0}, {"holdout_every": 3}])
+def test_validation_views_without_the_every_8th_protocol(tiny_scene, options):
+    """Named held-out views, none, or dense ones: every 8th training view from the 5th."""
+    scene = load_scene(tiny_scene)
+    fit, validation, held = validation_split(scene, TrainConfig(**options))
+    train_views = [v for v in scene.views if v.name not in {h.name for h in held}]
+    assert [v.name for v in validation] == [v.name for v in train_views[4::8]] and len(fit) == len(train_views) - len(validation)
 
 
 @pytest.mark.parametrize("tolerance", [100.0, 0.0])
@@ -124,7 +144,7 @@ def test_auto_picks_the_smallest_candidate_within_tolerance(tiny_scene, tmp_path
     assert record["chosen"]["factor"] == min(within, key=lambda c: c.model_bytes).factor
     if tolerance == 100.0:
         assert record["chosen"]["factor"] == 0.5
-    assert record["validation_views"] == ["view_01.png"]
+    assert record["validation_views"] == ["view_04.png"]
     meta = json.loads((tmp_path / "auto" / METADATA_NAME).read_text())
     assert meta["autosize"]["chosen"] == record["chosen"]
     assert meta["field_config"]["texture_size"] == record["chosen"]["overrides"]["texture_size"]
