@@ -2,7 +2,9 @@
 the search's candidates against the final models' held-out PSNR.
 
     python benchmarks/auto_search.py --scenes statue,canclip,fern --seeds 0 --steps 4000 \\
-        --curve 533,1066,2132 --out docs/auto_search_curves.csv
+        --curve 533,1066,2132 --out docs/auto_search.csv
+    python benchmarks/auto_search.py ... --curve 533 --no-finals --variant '{"teacher": true}'   # a change to the search
+    python benchmarks/auto_search.py --report-only --out docs/auto_search_halfway_533.csv      # the table again
 
 For each scene and seed it trains, as `autosize.train_auto` would at `--steps`:
 - each candidate texture (x1, x0.7, x0.5) as the search trains it (validation views carved out,
@@ -11,7 +13,8 @@ For each scene and seed it trains, as `autosize.train_auto` would at `--steps`:
 - each texture as the final model (all training views, the preset's teacher) for the steps the
   search leaves at `--steps`, scored on the held-out views as `eval` scores them.
 So the table says which texture the search would choose at each candidate budget, and which the
-final model wanted.  Two runs at a time, one torch thread and one core each (AMD EPYC here).
+final model wanted.  A candidate's row also holds, for the diagnosis only, its PSNR on the
+held-out views and each view's (`held_out_psnr`, `view_psnr`): the search never sees them.  Two runs at a time, one torch thread and one core each (AMD EPYC here).
 """
 
 from __future__ import annotations
@@ -25,6 +28,7 @@ import sys
 import tempfile
 from concurrent.futures import ThreadPoolExecutor
 from datetime import date
+from functools import partial
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
@@ -41,7 +45,9 @@ def one_run(path: str, images: str | None, scale: float, seed: int, factor: floa
             total_steps: int, variant: dict) -> dict:
     """One candidate (kind "candidate": validation PSNR, and for the diagnosis the held-out views'
     PSNR, which the search never sees) or one final model (kind "final": held-out PSNR).
-    `variant`: TrainConfig fields set over the candidate's (a change to the search tried)."""
+    `variant`: TrainConfig fields set over the candidate's (a change to the search tried), and
+    `"validation": "halfway"` to validate on the training views half-way between the held-out
+    ones instead of every 8th training view."""
     import numpy as np
     import torch
 
@@ -51,7 +57,10 @@ def one_run(path: str, images: str | None, scale: float, seed: int, factor: floa
     from neulf_core.train import TrainConfig, train
 
     torch.set_num_threads(1)
+    variant = dict(variant)
     scene = load_scene(path, images)
+    if variant.pop("validation", None) == "halfway":  # tried in the sixty-seventh session, not kept
+        autosize.validation_split = partial(halfway_validation_split, autosize.validation_split, scene)
     config = TrainConfig(preset=autosize.PRESET, steps=total_steps, scale=scale, seed=seed, validate_seconds=1e9)
     config = autosize.final_model_defaults(scene, config, None)
     fit, validation, held = autosize.validation_split(scene, config)
@@ -77,6 +86,18 @@ def one_run(path: str, images: str | None, scale: float, seed: int, factor: floa
                       "model_bytes": (Path(folder) / autosize.MODEL_NAME).stat().st_size}
             seconds = round(trained.elapsed, 1)
     return {**result, "train_seconds": seconds, "texture_size": "x".join(map(str, candidate.overrides["texture_size"]))}
+
+
+def halfway_validation_split(split, scene, _scene, config):
+    """autosize.validation_split with the validation views half-way between the held-out views
+    (every 8th view held out: views 4, 12, 20, ...), each with training views on both sides as a
+    held-out view has; the candidates train on the rest."""
+    fit, validation, held = split(scene, config)
+    position = {v.name: i for i, v in enumerate(scene.views)}
+    train_views = sorted(fit + validation, key=lambda v: position[v.name])
+    every = config.holdout_every
+    halfway = [v for v in train_views if position[v.name] % every == every // 2]
+    return [v for v in train_views if v not in halfway], halfway, held
 
 
 def jobs(scenes, seeds, factors, curve, total_steps):
@@ -138,7 +159,7 @@ def main(argv=None) -> None:
     parser.add_argument("--variant", default="{}", help="JSON: TrainConfig fields set over the candidates' (a change tried)")
     parser.add_argument("--no-finals", action="store_true", help="train the candidates only")
     parser.add_argument("--data", default=str(REPO.parent / "shared" / "data"))
-    parser.add_argument("--out", default=str(REPO / "docs" / "auto_search_curves.csv"))
+    parser.add_argument("--out", default=str(REPO / "docs" / "auto_search.csv"))
     parser.add_argument("--report-only", action="store_true", help="print the table from --out")
     parser.add_argument("--child", help=argparse.SUPPRESS)
     args = parser.parse_args(argv)

@@ -1,9 +1,9 @@
 """The `auto` preset: the smallest fast field a scene needs, chosen on validation views.
 
-Validation views are carved from the training views (those half-way between the held-out
-views; the held-out test views are never looked at).  A few texture sizes of the fast field
-train for the same short step budget on the rest, each is scored on the validation views, and
-the smallest whose PSNR is within `tolerance_db` of the largest tried wins; that size then trains on all training
+Validation views are carved from the training views (every 8th of them; the held-out test
+views are never looked at).  A few texture sizes of the fast field train for the same short
+step budget on the rest, each is scored on the validation views, and the smallest whose PSNR
+is within `tolerance_db` of the largest tried wins; that size then trains on all training
 views for the remaining budget.  Everything goes through `train.train()`: a candidate is a
 TrainConfig with more views excluded and a texture-size override.
 """
@@ -33,8 +33,7 @@ from .train import (LOSSES_DECISION_STEP, TrainConfig, TrainResult, _emit, annou
 PRESET = "auto"
 FACTORS = (1.0, 0.7, 0.5)    # finest texture size / the default (~1 texel per pixel); area 1, 1/2, 1/4
 TOLERANCE_DB = 0.3
-VALIDATION_EVERY = 8          # where held-out views are not every 6th or sparser: every 8th training view validates
-MIDDLE_VALIDATION_MIN_GAP = 6  # held out every 6th view or sparser: the views half-way between them validate
+VALIDATION_EVERY = 8          # every 8th training view validates the candidates
 SEARCH_SHARE = 0.4            # of the budget spent on the candidates together
 
 
@@ -70,31 +69,13 @@ def choose(candidates: list[Candidate], tolerance_db: float = TOLERANCE_DB) -> C
 def validation_split(scene: Scene, config: TrainConfig):
     """(views the candidates train on, validation views, held-out test views)."""
     train_views, held = split_views(scene, config.holdout_every, config.exclude)
-    validation = validation_views(scene, train_views, config)
+    validation = train_views[::VALIDATION_EVERY]
     names = {v.name for v in validation}
     fit = [v for v in train_views if v.name not in names]
     if len(fit) < 2:
         raise NeulfError(f"the auto preset needs at least 3 training views (it validates on every {VALIDATION_EVERY}th); "
                          f"this scene has {len(train_views)}: use --preset fast.")
     return fit, validation, held
-
-
-def validation_views(scene: Scene, train_views, config: TrainConfig):
-    """The training views that validate the candidates: each half-way between two held-out views.
-
-    A held-out view has training views on both sides, the nearest next to it; so should a
-    validation view, or it scores a candidate at a gap the model will not have.  The view just
-    after a held-out one has a neighbour missing, and there the smaller textures scored as well
-    as the default where the model that trains on every view wants the default's texels
-    (Statue at 4000 steps: candidates x1 / x0.7 / x0.5 26.93 / 27.18 / 26.95 dB, so x0.5, whose
-    model scores 0.54 dB under the default's; half-way 28.79 / 28.87 / 28.44, so x0.7;
-    docs/BENCHMARKS.md, "The auto preset").  Held-out views named by hand, none held out, or
-    held out every fewer than 6 views: every 8th training view from the 5th."""
-    every = config.holdout_every if config.holdout_every and not config.exclude else 0
-    if every >= MIDDLE_VALIDATION_MIN_GAP:
-        position = {v.name: i for i, v in enumerate(scene.views)}
-        return [v for v in train_views if position[v.name] % every == every // 2]
-    return train_views[VALIDATION_EVERY // 2::VALIDATION_EVERY]
 
 
 def validation_psnr(model_dir: Path, views, scale: float, device: str | None = None) -> float:
@@ -131,12 +112,12 @@ def train_auto(scene: Scene | str | Path, model_dir: str | Path, config: TrainCo
         record = load_checkpoint(model_dir).get("autosize")
         result = train(scene, model_dir, config, images_dir=images_dir, resume=True, progress=progress, should_stop=should_stop)
         return _record(model_dir, record, result)
+    started = time.monotonic()  # a minutes budget is the whole run's: the photos' loading and the rules' probe too
     if not isinstance(scene, Scene):
         scene = load_scene(scene, images_dir)
     config = replace(config, preset=PRESET)
     config = final_model_defaults(scene, config, progress)
-    started = time.monotonic()
-    searched = _search(scene, config, factors, progress, should_stop)
+    searched = _search(scene, config, factors, progress, should_stop, started)
     if searched is None:  # cancelled; nothing saved yet: the search starts again next time
         return TrainResult(model_dir, "cancelled", 0, time.monotonic() - started, None, [])
     candidates, validation = searched
@@ -193,8 +174,9 @@ def _steps_per_minute(scene: Scene, config: TrainConfig) -> float:
         return float(json.loads((Path(folder) / METADATA_NAME).read_text()).get("losses_steps_per_minute", 0.0))
 
 
-def _search(scene: Scene, config: TrainConfig, factors, progress, should_stop):
-    """Train and score every candidate size: (candidates, validation views), None if cancelled."""
+def _search(scene: Scene, config: TrainConfig, factors, progress, should_stop, started: float):
+    """Train and score every candidate size: (candidates, validation views), None if cancelled.
+    `started`: when the auto run began (time.monotonic())."""
     fit, validation, held = validation_split(scene, config)
     _emit(progress, event="stage", message=f"auto: {len(factors)} texture sizes, validated on "
                                              f"{', '.join(v.name for v in validation)}")
@@ -202,7 +184,8 @@ def _search(scene: Scene, config: TrainConfig, factors, progress, should_stop):
                   for f in sorted(factors, reverse=True)]
     steps, share = _candidate_steps(config, len(candidates)), SEARCH_SHARE / len(candidates)
     for i, candidate in enumerate(candidates):
-        budget = {"steps": steps, "minutes": None} if steps else {"steps": None, "minutes": config.minutes * share}
+        budget = {"steps": steps, "minutes": None} if steps else {"steps": None,
+                                                                   "minutes": _first_candidate_minutes(config, len(candidates), started)}
         run = candidate_config(config, candidate, budget, held + validation)
         report = _rescaled(progress, i * share, share, f"x{candidate.factor:g}")
         if not score_candidate(scene, run, candidate, validation, report, should_stop):
@@ -235,6 +218,16 @@ def score_candidate(scene: Scene, run: TrainConfig, candidate: Candidate, valida
         candidate.val_psnr = validation_psnr(Path(folder), validation, run.scale, run.device)
         candidate.model_bytes = (Path(folder) / MODEL_NAME).stat().st_size
     return True
+
+
+def _first_candidate_minutes(config: TrainConfig, count: int, started: float) -> float:
+    """A minutes budget: the first candidate's minutes (the rest train its steps), its even part
+    of the search's share less the time already spent loading the photos and deciding the rules
+    (fern at 1.5 minutes: 5 of the search's 36 seconds), so the model keeps its share; a quarter
+    of the even part at least."""
+    even = config.minutes * SEARCH_SHARE / count
+    left = config.minutes * SEARCH_SHARE - (time.monotonic() - started) / 60
+    return max(even / 4, left / count)
 
 
 def _candidate_steps(config: TrainConfig, count: int) -> int | None:

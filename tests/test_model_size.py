@@ -104,28 +104,8 @@ def test_choose_takes_the_smallest_within_tolerance():
 def test_validation_views_come_from_the_training_views(tiny_scene):
     fit, validation, held = validation_split(load_scene(tiny_scene), TrainConfig())
     names = lambda views: {v.name for v in views}  # noqa: E731
-    assert names(held) == {"view_00.png", "view_08.png"} and names(validation) == {"view_04.png"}
+    assert names(held) == {"view_00.png", "view_08.png"} and names(validation) == {"view_01.png"}
     assert not names(fit) & (names(held) | names(validation)) and len(fit) == 6
-
-
-def test_validation_views_lie_half_way_between_held_out_views(tiny_scene):
-    """Like a held-out view, a validation view has training views on both sides (its neighbours
-    in name order are ones the candidates train on), so it scores them at the gaps the model has."""
-    scene = load_scene(tiny_scene)
-    fit, validation, _ = validation_split(scene, TrainConfig())
-    order = [v.name for v in scene.views]
-    for view in validation:
-        i = order.index(view.name)
-        assert {order[i - 1], order[i + 1]} <= {v.name for v in fit}
-
-
-@pytest.mark.parametrize("options", [{"exclude": ["view_02.png"]}, {"holdout_every": 0}, {"holdout_every": 3}])
-def test_validation_views_without_the_every_8th_protocol(tiny_scene, options):
-    """Named held-out views, none, or dense ones: every 8th training view from the 5th."""
-    scene = load_scene(tiny_scene)
-    fit, validation, held = validation_split(scene, TrainConfig(**options))
-    train_views = [v for v in scene.views if v.name not in {h.name for h in held}]
-    assert [v.name for v in validation] == [v.name for v in train_views[4::8]] and len(fit) == len(train_views) - len(validation)
 
 
 @pytest.mark.parametrize("tolerance", [100.0, 0.0])
@@ -144,7 +124,7 @@ def test_auto_picks_the_smallest_candidate_within_tolerance(tiny_scene, tmp_path
     assert record["chosen"]["factor"] == min(within, key=lambda c: c.model_bytes).factor
     if tolerance == 100.0:
         assert record["chosen"]["factor"] == 0.5
-    assert record["validation_views"] == ["view_04.png"]
+    assert record["validation_views"] == ["view_01.png"]
     meta = json.loads((tmp_path / "auto" / METADATA_NAME).read_text())
     assert meta["autosize"]["chosen"] == record["chosen"]
     assert meta["field_config"]["texture_size"] == record["chosen"]["overrides"]["texture_size"]
@@ -161,6 +141,29 @@ def test_auto_with_a_time_budget_gives_every_candidate_the_same_steps(tiny_scene
     record = load_checkpoint(tmp_path / "auto")["autosize"]
     steps = [c["steps"] for c in record["candidates"]]
     assert steps[0] >= 1 and steps == [steps[0]] * 3
+
+
+def test_a_time_budget_counts_the_time_before_the_search(tiny_scene, tmp_path, monkeypatch):
+    """The photos' loading and the rules' decisions come out of the search's share: the first
+    candidate gets the share's even part less the time they took (a quarter of it at least), so
+    the model keeps the rest of the minutes."""
+    import time
+
+    from neulf_core import autosize
+
+    config = fast_config(None, preset="auto", minutes=1.5)
+    even = 1.5 * autosize.SEARCH_SHARE / 3
+    assert autosize._first_candidate_minutes(config, 3, time.monotonic()) == pytest.approx(even, rel=1e-3)
+    assert autosize._first_candidate_minutes(config, 3, time.monotonic() - 6) == pytest.approx(even - 2 / 60, rel=1e-3)
+    assert autosize._first_candidate_minutes(config, 3, time.monotonic() - 600) == pytest.approx(even / 4)
+    loading, budgets = autosize.load_scene, []
+    monkeypatch.setattr(autosize, "load_scene", lambda *a, **k: (time.sleep(1.5), loading(*a, **k))[1])
+    monkeypatch.setattr(autosize, "candidate_config", lambda c, cand, budget, views: (
+        budgets.append(budget), autosize.replace(c, **budget, exclude=[v.name for v in views],
+                                                 field_overrides=cand.overrides, teacher=False))[1])
+    train_auto(tiny_scene, tmp_path / "auto", fast_config(None, preset="auto", minutes=0.2))
+    assert budgets[0]["minutes"] < (0.2 * autosize.SEARCH_SHARE - 1.5 / 60) / 3 + 1e-9
+    assert [b["steps"] for b in budgets[1:]] == [budgets[1]["steps"]] * 2  # the rest train the first's steps
 
 
 def test_cli_trains_and_resumes_auto(tiny_scene, tmp_path, capsys):

@@ -124,3 +124,36 @@ def test_side_by_side_trains_the_auto_preset_as_the_command_line_does(tiny_scene
     from neulf_core.autosize import FACTORS
 
     assert float(rows["auto"]["texture_factor"]) in FACTORS
+
+
+def test_auto_search_trains_the_candidates_and_the_final_models(tiny_scene, tmp_path, capsys):
+    """benchmarks/auto_search.py end to end on the tiny scene: each candidate texture as the
+    search trains it, scored on the validation views (and, for the diagnosis, on the held-out
+    ones), each final model on the held-out views, and the table of what the search would
+    choose against the final model that scored best."""
+    import json
+
+    from neulf_core.autosize import validation_split
+    from neulf_core.scene import load_scene
+    from neulf_core.train import TrainConfig
+
+    bench = load("auto_search")
+    bench.SCENES[tiny_scene.name] = (1.0, None)
+    out = tmp_path / "search.csv"
+    bench.main(["--scenes", tiny_scene.name, "--data", str(tiny_scene.parent), "--steps", "40", "--curve", "6",
+                "--factors", "1,0.5", "--out", str(out)])
+    rows = list(csv.DictReader(open(out)))
+    assert sorted((r["kind"], r["factor"], r["steps"]) for r in rows) == [
+        ("candidate", "0.5", "6"), ("candidate", "1.0", "6"), ("final", "0.5", "24"), ("final", "1.0", "24")]  # 40 - 2 x 8
+    _, validation, held = validation_split(load_scene(tiny_scene), TrainConfig())
+    for row in rows:
+        assert 0 < float(row["psnr"]) < 100
+        if row["kind"] == "candidate":
+            views = json.loads(row["view_psnr"])
+            assert set(views) == {v.name for v in validation + held}
+            assert float(row["psnr"]) == round(sum(views[v.name] for v in validation) / len(validation), 3)
+        else:
+            assert row["held_out_psnr"] == "" and row["view_psnr"] == ""
+    finals = {float(r["factor"]): float(r["psnr"]) for r in rows if r["kind"] == "final"}
+    printed = capsys.readouterr().out
+    assert f"| model, 24 steps (held-out) | {finals[1.0]:.2f} |  | {finals[0.5]:.2f} | x{max(finals, key=finals.get):g} |" in printed
