@@ -48,6 +48,8 @@ def one_run(path: str, images: str | None, scale: float, seed: int, factor: floa
     `variant`: TrainConfig fields set over the candidate's (a change to the search tried), and
     `"validation": "halfway"` to validate on the training views half-way between the held-out
     ones instead of every 8th training view."""
+    from dataclasses import replace
+
     import numpy as np
     import torch
 
@@ -67,7 +69,6 @@ def one_run(path: str, images: str | None, scale: float, seed: int, factor: floa
     candidate = autosize.Candidate(factor, {**config.field_overrides, **autosize.texture_overrides(fit, scale, factor)})
     with tempfile.TemporaryDirectory(prefix="neulf_auto_search_") as folder:
         if kind == "candidate":
-            from dataclasses import replace
             run = autosize.candidate_config(config, candidate, {"steps": steps, "minutes": None}, held + validation)
             run = replace(run, **variant)
             trained = train(scene, folder, run)
@@ -76,16 +77,13 @@ def one_run(path: str, images: str | None, scale: float, seed: int, factor: floa
                       "held_out_psnr": round(float(np.mean([views[v.name] for v in held])), 3),
                       "model_bytes": (Path(folder) / autosize.MODEL_NAME).stat().st_size,
                       "view_psnr": json.dumps({name: round(value, 3) for name, value in views.items()})}
-            seconds = None
         else:
-            from dataclasses import replace
             final = replace(config, field_overrides=candidate.overrides, steps=steps)
             trained = train(scene, folder, final)
             scores = evaluate_model(folder, path, images_dir=images, save_images=False)
             result = {"steps": trained.step, "psnr": round(scores["mean_psnr"], 3),
                       "model_bytes": (Path(folder) / autosize.MODEL_NAME).stat().st_size}
-            seconds = round(trained.elapsed, 1)
-    return {**result, "train_seconds": seconds, "texture_size": "x".join(map(str, candidate.overrides["texture_size"]))}
+    return {**result, "train_seconds": round(trained.elapsed, 1), "texture_size": "x".join(map(str, candidate.overrides["texture_size"]))}
 
 
 def halfway_validation_split(split, scene, _scene, config):
@@ -102,16 +100,13 @@ def halfway_validation_split(split, scene, _scene, config):
 
 def jobs(scenes, seeds, factors, curve, total_steps):
     """Every run, the longest first (two cores stay busy to the end)."""
-    search_steps = sum(int(total_steps * autosize_share() / len(factors)) for _ in factors)
+    from neulf_core.autosize import SEARCH_SHARE
+
+    search_steps = sum(int(total_steps * SEARCH_SHARE / len(factors)) for _ in factors)  # as autosize._candidate_steps
     final_steps = max(1, total_steps - search_steps)
     listed = [(name, seed, f, "candidate", s) for name in scenes for seed in seeds for f in factors for s in curve]
     listed += [(name, seed, f, "final", final_steps) for name in scenes for seed in seeds for f in factors]
     return sorted(listed, key=lambda job: -job[4])
-
-
-def autosize_share() -> float:
-    from neulf_core.autosize import SEARCH_SHARE
-    return SEARCH_SHARE
 
 
 def run_pinned(job, total_steps: int, data: Path, core: int, variant: dict) -> dict:
