@@ -14,7 +14,8 @@ For each scene and seed it trains, as `autosize.train_auto` would at `--steps`:
   search leaves at `--steps`, scored on the held-out views as `eval` scores them.
 So the table says which texture the search would choose at each candidate budget, and which the
 final model wanted.  A candidate's row also holds, for the diagnosis only, its PSNR on the
-held-out views and each view's (`held_out_psnr`, `view_psnr`): the search never sees them.  Two runs at a time, one torch thread and one core each (AMD EPYC here).
+held-out views and each view's (`held_out_psnr`, `view_psnr`): the search never sees them.
+Two runs at a time, one torch thread and one core each (AMD EPYC here).
 """
 
 from __future__ import annotations
@@ -62,7 +63,7 @@ def one_run(path: str, images: str | None, scale: float, seed: int, factor: floa
     variant = dict(variant)
     scene = load_scene(path, images)
     if variant.pop("validation", None) == "halfway":  # tried in the sixty-seventh session, not kept
-        autosize.validation_split = partial(halfway_validation_split, autosize.validation_split, scene)
+        autosize.validation_split = partial(halfway_validation_split, autosize.validation_split)
     config = TrainConfig(preset=autosize.PRESET, steps=total_steps, scale=scale, seed=seed, validate_seconds=1e9)
     config = autosize.final_model_defaults(scene, config, None)
     fit, validation, held = autosize.validation_split(scene, config)
@@ -72,7 +73,7 @@ def one_run(path: str, images: str | None, scale: float, seed: int, factor: floa
             run = autosize.candidate_config(config, candidate, {"steps": steps, "minutes": None}, held + validation)
             run = replace(run, **variant)
             trained = train(scene, folder, run)
-            views = {v.name: autosize.validation_psnr(Path(folder), [v], scale) for v in validation + held}
+            views = dict(zip((v.name for v in validation + held), autosize.view_psnrs(Path(folder), validation + held, scale)))
             result = {"steps": trained.step, "psnr": round(float(np.mean([views[v.name] for v in validation])), 3),
                       "held_out_psnr": round(float(np.mean([views[v.name] for v in held])), 3),
                       "model_bytes": (Path(folder) / autosize.MODEL_NAME).stat().st_size,
@@ -86,7 +87,7 @@ def one_run(path: str, images: str | None, scale: float, seed: int, factor: floa
     return {**result, "train_seconds": round(trained.elapsed, 1), "texture_size": "x".join(map(str, candidate.overrides["texture_size"]))}
 
 
-def halfway_validation_split(split, scene, _scene, config):
+def halfway_validation_split(split, scene, config):
     """autosize.validation_split with the validation views half-way between the held-out views
     (every 8th view held out: views 4, 12, 20, ...), each with training views on both sides as a
     held-out view has; the candidates train on the rest."""
@@ -100,10 +101,10 @@ def halfway_validation_split(split, scene, _scene, config):
 
 def jobs(scenes, seeds, factors, curve, total_steps):
     """Every run, the longest first (two cores stay busy to the end)."""
-    from neulf_core.autosize import SEARCH_SHARE
+    from neulf_core.autosize import _candidate_steps
+    from neulf_core.train import TrainConfig
 
-    search_steps = sum(int(total_steps * SEARCH_SHARE / len(factors)) for _ in factors)  # as autosize._candidate_steps
-    final_steps = max(1, total_steps - search_steps)
+    final_steps = max(1, total_steps - len(factors) * _candidate_steps(TrainConfig(steps=total_steps), len(factors)))
     listed = [(name, seed, f, "candidate", s) for name in scenes for seed in seeds for f in factors for s in curve]
     listed += [(name, seed, f, "final", final_steps) for name in scenes for seed in seeds for f in factors]
     return sorted(listed, key=lambda job: -job[4])

@@ -80,10 +80,14 @@ def validation_split(scene: Scene, config: TrainConfig):
 
 def validation_psnr(model_dir: Path, views, scale: float, device: str | None = None) -> float:
     """Mean PSNR of full renders of `views` by the shipped model file (model.pt)."""
+    return float(np.mean(view_psnrs(model_dir, views, scale, device)))
+
+
+def view_psnrs(model_dir: Path, views, scale: float, device: str | None = None) -> list[float]:
+    """Each view's PSNR, its full render by the shipped model file (model.pt) against its photo."""
     light_field = LightField.load(model_dir, device, precision="full")
-    scores = [psnr(light_field.render_view(v, scale, depth=False).rgb, v.load_image(scale).astype(np.float32) / 255.0)
-              for v in views]
-    return float(np.mean(scores))
+    return [psnr(light_field.render_view(v, scale, depth=False).rgb, v.load_image(scale).astype(np.float32) / 255.0)
+            for v in views]
 
 
 def _rescaled(progress, offset: float, share: float, label: str | None):

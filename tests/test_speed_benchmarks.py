@@ -156,7 +156,7 @@ def test_auto_search_trains_the_candidates_and_the_final_models(tiny_scene, tmp_
             assert row["held_out_psnr"] == "" and row["view_psnr"] == ""
     from functools import partial
 
-    halfway = partial(bench.halfway_validation_split, validation_split, load_scene(tiny_scene))  # the variant tried
+    halfway = partial(bench.halfway_validation_split, validation_split)  # the variant tried
     fit, views, _ = halfway(load_scene(tiny_scene), TrainConfig())
     assert [v.name for v in views] == ["view_04.png"] and len(fit) == 6 and "view_01.png" in {v.name for v in fit}
     finals = {float(r["factor"]): float(r["psnr"]) for r in rows if r["kind"] == "final"}
