@@ -6,7 +6,11 @@
     python benchmarks/side_by_side.py ... --steps 3400 --device cuda --jobs 8   # a GPU: many pairs at once
 
 A setting is `LABEL=JSON`: the `TrainConfig` fields it sets over the default (`fast`), e.g.
-`{"point_depth": false}` or `{"field_overrides": {...}}`.  For each scene and seed both
+`{"point_depth": false}` or `{"field_overrides": {...}}`; its key `"checkout"`, a folder holding
+another version of this repository (`git worktree add /tmp/old HEAD`), trains that setting with
+that version's code (its own copy of this script runs the run), so a change that moves no
+option, only the code, is measured side by side: `--baseline 'before={"checkout": "/tmp/old"}'
+--candidate 'after={}'`.  For each scene and seed both
 settings train at once for the same minutes, one torch thread each, pinned to a core each (the
 cores swapped from one seed to the next, so neither setting always gets the same core), and are
 scored on the held-out views (every 8th) as `eval` scores them (4 points a pixel).  On a GPU
@@ -92,7 +96,10 @@ def pair(name: str, budget: dict, seed: int, settings: list[tuple[str, dict]], d
     with tempfile.TemporaryDirectory(prefix="neulf_side_by_side_") as folder:
         for i, (label, options) in enumerate(settings):
             core = cores[(i + seed) % len(cores)] if pinned else ""
-            args = [sys.executable, __file__, "--child",
+            options = dict(options)
+            checkout = options.pop("checkout", None)
+            script = Path(checkout) / "benchmarks" / Path(__file__).name if checkout else __file__
+            args = [sys.executable, str(script), "--child",
                     json.dumps([str(path), str(path / images) if images else None, scale, budget, seed, options, device,
                                 str(Path(folder) / str(i))])]
             command = ["taskset", "-c", str(core), *args] if pinned else args

@@ -6,7 +6,10 @@ computes before its first step and counts in the training budget.
 
 Sweeps the scene's training views (every 8th view held out, as training does) at the scale
 the trainer would (`teacher.compute_sweep_depth_targets`, which the trainer reaches through
-`sweep_depth_targets`, which keeps the last result), `--repeats` times in this process, and
+`sweep_depth_targets`, which keeps the last result), given each view's mask of representable
+pixels as the trainer's rays hand it over (computed before the clock starts; rows labelled
+before the sixty-eighth session timed code that traced every view's rays again for it, as the
+trainer then did), `--repeats` times in this process, and
 prints the median; appends one row per run to the CSV with `--label` (e.g. the commit), so
 two versions of the code can be compared on one machine. Also prints a checksum of the
 targets: two versions that agree to the bit print the same one.
@@ -28,6 +31,7 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 sys.path.insert(0, str(REPO / "benchmarks"))
 
+from neulf_core.dataset import view_uvst  # noqa: E402
 from neulf_core.scene import load_scene, split_views  # noqa: E402
 from neulf_core.slab import fit_slab  # noqa: E402
 from neulf_core.teacher import compute_sweep_depth_targets  # noqa: E402
@@ -51,10 +55,11 @@ def main(argv=None) -> None:
     scene = load_scene(args.scene)
     train_views, _ = split_views(scene)
     slab = fit_slab(scene, train_views, scale=args.scale)
+    representable = [view_uvst(view, slab, args.scale)[1] for view in train_views]  # (the trainer's rays build them)
     rows = []
     for repeat in range(args.repeats):
         started = time.perf_counter()
-        units, confidences = compute_sweep_depth_targets(train_views, slab, args.scale)
+        units, confidences = compute_sweep_depth_targets(train_views, slab, args.scale, representable=representable)
         seconds = time.perf_counter() - started
         checksum = hashlib.sha1(units.numpy().tobytes() + confidences.numpy().tobytes()).hexdigest()[:12]
         rows.append({"date": date.today().isoformat(), "machine": hardware(torch.device("cpu")), "label": args.label,

@@ -82,18 +82,34 @@ class ClassicLightField:
         weights = 1.0 / (distance[order] ** 2 + 1e-8)
         return order, weights / weights.sum()
 
-    def _sample(self, index: torch.Tensor, points: torch.Tensor, photos: torch.Tensor) -> torch.Tensor:
-        """Colours (k, 3, N) and visibility (k, N) of world points (N, 3) in photos `index`
-        (`photos`: those photos as floats in [0, 1], converted once per render, not per depth).
-        Channels first, as grid_sample writes them: the sweep's arithmetic then runs along the
-        N contiguous pixels (with (k, N, 3) views the whole sweep took a third longer)."""
-        cam = torch.einsum("kij,nj->kni", self.R[index], points) + self.t[index][:, None]
-        z = cam[..., 2].clamp_min(1e-6)
-        pix = torch.einsum("kij,knj->kni", self.K[index], cam / z[..., None])[..., :2]
+    def _projection(self, index: torch.Tensor, origin: torch.Tensor, directions: torch.Tensor):
+        """(base (k, 1, 3), step (k, N, 3)): where the point at distance s along ray n falls in
+        photo k, as homogeneous grid_sample coordinates base + s * step (x / z, y / z in
+        [-1, 1] inside the photo; z the depth in that camera).  A sweep's points all lie on
+        its output rays, so the photos' projection of every plane is this one line each:
+        computed once per render instead of once per plane, the sweep teacher takes half the
+        time (CanClip's 26 views at 240x135, one thread: 7.59 -> 3.96 s; docs/BENCHMARKS.md,
+        "The sweep's projection")."""
         height, width = self.images.shape[2:]
-        grid = torch.stack([pix[..., 0] / width * 2 - 1, pix[..., 1] / height * 2 - 1], -1)[:, :, None]
-        colours = F.grid_sample(photos, grid, mode="bilinear", padding_mode="border", align_corners=False)
-        inside = (grid.abs() <= 1).all(-1)[..., 0] & (cam[..., 2] > 0)
+        to_grid = torch.tensor([[2.0 / width, 0.0, -1.0], [0.0, 2.0 / height, -1.0], [0.0, 0.0, 1.0]],
+                               device=self.device)
+        project = to_grid @ self.K[index]  # (k, 3, 3): camera frame -> homogeneous grid coordinates
+        base = torch.einsum("kij,kj->ki", project, torch.einsum("kij,j->ki", self.R[index], origin) + self.t[index])
+        step = torch.einsum("kij,nj->kni", project @ self.R[index], directions)
+        return base[:, None], step
+
+    @staticmethod
+    def _sample(base: torch.Tensor, step: torch.Tensor, distance: torch.Tensor, photos: torch.Tensor):
+        """Colours (k, 3, N) and visibility (k, N) of the points at `distance` (N,) along the
+        output rays, in `photos` (those photos as floats in [0, 1], converted once per render,
+        not per depth).  Channels first, as grid_sample writes them: the sweep's arithmetic
+        then runs along the N contiguous pixels (with (k, N, 3) views the whole sweep took a
+        third longer)."""
+        point = torch.addcmul(base, step, distance[None, :, None])  # (k, N, 3)
+        z = point[..., 2:]
+        grid = point[..., :2] / z.clamp_min(1e-6)
+        colours = F.grid_sample(photos, grid[:, :, None], mode="bilinear", padding_mode="border", align_corners=False)
+        inside = (grid.abs().amax(-1) <= 1) & (z[..., 0] > 0)
         return colours[..., 0], inside
 
     def render(self, K, width: int, height: int, R, t, **options) -> np.ndarray:
@@ -131,9 +147,9 @@ class ClassicLightField:
         cost_sum = torch.zeros(height * width, device=self.device)
         cost_count = torch.zeros(height * width, device=self.device)
         photos = self.images[index].float() / 255.0
+        base, step = self._projection(index, origin, directions)
         for i, z in enumerate(plane_depths):
-            points = origin + directions * ((z - o_z) / d_z)[:, None]
-            colours, inside = self._sample(index, points, photos)
+            colours, inside = self._sample(base, step, (z - o_z) / d_z, photos)
             w = weights[:, None] * inside.float() + 1e-6
             w = (w / w.sum(0, keepdim=True))[:, None]  # (k, 1, N)
             mean = (w * colours).sum(0)  # (3, N)

@@ -70,16 +70,17 @@ def triangulate(views) -> dict[int, np.ndarray]:
     return dict(zip(unique[usable].tolist(), positions))
 
 
-def point_depth_targets(train_views, slab: Slab, scale: float) -> tuple[torch.Tensor, torch.Tensor] | None:
+def point_depth_targets(train_views, slab: Slab, scale: float, representable=None) -> tuple[torch.Tensor, torch.Tensor] | None:
     """(unit depth, mask) per training ray in build_rayset's order (views in turn, row-major
-    pixels, the rays that cross the slab): the depth of the point a ray's pixel observes,
+    pixels, the rays that cross the slab: `representable`, build_rayset's masks of them, or
+    traced again where None): the depth of the point a ray's pixel observes,
     where it observes one the training photos triangulate in front of the slab's depth range;
     None where no training ray does."""
     points = triangulate(train_views)
     if not points:
         return None
     units, masks = [], []
-    for view in train_views:
+    for i, view in enumerate(train_views):
         camera = view.scaled_camera(scale)
         width, height = int(camera.width), int(camera.height)
         unit = torch.zeros(width * height)
@@ -91,7 +92,7 @@ def point_depth_targets(train_views, slab: Slab, scale: float) -> tuple[torch.Te
             keep = (depth > 0) & (target >= 0) & (target <= 1)  # in front, inside the slab's depth range
             unit[pixels[keep]] = target[keep]
             mask[pixels[keep]] = True
-        _, valid = view_uvst(view, slab, scale)
+        valid = representable[i] if representable is not None else view_uvst(view, slab, scale)[1]
         valid = torch.as_tensor(valid).reshape(-1)
         units.append(unit[valid])
         masks.append(mask[valid])

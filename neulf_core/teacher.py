@@ -121,25 +121,26 @@ def sweep_key(train_views, slab: Slab, scale: float, device, sweep_scale: float 
 
 
 def sweep_depth_targets(train_views, slab: Slab, scale: float, device="cpu", on_view=None,
-                        sweep_scale: float | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+                        sweep_scale: float | None = None, representable=None) -> tuple[torch.Tensor, torch.Tensor]:
     """compute_sweep_depth_targets, or, within sweeps_kept and for the same inputs as the last
     call there, its result again (copies) without sweeping."""
     if not _keeping[0]:
-        return compute_sweep_depth_targets(train_views, slab, scale, device, on_view, sweep_scale)
+        return compute_sweep_depth_targets(train_views, slab, scale, device, on_view, sweep_scale, representable)
     key = sweep_key(train_views, slab, scale, device, sweep_scale)
     if key in _last_sweep:
         unit, confidence = _last_sweep[key]
         return unit.clone(), confidence.clone()
-    unit, confidence = compute_sweep_depth_targets(train_views, slab, scale, device, on_view, sweep_scale)
+    unit, confidence = compute_sweep_depth_targets(train_views, slab, scale, device, on_view, sweep_scale, representable)
     _last_sweep.clear()
     _last_sweep[key] = (unit, confidence)
     return unit.clone(), confidence.clone()
 
 
 def compute_sweep_depth_targets(train_views, slab: Slab, scale: float, device="cpu", on_view=None,
-                                sweep_scale: float | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+                                sweep_scale: float | None = None, representable=None) -> tuple[torch.Tensor, torch.Tensor]:
     """(unit depth, confidence) per training ray, in build_rayset's order (views in turn,
-    row-major pixels, the rays that cross the slab).  The sweep runs at `sweep_scale` of the
+    row-major pixels, the rays that cross the slab: `representable`, build_rayset's masks of
+    them, or traced again where None).  The sweep runs at `sweep_scale` of the
     training resolution (default: half, fewer pixels on deep scenes -- a prior needs no more,
     and a quarter of the pixels is a quarter of the time) and each training pixel takes the
     value of the sweep pixel it falls in."""
@@ -152,7 +153,7 @@ def compute_sweep_depth_targets(train_views, slab: Slab, scale: float, device="c
         fine = view.scaled_camera(scale)
         maps = torch.stack([sweep.unit, _confidence(sweep)]).reshape(1, 2, int(coarse.height), int(coarse.width))
         maps = F.interpolate(maps, size=(int(fine.height), int(fine.width)), mode="nearest").reshape(2, -1)
-        _, valid = view_uvst(view, slab, scale)
+        valid = representable[i] if representable is not None else view_uvst(view, slab, scale)[1]
         valid = torch.as_tensor(valid, device=maps.device).reshape(-1)
         units.append(maps[0][valid])
         confidences.append(maps[1][valid])

@@ -636,7 +636,8 @@ def _train(scene, model_dir: Path, config: TrainConfig, images_dir, resume: bool
           held_out=[v.name for v in held_views], device=describe_device(device), preset=config.preset, notes=scene.notes)
 
     _emit(progress, event="loading", message="building training rays")
-    train_rays = build_rayset(train_views, slab, config.scale, pixel_steps=config.pixel_jitter > 0,
+    masks = []  # each training view's representable pixels, for the depth targets below
+    train_rays = build_rayset(train_views, slab, config.scale, pixel_steps=config.pixel_jitter > 0, masks=masks,
                               on_view=lambda i, n, v: _emit(progress, event="loading", message=f"rays of {v.name}", done=i + 1, total=n))
     train_rays = train_rays.to(device)
     val_rays = build_rayset(held_views, slab, config.scale).subset(VALIDATION_RAYS, generator).to(device) if held_views else None
@@ -698,10 +699,10 @@ def _train(scene, model_dir: Path, config: TrainConfig, images_dir, resume: bool
     beta2 = APPEARANCE_ADAM_BETA2 if appearance is not None else preset.adam_beta2
     optimizer = _optimizer(field_module, preset.lr, beta2, appearance, poses)
     step, elapsed_before, history = 0, 0.0, []
-    teacher, teacher_seconds = _teacher_inputs(train_views, slab, config, preset, device, resumed, progress)
+    teacher, teacher_seconds = _teacher_inputs(train_views, slab, config, preset, device, resumed, progress, masks)
     elapsed_before += teacher_seconds  # the sweep is part of the training time it saves
     strong = strong_pull(len(train_views), config.appearance)
-    point_depth = _point_depth_inputs(train_views, slab, config, preset, device, fixed_poses is not None)
+    point_depth = _point_depth_inputs(train_views, slab, config, preset, device, fixed_poses is not None, masks)
     if resumed:
         optimizer.load_state_dict(resumed["optimizer"])
         step, elapsed_before = resumed["progress"]["step"], resumed["progress"]["elapsed"]
@@ -1186,9 +1187,10 @@ def _consistency_inputs(train_views, slab: Slab, config: TrainConfig, device):
     return SlabGeometry(slab, device), neighbours.to(device)
 
 
-def _teacher_inputs(train_views, slab: Slab, config: TrainConfig, preset, device, resumed, progress):
+def _teacher_inputs(train_views, slab: Slab, config: TrainConfig, preset, device, resumed, progress, masks=None):
     """The plane sweep's depth per training ray (teacher.py), and the seconds it took; None
-    when off, or when a resumed run is past the part of the budget the teacher acts in."""
+    when off, or when a resumed run is past the part of the budget the teacher acts in.
+    `masks`: build_rayset's, each view's representable pixels."""
     wanted = preset.teacher if config.teacher is None else config.teacher
     if not wanted or len(train_views) < 2:
         return None, 0.0
@@ -1197,11 +1199,12 @@ def _teacher_inputs(train_views, slab: Slab, config: TrainConfig, preset, device
     started = time.monotonic()
     targets = sweep_depth_targets(train_views, slab, config.scale, device,
                                   on_view=lambda i, n, v: _emit(progress, event="loading", message=f"sweep depth of {v.name}",
-                                                                 done=i + 1, total=n))
+                                                                 done=i + 1, total=n), representable=masks)
     return targets, (0.0 if resumed else time.monotonic() - started)
 
 
-def _point_depth_inputs(train_views, slab: Slab, config: TrainConfig, preset, device, poses_corrected: bool):
+def _point_depth_inputs(train_views, slab: Slab, config: TrainConfig, preset, device, poses_corrected: bool,
+                        masks=None):
     """The SfM points' depth per training ray (point_depth.py) and its mask, on `device`; None
     when off or where no training ray sees a point the training photos triangulate (model.json
     records how many rays have one: "point_depth").
@@ -1215,7 +1218,7 @@ def _point_depth_inputs(train_views, slab: Slab, config: TrainConfig, preset, de
     wanted = preset.point_depth if config.point_depth is None else config.point_depth
     if config.point_depth is None and (config.refine_poses is True or poses_corrected):
         wanted = False
-    targets = point_depth_targets(train_views, slab, config.scale) if wanted else None
+    targets = point_depth_targets(train_views, slab, config.scale, masks) if wanted else None
     return None if targets is None else (targets[0].to(device), targets[1].to(device))
 
 
