@@ -135,3 +135,48 @@ def test_training_pulls_toward_the_points_only_where_the_model_keeps_tracks(trac
     expected = int(point_depth_targets(training, fit_slab(scene, training), 1.0)[1].sum())
     assert recorded["tracks"]["rays"] == expected > 0.5 * len(training) * POINTS
     assert recorded["off"] is None and recorded["no tracks"] is None and recorded["poses refined"] is None
+
+
+def test_training_traces_each_photos_rays_once(tracked_scene, tmp_path, monkeypatch):
+    """The sweep teacher and the point depths take the training rays' masks of representable
+    pixels (build_rayset's `masks`) instead of tracing every pixel's ray again: a run traces
+    each training and held-out view once, with both on."""
+    from neulf_core import dataset, point_depth, teacher
+
+    traced = []
+    trace = dataset.view_uvst
+
+    def counted(view, *args, **kwargs):
+        traced.append(view.name)
+        return trace(view, *args, **kwargs)
+
+    for module in (dataset, point_depth, teacher):
+        monkeypatch.setattr(module, "view_uvst", counted)
+    out = tmp_path / "model"
+    train(tracked_scene, out, TrainConfig(steps=3, seed=0, members=1, two_starts=False, validate_seconds=1e9,
+                                          checkpoint_seconds=1e9))
+    meta = json.loads((out / "model.json").read_text())
+    assert meta["point_depth"]["rays"] > 0 and meta["train_config"]["teacher"] is not False
+    assert sorted(traced) == sorted(v.name for v in load_scene(tracked_scene).views)
+
+
+def test_the_targets_follow_the_masks_they_are_given(tracked_scene):
+    """Given masks that leave pixels out, the point depths keep exactly the other pixels' targets,
+    in order (the sweep's targets take the same masks the same way)."""
+    from neulf_core.dataset import view_uvst
+    from neulf_core.teacher import compute_sweep_depth_targets
+
+    scene = load_scene(tracked_scene)
+    views = scene.views[:4]
+    slab = fit_slab(scene, views)
+    full = [view_uvst(v, slab, 1.0)[1] for v in views]
+    assert all(bool(m.all()) for m in full)  # every tiny ray crosses the slab: the masks below drop pixels
+    masks = [m.clone() for m in full]
+    for i, m in enumerate(masks):
+        m[i::3] = False
+    kept = torch.cat(masks)
+    for targets in (lambda r: point_depth_targets(views, slab, 1.0, r),
+                    lambda r: compute_sweep_depth_targets(views, slab, 1.0, representable=r)):
+        everything, masked = targets(full), targets(masks)
+        for whole, part in zip(everything, masked):
+            assert torch.equal(part, whole[kept])

@@ -110,6 +110,28 @@ def test_side_by_side_trains_both_settings_of_a_pair_and_scores_them(tiny_scene,
     assert load("point_depth").main.__module__ == "side_by_side"  # the same script, its two settings fixed
 
 
+def test_side_by_side_trains_a_setting_with_another_checkouts_code(tiny_scene, tmp_path):
+    """A setting's "checkout" runs that setting through the other checkout's own copy of the
+    script (here a stand-in that reports a fixed row), the other setting through this one's."""
+    bench = load("side_by_side")
+    bench.SCENES[tiny_scene.name] = (1.0, None)
+    other = tmp_path / "other"
+    (other / "benchmarks").mkdir(parents=True)
+    (other / "benchmarks" / "side_by_side.py").write_text(
+        "import json, sys\n"
+        "scene, images, scale, budget, seed, options, device, folder = json.loads(sys.argv[sys.argv.index('--child') + 1])\n"
+        "assert 'checkout' not in options and options == {'members': 1}\n"
+        "print(json.dumps({'steps': budget['steps'] + 1000, 'train_seconds': 0.0, 'psnr': 12.5, 'ssim': 0.5,\n"
+        "                  'point_rays': 0, 'members': 1, 'members_passes': '', 'texture_factor': ''}))\n")
+    out = tmp_path / "versions.csv"
+    bench.main(["--scenes", tiny_scene.name, "--data", str(tiny_scene.parent), "--steps", "3", "--seeds", "0",
+                "--baseline", f'before={{"checkout": "{other}", "members": 1}}', "--candidate", 'after={"members": 1}',
+                "--out", str(out)])
+    rows = {r["setting"]: r for r in csv.DictReader(open(out))}
+    assert (rows["before"]["steps"], rows["before"]["psnr"]) == ("1003", "12.5")  # the other checkout's run
+    assert rows["after"]["steps"] == "3" and float(rows["after"]["psnr"]) != 12.5  # this checkout's
+
+
 def test_side_by_side_trains_the_auto_preset_as_the_command_line_does(tiny_scene, tmp_path):
     """`{"preset": "auto"}` searches the texture size first (autosize.train_auto), and the row
     says the size it chose; the other presets' rows leave it empty."""
