@@ -70,7 +70,8 @@ def triangulate(views) -> dict[int, np.ndarray]:
     return dict(zip(unique[usable].tolist(), positions))
 
 
-def point_depth_targets(train_views, slab: Slab, scale: float, representable=None) -> tuple[torch.Tensor, torch.Tensor] | None:
+def point_depth_targets(train_views, slab: Slab, scale: float,
+                        representable=None) -> tuple[torch.Tensor, torch.Tensor] | None:
     """(unit depth, mask) per training ray in build_rayset's order (views in turn, row-major
     pixels, the rays that cross the slab: `representable`, build_rayset's masks of them, or
     traced again where None): the depth of the point a ray's pixel observes,

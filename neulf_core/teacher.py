@@ -130,14 +130,16 @@ def sweep_depth_targets(train_views, slab: Slab, scale: float, device="cpu", on_
     if key in _last_sweep:
         unit, confidence = _last_sweep[key]
         return unit.clone(), confidence.clone()
-    unit, confidence = compute_sweep_depth_targets(train_views, slab, scale, device, on_view, sweep_scale, representable)
+    unit, confidence = compute_sweep_depth_targets(train_views, slab, scale, device, on_view, sweep_scale,
+                                                   representable)
     _last_sweep.clear()
     _last_sweep[key] = (unit, confidence)
     return unit.clone(), confidence.clone()
 
 
 def compute_sweep_depth_targets(train_views, slab: Slab, scale: float, device="cpu", on_view=None,
-                                sweep_scale: float | None = None, representable=None) -> tuple[torch.Tensor, torch.Tensor]:
+                                sweep_scale: float | None = None,
+                                representable=None) -> tuple[torch.Tensor, torch.Tensor]:
     """(unit depth, confidence) per training ray, in build_rayset's order (views in turn,
     row-major pixels, the rays that cross the slab: `representable`, build_rayset's masks of
     them, or traced again where None).  The sweep runs at `sweep_scale` of the
