@@ -21,6 +21,7 @@ import numpy as np
 from .checkpoint import METADATA_NAME, MODEL_NAME, checkpoint_path, load_checkpoint, save_checkpoint
 from .errors import NeulfError
 from .fields.disparity import texture_size_for
+from .memo import kept_while_training
 from .metrics import psnr
 from .render import LightField
 from .scene import Scene, load_scene, scaled_size, split_views
@@ -120,8 +121,9 @@ def train_auto(scene: Scene | str | Path, model_dir: str | Path, config: TrainCo
     if not isinstance(scene, Scene):
         scene = load_scene(scene, images_dir)
     config = replace(config, preset=PRESET)
-    config = final_model_defaults(scene, config, progress)
-    searched = _search(scene, config, factors, progress, should_stop, started)
+    with kept_while_training():  # (the candidates read the same photos: their rays are built once)
+        config = final_model_defaults(scene, config, progress)
+        searched = _search(scene, config, factors, progress, should_stop, started)
     if searched is None:  # cancelled; nothing saved yet: the search starts again next time
         return TrainResult(model_dir, "cancelled", 0, time.monotonic() - started, None, [])
     candidates, validation = searched

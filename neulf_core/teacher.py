@@ -13,16 +13,12 @@ training has the last word.
 
 from __future__ import annotations
 
-import hashlib
-import json
-from contextlib import contextmanager
-
-import numpy as np
 import torch
 import torch.nn.functional as F
 
 from .classic import ClassicLightField
 from .dataset import view_uvst
+from .memo import inputs_key, kept
 from .scene import scaled_size
 from .slab import Slab
 
@@ -81,59 +77,18 @@ def sweep_scale_for(train_views, scale: float, slab: Slab) -> float:
     return min(SWEEP_SCALE, (DEEP_SWEEP_PIXELS / (width * height)) ** 0.5)
 
 
-# The last sweep of a training call (train.train), by its inputs (sweep_key): a model's members
-# and the better-of-two-starts rule train the same photos again, and each recomputed the same
-# sweep -- about 5 s of HCI's 28 s run at the stability study's 1000 steps, one thread (its two
-# members of half the batch: 51.7 -> 46.9 s, every PSNR to the digit; docs/MEMBERS.md).  One
-# entry, and only while a training call runs (sweeps_kept): the targets are one float pair per
-# training ray (HCI's 4.6 M rays: 37 MB), a quarter of what the rays themselves hold.
-_last_sweep: dict[str, tuple[torch.Tensor, torch.Tensor]] = {}
-_keeping = [0]  # training calls under way in this process (nested: 0 or 1 in practice)
-
-
-@contextmanager
-def sweeps_kept():
-    """Within it the last sweep is kept for the next call with the same inputs; left, it is let go."""
-    _keeping[0] += 1
-    try:
-        yield
-    finally:
-        _keeping[0] -= 1
-        if not _keeping[0]:
-            _last_sweep.clear()
-
-
-def sweep_key(train_views, slab: Slab, scale: float, device, sweep_scale: float | None) -> str:
-    """What the sweep's result depends on: each photo's name, file (path, size, time written),
-    camera and pose; the slab; the scales; the device."""
-    parts = []
-    for view in train_views:
-        path = view.image_path
-        stat = path.stat() if path is not None and path.is_file() else None
-        camera = view.camera
-        parts.append([view.name, str(path), stat and [stat.st_size, stat.st_mtime_ns],
-                      [str(camera.model), int(camera.width), int(camera.height)],
-                      np.asarray(camera.params, dtype=np.float64).tobytes().hex(),
-                      np.asarray(view.R, dtype=np.float64).tobytes().hex(),
-                      np.asarray(view.t, dtype=np.float64).tobytes().hex()])
-    text = json.dumps([parts, slab.to_dict(), scale, sweep_scale, str(torch.device(device))], sort_keys=True, default=str)
-    return hashlib.sha256(text.encode()).hexdigest()
-
-
 def sweep_depth_targets(train_views, slab: Slab, scale: float, device="cpu", on_view=None,
                         sweep_scale: float | None = None, representable=None) -> tuple[torch.Tensor, torch.Tensor]:
-    """compute_sweep_depth_targets, or, within sweeps_kept and for the same inputs as the last
-    call there, its result again (copies) without sweeping."""
-    if not _keeping[0]:
-        return compute_sweep_depth_targets(train_views, slab, scale, device, on_view, sweep_scale, representable)
-    key = sweep_key(train_views, slab, scale, device, sweep_scale)
-    if key in _last_sweep:
-        unit, confidence = _last_sweep[key]
-        return unit.clone(), confidence.clone()
-    unit, confidence = compute_sweep_depth_targets(train_views, slab, scale, device, on_view, sweep_scale,
-                                                   representable)
-    _last_sweep.clear()
-    _last_sweep[key] = (unit, confidence)
+    """compute_sweep_depth_targets, or, within a training call (memo.kept_while_training) and
+    for the same inputs as its last sweep, that result again (copies) without sweeping: a
+    model's members and the better-of-two-starts rule train the same photos again, and each
+    recomputed the same sweep -- about 5 s of HCI's 28 s run at the stability study's 1000
+    steps, one thread (its two members of half the batch: 51.7 -> 46.9 s, every PSNR to the
+    digit; docs/MEMBERS.md).  The targets are one float pair per training ray (HCI's 4.6 M
+    rays: 37 MB), a quarter of what the rays themselves hold."""
+    key = inputs_key(train_views, slab.to_dict(), scale, sweep_scale, str(torch.device(device)))
+    unit, confidence = kept("sweep", key, lambda: compute_sweep_depth_targets(
+        train_views, slab, scale, device, on_view, sweep_scale, representable))
     return unit.clone(), confidence.clone()
 
 

@@ -20,12 +20,13 @@ from . import __version__
 from .appearance import ViewAppearance, appearance_by_default, exposure_difference, photo_exposures
 from .checkpoint import TRAINING_STATE_KEY, checkpoint_path, load_checkpoint, remove_stale_temporaries, save_checkpoint
 from .consistency import SlabGeometry, camera_neighbours, multiview_losses
-from .dataset import RaySet, build_rayset, mean_colour
+from .dataset import RaySet, kept_rayset, mean_colour
 from .device import describe_device, keep_freed_cpu_memory, pick_device
 from .errors import NeulfError
 from .fields import build_field, count_parameters, make_config
 from .fields.disparity import DisparityConfig, slab_geometry, texture_size_for
 from .lock import training_lock
+from .memo import kept_while_training
 from .members import RATE_DECISION_STEP as MEMBERS_RATE_DECISION_STEP, RATE_FROM_STEP as MEMBERS_RATE_FROM_STEP, \
     member_budget, member_split, members_by_rule, passes_for_members, share_spent, share_words
 from . import poses as poses_module
@@ -33,7 +34,7 @@ from .poses import DEPTH_LIKE_GAUGE, POSE_CHECK_STEP, POSE_SECOND_LOOK_STEP, Pos
 from .presets import APPEARANCE_ADAM_BETA2, APPEARANCE_GEOMETRY, DEFAULT_PRESET, get_preset
 from .scene import Scene, load_scene, scaled_size, split_views
 from .slab import Slab, fit_slab
-from .teacher import strong_pull, sweep_depth_targets, sweeps_kept, teacher_fade, teacher_loss, teacher_weight
+from .teacher import strong_pull, sweep_depth_targets, teacher_fade, teacher_loss, teacher_weight
 from .point_depth import point_depth_loss, point_depth_targets
 
 VALIDATION_RAYS = 1 << 16
@@ -599,7 +600,7 @@ def train(scene: Scene | str | Path, model_dir: str | Path, config: TrainConfig,
     def train_one(scene, folder, config, images_dir, resume, progress, should_stop):
         return train_two_starts(_train, scene, folder, config, images_dir, resume, progress, should_stop)
 
-    with training_lock(model_dir), sweeps_kept():  # (members and starts sweep the same photos once)
+    with training_lock(model_dir), kept_while_training():  # (members and starts read and sweep the photos once)
         remove_stale_temporaries(model_dir)
         return train_members(train_one, scene, model_dir, config, images_dir, resume, progress, should_stop)
 
@@ -637,10 +638,12 @@ def _train(scene, model_dir: Path, config: TrainConfig, images_dir, resume: bool
 
     _emit(progress, event="loading", message="building training rays")
     masks = []  # each training view's representable pixels, for the depth targets below
-    train_rays = build_rayset(train_views, slab, config.scale, pixel_steps=config.pixel_jitter > 0, masks=masks,
-                              on_view=lambda i, n, v: _emit(progress, event="loading", message=f"rays of {v.name}", done=i + 1, total=n))
+    train_rays = kept_rayset("training rays", train_views, slab, config.scale, pixel_steps=config.pixel_jitter > 0,
+                             masks=masks, on_view=lambda i, n, v: _emit(progress, event="loading", message=f"rays of {v.name}",
+                                                                        done=i + 1, total=n))
     train_rays = train_rays.to(device)
-    val_rays = build_rayset(held_views, slab, config.scale).subset(VALIDATION_RAYS, generator).to(device) if held_views else None
+    val_rays = (kept_rayset("held-out rays", held_views, slab, config.scale).subset(VALIDATION_RAYS, generator).to(device)
+                if held_views else None)
     exposures = photo_exposures(train_rays.rgb, train_rays.view_index, len(train_views))
     exposure_stops = exposure_difference(exposures,
                                          np.stack([v.center for v in train_views]))

@@ -109,8 +109,13 @@ def test_validation_views_come_from_the_training_views(tiny_scene):
 
 
 @pytest.mark.parametrize("tolerance", [100.0, 0.0])
-def test_auto_picks_the_smallest_candidate_within_tolerance(tiny_scene, tmp_path, tolerance):
-    """Real short trainings: the recorded choice follows the rule for the PSNRs it measured."""
+def test_auto_picks_the_smallest_candidate_within_tolerance(tiny_scene, tmp_path, tolerance, monkeypatch):
+    """Real short trainings: the recorded choice follows the rule for the PSNRs it measured.
+    The candidates, which train on the same photos, build their rays once."""
+    from neulf_core import dataset
+
+    built, build = [], dataset.build_rayset
+    monkeypatch.setattr(dataset, "build_rayset", lambda views, *a, **k: built.append(len(views)) or build(views, *a, **k))
     events = []
     result = train_auto(tiny_scene, tmp_path / "auto", fast_config(90, preset="auto"), progress=events.append,
                         tolerance_db=tolerance)
@@ -134,6 +139,7 @@ def test_auto_picks_the_smallest_candidate_within_tolerance(tiny_scene, tmp_path
     assert all(e.get("val_psnr") is None for e in events if e.get("candidate"))  # no test-view PSNR leaks
     fractions = [e["fraction"] for e in events if "fraction" in e]
     assert fractions == sorted(fractions) and fractions[-1] == pytest.approx(1.0)
+    assert built == [6, 3, 7, 2]  # the candidates' training and held-out rays, then the model's
 
 
 def test_auto_with_a_time_budget_gives_every_candidate_the_same_steps(tiny_scene, tmp_path):

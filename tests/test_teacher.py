@@ -15,7 +15,7 @@ from neulf_core.render import LightField
 from neulf_core.rays import view_rays
 from neulf_core.scene import load_scene, split_views
 from neulf_core.slab import fit_slab
-from neulf_core import teacher
+from neulf_core import dataset, memo, teacher
 from neulf_core.teacher import (TEACHER_FADE, TEACHER_FADE_FEW, TEACHER_FEW_VIEWS, TEACHER_FULL_VIEWS, sweep_depth_targets,
                                 teacher_fade, teacher_weight)
 from neulf_core.train import TrainConfig, train
@@ -57,7 +57,7 @@ def test_the_same_photos_are_swept_once_and_other_poses_again(tiny_scene, monkey
     sweeps = []
     original = teacher.compute_sweep_depth_targets
     monkeypatch.setattr(teacher, "compute_sweep_depth_targets", lambda *a, **k: sweeps.append(1) or original(*a, **k))
-    with teacher.sweeps_kept():  # (what a training call holds)
+    with memo.kept_while_training():  # (what a training call holds)
         first = sweep_depth_targets(views, slab, 1.0)
         first[0].zero_()
         again = sweep_depth_targets(views, slab, 1.0)
@@ -66,31 +66,56 @@ def test_the_same_photos_are_swept_once_and_other_poses_again(tiny_scene, monkey
         moved = [replace(views[0], t=views[0].t + 1e-3)] + views[1:]
         sweep_depth_targets(moved, slab, 1.0)
         sweep_depth_targets(moved, slab, 0.5)
-        assert len(sweeps) == 3 and teacher._last_sweep
-    assert not teacher._last_sweep  # let go when the training call ends
+        assert len(sweeps) == 3 and memo._entries
+    assert not memo._entries  # let go when the training call ends
     sweep_depth_targets(views, slab, 1.0)
     sweep_depth_targets(views, slab, 1.0)
     assert len(sweeps) == 5  # (outside one, each call sweeps)
 
 
-def test_two_members_sweep_once_and_train_as_each_would_alone(tiny_scene, tmp_path, monkeypatch):
+def test_two_members_sweep_and_read_the_photos_once_and_train_as_each_would_alone(tiny_scene, tmp_path, monkeypatch):
     from conftest import assert_same_weights
     from neulf_core.members import MEMBER_SEED_OFFSET, member_dir
 
-    sweeps = []
+    sweeps, rays = [], []
     original = teacher.compute_sweep_depth_targets
     monkeypatch.setattr(teacher, "compute_sweep_depth_targets", lambda *a, **k: sweeps.append(1) or original(*a, **k))
+    build = dataset.build_rayset
+    monkeypatch.setattr(dataset, "build_rayset", lambda views, *a, **k: rays.append(len(views)) or build(views, *a, **k))
     options = dict(batch_size=256, teacher=True, two_starts=False, refine_poses=False, validate_seconds=1e9,
                    checkpoint_seconds=1e9)
     events = []
     train(tiny_scene, tmp_path / "m", TrainConfig(steps=20, members=2, seed=4, **options), progress=events.append)
     assert len(sweeps) == 1 and any(e.get("member") == 2 for e in events)
-    # The second member, on the first one's sweep, is the run its seed and share give alone (on a
-    # CPU the default's share: all the steps with half the batch).
+    assert len(rays) == 2  # the training views' rays and the held-out views', for both members
+    # The second member, on the first one's sweep and rays, is the run its seed and share give
+    # alone (on a CPU the default's share: all the steps with half the batch).
     train(tiny_scene, tmp_path / "alone", TrainConfig(steps=20, members=1, seed=4 + MEMBER_SEED_OFFSET,
                                                       **{**options, "batch_size": 128}))
-    assert len(sweeps) == 2
+    assert len(sweeps) == 2 and len(rays) == 4
     assert_same_weights(member_dir(tmp_path / "m", 2), tmp_path / "alone")
+
+
+def test_the_same_photos_are_read_once_and_other_poses_again(tiny_scene):
+    """Within a training call a second request for the same views' rays gets the first set
+    and its masks without reading a photo; a moved pose, another scale or pixel steps build
+    again; outside a training call every request builds."""
+    scene = load_scene(tiny_scene)
+    views, _ = split_views(scene, holdout_every=0)
+    slab = fit_slab(scene, views)
+    with memo.kept_while_training():
+        first_masks, again_masks = [], []
+        first = dataset.kept_rayset("rays", views, slab, 1.0, masks=first_masks)
+        again = dataset.kept_rayset("rays", views, slab, 1.0, masks=again_masks)
+        assert again is first and len(again_masks) == len(views)
+        assert all(a is b for a, b in zip(first_masks, again_masks))
+        fresh = build_rayset(views, slab, 1.0)
+        assert torch.equal(first.uvst, fresh.uvst) and torch.equal(first.rgb, fresh.rgb)
+        moved = [replace(views[0], t=views[0].t + 1e-3)] + views[1:]
+        assert dataset.kept_rayset("rays", moved, slab, 1.0) is not first
+        for other in (dict(scale=0.5), dict(scale=1.0, pixel_steps=True)):
+            assert dataset.kept_rayset("rays", views, slab, **other) is not first
+    assert dataset.kept_rayset("rays", views, slab, 1.0) is not dataset.kept_rayset("rays", views, slab, 1.0)
 
 
 def test_the_pull_fades_out_halfway():
