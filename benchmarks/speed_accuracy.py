@@ -54,6 +54,11 @@ DOCS = Path(__file__).resolve().parents[1] / "docs"
 
 
 def hardware(device) -> str:
+    return f"{machine()}, {describe_device(device)}"
+
+
+def machine() -> str:
+    """The CPU, its cores and torch's version (hardware() adds the device and its threads)."""
     cpu = platform.processor() or platform.machine()
     try:
         for line in Path("/proc/cpuinfo").read_text().splitlines():
@@ -62,7 +67,7 @@ def hardware(device) -> str:
                 break
     except OSError:
         pass
-    return f"{cpu}, {os.cpu_count()} cores, torch {torch.__version__}, {describe_device(device)}"
+    return f"{cpu}, {os.cpu_count()} cores, torch {torch.__version__}"
 
 
 def append_rows(path: Path, rows: list[dict], columns: list[str] | None = None) -> None:

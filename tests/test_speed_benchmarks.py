@@ -1,6 +1,7 @@
 """The speed benchmarks end to end on the tiny scene: benchmarks/train_step_time.py (both Adam
 variants train, a CSV row per run, --append adds to it) and benchmarks/sweep_time.py (the
-depth teacher's sweep timed, its targets' checksum the same on every repeat)."""
+depth teacher's sweep timed, its targets' checksum the same on every repeat), and the others
+that time code: setup_time.py (each checkout's own code), jpeg_half_decode.py."""
 
 from __future__ import annotations
 
@@ -184,3 +185,41 @@ def test_auto_search_trains_the_candidates_and_the_final_models(tiny_scene, tmp_
     finals = {float(r["factor"]): float(r["psnr"]) for r in rows if r["kind"] == "final"}
     printed = capsys.readouterr().out
     assert f"| model, 24 steps (held-out) | {finals[1.0]:.2f} |  | {finals[0.5]:.2f} | x{max(finals, key=finals.get):g} |" in printed
+
+
+def test_setup_time_runs_each_checkout_in_turn(tiny_scene, tmp_path, capsys):
+    """Each run is the training command in each checkout's own code (here a stand-in checkout
+    whose package records what it was asked), the checkouts taking turns."""
+    bench = load("setup_time")
+    other = tmp_path / "other"
+    (other / "neulf_core").mkdir(parents=True)
+    (other / "neulf_core" / "__main__.py").write_text(
+        "import sys, pathlib\n"
+        f"with open({str(tmp_path / 'asked.txt')!r}, 'a') as f: f.write(' '.join(sys.argv[1:]) + '\\n')\n")
+    out = tmp_path / "setup.csv"
+    bench.main(["--scene", str(tiny_scene), "--scale", "1", "--run", "short=--steps 2", "--checkout", f"before={other}",
+                "--checkout", f"after={REPO}", "--repeats", "2", "--out", str(out)])
+    rows = list(csv.DictReader(open(out)))
+    assert [(r["checkout"], r["repeat"]) for r in rows] == [("before", "0"), ("after", "0"), ("before", "1"), ("after", "1")]
+    assert all(r["run"] == "short" and r["torch_threads"] == "1" and float(r["seconds"]) > 0 for r in rows)
+    asked = (tmp_path / "asked.txt").read_text().splitlines()
+    assert len(asked) == 2 and all(a.startswith(f"train {tiny_scene}") and a.endswith("--scale 1.0 --steps 2") for a in asked)
+    assert "after median" in capsys.readouterr().out
+
+
+def test_jpeg_half_decode_times_and_compares_whole_fractions(tmp_path, capsys):
+    from PIL import Image
+    import numpy as np
+
+    bench = load("jpeg_half_decode")
+    ys, xs = np.mgrid[0:192, 0:256]
+    smooth = np.stack([xs, ys, (xs + ys) // 2], -1).astype(np.uint8)
+    (tmp_path / "photos").mkdir()
+    Image.fromarray(smooth).save(tmp_path / "photos" / "ramp.jpg", quality=92)
+    Image.fromarray(smooth).save(tmp_path / "photos" / "ramp.png")  # not a JPEG: left out
+    out = tmp_path / "decode.csv"
+    bench.main(["--photos", str(tmp_path / "photos"), "--repeats", "1", "--label", "t", "--out", str(out)])
+    rows = list(csv.DictReader(open(out)))
+    assert [r["wanted"] for r in rows] == ["64x48", "32x24", "16x12"] and all(r["photo"] == "ramp.jpg" for r in rows)
+    assert all(float(r["psnr_vs_full"]) > 40 and float(r["half_decode_s"]) > 0 for r in rows)
+    assert "half size" in capsys.readouterr().out
