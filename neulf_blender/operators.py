@@ -286,7 +286,7 @@ def start_training(context, *, minutes=None, steps=None):
     python, extra = worker_python(prefs)
     device = None if prefs is None or prefs.device == "AUTO" else prefs.device.lower()
     job = jobs.TrainJob(python, scene_dir, out, minutes=minutes, steps=steps, resume=resume, preset=props.preset,
-                        scale=props.train_scale, images_dir=abspath(props.images_dir) or None, device=device,
+                        scale=props.train_scale or None, images_dir=abspath(props.images_dir) or None, device=device,
                         env=jobs.core_environment(extra), sweep_teacher=props.sweep_teacher,
                         depth_layers=props.depth_layers, appearance=CHOICE_OPTION[props.appearance],
                         refine_poses=CHOICE_OPTION[props.refine_poses], back_surface=CHOICE_OPTION[props.back_surface],

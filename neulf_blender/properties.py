@@ -92,8 +92,10 @@ class NeulfSceneSettings(bpy.types.PropertyGroup):
                                      "gaining from more training; renders take this many times longer. 0: "
                                      "automatic (2 when the time passes over the photos' pixels 12 times or more on a CPU, 60 on a GPU, "
                                      "else 1). A model being continued keeps its own count")
-    train_scale: FloatProperty(name="Image Scale", default=1.0, min=0.05, max=1.0,
-                               description="Train on images resized by this factor")
+    train_scale: FloatProperty(name="Image Scale", default=0.0, min=0.0, max=1.0,
+                               description="Train on images resized by this factor. 0: automatic (the largest 1/k at "
+                                           "which a photo has at most 200,000 pixels: 1/2 for 960x540 photos, 1/8 for "
+                                           "12-megapixel ones). A model being continued keeps its own scale")
     spiral_frames: IntProperty(name="Frames", default=60, min=3, max=2000, description="Frames of the spiral path")
     pixel_samples: EnumProperty(
         name="Pixel Samples", default="4",

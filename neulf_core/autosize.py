@@ -29,7 +29,7 @@ from .slab import fit_slab
 from .train import (LOSSES_DECISION_STEP, TrainConfig, TrainResult, _emit, announce_default_losses, default_back_surface,
                     default_coarse_to_fine,
                     default_consistency, default_depth_detail_reads, default_geometry_tv,
-                    default_max_passes, train)
+                    default_max_passes, train, with_default_scale)
 
 PRESET = "auto"
 FACTORS = (1.0, 0.7, 0.5)    # finest texture size / the default (~1 texel per pixel); area 1, 1/2, 1/4
@@ -120,7 +120,7 @@ def train_auto(scene: Scene | str | Path, model_dir: str | Path, config: TrainCo
     started = time.monotonic()  # a minutes budget is the whole run's: the photos' loading and the rules' probe too
     if not isinstance(scene, Scene):
         scene = load_scene(scene, images_dir)
-    config = replace(config, preset=PRESET)
+    config = with_default_scale(scene, replace(config, preset=PRESET), progress=progress)
     with kept_while_training():  # (the candidates read the same photos: their rays are built once)
         config = final_model_defaults(scene, config, progress)
         searched = _search(scene, config, factors, progress, should_stop, started)

@@ -395,7 +395,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("scene_dir")
     p.add_argument("--out", required=True, help="model folder")
     p.add_argument("--images", help="images folder (default: SCENE/images, else SCENE/images_N)")
-    p.add_argument("--scale", type=float, default=1.0, help="train at this image scale (e.g. 0.5)")
+    p.add_argument("--scale", type=float, help="train at this image scale (default: the largest 1/k at which a photo "
+                   "has at most 200,000 pixels: 1/2 for 960x540 photos, 1/8 for 12-megapixel ones)")
     p.add_argument("--preset", default="fast", help="fast (default), auto (fast, texture sized per scene), planes, authors (8x256 MLP), paper (20x256 MLP)")
     budget = p.add_mutually_exclusive_group()
     budget.add_argument("--minutes", type=float, help="training time budget (total, including resumed time)")

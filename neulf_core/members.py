@@ -285,9 +285,11 @@ def _rule_pending(model_dir: Path) -> bool:
 def training_pixels(scene, config) -> int:
     """The training views' pixels at the training scale (what a pass goes over)."""
     from .scene import scaled_size, split_views
+    from .train import training_scale
 
     train_views, _ = split_views(scene, config.holdout_every, config.exclude)
-    return sum(w * h for w, h in (scaled_size(view.size, config.scale) for view in train_views))
+    scale = training_scale(scene.views, config)
+    return sum(w * h for w, h in (scaled_size(view.size, scale) for view in train_views))
 
 
 def _decide_upfront(scene, config, progress, split: str) -> int | None:

@@ -7,6 +7,7 @@ JSON-lines printers) and stops early, after saving, when `should_stop()` returns
 
 from __future__ import annotations
 
+import json
 import math
 import time
 from dataclasses import asdict, dataclass, field, replace
@@ -18,7 +19,8 @@ import torch
 
 from . import __version__
 from .appearance import ViewAppearance, appearance_by_default, exposure_difference, photo_exposures
-from .checkpoint import TRAINING_STATE_KEY, checkpoint_path, load_checkpoint, remove_stale_temporaries, save_checkpoint
+from .checkpoint import (METADATA_NAME, TRAINING_STATE_KEY, checkpoint_path, load_checkpoint, remove_stale_temporaries,
+                         save_checkpoint)
 from .consistency import SlabGeometry, camera_neighbours, multiview_losses
 from .dataset import RaySet, kept_rayset, mean_colour
 from .device import describe_device, keep_freed_cpu_memory, pick_device
@@ -138,7 +140,7 @@ class TrainConfig:
     preset: str = DEFAULT_PRESET
     steps: int | None = None            # stop after this many steps in total ...
     minutes: float | None = None        # ... or after this much training time in total
-    scale: float = 1.0                  # image scale to train at
+    scale: float | None = None          # image scale to train at (None: default_scale)
     holdout_every: int = 8
     exclude: list[str] | None = None    # held-out view names (instead of every 8th)
     seed: int = 0
@@ -369,6 +371,71 @@ def default_coarse_to_fine(n_train_views: int) -> bool:
     return 2 <= n_train_views <= COARSE_TO_FINE_MAX_VIEWS
 
 
+# The training scale where the user gives none: the largest 1/k (k = 1, 2, 3, ...) at which the
+# largest photo has at most DEFAULT_SCALE_PIXELS pixels.  The fast field keeps about one texel
+# per training pixel up to its texel budget (fields/disparity.MAX_TEXELS: photos of about
+# 140,000 pixels), so larger photos make every pass, the sweep and the fill of unseen texels
+# slower for detail its texture cannot hold.  CanClip in 1.5 minutes, one thread, two seeds
+# (benchmarks/train_scale.py, docs/BENCHMARKS.md "The default training scale"): trained at 1/4
+# / 1/2 / 1 of its 960x540, rendered at 480x270 34.34 / 36.08 / 35.30 dB and at the full
+# 960x540 32.80 / 34.79 / 34.64: 1/2, which the rule picks, is best even at full size.  The
+# rule gives the scales the project's measurements chose by hand (CanClip's and Statue's 960x540
+# and HCI's 512x512 at 1/2, fern's 504x378 at 1), a 12-megapixel phone photo 1/8 (504x378) and
+# a 3840x2160 one 1/7 (549x309): thirty of those (CanClip's photos upscaled) at scale 1 had not
+# reached the first step after 5 minutes, at 17.7 GB of memory (the AMD EPYC, 2 cores).
+DEFAULT_SCALE_PIXELS = 200_000
+
+
+def default_scale(photo_size: tuple[int, int]) -> float:
+    """1/k for the smallest k at which a photo of `photo_size` (width, height) has at most
+    DEFAULT_SCALE_PIXELS pixels."""
+    width, height = photo_size
+    k = 1
+    while math.prod(scaled_size((width, height), 1.0 / k)) > DEFAULT_SCALE_PIXELS:
+        k += 1
+    return 1.0 / k
+
+
+def with_default_scale(scene: Scene, config: TrainConfig, model_dir: Path | None = None, resume: bool = False,
+                       progress=None) -> TrainConfig:
+    """`config` with a training scale: its own; where it has none, a resumed model's (model.json
+    in `model_dir`), else default_scale of the scene's largest photo, which the user is told."""
+    if config.scale is not None:
+        return config
+    saved = _saved_scale(model_dir) if resume and model_dir is not None else None
+    if saved is not None:
+        return replace(config, scale=saved)
+    largest = largest_photo(scene.views)
+    scale = default_scale(largest)
+    if scale < 1.0:
+        width, height = scaled_size(largest, scale)
+        _emit(progress, event="stage", scale=scale,
+              message=f"training at 1/{round(1 / scale)} of the photos' size ({width}x{height}; their full "
+                      f"{largest[0]}x{largest[1]} with --scale 1: slower, for detail the model's texture cannot keep)")
+    return replace(config, scale=scale)
+
+
+def largest_photo(views) -> tuple[int, int]:
+    """(width, height) of the photo of the most pixels, which default_scale sizes."""
+    return max((view.size for view in views), key=math.prod)
+
+
+def training_scale(views, config: TrainConfig) -> float:
+    """The scale `config` trains at: its own, or the default rule's for these views (a scene's
+    all: a run decides it before it splits them)."""
+    return config.scale if config.scale is not None else default_scale(largest_photo(views))
+
+
+def _saved_scale(model_dir: Path) -> float | None:
+    """The scale a model in `model_dir` was trained at, or None (no model, or unreadable: the
+    resume then says what is wrong)."""
+    try:
+        scale = json.loads((Path(model_dir) / METADATA_NAME).read_text())["train_config"]["scale"]
+    except (OSError, ValueError, KeyError, TypeError):
+        return None
+    return float(scale) if isinstance(scale, (int, float)) and scale > 0 else None
+
+
 # Few photos (the same count as coarse to fine's): their planes' depth is furthest off, so the
 # depth detail is read twice (DisparityConfig.depth_detail_reads), and their depth overfits, so
 # the geometry's smoothness prior is stronger (FEW_VIEWS_GEOMETRY_TV).
@@ -465,7 +532,8 @@ def default_consistency(slab: Slab, train_views, config: TrainConfig,
     if not losses_by_default(slab.is_deep, len(train_views)):
         return False  # whatever the budget
     batch = budget_rays_per_step(config)
-    pixels = sum(math.prod(scaled_size(v.size, config.scale)) for v in train_views)
+    scale = training_scale(train_views, config)
+    pixels = sum(math.prod(scaled_size(v.size, scale)) for v in train_views)
     passes = budget_passes(config, batch, pixels, steps_per_minute)
     return None if passes is None else losses_by_default(slab.is_deep, len(train_views), passes)
 
@@ -602,6 +670,9 @@ def train(scene: Scene | str | Path, model_dir: str | Path, config: TrainConfig,
 
     with training_lock(model_dir), kept_while_training():  # (members and starts read and sweep the photos once)
         remove_stale_temporaries(model_dir)
+        if config.scale is None:
+            scene = scene if isinstance(scene, Scene) else load_scene(scene, images_dir)
+            config = with_default_scale(scene, config, model_dir, resume, progress)
         return train_members(train_one, scene, model_dir, config, images_dir, resume, progress, should_stop)
 
 
@@ -609,7 +680,7 @@ def _train(scene, model_dir: Path, config: TrainConfig, images_dir, resume: bool
            record: dict | None = None) -> TrainResult:
     """One training run into `model_dir`; `record`: entries for the model's metadata (how its
     start was chosen)."""
-    if config.scale <= 0:
+    if config.scale is not None and config.scale <= 0:
         raise NeulfError(f"--scale must be positive, not {config.scale}.")
     existing = checkpoint_path(model_dir).is_file()
     if existing and not resume:
@@ -618,6 +689,7 @@ def _train(scene, model_dir: Path, config: TrainConfig, images_dir, resume: bool
 
     if not isinstance(scene, Scene):
         scene = load_scene(scene, images_dir)
+    config = with_default_scale(scene, config)  # (train() has decided it; a direct call)
     asked = config
     if resumed is not None:
         config = _config_for_resume(resumed, config, scene)

@@ -290,6 +290,36 @@ def test_train_refuses_to_overwrite_and_needs_a_budget(trained, tmp_path):
         train(scene_dir, tmp_path / "m", small_config(3, scale=0.0))
 
 
+def test_the_default_scale_keeps_each_photo_under_the_pixel_budget(tiny_scene, tmp_path, monkeypatch, capsys):
+    """Without a scale a run trains at the largest 1/k at which the largest photo has at most
+    DEFAULT_SCALE_PIXELS pixels, says so, and keeps it in the model; a resumed model keeps its
+    own scale whatever the rule says now; a given scale is used as it is."""
+    from neulf_core import train as training
+    from neulf_core.train import default_scale
+
+    assert [default_scale(size) for size in ((960, 540), (512, 512), (504, 378), (320, 240))] == [0.5, 0.5, 1.0, 1.0]
+    assert default_scale((4032, 3024)) == 1 / 8 and default_scale((3840, 2160)) == 1 / 7  # 504x378, 549x309
+    monkeypatch.setattr(training, "DEFAULT_SCALE_PIXELS", 500)  # the tiny scene's 48x36 photos: 1/2
+    events = []
+    train(tiny_scene, tmp_path / "m", small_config(3), progress=events.append)
+    meta = json.loads((tmp_path / "m" / METADATA_NAME).read_text())
+    assert meta["train_config"]["scale"] == 0.5 and (meta["rig"]["width"], meta["rig"]["height"]) == (24, 18)
+    said = [e["message"] for e in events if e.get("event") == "stage" and "scale" in e]
+    assert said == ["training at 1/2 of the photos' size (24x18; their full 48x36 with --scale 1: slower, for detail "
+                    "the model's texture cannot keep)"]
+    monkeypatch.setattr(training, "DEFAULT_SCALE_PIXELS", 100)  # would now say 1/5
+    train(tiny_scene, tmp_path / "m", small_config(6), resume=True)
+    meta = json.loads((tmp_path / "m" / METADATA_NAME).read_text())
+    assert meta["train_config"]["scale"] == 0.5 and meta["progress"]["step"] == 6
+    assert main(["train", str(tiny_scene), "--out", str(tmp_path / "cli"), "--steps", "2", "--preset", "planes",
+                 "--batch-size", "256"]) == 0
+    assert "training at 1/5 of the photos' size (10x7; their full 48x36 with --scale 1" in capsys.readouterr().err
+    events = []
+    train(tiny_scene, tmp_path / "given", small_config(2, scale=1.0), progress=events.append)
+    assert json.loads((tmp_path / "given" / METADATA_NAME).read_text())["train_config"]["scale"] == 1.0
+    assert not [e for e in events if e.get("event") == "stage" and "scale" in e]
+
+
 def test_leftover_temp_file(trained, tmp_path):
     _, model_dir, _ = trained
     # A crash during the very first save leaves only the temporary file: no model yet.

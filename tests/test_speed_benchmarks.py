@@ -1,7 +1,7 @@
 """The speed benchmarks end to end on the tiny scene: benchmarks/train_step_time.py (both Adam
 variants train, a CSV row per run, --append adds to it) and benchmarks/sweep_time.py (the
 depth teacher's sweep timed, its targets' checksum the same on every repeat), and the others
-that time code: setup_time.py (each checkout's own code), jpeg_half_decode.py."""
+that time code: setup_time.py (each checkout's own code), jpeg_half_decode.py, train_scale.py."""
 
 from __future__ import annotations
 
@@ -223,3 +223,15 @@ def test_jpeg_half_decode_times_and_compares_whole_fractions(tmp_path, capsys):
     assert [r["wanted"] for r in rows] == ["64x48", "32x24", "16x12"] and all(r["photo"] == "ramp.jpg" for r in rows)
     assert all(float(r["psnr_vs_full"]) > 40 and float(r["half_decode_s"]) > 0 for r in rows)
     assert "half size" in capsys.readouterr().out
+
+
+def test_train_scale_scores_every_model_at_every_render_scale(tiny_scene, tmp_path, capsys):
+    bench = load("train_scale")
+    out = tmp_path / "scale.csv"
+    bench.main(["--scene", str(tiny_scene), "--scales", "0.5,1", "--eval-scales", "0.5,1", "--minutes", "0.02",
+                "--seeds", "0", "--no-pin", "--out", str(out)])
+    rows = list(csv.DictReader(open(out)))
+    assert [(r["train_scale"], r["train_size"], r["eval_size"]) for r in rows] == [
+        ("0.5", "24x18", "24x18"), ("0.5", "24x18", "48x36"), ("1.0", "48x36", "24x18"), ("1.0", "48x36", "48x36")]
+    assert all(int(r["steps"]) > 0 and float(r["psnr"]) > 5 for r in rows)
+    assert "| x0.5 |" in capsys.readouterr().out
