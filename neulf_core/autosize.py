@@ -120,10 +120,18 @@ def train_auto(scene: Scene | str | Path, model_dir: str | Path, config: TrainCo
     started = time.monotonic()  # a minutes budget is the whole run's: the photos' loading and the rules' probe too
     if not isinstance(scene, Scene):
         scene = load_scene(scene, images_dir)
-    config = with_default_scale(scene, replace(config, preset=PRESET), progress=progress)
-    with kept_while_training():  # (the candidates read the same photos: their rays are built once)
-        config = final_model_defaults(scene, config, progress)
-        searched = _search(scene, config, factors, progress, should_stop, started)
+    # One training call (memo.py): the candidates read the photos and build their rays once, and
+    # a warning about the scale is said once.
+    with kept_while_training():
+        return _search_and_train(scene, model_dir, replace(config, preset=PRESET), progress, should_stop, factors,
+                                 tolerance_db, started)
+
+
+def _search_and_train(scene: Scene, model_dir: Path, config: TrainConfig, progress, should_stop, factors,
+                      tolerance_db: float, started: float) -> TrainResult:
+    config = with_default_scale(scene, config, progress=progress)
+    config = final_model_defaults(scene, config, progress)
+    searched = _search(scene, config, factors, progress, should_stop, started)
     if searched is None:  # cancelled; nothing saved yet: the search starts again next time
         return TrainResult(model_dir, "cancelled", 0, time.monotonic() - started, None, [])
     candidates, validation = searched

@@ -28,7 +28,7 @@ from .errors import NeulfError
 from .fields import build_field, count_parameters, make_config
 from .fields.disparity import DisparityConfig, slab_geometry, texture_size_for
 from .lock import training_lock
-from .memo import kept_while_training
+from .memo import kept, kept_while_training
 from .members import RATE_DECISION_STEP as MEMBERS_RATE_DECISION_STEP, RATE_FROM_STEP as MEMBERS_RATE_FROM_STEP, \
     member_budget, member_split, members_by_rule, passes_for_members, share_spent, share_words
 from . import poses as poses_module
@@ -396,11 +396,20 @@ def default_scale(photo_size: tuple[int, int]) -> float:
     return 1.0 / k
 
 
+# A scale asked for whose photos have more than this many times the default's pixels is trained
+# as asked, with a warning: 30 photos of 3840x2160 at full size had not reached the first step
+# after 5 minutes, at 17.7 GB (the AMD EPYC, docs/BENCHMARKS.md "The default training scale").
+LARGE_SCALE_FACTOR = 4
+
+
 def with_default_scale(scene: Scene, config: TrainConfig, model_dir: Path | None = None, resume: bool = False,
                        progress=None) -> TrainConfig:
-    """`config` with a training scale: its own; where it has none, a resumed model's (model.json
-    in `model_dir`), else default_scale of the scene's largest photo, which the user is told."""
+    """`config` with a training scale: its own (with a warning where its photos are far larger
+    than the default's); where it has none, a resumed model's (model.json in `model_dir`), else
+    default_scale of the scene's largest photo, which the user is told."""
     if config.scale is not None:
+        if not resume:
+            _warn_large_scale(scene, config.scale, progress)
         return config
     saved = _saved_scale(model_dir) if resume and model_dir is not None else None
     if saved is not None:
@@ -413,6 +422,20 @@ def with_default_scale(scene: Scene, config: TrainConfig, model_dir: Path | None
               message=f"training at 1/{round(1 / scale)} of the photos' size ({width}x{height}; their full "
                       f"{largest[0]}x{largest[1]} with --scale 1: slower, for detail the model's texture cannot keep)")
     return replace(config, scale=scale)
+
+
+def _warn_large_scale(scene: Scene, scale: float, progress) -> None:
+    largest = largest_photo(scene.views)
+    asked, default = scaled_size(largest, scale), scaled_size(largest, default_scale(largest))
+    if math.prod(asked) <= LARGE_SCALE_FACTOR * DEFAULT_SCALE_PIXELS or math.prod(asked) <= math.prod(default):
+        return
+    rays = sum(math.prod(scaled_size(view.size, scale)) for view in scene.views)
+    message = (f"scale {scale:g} trains on photos of {asked[0]}x{asked[1]} ({rays / 1e6:.0f} M pixels in all, "
+               f"{math.prod(asked) / math.prod(default):.0f} times the default's): slow to start and to train, and "
+               f"memory-hungry, for detail the model's texture cannot keep; the default scale (no --scale; Image "
+               f"Scale 0 in Blender) trains at {default[0]}x{default[1]}")
+    # Once a training call: the auto preset's candidates and model, a model's members, ask again.
+    kept("large scale warning", message, lambda: _emit(progress, event="warning", scale=scale, message=message))
 
 
 def largest_photo(views) -> tuple[int, int]:
@@ -670,9 +693,8 @@ def train(scene: Scene | str | Path, model_dir: str | Path, config: TrainConfig,
 
     with training_lock(model_dir), kept_while_training():  # (members and starts read and sweep the photos once)
         remove_stale_temporaries(model_dir)
-        if config.scale is None:
-            scene = scene if isinstance(scene, Scene) else load_scene(scene, images_dir)
-            config = with_default_scale(scene, config, model_dir, resume, progress)
+        scene = scene if isinstance(scene, Scene) else load_scene(scene, images_dir)
+        config = with_default_scale(scene, config, model_dir, resume, progress)
         return train_members(train_one, scene, model_dir, config, images_dir, resume, progress, should_stop)
 
 

@@ -314,10 +314,20 @@ def test_the_default_scale_keeps_each_photo_under_the_pixel_budget(tiny_scene, t
     assert main(["train", str(tiny_scene), "--out", str(tmp_path / "cli"), "--steps", "2", "--preset", "planes",
                  "--batch-size", "256"]) == 0
     assert "training at 1/5 of the photos' size (10x7; their full 48x36 with --scale 1" in capsys.readouterr().err
+    # A scale asked for is used; far above the default's pixels it is warned about, once a run
+    # (here with two members, each of which asks again).
     events = []
-    train(tiny_scene, tmp_path / "given", small_config(2, scale=1.0), progress=events.append)
+    train(tiny_scene, tmp_path / "given", small_config(4, scale=1.0, members=2), progress=events.append)
     assert json.loads((tmp_path / "given" / METADATA_NAME).read_text())["train_config"]["scale"] == 1.0
     assert not [e for e in events if e.get("event") == "stage" and "scale" in e]
+    assert [e["message"] for e in events if e.get("event") == "warning"] == [
+        "scale 1 trains on photos of 48x36 (0 M pixels in all, 25 times the default's): slow to start and to train, and "
+        "memory-hungry, for detail the model's texture cannot keep; the default scale (no --scale; Image Scale 0 in "
+        "Blender) trains at 10x7"]
+    monkeypatch.setattr(training, "DEFAULT_SCALE_PIXELS", 200)  # 24x18 = 432 is within 4 times 200
+    events = []
+    train(tiny_scene, tmp_path / "within", small_config(2, scale=0.5), progress=events.append)
+    assert not [e for e in events if e.get("event") == "warning"]
 
 
 def test_leftover_temp_file(trained, tmp_path):
