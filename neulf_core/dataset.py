@@ -107,7 +107,7 @@ def kept_rayset(slot: str, views: list[View], slab: Slab, scale: float, on_view=
     """build_rayset, or, within a training call (memo.kept_while_training) and for the same
     inputs as the last set in `slot`, that set again without reading a photo: a model's
     members and the better-of-two-starts rule train the same photos again (CanClip's 26 photos
-    at 480x270, one thread: 1.5 s a run, half of it decoding them).  The set is shared, not
+    at 480x270, one thread: 1.6 s a run, a third of it decoding them).  The set is shared, not
     copied: training only reads it."""
     built_masks = []
     key = inputs_key(views, slab.to_dict(), scale, pixel_steps)

@@ -711,7 +711,8 @@ def _train(scene, model_dir: Path, config: TrainConfig, images_dir, resume: bool
 
     if not isinstance(scene, Scene):
         scene = load_scene(scene, images_dir)
-    config = with_default_scale(scene, config)  # (train() has decided it; a direct call)
+    if config.scale is None:  # (train() has decided it: a direct call)
+        config = with_default_scale(scene, config)
     asked = config
     if resumed is not None:
         config = _config_for_resume(resumed, config, scene)
