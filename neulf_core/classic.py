@@ -27,10 +27,11 @@ from .scene import View
 from .slab import Slab
 
 
-def undistort_to_pinhole(view: View, scale: float) -> tuple[np.ndarray, np.ndarray]:
-    """The view's photo resampled to the pinhole camera with the same K: (image, K)."""
+def undistort_to_pinhole(view: View, scale: float, photo: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """The view's photo (`photo`, read at `scale` already, or read here) resampled to the
+    pinhole camera with the same K: (image, K)."""
     camera = view.scaled_camera(scale)
-    photo = view.load_image(scale)
+    photo = view.load_image(scale) if photo is None else photo
     K = np.asarray(camera.calibration_matrix(), dtype=np.float64)
     if camera.model_name in ("PINHOLE", "SIMPLE_PINHOLE"):
         return photo, K
@@ -63,10 +64,12 @@ UNSEEN_COST = 1e3  # far above any colour variance (colours are in [0, 1])
 
 
 class ClassicLightField:
-    def __init__(self, views: list[View], slab: Slab, scale: float, device="cpu"):
+    def __init__(self, views: list[View], slab: Slab, scale: float, device="cpu", photos: list | None = None):
+        """`photos`: the views' photos at `scale` where the caller has read them (else read here)."""
         self.slab = slab
         self.device = torch.device(device)
-        images, Ks = zip(*(undistort_to_pinhole(v, scale) for v in views))
+        images, Ks = zip(*(undistort_to_pinhole(v, scale, photo)
+                           for v, photo in zip(views, photos if photos is not None else [None] * len(views))))
         self.images = torch.stack([torch.from_numpy(np.array(i)).permute(2, 0, 1) for i in images]).to(self.device)  # (V, 3, H, W) uint8
         self.K = torch.as_tensor(np.stack(Ks), device=self.device, dtype=torch.float32)
         self.R = torch.as_tensor(np.stack([v.R for v in views]), device=self.device, dtype=torch.float32)

@@ -79,18 +79,25 @@ def view_pixel_steps(view: View, slab: Slab, scale: float, uvst: torch.Tensor) -
 
 
 def build_rayset(views: list[View], slab: Slab, scale: float, coord_dtype=torch.float32, on_view=None,
-                 pixel_steps: bool = False, masks: list | None = None) -> RaySet:
+                 pixel_steps: bool = False, masks: list | None = None, photos_at: float | None = None,
+                 photos: list | None = None) -> RaySet:
     """The rays of `views` (those the slab represents); with `pixel_steps`, each ray's change
     for one pixel step as well, for pixel jitter (module docstring).  `masks`, a list: gets
     each view's (H*W,) mask of the pixels whose rays the set holds, which the sweep teacher
     and the point depths take instead of tracing every pixel's ray again (CanClip at 480x270:
-    1.4 s of a run's start)."""
+    1.4 s of a run's start).  `photos`, a list: gets each view's photo at scale `photos_at`
+    too, from the same decode (the depth teacher's sweep reads them smaller)."""
     uvst_parts, rgb_parts, index_parts, step_parts = [], [], [], []
     for i, view in enumerate(views):
         uvst, valid = view_uvst(view, slab, scale)
         if masks is not None:
             masks.append(valid)
-        rgb = torch.from_numpy(view.load_image(scale).reshape(-1, 3).copy())
+        if photos is not None:
+            photo, other = view.load_images([scale, photos_at])
+            photos.append(other)
+        else:
+            photo = view.load_image(scale)
+        rgb = torch.from_numpy(photo.reshape(-1, 3).copy())
         uvst_parts.append(uvst[valid].to(coord_dtype))
         rgb_parts.append(rgb[valid])
         index_parts.append(torch.full((int(valid.sum()),), i, dtype=torch.int16))
@@ -103,18 +110,22 @@ def build_rayset(views: list[View], slab: Slab, scale: float, coord_dtype=torch.
 
 
 def kept_rayset(slot: str, views: list[View], slab: Slab, scale: float, on_view=None, pixel_steps: bool = False,
-                masks: list | None = None) -> RaySet:
+                masks: list | None = None, photos_at: float | None = None, photos: list | None = None) -> RaySet:
     """build_rayset, or, within a training call (memo.kept_while_training) and for the same
-    inputs as the last set in `slot`, that set again without reading a photo: a model's
-    members and the better-of-two-starts rule train the same photos again (CanClip's 26 photos
-    at 480x270, one thread: 1.6 s a run, a third of it decoding them).  The set is shared, not
-    copied: training only reads it."""
+    inputs as the last set in `slot`, that set (with its masks and photos) again without
+    reading a photo: a model's members and the better-of-two-starts rule train the same photos
+    again (CanClip's 26 photos at 480x270, one thread: 1.6 s a run, a third of it decoding
+    them).  The set is shared, not copied: training only reads it."""
     built_masks = []
-    key = inputs_key(views, slab.to_dict(), scale, pixel_steps)
-    rays, view_masks = kept(slot, key, lambda: (
-        build_rayset(views, slab, scale, on_view=on_view, pixel_steps=pixel_steps, masks=built_masks), built_masks))
+    built_photos = [] if photos is not None else None
+    key = inputs_key(views, slab.to_dict(), scale, pixel_steps, photos_at if photos is not None else None)
+    rays, view_masks, view_photos = kept(slot, key, lambda: (
+        build_rayset(views, slab, scale, on_view=on_view, pixel_steps=pixel_steps, masks=built_masks,
+                     photos_at=photos_at, photos=built_photos), built_masks, built_photos))
     if masks is not None:
         masks.extend(view_masks)
+    if photos is not None:
+        photos.extend(view_photos)
     return rays
 
 

@@ -74,12 +74,23 @@ def load_rgb(path: Path, size: tuple[int, int] | None = None) -> np.ndarray:
     Downscaling uses an area (box) filter, the anti-aliased choice for a light field's
     training targets; upscaling uses bicubic.
     """
-    image = _open(Path(path))
-    rgb = _to_rgb_uint8(image)
-    if size is not None and (rgb.shape[1], rgb.shape[0]) != tuple(size):
-        resample = Image.BOX if size[0] <= rgb.shape[1] else Image.BICUBIC
-        rgb = np.asarray(Image.fromarray(rgb).resize(tuple(size), resample=resample))
-    return rgb
+    return load_rgb_sizes(path, [size])[0]
+
+
+def load_rgb_sizes(path: Path, sizes) -> list[np.ndarray]:
+    """load_rgb at each of `sizes` from one decode (each resized from the full photo, so each
+    is what load_rgb gives at that size): a run wants its photos at the training size and the
+    depth teacher's sweep at a smaller one, and a 12-megapixel JPEG takes 60-200 ms to decode
+    (docs/jpeg_half_decode.csv)."""
+    rgb = _to_rgb_uint8(_open(Path(path)))
+    return [_resized(rgb, size) for size in sizes]
+
+
+def _resized(rgb: np.ndarray, size: tuple[int, int] | None) -> np.ndarray:
+    if size is None or (rgb.shape[1], rgb.shape[0]) == tuple(size):
+        return rgb
+    resample = Image.BOX if size[0] <= rgb.shape[1] else Image.BICUBIC
+    return np.asarray(Image.fromarray(rgb).resize(tuple(size), resample=resample))
 
 
 SAVE_BAND_ROWS = 256  # rows converted at a time: float64 temporaries stay small for any frame size

@@ -19,7 +19,7 @@ import numpy as np
 import pycolmap
 
 from .errors import NeulfError
-from .images import image_size, list_images, load_rgb, resolve_image_paths
+from .images import image_size, list_images, load_rgb_sizes, resolve_image_paths
 
 MODEL_FILES = ("cameras.bin", "cameras.txt")
 
@@ -65,9 +65,13 @@ class View:
         return camera
 
     def load_image(self, scale: float = 1.0) -> np.ndarray:
+        return self.load_images([scale])[0]
+
+    def load_images(self, scales) -> list[np.ndarray]:
+        """The photo at each of `scales`, decoded once."""
         if self.image_path is None:
             raise NeulfError(f"view {self.name} has no image file; pass --images with the folder that holds it.")
-        return load_rgb(self.image_path, scaled_size(self.size, scale))
+        return load_rgb_sizes(self.image_path, [scaled_size(self.size, scale) for scale in scales])
 
 
 @dataclass

@@ -77,8 +77,15 @@ def sweep_scale_for(train_views, scale: float, slab: Slab) -> float:
     return min(SWEEP_SCALE, (DEEP_SWEEP_PIXELS / (width * height)) ** 0.5)
 
 
+def sweep_photo_scale(train_views, scale: float, slab: Slab, sweep_scale: float | None = None) -> float:
+    """The scale the sweep reads the photos at, for training at `scale` (`sweep_scale` of it, by
+    default sweep_scale_for's)."""
+    return scale * (sweep_scale_for(train_views, scale, slab) if sweep_scale is None else sweep_scale)
+
+
 def sweep_depth_targets(train_views, slab: Slab, scale: float, device="cpu", on_view=None,
-                        sweep_scale: float | None = None, representable=None) -> tuple[torch.Tensor, torch.Tensor]:
+                        sweep_scale: float | None = None, representable=None,
+                        photos: list | None = None) -> tuple[torch.Tensor, torch.Tensor]:
     """compute_sweep_depth_targets, or, within a training call (memo.kept_while_training) and
     for the same inputs as its last sweep, that result again (copies) without sweeping: a
     model's members and the better-of-two-starts rule train the same photos again, and each
@@ -88,21 +95,22 @@ def sweep_depth_targets(train_views, slab: Slab, scale: float, device="cpu", on_
     rays: 37 MB), a quarter of what the rays themselves hold."""
     key = inputs_key(train_views, slab.to_dict(), scale, sweep_scale, str(torch.device(device)))
     unit, confidence = kept("sweep", key, lambda: compute_sweep_depth_targets(
-        train_views, slab, scale, device, on_view, sweep_scale, representable))
+        train_views, slab, scale, device, on_view, sweep_scale, representable, photos))
     return unit.clone(), confidence.clone()
 
 
 def compute_sweep_depth_targets(train_views, slab: Slab, scale: float, device="cpu", on_view=None,
-                                sweep_scale: float | None = None,
-                                representable=None) -> tuple[torch.Tensor, torch.Tensor]:
+                                sweep_scale: float | None = None, representable=None,
+                                photos: list | None = None) -> tuple[torch.Tensor, torch.Tensor]:
     """(unit depth, confidence) per training ray, in build_rayset's order (views in turn,
     row-major pixels, the rays that cross the slab: `representable`, build_rayset's masks of
     them, or traced again where None).  The sweep runs at `sweep_scale` of the
     training resolution (default: half, fewer pixels on deep scenes -- a prior needs no more,
     and a quarter of the pixels is a quarter of the time) and each training pixel takes the
-    value of the sweep pixel it falls in."""
-    small = scale * (sweep_scale_for(train_views, scale, slab) if sweep_scale is None else sweep_scale)
-    classic = ClassicLightField(train_views, slab, small, device=device)
+    value of the sweep pixel it falls in.  `photos`: the photos at sweep_photo_scale where
+    build_rayset has read them with the training ones (else read here)."""
+    small = sweep_photo_scale(train_views, scale, slab, sweep_scale)
+    classic = ClassicLightField(train_views, slab, small, device=device, photos=photos)
     units, confidences = [], []
     for i, view in enumerate(train_views):
         _, sweep = classic.render_view(view, small, exclude=i, with_depth=True)

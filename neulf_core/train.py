@@ -36,7 +36,7 @@ from .poses import DEPTH_LIKE_GAUGE, POSE_CHECK_STEP, POSE_SECOND_LOOK_STEP, Pos
 from .presets import APPEARANCE_ADAM_BETA2, APPEARANCE_GEOMETRY, DEFAULT_PRESET, get_preset
 from .scene import Scene, load_scene, scaled_size, split_views
 from .slab import Slab, fit_slab
-from .teacher import strong_pull, sweep_depth_targets, teacher_fade, teacher_loss, teacher_weight
+from .teacher import strong_pull, sweep_depth_targets, sweep_photo_scale, teacher_fade, teacher_loss, teacher_weight
 from .point_depth import point_depth_loss, point_depth_targets
 
 VALIDATION_RAYS = 1 << 16
@@ -733,9 +733,14 @@ def _train(scene, model_dir: Path, config: TrainConfig, images_dir, resume: bool
 
     _emit(progress, event="loading", message="building training rays")
     masks = []  # each training view's representable pixels, for the depth targets below
+    # The sweep's photos, smaller, come from the same decode as the training ones.
+    sweeps = _teacher_wanted(train_views, config, get_preset(config.preset), resumed)
+    sweep_photos = [] if sweeps else None
     train_rays = kept_rayset("training rays", train_views, slab, config.scale, pixel_steps=config.pixel_jitter > 0,
                              masks=masks, on_view=lambda i, n, v: _emit(progress, event="loading", message=f"rays of {v.name}",
-                                                                        done=i + 1, total=n))
+                                                                        done=i + 1, total=n),
+                             photos_at=sweep_photo_scale(train_views, config.scale, slab) if sweeps else None,
+                             photos=sweep_photos)
     train_rays = train_rays.to(device)
     val_rays = (kept_rayset("held-out rays", held_views, slab, config.scale).subset(VALIDATION_RAYS, generator).to(device)
                 if held_views else None)
@@ -797,7 +802,8 @@ def _train(scene, model_dir: Path, config: TrainConfig, images_dir, resume: bool
     beta2 = APPEARANCE_ADAM_BETA2 if appearance is not None else preset.adam_beta2
     optimizer = _optimizer(field_module, preset.lr, beta2, appearance, poses)
     step, elapsed_before, history = 0, 0.0, []
-    teacher, teacher_seconds = _teacher_inputs(train_views, slab, config, preset, device, resumed, progress, masks)
+    teacher, teacher_seconds = _teacher_inputs(train_views, slab, config, preset, device, resumed, progress, masks,
+                                               sweep_photos)
     elapsed_before += teacher_seconds  # the sweep is part of the training time it saves
     strong = strong_pull(len(train_views), config.appearance)
     point_depth = _point_depth_inputs(train_views, slab, config, preset, device, fixed_poses is not None, masks)
@@ -1285,19 +1291,27 @@ def _consistency_inputs(train_views, slab: Slab, config: TrainConfig, device):
     return SlabGeometry(slab, device), neighbours.to(device)
 
 
-def _teacher_inputs(train_views, slab: Slab, config: TrainConfig, preset, device, resumed, progress, masks=None):
-    """The plane sweep's depth per training ray (teacher.py), and the seconds it took; None
-    when off, or when a resumed run is past the part of the budget the teacher acts in.
-    `masks`: build_rayset's, each view's representable pixels."""
+def _teacher_wanted(train_views, config: TrainConfig, preset, resumed) -> bool:
+    """Whether this run sweeps: the teacher on, two photos at least, and a resumed run still in
+    the part of the budget the teacher acts in."""
     wanted = preset.teacher if config.teacher is None else config.teacher
     if not wanted or len(train_views) < 2:
-        return None, 0.0
-    if resumed and config.budget_fraction(resumed["progress"]["step"], resumed["progress"]["elapsed"]) >= teacher_fade(len(train_views)):
+        return False
+    return not (resumed and config.budget_fraction(resumed["progress"]["step"], resumed["progress"]["elapsed"])
+                >= teacher_fade(len(train_views)))
+
+
+def _teacher_inputs(train_views, slab: Slab, config: TrainConfig, preset, device, resumed, progress, masks=None,
+                    photos=None):
+    """The plane sweep's depth per training ray (teacher.py), and the seconds it took; None
+    when off (_teacher_wanted).  `masks`: build_rayset's, each view's representable pixels;
+    `photos`: the photos at the sweep's scale, read with the training ones."""
+    if not _teacher_wanted(train_views, config, preset, resumed):
         return None, 0.0
     started = time.monotonic()
     targets = sweep_depth_targets(train_views, slab, config.scale, device,
                                   on_view=lambda i, n, v: _emit(progress, event="loading", message=f"sweep depth of {v.name}",
-                                                                 done=i + 1, total=n), representable=masks)
+                                                                 done=i + 1, total=n), representable=masks, photos=photos)
     return targets, (0.0 if resumed else time.monotonic() - started)
 
 

@@ -160,6 +160,26 @@ def test_training_traces_each_photos_rays_once(tracked_scene, tmp_path, monkeypa
     assert sorted(traced) == sorted(v.name for v in load_scene(tracked_scene).views)
 
 
+def test_training_decodes_each_photo_once(tracked_scene, tmp_path, monkeypatch):
+    """The sweep's smaller photos come from the decode that read the training ones: a run with
+    the sweep on decodes each training and held-out photo once."""
+    from neulf_core import images
+
+    decoded = []
+    decode = images._open
+
+    def counted(path, *args, **kwargs):
+        decoded.append(Path(path).name)
+        return decode(path, *args, **kwargs)
+
+    monkeypatch.setattr(images, "_open", counted)
+    out = tmp_path / "model"
+    train(tracked_scene, out, TrainConfig(steps=3, seed=0, members=1, two_starts=False, validate_seconds=1e9,
+                                          checkpoint_seconds=1e9))
+    assert json.loads((out / "model.json").read_text())["train_config"]["teacher"] is not False
+    assert sorted(decoded) == sorted(Path(v.image_path).name for v in load_scene(tracked_scene).views)
+
+
 def test_the_targets_follow_the_masks_they_are_given(tracked_scene):
     """Given masks that leave pixels out, the point depths keep exactly the other pixels' targets,
     in order (the sweep's targets take the same masks the same way)."""

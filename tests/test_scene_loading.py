@@ -14,7 +14,7 @@ from PIL import Image
 
 from conftest import look_at_rotation, scene_or_skip, write_colmap_model
 from neulf_core.errors import NeulfError
-from neulf_core.images import image_size, load_rgb, resolve_image_paths
+from neulf_core.images import image_size, load_rgb, load_rgb_sizes, resolve_image_paths
 from neulf_core.scene import Scene, View, find_model_dir, load_scene, split_views
 
 
@@ -440,6 +440,14 @@ def test_unreadable_image(tmp_path):
     (tmp_path / "text.jpg").write_text("not a photo")
     with pytest.raises(NeulfError, match="cannot read image"):
         load_rgb(tmp_path / "text.jpg")
+
+
+def test_one_decode_gives_each_size_as_its_own_read_would(tmp_path):
+    rng = np.random.default_rng(0)
+    Image.fromarray(rng.integers(0, 256, (36, 48, 3), dtype=np.uint8)).save(tmp_path / "p.jpg", quality=90)
+    sizes = [(24, 18), (12, 9), None, (96, 72)]
+    for got, size in zip(load_rgb_sizes(tmp_path / "p.jpg", sizes), sizes):
+        np.testing.assert_array_equal(got, load_rgb(tmp_path / "p.jpg", size))
 
 
 def test_load_rgb_resizes_with_box_filter(tmp_path):

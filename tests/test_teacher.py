@@ -118,6 +118,21 @@ def test_the_same_photos_are_read_once_and_other_poses_again(tiny_scene):
     assert dataset.kept_rayset("rays", views, slab, 1.0) is not dataset.kept_rayset("rays", views, slab, 1.0)
 
 
+def test_the_sweep_on_photos_read_with_the_rays_is_the_sweep_that_reads_them(tiny_scene):
+    """build_rayset's photos at the sweep's scale (one decode for both sizes) give the sweep
+    exactly the targets it computes reading the photos itself."""
+    scene = load_scene(tiny_scene)
+    views, _ = split_views(scene)
+    slab = fit_slab(scene, views)
+    masks, photos = [], []
+    small = teacher.sweep_photo_scale(views, 1.0, slab)
+    build_rayset(views, slab, 1.0, masks=masks, photos_at=small, photos=photos)
+    assert [p.shape[:2] for p in photos] == [v.load_image(small).shape[:2] for v in views]
+    given = teacher.compute_sweep_depth_targets(views, slab, 1.0, representable=masks, photos=photos)
+    read = teacher.compute_sweep_depth_targets(views, slab, 1.0, representable=masks)
+    assert torch.equal(given[0], read[0]) and torch.equal(given[1], read[1])
+
+
 def test_the_pull_fades_out_halfway():
     assert teacher_weight(0.0) > teacher_weight(TEACHER_FADE / 2) > 0
     assert teacher_weight(TEACHER_FADE) == 0 and teacher_weight(1.0) == 0
