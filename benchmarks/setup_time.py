@@ -1,11 +1,11 @@
 """Wall time of short training runs, where what a run does before and between its steps shows:
 loading the photos, building the rays, the depth teacher's sweep, the fill of unseen texels.
 
-    python benchmarks/setup_time.py [--scene ../shared/data/canclip] [--scale 0.5] \
+    python benchmarks/setup_time.py [--scene ../shared/data/canclip] [--scale 0.5 (default: train's)] \
         [--run 'members=--steps 50 --members 2'] [--run 'auto=--steps 150 --preset auto'] \
         [--checkout before=/tmp/old] [--checkout after=.] [--repeats 3] [--out docs/setup_time.csv]
 
-Each `--run LABEL=ARGS` is `python -m neulf_core train SCENE --out TEMP --scale S ARGS`, run
+Each `--run LABEL=ARGS` is `python -m neulf_core train SCENE --out TEMP [--scale S] ARGS`, run
 in a process of its own with one torch thread (OMP_NUM_THREADS=1) in each `--checkout
 LABEL=FOLDER` (a git worktree of another commit, `git worktree add /tmp/old HEAD`, so two
 versions of the code are timed on one machine), the checkouts taking turns run after run so
@@ -43,10 +43,10 @@ def labelled(text: str) -> tuple[str, str]:
     return label, value
 
 
-def timed_run(checkout: Path, scene: Path, scale: float, args: str) -> float:
+def timed_run(checkout: Path, scene: Path, scale: float | None, args: str) -> float:
     with tempfile.TemporaryDirectory(prefix="neulf-setup-") as folder:
         command = [sys.executable, "-m", "neulf_core", "train", str(scene), "--out", str(Path(folder) / "model"),
-                   "--scale", str(scale), *shlex.split(args)]
+                   *(["--scale", str(scale)] if scale is not None else []), *shlex.split(args)]
         started = time.perf_counter()
         done = subprocess.run(command, cwd=checkout, env={**os.environ, "OMP_NUM_THREADS": "1"},
                               stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
@@ -59,7 +59,7 @@ def timed_run(checkout: Path, scene: Path, scale: float, args: str) -> float:
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--scene", type=Path, default=REPO.parent / "shared" / "data" / "canclip")
-    parser.add_argument("--scale", type=float, default=0.5)
+    parser.add_argument("--scale", type=float, help="(default: train's own rule)")
     parser.add_argument("--run", action="append", help="LABEL=train options (repeatable)")
     parser.add_argument("--checkout", action="append", help="LABEL=folder of a checkout (repeatable; default: this one)")
     parser.add_argument("--repeats", type=int, default=3)
@@ -76,7 +76,7 @@ def main(argv=None) -> None:
             for checkout, folder in checkouts:
                 seconds = timed_run(folder, scene, args.scale, options)
                 rows.append({"date": date.today().isoformat(), "machine": machine(), "torch_threads": 1,
-                             "scene": scene.name, "scale": args.scale, "run": run, "args": options,
+                             "scene": scene.name, "scale": args.scale or "default", "run": run, "args": options,
                              "checkout": checkout, "repeat": repeat, "seconds": round(seconds, 2)})
                 print(f"{run} ({options}), {checkout}, repeat {repeat}: {seconds:.2f} s", flush=True)
         for checkout, _ in checkouts:
