@@ -227,6 +227,20 @@ def test_train_job_passes_the_sweep_teacher_only_to_a_new_model(ext, tmp_path):
     assert not any("sweep-teacher" in a for a in argv(sweep_teacher=False, resume=True))
 
 
+def test_train_job_passes_the_image_scale_only_when_set(ext, tmp_path):
+    """The panel's "Image Scale" becomes `train --scale F`; 0 (the operator passes None) leaves it
+    out, so the trainer's rule decides; a resumed model keeps its own."""
+    def argv(**options):
+        job = ext.jobs.TrainJob("/bin/true", str(tmp_path), str(tmp_path / "m"), steps=5, **options)
+        job.process.wait(timeout=30)
+        return job.argv
+
+    half = argv(scale=0.5)
+    assert half[half.index("--scale") + 1] == "0.5"
+    assert "--scale" not in argv(scale=None) and "--scale" not in argv()
+    assert "--scale" not in argv(scale=0.5, resume=True)
+
+
 def test_train_job_passes_depth_layers_only_to_a_new_model(ext, tmp_path):
     """The panel's "Depth Layers" becomes `train --depth-layers N` (-1: left out, the trainer decides)."""
     def argv(**options):
