@@ -378,11 +378,13 @@ def default_coarse_to_fine(n_train_views: int) -> bool:
 # slower for detail its texture cannot hold.  CanClip in 1.5 minutes, one thread, two seeds
 # (benchmarks/train_scale.py, docs/BENCHMARKS.md "The default training scale"): trained at 1/4
 # / 1/2 / 1 of its 960x540, rendered at 480x270 34.34 / 36.08 / 35.30 dB and at the full
-# 960x540 32.80 / 34.79 / 34.64: 1/2, which the rule picks, is best even at full size.  The
-# rule gives the scales the project's measurements chose by hand (CanClip's and Statue's 960x540
-# and HCI's 512x512 at 1/2, fern's 504x378 at 1), a 12-megapixel phone photo 1/8 (504x378) and
-# a 3840x2160 one 1/7 (549x309): thirty of those (CanClip's photos upscaled) at scale 1 had not
-# reached the first step after 5 minutes, at 17.7 GB of memory (the AMD EPYC, 2 cores).
+# 960x540 32.80 / 34.79 / 34.64: 1/2, which the rule picks, is best even at full size (3/4,
+# 291,600 pixels, rendered the full size as 1/2 did, 34.78 dB, and its half size 0.4 dB
+# worse).  The rule gives the scales the project's measurements chose by hand (CanClip's and
+# Statue's 960x540 and HCI's 512x512 at 1/2, fern's 504x378 at 1), a 12-megapixel phone photo
+# 1/8 (504x378) and a 3840x2160 one 1/7 (549x309): thirty of those (CanClip's photos upscaled)
+# at scale 1 had not reached the first step after 5 minutes, at 17.7 GB of memory (the AMD
+# EPYC, 2 cores).
 DEFAULT_SCALE_PIXELS = 200_000
 
 
