@@ -213,13 +213,21 @@ def test_train_job_parses_events(ext):
     assert "camera poses far off: restarted with smoother geometry" in ext.jobs.job_status_text(job.state)
 
 
-def test_train_job_passes_the_sweep_teacher_only_to_a_new_model(ext, tmp_path):
-    """The panel's "Depth from Photos" becomes `train --[no-]sweep-teacher`; a resumed model keeps
-    the choice saved with it.  (/bin/true stands in for the NeuLF Python: only argv matters.)"""
+def _job_argv(ext, tmp_path):
+    """argv(**options): the command line a TrainJob with those options runs (/bin/true stands
+    in for the NeuLF Python: only argv matters)."""
     def argv(**options):
         job = ext.jobs.TrainJob("/bin/true", str(tmp_path), str(tmp_path / "m"), steps=5, **options)
         job.process.wait(timeout=30)
         return job.argv
+
+    return argv
+
+
+def test_train_job_passes_the_sweep_teacher_only_to_a_new_model(ext, tmp_path):
+    """The panel's "Depth from Photos" becomes `train --[no-]sweep-teacher`; a resumed model keeps
+    the choice saved with it."""
+    argv = _job_argv(ext, tmp_path)
 
     assert "--sweep-teacher" in argv(sweep_teacher=True)
     assert "--no-sweep-teacher" in argv(sweep_teacher=False)
@@ -230,10 +238,7 @@ def test_train_job_passes_the_sweep_teacher_only_to_a_new_model(ext, tmp_path):
 def test_train_job_passes_the_image_scale_only_when_set(ext, tmp_path):
     """The panel's "Image Scale" becomes `train --scale F`; 0 (the operator passes None) leaves it
     out, so the trainer's rule decides; a resumed model keeps its own."""
-    def argv(**options):
-        job = ext.jobs.TrainJob("/bin/true", str(tmp_path), str(tmp_path / "m"), steps=5, **options)
-        job.process.wait(timeout=30)
-        return job.argv
+    argv = _job_argv(ext, tmp_path)
 
     half = argv(scale=0.5)
     assert half[half.index("--scale") + 1] == "0.5"
@@ -243,10 +248,7 @@ def test_train_job_passes_the_image_scale_only_when_set(ext, tmp_path):
 
 def test_train_job_passes_depth_layers_only_to_a_new_model(ext, tmp_path):
     """The panel's "Depth Layers" becomes `train --depth-layers N` (-1: left out, the trainer decides)."""
-    def argv(**options):
-        job = ext.jobs.TrainJob("/bin/true", str(tmp_path), str(tmp_path / "m"), steps=5, **options)
-        job.process.wait(timeout=30)
-        return job.argv
+    argv = _job_argv(ext, tmp_path)
 
     layered = argv(depth_layers=8)
     assert layered[layered.index("--depth-layers") + 1] == "8"
@@ -261,10 +263,7 @@ def test_train_job_passes_exposure_and_pose_options_only_to_a_new_model(ext, tmp
     `train --appearance` / `--no-appearance`, and nothing / `--refine-poses` / `--no-refine-poses`; a resumed model keeps
     what it was trained with.  "Stop Early" off becomes `train --max-passes 0`, for a
     continued model too."""
-    def argv(**options):
-        job = ext.jobs.TrainJob("/bin/true", str(tmp_path), str(tmp_path / "m"), steps=5, **options)
-        job.process.wait(timeout=30)
-        return job.argv
+    argv = _job_argv(ext, tmp_path)
 
     both = argv(appearance=True, refine_poses=True)
     assert "--appearance" in both and "--refine-poses" in both
