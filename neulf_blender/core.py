@@ -4,7 +4,9 @@ interpreter chosen in the preferences.  Both routes call neulf_core.worker.Servi
 
 from __future__ import annotations
 
+import atexit
 import importlib
+import shutil
 import tempfile
 from pathlib import Path
 
@@ -13,6 +15,7 @@ from .jobs import WorkerClient, core_environment
 _in_process = None        # Service, False (unavailable), or None (not tried)
 _worker: WorkerClient | None = None
 _worker_key = None
+_scratch: Path | None = None  # the worker's folder for arrays in transit, removed with it
 
 
 def in_process_service():
@@ -60,18 +63,26 @@ class Core:
         return self._client().call(op, on_progress=on_progress, should_stop=should_stop, **args)
 
     def _client(self) -> WorkerClient:
-        global _worker, _worker_key
+        global _worker, _worker_key, _scratch
         key = (self.python, self.extra_paths, self.device)
         if _worker is None or _worker_key != key:
             shutdown()
-            scratch = Path(tempfile.mkdtemp(prefix="neulf_worker_"))
-            _worker = WorkerClient(self.python, scratch, core_environment(self.extra_paths), self.device)
+            _scratch = Path(tempfile.mkdtemp(prefix="neulf_worker_"))
+            _worker = WorkerClient(self.python, _scratch, core_environment(self.extra_paths), self.device)
             _worker_key = key
         return _worker
 
 
 def shutdown() -> None:
-    global _worker
+    """Ends the worker and removes its scratch folder (a render cancelled mid-answer can leave
+    an array there). Also run at exit: Blender does not unregister add-ons when it quits."""
+    global _worker, _scratch
     if _worker is not None:
         _worker.close()
         _worker = None
+    if _scratch is not None:
+        shutil.rmtree(_scratch, ignore_errors=True)
+        _scratch = None
+
+
+atexit.register(shutdown)

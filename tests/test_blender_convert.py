@@ -161,6 +161,38 @@ def test_worker_that_cannot_start_explains_itself(ext, tmp_path):
         client.call("info", timeout=60)
 
 
+def test_worker_scratch_folder_goes_with_the_worker(ext):
+    """Each Blender session's worker had left an empty /tmp/neulf_worker_* behind (58 of them on
+    the development machine): shutdown, which unregister and interpreter exit run, removes it."""
+    pytest.importorskip("torch")
+    core = importlib.import_module("neulf_ext.neulf_blender.core")
+    try:
+        info = core.Core(sys.executable, mode="WORKER").call("info")
+        assert info["torch"]
+        scratch = core._scratch
+        assert scratch is not None and scratch.is_dir()
+        (scratch / "stray.npy").write_bytes(b"left by a cancelled render")
+    finally:
+        core.shutdown()
+    assert not scratch.exists() and core._worker is None
+
+
+def test_worker_scratch_folder_goes_at_interpreter_exit(tmp_path):
+    """Blender quits without unregistering add-ons: the exit handler ends the worker and its folder."""
+    pytest.importorskip("torch")
+    (tmp_path / "neulf_ext").symlink_to(REPO, target_is_directory=True)
+    script = (
+        "import sys; sys.path.insert(0, sys.argv[1])\n"
+        "from neulf_ext.neulf_blender import core\n"
+        "core.Core(sys.executable, mode='WORKER').call('info')\n"
+        "print(core._scratch)\n"
+    )
+    done = subprocess.run([sys.executable, "-c", script, str(tmp_path)], capture_output=True, text=True, timeout=180)
+    assert done.returncode == 0, done.stderr
+    scratch = Path(done.stdout.strip().splitlines()[-1])
+    assert scratch.name.startswith("neulf_worker_") and not scratch.exists()
+
+
 def test_train_job_parses_events(ext):
     job = ext.jobs.TrainJob.__new__(ext.jobs.TrainJob)
     job.state = {"status": "running", "fraction": 0.0, "message": "", "error": None, "started": 0.0, "step": 0,
