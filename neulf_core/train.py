@@ -704,309 +704,448 @@ def _train(scene, model_dir: Path, config: TrainConfig, images_dir, resume: bool
            record: dict | None = None) -> TrainResult:
     """One training run into `model_dir`; `record`: entries for the model's metadata (how its
     start was chosen)."""
+    run = TrainingRun(scene, model_dir, config, images_dir, resume, progress, record)
+    run.train_until_done(should_stop)
+    return run.finish()
+
+
+def _resumed_checkpoint(model_dir: Path, config: TrainConfig, resume: bool) -> dict | None:
+    """The checkpoint a resumed run continues (None for a new one); refuses to overwrite a model."""
     if config.scale is not None and config.scale <= 0:
         raise NeulfError(f"--scale must be positive, not {config.scale}.")
     existing = checkpoint_path(model_dir).is_file()
     if existing and not resume:
         raise NeulfError(f"{model_dir} already holds a trained model; pass --resume to continue it, or choose another --out.")
-    resumed = load_checkpoint(model_dir) if (resume and existing) else None
+    return load_checkpoint(model_dir) if (resume and existing) else None
 
-    if not isinstance(scene, Scene):
-        scene = load_scene(scene, images_dir)
-    if config.scale is None:  # (train() has decided it: a direct call)
-        config = with_default_scale(scene, config)
-    asked = config
-    if resumed is not None:
-        config = _config_for_resume(resumed, config, scene)
-    train_views, held_views = split_views(scene, config.holdout_every, config.exclude)
-    device = pick_device(config.device)
-    if device.type == "cpu":
-        # The back surface's colour batch (2 x 8192 rays x 128 hidden floats, 8 MB a buffer) lets
-        # glibc hand its freed buffers back, and in 4 of 14 runs it then page-faulted them in
-        # again every step: 2.3 M faults and 4.2 s of system time in 400 steps, 45-47 instead
-        # of 36-43 ms a step (fern at 252x189, one thread; docs/BENCHMARKS.md).
-        keep_freed_cpu_memory()
-    generator = _seed_everything(config.seed)
 
-    slab = Slab.from_dict(resumed["slab"]) if resumed else fit_slab(
-        scene, train_views, scale=config.scale, st_depth=config.st_depth, uv_depth=config.uv_depth, near=config.near, far=config.far)
-    _emit(progress, event="start", scene=str(scene.root), views=len(scene.views), train_views=len(train_views),
-          held_out=[v.name for v in held_views], device=describe_device(device), preset=config.preset, notes=scene.notes)
+class NonFiniteGuard:
+    """A NaN/inf step is skipped; three in a row halve the learning rate (reported)."""
 
-    _emit(progress, event="loading", message="building training rays")
-    masks = []  # each training view's representable pixels, for the depth targets below
-    # The sweep's photos, smaller, come from the same decode as the training ones.
-    sweeps = _teacher_wanted(train_views, config, get_preset(config.preset), resumed)
-    sweep_photos = [] if sweeps else None
-    train_rays = kept_rayset("training rays", train_views, slab, config.scale, pixel_steps=config.pixel_jitter > 0,
-                             masks=masks, on_view=lambda i, n, v: _emit(progress, event="loading", message=f"rays of {v.name}",
-                                                                        done=i + 1, total=n),
-                             photos_at=sweep_photo_scale(train_views, config.scale, slab) if sweeps else None,
-                             photos=sweep_photos)
-    train_rays = train_rays.to(device)
-    val_rays = (kept_rayset("held-out rays", held_views, slab, config.scale).subset(VALIDATION_RAYS, generator).to(device)
-                if held_views else None)
-    exposures = photo_exposures(train_rays.rgb, train_rays.view_index, len(train_views))
-    exposure_stops = exposure_difference(exposures,
-                                         np.stack([v.center for v in train_views]))
-    exposures_differ = appearance_by_default(exposure_stops)
-    if config.appearance is None:
-        config = replace(config, appearance=exposures_differ)
-        if config.appearance:
-            announce_default_appearance(progress, len(train_views), exposure_stops)
+    def __init__(self):
+        self.lr_scale, self.in_a_row, self.skipped = 1.0, 0, 0
 
-    if resumed:
-        # The field exactly as saved: a default that changed since (channels, depth layers)
-        # must not change the shape of a model being continued.
-        preset = get_preset(config.preset)
-        field_module = build_field(resumed["field"], make_config(resumed["field"], resumed["field_config"]))
-        field_module.load_state_dict(resumed.get(TRAINING_STATE_KEY) or resumed["state_dict"])
-    else:
-        field_module, preset = _build_field(config.preset, config.field_overrides, train_views, slab, config.scale,
-                                            config.appearance, config.coarse_to_fine, config.back_surface)
-    field_module.to(device).train()
-    appearance = _view_appearance(len(train_views), exposures, resumed).to(device) if config.appearance else None
-    batch = config.batch_size or preset.batch_size
-    n_rays = len(train_rays)
-    # A first member whose rule split the batch part-way (BatchSwitch) goes on with its share.
-    switch = BatchSwitch.of((resumed or {}).get("members_rule")) or _switch_on_resume(asked, resumed, batch)
-    step_limit = pass_step_limit(config, field_module.field_name, len(train_views), n_rays,
-                                 switch.before if switch else batch)
-    if switch:
-        batch = switch.batch
-        step_limit = switch.steps_for(step_limit, batch) if step_limit else None
-    config, fixed_poses, poses_found_right = _first_members_poses(config, resumed, slab, train_views, device)
-    poses_found_right = poses_found_right or (resumed or {}).get("pose_check", {}).get("refining") is False
-    if config.refine_poses is None and not _pose_check_possible(config, preset, step_limit, resumed):
-        config = replace(config, refine_poses=False)
-    pose_check_pending = config.refine_poses is None
-    poses = (PoseRefinement(slab, np.stack([v.center for v in train_views])).to(device)
-             if config.refine_poses is not False else None)
-    if poses is not None and resumed and resumed.get("poses"):
-        poses.load_state_dict(resumed["poses"])
-    losses_rule = config.consistency if config.consistency is not None else preset.consistency
-    losses_stopped_at = (resumed or {}).get("multiview_losses_until_step")  # (by the pose check's verdict)
-    losses_pending = False  # the default waits for the measured rate (LOSSES_DECISION_STEP)
-    if losses_rule is None:
-        # A resumed model keeps what it was trained with (models saved before the rule: off;
-        # None: saved before the run had decided, which it then does as a new one).
-        saved = resumed.get("multiview_losses", False) if resumed else None
-        if saved is not None:  # (on until the pose check's verdict: so it stays)
-            saved = resumed.get("multiview_losses_rule") if saved and resumed.get("multiview_losses_rule") else bool(saved)
-        losses_rule = saved if saved is not None else default_consistency(slab, train_views, config)
-        losses_pending = losses_rule is None
-    if losses_stopped_at is None and losses_stop_at_pose_check(losses_rule, bool(config.appearance), poses_found_right):
-        losses_stopped_at = 0  # a later member: the first one's check found the poses right
-    if config.consistency is None and preset.consistency is None and losses_rule and losses_stopped_at is None:
-        announce_default_losses(progress, len(train_views))
-    consistency = (_consistency_inputs(train_views, slab, config, device)
-                   if losses_rule and losses_stopped_at is None else None)
-    beta2 = APPEARANCE_ADAM_BETA2 if appearance is not None else preset.adam_beta2
-    optimizer = _optimizer(field_module, preset.lr, beta2, appearance, poses)
-    step, elapsed_before, history = 0, 0.0, []
-    teacher, teacher_seconds = _teacher_inputs(train_views, slab, config, preset, device, resumed, progress, masks,
-                                               sweep_photos)
-    elapsed_before += teacher_seconds  # the sweep is part of the training time it saves
-    strong = strong_pull(len(train_views), config.appearance)
-    point_depth = _point_depth_inputs(train_views, slab, config, preset, device, fixed_poses is not None, masks)
-    if resumed:
-        optimizer.load_state_dict(resumed["optimizer"])
-        step, elapsed_before = resumed["progress"]["step"], resumed["progress"]["elapsed"]
-        history = list(resumed["progress"]["history"])
-        _restore_rng(resumed.get("rng"), generator)
+    def skip(self, step: int, progress) -> None:
+        self.skipped += 1
+        self.in_a_row += 1
+        if self.in_a_row >= 3:
+            self.lr_scale *= 0.5
+            self.in_a_row = 0
+            _emit(progress, event="warning", message=f"non-finite loss at step {step}: learning rate lowered to x{self.lr_scale:g}")
 
-    meta = {
-        "neulf_core_version": __version__,
-        "field": field_module.field_name,
-        "field_config": field_module.field_config,
-        "parameters": count_parameters(field_module),
-        "slab": slab.to_dict(),
-        "scene": {
-            "root": str(scene.root), "kind": scene.kind, "fingerprint": scene.fingerprint(),
-            "views": [v.name for v in scene.views], "train": [v.name for v in train_views],
-            "held_out": [v.name for v in held_views], "scale": config.scale,
-            "mean_colour": mean_colour(train_rays).tolist(),
-        },
-        "train_config": asdict(config),
-        # What the default decided, when train_config.consistency is None (None: not yet).
-        "multiview_losses": None if losses_pending else bool(losses_rule),
-        **({"multiview_losses_rule": losses_rule} if losses_rule == LOSSES_UNTIL_POSES_RIGHT else {}),
-        **({"multiview_losses_until_step": losses_stopped_at} if losses_stopped_at is not None else {}),
-        # How far neighbouring photos' exposures differ (stops), and whether that turns the
-        # per-photo colour transform on by default (train_config.appearance says what ran).
-        "exposure_difference_stops": round(exposure_stops, 4),
-        "appearance_default": exposures_differ,
-        "rig": _rig(train_views, config.scale),
-    }
-    if point_depth is not None:
-        meta["point_depth"] = {"rays": int(point_depth[1].sum())}
-        _emit(progress, event="stage", message=f"depth from the model's points: {meta['point_depth']['rays']} keypoint "
-              "rays pulled toward their points' depth (--no-point-depth turns it off)")
-    if resumed and resumed.get("pose_check"):
-        meta["pose_check"] = resumed["pose_check"]  # the verdict of the run being continued
-    for made_once in ("field_restart", "far_off_check"):  # (the far-off check's record and verdict)
-        if resumed and resumed.get(made_once):
-            meta[made_once] = resumed[made_once]
-    if resumed and resumed.get("members_rule"):
-        meta["members_rule"] = resumed["members_rule"]
-    if switch and "batch_switch" not in meta.get("members_rule", {}):  # (decided while this run was stopped)
-        meta["members_rule"] = {**meta.get("members_rule", {}), "count": switch.count, "split": "batch",
-                                "batch_switch": {"step": switch.step, "before": switch.before}}
-    if config.poses_from:
-        meta["poses_from"] = {"model": config.poses_from, "refined": fixed_poses is not None,
-                              **(fixed_poses.summary() if fixed_poses is not None else {})}
-    meta.update(record or {})
-    # (a run resumed past the check step has decided: its saved field config says how smooth)
-    restart_pending = (poses is not None and step < POSE_CHECK_STEP and not slab.is_deep
-                       and hasattr(field_module, "smooth_geometry"))
+    def passed(self) -> None:
+        self.in_a_row = 0
 
-    def save(status: str, val: float | None, before_fill: dict | None = None):
-        payload = {**meta, "state_dict": field_module.state_dict(), "optimizer": optimizer.state_dict(),
-                   **({TRAINING_STATE_KEY: before_fill} if before_fill is not None else {}),
-                   "appearance": appearance.state_dict() if appearance is not None else None,
-                   "appearance_linear_light": appearance.linear_light if appearance is not None else None,
-                   "poses": poses.state_dict() if poses is not None else None,
-                   "rng": {"torch": torch.get_rng_state(), "generator": generator.get_state()},
-                   "progress": {"step": step, "elapsed": elapsed, "status": status, "val_psnr": val, "history": history}}
-        path = save_checkpoint(model_dir, payload)
-        _emit(progress, event="checkpoint", path=str(path), step=step)
+    def report(self, progress) -> None:
+        if self.skipped:
+            _emit(progress, event="warning", message=f"{self.skipped} training steps had a non-finite loss and were skipped")
 
-    announce_pass_limit(progress, config, field_module.field_name, len(train_views), step_limit, step)
-    # The pass limit is a tighter step budget (the saved config keeps the one asked for).
-    budget = replace(config, steps=min(config.steps or step_limit, step_limit)) if step_limit else config
-    # Members by rule on a minutes budget (members.py): decided from the step rate, and then
-    # this run -- the first member -- trains its share of the minutes.
-    members_pending = config.members is None and "members_rule" not in meta
-    if config.members is None and "members_rule" in meta:
-        budget = _members_share(config, budget, meta["members_rule"]["count"], meta["members_rule"].get("split", "steps"))
-    start_time = time.monotonic()
-    last_checkpoint = last_validation = start_time
-    elapsed = elapsed_before
-    val = history[-1]["val_psnr"] if history else None
-    lr_scale, bad_steps, skipped = 1.0, 0, 0
-    first_step, rate_mark = step, elapsed
-    members_step_seconds, last_elapsed = [], elapsed
-    status = "finished"
-    loss_value = float("nan")
-    while budget.budget_fraction(step, elapsed) < 1.0:
-        if should_stop is not None and should_stop():
-            status = "cancelled"
-            break
-        fraction = budget.budget_fraction(step, elapsed)
-        rays_seen = step * batch + (switch.extra_rays(batch) if switch else 0)
-        lr = _set_learning_rate(optimizer, preset, rays_seen, n_rays, fraction, lr_scale)
-        if hasattr(field_module, "set_training_progress"):
-            field_module.set_training_progress(fraction)
-        index = torch.randint(n_rays, (batch,), generator=generator).to(device)
-        uvst, target = train_rays.batch(index, generator, config.pixel_jitter)
-        view_index = train_rays.view_index[index].long()
-        pull = teacher_weight(fraction, len(train_views), strong=strong) if teacher is not None else 0.0
-        depth_teacher = (teacher[0][index], teacher[1][index], pull) if pull > 0 else None
-        depth_points = (point_depth[0][index], point_depth[1][index]) if point_depth is not None else None
-        step_consistency = consistency
-        if pose_check_pending and POSE_CHECK_STEP // 2 <= step < POSE_CHECK_STEP and "halfway_degrees" not in meta.get("pose_check", {}):
-            meta["pose_check"] = {"halfway_step": step, "halfway_degrees": round(poses.own_part_degrees(), 4)}
-        if pose_check_pending and step >= _pose_look_step(meta):
-            poses, pose_check_pending = _pose_check(poses, optimizer, meta, progress, step)
-            poses_found_right = meta.get("pose_check", {}).get("refining") is False
-            if consistency is not None and losses_stop_at_pose_check(losses_rule, bool(config.appearance), poses_found_right):
-                _stop_losses(meta, progress, step, len(train_views))
-                consistency = step_consistency = None
-            if poses is not None and not pose_check_pending and point_depth is not None:
-                point_depth = None  # the poses are off: so are the points placed through them
-                meta["point_depth"]["dropped_at_step"] = step
-                _emit(progress, event="stage", message="the poses are off, and so are the points placed through "
-                      "them: no longer pulling toward their depth")
-        if restart_pending and step >= POSE_CHECK_STEP:
-            restart_pending = False
-            if poses is not None:
-                _restart_for_far_off_poses(field_module, optimizer, poses, meta, progress, step, config.seed,
-                                           fraction=fraction, n_train_views=len(train_views))
-        if poses is not None:
-            poses.set_training_progress(fraction)
-        corrected = poses if poses is not None else fixed_poses
+
+class TrainingRun:
+    """One training run, from its inputs to its last checkpoint.
+
+    Setting up follows a fixed order -- the random draws (rays held out for validation, the
+    field's start, the ray order) come in the same sequence for the same seed, so a resumed
+    run trains on to the same weights as one never stopped.  The loop then takes a step at a
+    time, between steps making the decisions the defaults wait for (the pose check, the far-off
+    restart, the multi-view losses and the members rule at the measured step rate)."""
+
+    def __init__(self, scene, model_dir: Path, config: TrainConfig, images_dir, resume: bool, progress,
+                 record: dict | None = None):
+        self.model_dir, self.progress = model_dir, progress
+        resumed = _resumed_checkpoint(model_dir, config, resume)
+        if not isinstance(scene, Scene):
+            scene = load_scene(scene, images_dir)
+        if config.scale is None:  # (train() has decided it: a direct call)
+            config = with_default_scale(scene, config)
+        asked = config
+        if resumed is not None:
+            config = _config_for_resume(resumed, config, scene)
+        self.train_views, self.held_views = split_views(scene, config.holdout_every, config.exclude)
+        self.device = pick_device(config.device)
+        if self.device.type == "cpu":
+            # The back surface's colour batch (2 x 8192 rays x 128 hidden floats, 8 MB a buffer) lets
+            # glibc hand its freed buffers back, and in 4 of 14 runs it then page-faulted them in
+            # again every step: 2.3 M faults and 4.2 s of system time in 400 steps, 45-47 instead
+            # of 36-43 ms a step (fern at 252x189, one thread; docs/BENCHMARKS.md).
+            keep_freed_cpu_memory()
+        self.generator = _seed_everything(config.seed)
+        self.slab = Slab.from_dict(resumed["slab"]) if resumed else fit_slab(
+            scene, self.train_views, scale=config.scale, st_depth=config.st_depth, uv_depth=config.uv_depth,
+            near=config.near, far=config.far)
+        _emit(progress, event="start", scene=str(scene.root), views=len(scene.views), train_views=len(self.train_views),
+              held_out=[v.name for v in self.held_views], device=describe_device(self.device), preset=config.preset,
+              notes=scene.notes)
+        masks, sweep_photos = self._load_rays(config, resumed)
+        config = self._decide_appearance(config)
+        self._make_field(config, resumed)
+        self._set_batch(config, asked, resumed)
+        config = self._set_up_poses(config, resumed)
+        self._set_up_losses(config, resumed)
+        self.config = config
+        beta2 = APPEARANCE_ADAM_BETA2 if self.appearance is not None else self.preset.adam_beta2
+        self.optimizer = _optimizer(self.field_module, self.preset.lr, beta2, self.appearance, self.poses)
+        self.step, self.elapsed, self.history = 0, 0.0, []
+        self.teacher, teacher_seconds = _teacher_inputs(self.train_views, self.slab, config, self.preset, self.device,
+                                                        resumed, progress, masks, sweep_photos)
+        self.elapsed += teacher_seconds  # the sweep is part of the training time it saves
+        self.strong = strong_pull(len(self.train_views), config.appearance)
+        self.point_depth = _point_depth_inputs(self.train_views, self.slab, config, self.preset, self.device,
+                                               self.fixed_poses is not None, masks)
+        if resumed:
+            self.optimizer.load_state_dict(resumed["optimizer"])
+            self.step, self.elapsed = resumed["progress"]["step"], resumed["progress"]["elapsed"]
+            self.history = list(resumed["progress"]["history"])
+            _restore_rng(resumed.get("rng"), self.generator)
+        self.meta = self._metadata(scene, resumed, record)
+        # (a run resumed past the check step has decided: its saved field config says how smooth)
+        self.restart_pending = (self.poses is not None and self.step < POSE_CHECK_STEP and not self.slab.is_deep
+                                and hasattr(self.field_module, "smooth_geometry"))
+        self._set_budget()
+        self.val = self.history[-1]["val_psnr"] if self.history else None
+        self.status, self.lr, self.loss_value = "finished", None, float("nan")
+        self.guard = NonFiniteGuard()
+
+    # ------------------------------------------------------------------ setting up
+
+    def _load_rays(self, config: TrainConfig, resumed: dict | None) -> tuple[list, list | None]:
+        """The training rays (on the device) and a sample of the held-out ones for validation;
+        returns each training view's representable pixels (for the depth targets) and the
+        sweep's smaller photos, which come from the same decode as the training ones."""
+        _emit(self.progress, event="loading", message="building training rays")
+        masks = []
+        sweeps = _teacher_wanted(self.train_views, config, get_preset(config.preset), resumed)
+        sweep_photos = [] if sweeps else None
+        train_rays = kept_rayset(
+            "training rays", self.train_views, self.slab, config.scale, pixel_steps=config.pixel_jitter > 0, masks=masks,
+            on_view=lambda i, n, v: _emit(self.progress, event="loading", message=f"rays of {v.name}", done=i + 1, total=n),
+            photos_at=sweep_photo_scale(self.train_views, config.scale, self.slab) if sweeps else None,
+            photos=sweep_photos)
+        self.train_rays = train_rays.to(self.device)
+        self.n_rays = len(self.train_rays)
+        self.val_rays = (kept_rayset("held-out rays", self.held_views, self.slab, config.scale)
+                         .subset(VALIDATION_RAYS, self.generator).to(self.device) if self.held_views else None)
+        return masks, sweep_photos
+
+    def _decide_appearance(self, config: TrainConfig) -> TrainConfig:
+        """Per-photo colour transforms by the default's rule: where neighbouring photos'
+        exposures differ."""
+        self.exposures = photo_exposures(self.train_rays.rgb, self.train_rays.view_index, len(self.train_views))
+        self.exposure_stops = exposure_difference(self.exposures, np.stack([v.center for v in self.train_views]))
+        self.exposures_differ = appearance_by_default(self.exposure_stops)
+        if config.appearance is None:
+            config = replace(config, appearance=self.exposures_differ)
+            if config.appearance:
+                announce_default_appearance(self.progress, len(self.train_views), self.exposure_stops)
+        return config
+
+    def _make_field(self, config: TrainConfig, resumed: dict | None) -> None:
+        if resumed:
+            # The field exactly as saved: a default that changed since (channels, depth layers)
+            # must not change the shape of a model being continued.
+            self.preset = get_preset(config.preset)
+            self.field_module = build_field(resumed["field"], make_config(resumed["field"], resumed["field_config"]))
+            self.field_module.load_state_dict(resumed.get(TRAINING_STATE_KEY) or resumed["state_dict"])
+        else:
+            self.field_module, self.preset = _build_field(config.preset, config.field_overrides, self.train_views,
+                                                          self.slab, config.scale, config.appearance,
+                                                          config.coarse_to_fine, config.back_surface)
+        self.field_module.to(self.device).train()
+        self.appearance = (_view_appearance(len(self.train_views), self.exposures, resumed).to(self.device)
+                           if config.appearance else None)
+
+    def _set_batch(self, config: TrainConfig, asked: TrainConfig, resumed: dict | None) -> None:
+        """The rays a step and the pass limit in steps; a first member whose rule split the
+        batch part-way (BatchSwitch) goes on with its share."""
+        batch = config.batch_size or self.preset.batch_size
+        self.switch = BatchSwitch.of((resumed or {}).get("members_rule")) or _switch_on_resume(asked, resumed, batch)
+        self.step_limit = pass_step_limit(config, self.field_module.field_name, len(self.train_views), self.n_rays,
+                                          self.switch.before if self.switch else batch)
+        self.batch = batch
+        if self.switch:
+            self.batch = self.switch.batch
+            self.step_limit = self.switch.steps_for(self.step_limit, self.batch) if self.step_limit else None
+
+    def _set_up_poses(self, config: TrainConfig, resumed: dict | None) -> TrainConfig:
+        """The camera corrections: a later member's fixed ones (the first member's), this run's
+        own to refine, or none; and whether the default's pose check is still to come."""
+        config, self.fixed_poses, found_right = _first_members_poses(config, resumed, self.slab, self.train_views,
+                                                                     self.device)
+        self.poses_found_right = found_right or (resumed or {}).get("pose_check", {}).get("refining") is False
+        if config.refine_poses is None and not _pose_check_possible(config, self.preset, self.step_limit, resumed):
+            config = replace(config, refine_poses=False)
+        self.pose_check_pending = config.refine_poses is None
+        self.poses = (PoseRefinement(self.slab, np.stack([v.center for v in self.train_views])).to(self.device)
+                      if config.refine_poses is not False else None)
+        if self.poses is not None and resumed and resumed.get("poses"):
+            self.poses.load_state_dict(resumed["poses"])
+        return config
+
+    def _set_up_losses(self, config: TrainConfig, resumed: dict | None) -> None:
+        """The paper's multi-view losses: asked for, the preset's, or the default's rule (which
+        may wait for the measured step rate, LOSSES_DECISION_STEP); stopped where the pose check
+        has found the poses right."""
+        rule = config.consistency if config.consistency is not None else self.preset.consistency
+        self.losses_stopped_at = (resumed or {}).get("multiview_losses_until_step")  # (by the pose check's verdict)
+        self.losses_pending = False
+        if rule is None:
+            # A resumed model keeps what it was trained with (models saved before the rule: off;
+            # None: saved before the run had decided, which it then does as a new one).
+            saved = resumed.get("multiview_losses", False) if resumed else None
+            if saved is not None:  # (on until the pose check's verdict: so it stays)
+                saved = resumed.get("multiview_losses_rule") if saved and resumed.get("multiview_losses_rule") else bool(saved)
+            rule = saved if saved is not None else default_consistency(self.slab, self.train_views, config)
+            self.losses_pending = rule is None
+        if self.losses_stopped_at is None and losses_stop_at_pose_check(rule, bool(config.appearance),
+                                                                         self.poses_found_right):
+            self.losses_stopped_at = 0  # a later member: the first one's check found the poses right
+        if config.consistency is None and self.preset.consistency is None and rule and self.losses_stopped_at is None:
+            announce_default_losses(self.progress, len(self.train_views))
+        self.losses_rule = rule
+        self.consistency = (_consistency_inputs(self.train_views, self.slab, config, self.device)
+                            if rule and self.losses_stopped_at is None else None)
+
+    def _metadata(self, scene: Scene, resumed: dict | None, record: dict | None) -> dict:
+        """What model.json and the checkpoint say about the run besides its weights: the
+        scene, the field, the config and each decision a default made."""
+        config, rule = self.config, self.losses_rule
+        meta = {
+            "neulf_core_version": __version__,
+            "field": self.field_module.field_name,
+            "field_config": self.field_module.field_config,
+            "parameters": count_parameters(self.field_module),
+            "slab": self.slab.to_dict(),
+            "scene": {
+                "root": str(scene.root), "kind": scene.kind, "fingerprint": scene.fingerprint(),
+                "views": [v.name for v in scene.views], "train": [v.name for v in self.train_views],
+                "held_out": [v.name for v in self.held_views], "scale": config.scale,
+                "mean_colour": mean_colour(self.train_rays).tolist(),
+            },
+            "train_config": asdict(config),
+            # What the default decided, when train_config.consistency is None (None: not yet).
+            "multiview_losses": None if self.losses_pending else bool(rule),
+            **({"multiview_losses_rule": rule} if rule == LOSSES_UNTIL_POSES_RIGHT else {}),
+            **({"multiview_losses_until_step": self.losses_stopped_at} if self.losses_stopped_at is not None else {}),
+            # How far neighbouring photos' exposures differ (stops), and whether that turns the
+            # per-photo colour transform on by default (train_config.appearance says what ran).
+            "exposure_difference_stops": round(self.exposure_stops, 4),
+            "appearance_default": self.exposures_differ,
+            "rig": _rig(self.train_views, config.scale),
+        }
+        if self.point_depth is not None:
+            meta["point_depth"] = {"rays": int(self.point_depth[1].sum())}
+            _emit(self.progress, event="stage", message=f"depth from the model's points: {meta['point_depth']['rays']} "
+                  "keypoint rays pulled toward their points' depth (--no-point-depth turns it off)")
+        if resumed and resumed.get("pose_check"):
+            meta["pose_check"] = resumed["pose_check"]  # the verdict of the run being continued
+        for made_once in ("field_restart", "far_off_check"):  # (the far-off check's record and verdict)
+            if resumed and resumed.get(made_once):
+                meta[made_once] = resumed[made_once]
+        if resumed and resumed.get("members_rule"):
+            meta["members_rule"] = resumed["members_rule"]
+        switch = self.switch
+        if switch and "batch_switch" not in meta.get("members_rule", {}):  # (decided while this run was stopped)
+            meta["members_rule"] = {**meta.get("members_rule", {}), "count": switch.count, "split": "batch",
+                                    "batch_switch": {"step": switch.step, "before": switch.before}}
+        if config.poses_from:
+            meta["poses_from"] = {"model": config.poses_from, "refined": self.fixed_poses is not None,
+                                  **(self.fixed_poses.summary() if self.fixed_poses is not None else {})}
+        meta.update(record or {})
+        return meta
+
+    def _set_budget(self) -> None:
+        """The budget the loop runs to: the pass limit is a tighter step budget (the saved
+        config keeps the one asked for); members by rule on a minutes budget (members.py) are
+        decided from the step rate, and then this run -- the first member -- trains its share."""
+        config = self.config
+        announce_pass_limit(self.progress, config, self.field_module.field_name, len(self.train_views),
+                            self.step_limit, self.step)
+        self.budget = (replace(config, steps=min(config.steps or self.step_limit, self.step_limit))
+                       if self.step_limit else config)
+        self.members_pending = config.members is None and "members_rule" not in self.meta
+        if config.members is None and "members_rule" in self.meta:
+            rule = self.meta["members_rule"]
+            self.budget = _members_share(config, self.budget, rule["count"], rule.get("split", "steps"))
+
+    # ------------------------------------------------------------------ training
+
+    def budget_fraction(self) -> float:
+        return self.budget.budget_fraction(self.step, self.elapsed)
+
+    def train_until_done(self, should_stop) -> None:
+        """Steps until the budget is spent or `should_stop()` says so (then status "cancelled")."""
+        start_time = time.monotonic()
+        last_checkpoint = last_validation = start_time
+        elapsed_before = self.elapsed
+        self.first_step, self.rate_mark = self.step, self.elapsed
+        self.members_step_seconds, self.last_elapsed = [], self.elapsed
+        while self.budget_fraction() < 1.0:
+            if should_stop is not None and should_stop():
+                self.status = "cancelled"
+                break
+            if not self._take_step():
+                continue
+            now = time.monotonic()
+            self.elapsed = elapsed_before + (now - start_time)
+            self._decide_at_measured_rate()
+            if now - last_validation >= self.config.validate_seconds or self.budget_fraction() >= 1.0:
+                self._validate()
+                last_validation = time.monotonic()
+                start_time += last_validation - now  # validation time does not count against the budget
+                now = last_validation
+            else:
+                _emit(self.progress, event="step", step=self.step, elapsed=self.elapsed, loss=self.loss_value,
+                      fraction=self.budget_fraction(), lr=self.lr)
+            if now - last_checkpoint >= self.config.checkpoint_seconds:
+                self.save("training")
+                last_checkpoint = time.monotonic()
+
+    def _take_step(self) -> bool:
+        """One optimiser step on a random batch of rays; False where its loss was not finite
+        (the step skipped: NonFiniteGuard)."""
+        config, fraction = self.config, self.budget_fraction()
+        rays_seen = self.step * self.batch + (self.switch.extra_rays(self.batch) if self.switch else 0)
+        self.lr = _set_learning_rate(self.optimizer, self.preset, rays_seen, self.n_rays, fraction, self.guard.lr_scale)
+        if hasattr(self.field_module, "set_training_progress"):
+            self.field_module.set_training_progress(fraction)
+        index = torch.randint(self.n_rays, (self.batch,), generator=self.generator).to(self.device)
+        uvst, target = self.train_rays.batch(index, self.generator, config.pixel_jitter)
+        view_index = self.train_rays.view_index[index].long()
+        pull = teacher_weight(fraction, len(self.train_views), strong=self.strong) if self.teacher is not None else 0.0
+        depth_teacher = (self.teacher[0][index], self.teacher[1][index], pull) if pull > 0 else None
+        depth_points = (self.point_depth[0][index], self.point_depth[1][index]) if self.point_depth is not None else None
+        self._look_at_poses(fraction)
+        consistency = self.consistency
+        corrected = self.poses if self.poses is not None else self.fixed_poses
         if corrected is not None:
             uvst = corrected(uvst, view_index)
             if consistency is not None:
                 # The neighbours' rays leave from where the corrected cameras stand.
-                step_consistency = (consistency[0], consistency[1].with_centres(corrected.corrected_centres()))
-        loss, objective = _objective(field_module, uvst, target, view_index, appearance, step_consistency, config,
+                consistency = (consistency[0], consistency[1].with_centres(corrected.corrected_centres()))
+        loss, objective = _objective(self.field_module, uvst, target, view_index, self.appearance, consistency, config,
                                      depth_teacher, depth_points)
-        optimizer.zero_grad(set_to_none=True)
+        self.optimizer.zero_grad(set_to_none=True)
         if not torch.isfinite(objective):
-            # A NaN/inf step is skipped; repeated ones halve the learning rate (reported).
-            skipped += 1
-            bad_steps += 1
-            if bad_steps >= 3:
-                lr_scale *= 0.5
-                bad_steps = 0
-                _emit(progress, event="warning", message=f"non-finite loss at step {step}: learning rate lowered to x{lr_scale:g}")
-            step += 1
-            continue
-        bad_steps = 0
+            self.guard.skip(self.step, self.progress)
+            self.step += 1
+            return False
+        self.guard.passed()
         objective.backward()
-        optimizer.step()
-        step += 1
-        loss_value = float(loss.detach())
-        now = time.monotonic()
-        elapsed = elapsed_before + (now - start_time)
-        if losses_pending and step - first_step == LOSSES_RATE_FROM_STEP:
-            rate_mark = elapsed
-        if members_pending and step - first_step > MEMBERS_RATE_FROM_STEP:
-            members_step_seconds.append(elapsed - last_elapsed)
-        last_elapsed = elapsed
-        if members_pending and step - first_step >= MEMBERS_RATE_DECISION_STEP:
-            members_pending = False
-            budget = _decide_members_at_measured_rate(config, budget, batch, n_rays, members_step_seconds,
-                                                      meta, progress, device.type, step, elapsed)
-            switch = BatchSwitch.of(meta["members_rule"])
-            if switch:  # from the next step on, this member's share of the batch
-                batch = switch.batch
-                if step_limit:
-                    step_limit = switch.steps_for(step_limit, batch)
-                    budget = replace(budget, steps=min(config.steps or step_limit, step_limit))
-                    announce_pass_limit(progress, config, field_module.field_name, len(train_views), step_limit, step)
-        if losses_pending and step - first_step >= LOSSES_DECISION_STEP:
-            losses_pending = False
-            losses_rule, consistency = _decide_losses_at_measured_rate(slab, train_views, config, elapsed - rate_mark,
-                                                                       device, meta, progress)
-            if consistency is not None and losses_stop_at_pose_check(losses_rule, bool(config.appearance), poses_found_right):
+        self.optimizer.step()
+        self.step += 1
+        self.loss_value = float(loss.detach())
+        return True
+
+    def _look_at_poses(self, fraction: float) -> None:
+        """The pose check's record halfway, its verdict (which may stop the multi-view losses
+        and the pull toward the points placed through the poses) and the far-off restart."""
+        step, meta = self.step, self.meta
+        if (self.pose_check_pending and POSE_CHECK_STEP // 2 <= step < POSE_CHECK_STEP
+                and "halfway_degrees" not in meta.get("pose_check", {})):
+            meta["pose_check"] = {"halfway_step": step, "halfway_degrees": round(self.poses.own_part_degrees(), 4)}
+        if self.pose_check_pending and step >= _pose_look_step(meta):
+            self.poses, self.pose_check_pending = _pose_check(self.poses, self.optimizer, meta, self.progress, step)
+            self.poses_found_right = meta.get("pose_check", {}).get("refining") is False
+            if self.consistency is not None and losses_stop_at_pose_check(self.losses_rule, bool(self.config.appearance),
+                                                                          self.poses_found_right):
+                _stop_losses(meta, self.progress, step, len(self.train_views))
+                self.consistency = None
+            if self.poses is not None and not self.pose_check_pending and self.point_depth is not None:
+                self.point_depth = None  # the poses are off: so are the points placed through them
+                meta["point_depth"]["dropped_at_step"] = step
+                _emit(self.progress, event="stage", message="the poses are off, and so are the points placed through "
+                      "them: no longer pulling toward their depth")
+        if self.restart_pending and step >= POSE_CHECK_STEP:
+            self.restart_pending = False
+            if self.poses is not None:
+                _restart_for_far_off_poses(self.field_module, self.optimizer, self.poses, meta, self.progress, step,
+                                           self.config.seed, fraction=fraction, n_train_views=len(self.train_views))
+        if self.poses is not None:
+            self.poses.set_training_progress(fraction)
+
+    def _decide_at_measured_rate(self) -> None:
+        """The decisions a minutes budget takes at the step rate the run measures: the members
+        rule (MEMBERS_RATE_DECISION_STEP) and the default's multi-view losses (LOSSES_DECISION_STEP)."""
+        steps_taken, elapsed = self.step - self.first_step, self.elapsed
+        if self.losses_pending and steps_taken == LOSSES_RATE_FROM_STEP:
+            self.rate_mark = elapsed
+        if self.members_pending and steps_taken > MEMBERS_RATE_FROM_STEP:
+            self.members_step_seconds.append(elapsed - self.last_elapsed)
+        self.last_elapsed = elapsed
+        if self.members_pending and steps_taken >= MEMBERS_RATE_DECISION_STEP:
+            self.members_pending = False
+            self._decide_members()
+        if self.losses_pending and steps_taken >= LOSSES_DECISION_STEP:
+            self.losses_pending = False
+            self.losses_rule, self.consistency = _decide_losses_at_measured_rate(
+                self.slab, self.train_views, self.config, elapsed - self.rate_mark, self.device, self.meta, self.progress)
+            if self.consistency is not None and losses_stop_at_pose_check(self.losses_rule, bool(self.config.appearance),
+                                                                          self.poses_found_right):
                 # (the check came before: a resumed run, or a later member's first one)
-                _stop_losses(meta, progress, step, len(train_views))
-                consistency = None
-        if now - last_validation >= config.validate_seconds or budget.budget_fraction(step, elapsed) >= 1.0:
-            val = validation_psnr(field_module, val_rays) if val_rays is not None else None
-            record = {"step": step, "elapsed": round(elapsed, 2), "loss": loss_value,
-                      "train_psnr": -10 * math.log10(max(loss_value, 1e-12)), "val_psnr": val, "lr": lr}
-            history.append(record)
-            _emit(progress, event="validate", fraction=budget.budget_fraction(step, elapsed), **record)
-            last_validation = time.monotonic()
-            start_time += last_validation - now  # validation time does not count against the budget
-            now = last_validation
-        else:
-            _emit(progress, event="step", step=step, elapsed=elapsed, loss=loss_value,
-                  fraction=budget.budget_fraction(step, elapsed), lr=lr)
-        if now - last_checkpoint >= config.checkpoint_seconds:
-            save("training", val)
-            last_checkpoint = time.monotonic()
-    if skipped:
-        _emit(progress, event="warning", message=f"{skipped} training steps had a non-finite loss and were skipped")
-    if pose_check_pending and status == "finished":  # the budget ended before the check (a short --minutes)
-        poses, pose_check_pending = _pose_check(poses, optimizer, meta, progress, step, last=True)
-    if losses_pending and status == "finished":  # ... or before the rate was measured: too short for them
-        meta["multiview_losses"] = False
-    if poses is not None and not pose_check_pending:  # (stopped before the check: provisional, not reported)
-        meta["pose_corrections"] = poses.summary()
-        _emit(progress, event="poses", **meta["pose_corrections"])
-        meta["pose_corrections"]["depth_like"] = DEPTH_LIKE_GAUGE  # (the study re-runs rows refined otherwise)
-    # The fill is for rendering: training resumes from the weights before it, since texels
-    # unseen now may be read once the geometry moves (a paused run then trains on exactly
-    # as an uninterrupted one: a cancel, or the better of two starts' pause at its choice).
-    seconds, before_fill = _fill_unseen(field_module, train_rays) if step > 0 else (0.0, None)
-    elapsed += seconds
-    save(status, val, before_fill)
-    _emit(progress, event=status, step=step, elapsed=elapsed, val_psnr=val, model_dir=str(model_dir))
-    return TrainResult(model_dir, status, step, elapsed, val, history)
+                _stop_losses(self.meta, self.progress, self.step, len(self.train_views))
+                self.consistency = None
+
+    def _decide_members(self) -> None:
+        config = self.config
+        self.budget = _decide_members_at_measured_rate(config, self.budget, self.batch, self.n_rays,
+                                                       self.members_step_seconds, self.meta, self.progress,
+                                                       self.device.type, self.step, self.elapsed)
+        self.switch = BatchSwitch.of(self.meta["members_rule"])
+        if self.switch:  # from the next step on, this member's share of the batch
+            self.batch = self.switch.batch
+            if self.step_limit:
+                self.step_limit = self.switch.steps_for(self.step_limit, self.batch)
+                self.budget = replace(self.budget, steps=min(config.steps or self.step_limit, self.step_limit))
+                announce_pass_limit(self.progress, config, self.field_module.field_name, len(self.train_views),
+                                    self.step_limit, self.step)
+
+    def _validate(self) -> None:
+        self.val = validation_psnr(self.field_module, self.val_rays) if self.val_rays is not None else None
+        record = {"step": self.step, "elapsed": round(self.elapsed, 2), "loss": self.loss_value,
+                  "train_psnr": -10 * math.log10(max(self.loss_value, 1e-12)), "val_psnr": self.val, "lr": self.lr}
+        self.history.append(record)
+        _emit(self.progress, event="validate", fraction=self.budget_fraction(), **record)
+
+    def save(self, status: str, before_fill: dict | None = None) -> None:
+        """A checkpoint of the run as it is (atomic: checkpoint.save_checkpoint); `before_fill`:
+        the weights a resumed run trains on, where the saved ones are filled for rendering."""
+        appearance, poses = self.appearance, self.poses
+        payload = {**self.meta, "state_dict": self.field_module.state_dict(), "optimizer": self.optimizer.state_dict(),
+                   **({TRAINING_STATE_KEY: before_fill} if before_fill is not None else {}),
+                   "appearance": appearance.state_dict() if appearance is not None else None,
+                   "appearance_linear_light": appearance.linear_light if appearance is not None else None,
+                   "poses": poses.state_dict() if poses is not None else None,
+                   "rng": {"torch": torch.get_rng_state(), "generator": self.generator.get_state()},
+                   "progress": {"step": self.step, "elapsed": self.elapsed, "status": status, "val_psnr": self.val,
+                                "history": self.history}}
+        path = save_checkpoint(self.model_dir, payload)
+        _emit(self.progress, event="checkpoint", path=str(path), step=self.step)
+
+    # ------------------------------------------------------------------ the end
+
+    def finish(self) -> TrainResult:
+        """The checks a budget ended before, the record of the corrections, the fill of unseen
+        texels, and the last checkpoint."""
+        meta, progress, status = self.meta, self.progress, self.status
+        self.guard.report(progress)
+        if self.pose_check_pending and status == "finished":  # the budget ended before the check (a short --minutes)
+            self.poses, self.pose_check_pending = _pose_check(self.poses, self.optimizer, meta, progress, self.step,
+                                                              last=True)
+        if self.losses_pending and status == "finished":  # ... or before the rate was measured: too short for them
+            meta["multiview_losses"] = False
+        if self.poses is not None and not self.pose_check_pending:  # (stopped before the check: provisional, not reported)
+            meta["pose_corrections"] = self.poses.summary()
+            _emit(progress, event="poses", **meta["pose_corrections"])
+            meta["pose_corrections"]["depth_like"] = DEPTH_LIKE_GAUGE  # (the study re-runs rows refined otherwise)
+        # The fill is for rendering: training resumes from the weights before it, since texels
+        # unseen now may be read once the geometry moves (a paused run then trains on exactly
+        # as an uninterrupted one: a cancel, or the better of two starts' pause at its choice).
+        seconds, before_fill = _fill_unseen(self.field_module, self.train_rays) if self.step > 0 else (0.0, None)
+        self.elapsed += seconds
+        self.save(status, before_fill)
+        _emit(progress, event=status, step=self.step, elapsed=self.elapsed, val_psnr=self.val,
+              model_dir=str(self.model_dir))
+        return TrainResult(self.model_dir, status, self.step, self.elapsed, self.val, self.history)
 
 
 def _first_members_poses(config: TrainConfig, resumed: dict | None, slab: Slab, train_views: list,
