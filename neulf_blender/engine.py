@@ -1,11 +1,21 @@
 """The NeuLF render engine: F12 renders the active camera through the light field,
 Ctrl+F12 the frame range (Blender writes the video).  The camera's depth of field (focus
-distance or focus object, f-stop) is rendered by synthetic-aperture refocus in neulf_core."""
+distance or focus object, f-stop) is rendered by synthetic-aperture refocus in neulf_core.
+The viewport's Rendered shading shows the light field from the viewport's camera
+(viewport.py renders it in a thread; this draws it)."""
+
+import os
+import weakref
+from pathlib import Path
 
 import bpy
+from mathutils import Matrix
 
-from . import capture, convert
+from . import capture, convert, viewport
 from ..neulf_core.errors import NeulfError
+
+_RENDERERS = weakref.WeakSet()  # the viewports' PreviewRenderers, for the redraw timer
+REDRAW_INTERVAL = 0.1
 
 
 class NeulfRenderEngine(bpy.types.RenderEngine):
@@ -44,6 +54,106 @@ class NeulfRenderEngine(bpy.types.RenderEngine):
         self.end_result(render_result)
         for note in result.get("warnings", []):
             self.report({"WARNING"}, note)
+
+    # ------------------------------------------------------------------ the viewport
+
+    def view_update(self, context, depsgraph):
+        pass  # (view_draw reads the view, the root and the model each time: nothing to prepare)
+
+    def view_draw(self, context, depsgraph):
+        scene = depsgraph.scene_eval
+        original = bpy.data.scenes.get(scene.name) or scene
+        try:
+            request, key = _viewport_view(original, depsgraph, context.region, context.region_data)
+        except NeulfError as exc:
+            self.update_stats("", f"NeuLF: {exc}")
+            return
+        renderer = self._preview_renderer()
+        renderer.want(key, request)
+        shown = renderer.image()
+        if shown is not None:
+            self._draw_preview(scene, shown, context.region.width, context.region.height)
+        self.update_stats("", viewport.status_line(renderer, key))
+        if renderer.busy and not bpy.app.timers.is_registered(_redraw_while_rendering):
+            bpy.app.timers.register(_redraw_while_rendering, first_interval=REDRAW_INTERVAL)
+
+    def _preview_renderer(self) -> viewport.PreviewRenderer:
+        renderer = getattr(self, "_neulf_preview", None)
+        if renderer is None:
+            from .preferences import get_core
+
+            core = get_core()  # (read here, on Blender's thread: the preferences are bpy data)
+            renderer = viewport.PreviewRenderer(_render_function(core))
+            self._neulf_preview = renderer
+            _RENDERERS.add(renderer)
+        return renderer
+
+    def _draw_preview(self, scene, shown: viewport.PreviewImage, width: int, height: int) -> None:
+        import gpu
+        from gpu_extras.presets import draw_texture_2d
+
+        cached = getattr(self, "_neulf_texture", None)
+        if cached is None or cached[0] is not shown:  # a new image: upload it once
+            rgba = convert.image_rows_for_blender(convert.srgb_to_linear(shown.rgb))  # scene-linear, bottom row first
+            rows, columns = shown.rgb.shape[:2]
+            texture = gpu.types.GPUTexture((columns, rows), format="RGBA16F",
+                                           data=gpu.types.Buffer("FLOAT", rgba.size, rgba))
+            self._neulf_texture = cached = (shown, texture)
+        gpu.state.blend_set("ALPHA_PREMULT")
+        self.bind_display_space_shader(scene)  # scene-linear to the display, as Blender's own engines
+        draw_texture_2d(cached[1], (0, 0), width, height)  # (a coarse image is stretched over the region)
+        self.unbind_display_space_shader()
+        gpu.state.blend_set("NONE")
+
+    def __del__(self):  # (Blender frees the viewport's engine when the shading leaves Rendered)
+        try:
+            renderer = getattr(self, "_neulf_preview", None)
+        except ReferenceError:  # (the Blender side already gone; its thread ends when idle)
+            return
+        if renderer is not None:
+            renderer.close()
+
+
+def _viewport_view(scene, depsgraph, region, view) -> tuple[dict, tuple]:
+    """The render request of the viewport's pinhole (in the model's frame) and the key of its
+    preview image."""
+    from .operators import model_dir
+
+    model = model_dir(scene)  # (raises with what to do when there is none)
+    root = bpy.data.objects.get(scene.neulf.root_name) if scene.neulf.root_name else None
+    root_matrix = root.evaluated_get(depsgraph).matrix_world if root is not None else Matrix.Identity(4)
+    request = viewport.view_request(view.view_matrix, view.window_matrix, region.width, region.height, root_matrix)
+    request.pop("scale")
+    try:
+        stamp = os.stat(Path(model) / "checkpoint.pt").st_mtime
+    except OSError:
+        stamp = 0.0
+    key = viewport.view_key(request, model, stamp)
+    return {**request, "model_dir": model}, key
+
+
+def _render_function(core):
+    """The renderer's `render(request, should_stop)`: neulf_core's render of one view, one
+    point a pixel, no depth.  In Blender's own Python a newer view interrupts it between chunks;
+    a worker is left to finish (stopping one means killing it, and starting it again costs
+    seconds), which a coarse pass does within a fraction of one."""
+    def render(request, should_stop):
+        if core.in_process:
+            result = core.call("render", depth=False, pixel_samples=1, should_stop=should_stop, **request)
+        else:
+            result = core.call("render", depth=False, pixel_samples=1, **request)
+        return result["rgb"]
+    return render
+
+
+def _redraw_while_rendering():
+    """A timer on Blender's thread: redraws the 3D viewports while a preview renders (the
+    render thread must not touch Blender), and once more when it has finished."""
+    for window in bpy.context.window_manager.windows:
+        for area in window.screen.areas:
+            if area.type == "VIEW_3D":
+                area.tag_redraw()
+    return REDRAW_INTERVAL if any(renderer.busy for renderer in list(_RENDERERS)) else None
 
 
 COMPAT_PANELS = ("RENDER_PT_format", "RENDER_PT_frame_range", "RENDER_PT_output", "RENDER_PT_encoding",

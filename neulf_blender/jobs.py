@@ -291,6 +291,7 @@ class WorkerClient:
         self._lines: queue.Queue = queue.Queue()
         self._stderr = deque(maxlen=50)
         self._next_id = 0
+        self._one_call = threading.Lock()  # (the viewport's render thread and Blender's share the worker)
 
     def _start(self) -> None:
         self.scratch.mkdir(parents=True, exist_ok=True)
@@ -311,6 +312,10 @@ class WorkerClient:
         return self.process is not None and self.process.poll() is None
 
     def call(self, op: str, *, on_progress=None, should_stop=None, timeout: float | None = None, **args):
+        with self._one_call:
+            return self._call(op, on_progress, should_stop, timeout, args)
+
+    def _call(self, op: str, on_progress, should_stop, timeout: float | None, args: dict):
         if not self.alive:
             self._start()
         self._next_id += 1

@@ -33,7 +33,7 @@ GRID = [(x, y) for y in (-0.3, 0.0, 0.3) for x in (-0.3, 0.0, 0.3)]
 
 STEPS = ["install", "import", "cameras_match_pycolmap", "slab_planes", "reimport_no_duplicates", "train_blocking",
          "train_options", "train_timer_resume", "train_cancel", "train_cancel_resume", "members", "render_camera", "pixel_samples",
-         "render_worker_process", "focus_at", "pick_focus_frame", "pick_focus_click", "root_scale", "engine_f12", "spiral_video", "save_reload",
+         "render_worker_process", "focus_at", "pick_focus_frame", "pick_focus_click", "root_scale", "engine_f12", "viewport_preview", "spiral_video", "save_reload",
          "blend_moved", "quit_while_training", "reconstruct_photos", "user_errors", "dependencies_status",
          "install_dependencies"]
 
@@ -638,6 +638,89 @@ def run_story(setup: dict) -> None:  # noqa: C901 - one story, told in order
         assert sharpness < 0.5 and abs(blurred.mean() - still.mean()) < 0.03, (sharpness, blurred.mean(), still.mean())
         return (f"F12 matches render_camera within {diff * 255:.1f}/255; DOF keeps {sharpness:.0%} of the sharpness "
                 f"(variance of the Laplacian) and changes pixels by {change * 255:.1f}/255 on average")
+
+    @story.step("viewport_preview", "render_camera")
+    def _():
+        # Headless Blender never draws, so the engine's view_draw (gpu) cannot run here; what it
+        # stands on can.  A viewport looking through a camera uses the camera's own projection
+        # (calc_matrix_camera): from it and the view matrix the preview must ask for the pinhole
+        # render_camera renders, with the root moved and scaled too; the preview renderer then
+        # renders that view coarse and at full size, in Blender's Python and in a worker.
+        viewport, engine = mod("viewport"), mod("engine")
+        scene, r = bpy.context.scene, root()
+        camera = scene.camera
+        original = r.matrix_world.copy()
+        render = scene.render
+        width, height = render.resolution_x * render.resolution_percentage // 100, \
+            render.resolution_y * render.resolution_percentage // 100
+        worst = {"K": 0.0, "R": 0.0, "t": 0.0}
+        try:
+            for moved in (False, True):
+                if moved:
+                    r.matrix_world = Matrix.Translation((1.0, -2.0, 0.5)) @ original @ Matrix.Scale(2.5, 4)
+                    bpy.context.view_layer.update()
+                depsgraph = bpy.context.evaluated_depsgraph_get()
+                window = camera.calc_matrix_camera(depsgraph, x=width, y=height, scale_x=render.pixel_aspect_x,
+                                                   scale_y=render.pixel_aspect_y)
+                got = viewport.view_request(camera.matrix_world.inverted(), window, width, height, r.matrix_world)
+                expected = mod("capture").camera_request(scene, camera)
+                for name in worst:
+                    worst[name] = max(worst[name], float(np.abs(np.subtract(got[name], expected[name])).max()))
+                assert abs(got["scale"] - expected["scale"]) < 1e-6 * expected["scale"], (got["scale"], expected["scale"])
+        finally:
+            r.matrix_world = original
+            bpy.context.view_layer.update()
+        assert worst["K"] < 2e-3 and worst["R"] < 1e-5 and worst["t"] < 1e-5, worst
+
+        depsgraph = bpy.context.evaluated_depsgraph_get()
+        big = 6  # the view at six times the render's pixels: more than a coarse pass holds
+        window = camera.calc_matrix_camera(depsgraph, x=width, y=height, scale_x=render.pixel_aspect_x,
+                                           scale_y=render.pixel_aspect_y)
+        request = viewport.view_request(camera.matrix_world.inverted(), window, big * width, big * height,
+                                        r.matrix_world)
+        request.pop("scale")
+        request["model_dir"] = mod("operators").model_dir(scene)
+        key = viewport.view_key(request, request["model_dir"], 0.0)
+        lines = []
+        for mode in ("AUTO", "WORKER"):
+            prefs().render_mode = mode
+            try:
+                core = mod("preferences").get_core()
+                if mode == "AUTO" and not core.in_process:
+                    continue  # (Blender 4.2's Python has no torch: its core is the worker, run next)
+                assert core.in_process == (mode == "AUTO"), mode
+                sizes = []
+                renderer = viewport.PreviewRenderer(engine._render_function(core),
+                                                    on_image=lambda: sizes.append(renderer.image().rgb.shape[:2]))
+                renderer.want(key, request)
+                if mode == "WORKER":  # Blender's own call while the preview has the worker: they take turns
+                    alongside = core.call("render", depth=False, pixel_samples=1, **request)["rgb"]
+                assert renderer.wait(300) and renderer.error is None, renderer.error
+                direct = core.call("render", depth=False, pixel_samples=1, **request)["rgb"]
+                shown = renderer.image()
+                assert shown.full_size and np.abs(shown.rgb - direct).max() < 1e-5
+                if mode == "WORKER":
+                    assert np.abs(alongside - direct).max() < 1e-5
+                assert sizes[-1] == (big * height, big * width) and len(sizes) == 2, sizes
+                assert sizes[0][0] * sizes[0][1] <= viewport.PREVIEW_PIXELS * 1.02, sizes
+                renderer.want(key, dict(request))  # a redraw of the same view renders nothing
+                time.sleep(0.2)
+                assert renderer.renders == 2 and not renderer.busy
+                lines.append(f"{mode.lower()}: {sizes[0][1]}x{sizes[0][0]} then {sizes[1][1]}x{sizes[1][0]} "
+                             f"({shown.seconds:.2f} s)")
+                renderer.close()
+            finally:
+                prefs().render_mode = "AUTO"
+                mod("core").shutdown()
+        ortho = Matrix.Diagonal((0.5, 0.5, -0.02, 1.0))
+        try:
+            viewport.view_request(camera.matrix_world.inverted(), ortho, width, height, r.matrix_world)
+            raise AssertionError("an orthographic view was accepted")
+        except Exception as exc:  # noqa: BLE001 - a NeulfError with what to do
+            assert "orthographic" in str(exc) and "Numpad 5" in str(exc), exc
+        assert callable(engine.NeulfRenderEngine.view_draw) and callable(engine.NeulfRenderEngine.view_update)
+        return f"projection -> pinhole within K {worst['K']:.1e} px, R {worst['R']:.1e}, t {worst['t']:.1e}; " \
+            + "; ".join(lines)
 
     @story.step("spiral_video", "render_camera")
     def _():
