@@ -83,7 +83,7 @@ class NeulfRenderEngine(bpy.types.RenderEngine):
             from .preferences import get_core
 
             core = get_core()  # (read here, on Blender's thread: the preferences are bpy data)
-            renderer = viewport.PreviewRenderer(_render_function(core))
+            renderer = viewport.PreviewRenderer(viewport.render_function(core))
             self._neulf_preview = renderer
             _RENDERERS.add(renderer)
         return renderer
@@ -130,20 +130,6 @@ def _viewport_view(scene, depsgraph, region, view) -> tuple[dict, tuple]:
         stamp = 0.0
     key = viewport.view_key(request, model, stamp)
     return {**request, "model_dir": model}, key
-
-
-def _render_function(core):
-    """The renderer's `render(request, should_stop)`: neulf_core's render of one view, one
-    point a pixel, no depth.  In Blender's own Python a newer view interrupts it between chunks;
-    a worker is left to finish (stopping one means killing it, and starting it again costs
-    seconds), which a coarse pass does within a fraction of one."""
-    def render(request, should_stop):
-        if core.in_process:
-            result = core.call("render", depth=False, pixel_samples=1, should_stop=should_stop, **request)
-        else:
-            result = core.call("render", depth=False, pixel_samples=1, **request)
-        return result["rgb"]
-    return render
 
 
 def _redraw_while_rendering():

@@ -4,9 +4,10 @@ view's matrices in and draws what comes out.
 
 Nothing renders while Blender draws.  The engine's `view_draw` tells a PreviewRenderer which
 view it shows and draws the newest finished image; the renderer's thread renders that view
-coarse first (at most PREVIEW_PIXELS pixels: a view in motion follows at a few frames a
-second on a CPU), then, while the view stays, at the region's full size.  A view already
-rendered renders nothing again, so redraws (overlays, a moving mouse) cost no network pass.
+coarse first (at most PREVIEW_PIXELS pixels), then, while the view stays, at the region's full
+size.  While the user orbits, each coarse pass runs to its end and is shown, and the next one
+takes the newest view.  A view already rendered renders nothing again, so redraws (overlays,
+a moving mouse) cost no network pass.
 """
 
 from __future__ import annotations
@@ -22,6 +23,7 @@ from . import convert
 from ..neulf_core.errors import NeulfError
 
 PREVIEW_PIXELS = 40_000  # the coarse pass of a new view (about 267 x 150)
+WORKER_BAND_PIXELS = 40_000  # a worker renders a full-size view in bands of this many pixels (about 50 ms each)
 IDLE_SECONDS = 10.0      # a renderer's thread ends after this long with nothing to render
 
 
@@ -93,9 +95,10 @@ class PreviewRenderer:
     which turns true once another view is wanted.  `on_image()` is called from the thread after
     each finished image (the engine asks Blender for a redraw)."""
 
-    def __init__(self, render, on_image=None):
+    def __init__(self, render, on_image=None, preview_pixels: int = PREVIEW_PIXELS):
         self._render = render
         self._on_image = on_image
+        self.preview_pixels = preview_pixels
         self._lock = threading.Condition()
         self._wanted: tuple | None = None   # (key, request)
         self._done_key = None               # the last key rendered to the end (or failed)
@@ -162,30 +165,72 @@ class PreviewRenderer:
             if wanted is None:
                 return
             key, request = wanted
-            passes = [coarse_factor(request["width"], request["height"]), 1.0]
-            for factor in (passes[1:] if passes[0] >= 1.0 else passes):
-                if self._moved_on(key):
+            coarse = coarse_factor(request["width"], request["height"], self.preview_pixels)
+            for first, factor in ((True, coarse), (False, 1.0)) if coarse < 1.0 else ((True, 1.0),):
+                if not first and self._moved_on(key):
                     break
-                started = time.monotonic()
-                try:
-                    rgb = self._render(scaled_request(request, factor), lambda: self._moved_on(key))
-                except InterruptedError:
+                if not self._render_pass(key, request, factor, first):
                     break
-                except Exception as exc:  # a broken model, a worker that stopped: said in the viewport
-                    with self._lock:
-                        if not self._moved_on(key):
-                            self.error = str(exc) if isinstance(exc, NeulfError) else f"{type(exc).__name__}: {exc}"
-                            self._done_key = key
-                    break
-                with self._lock:
-                    if self._moved_on(key):
-                        break
-                    self._image = PreviewImage(key, factor >= 1.0, np.asarray(rgb), time.monotonic() - started)
-                    self.renders += 1
-                    if factor >= 1.0:
-                        self._done_key = key
-                if self._on_image is not None:
-                    self._on_image()
+
+    def _render_pass(self, key, request: dict, factor: float, first: bool) -> bool:
+        """One image of the view; whether to go on to its next pass.  A view's first pass runs
+        to its end even where the view has moved on meanwhile, and is shown: while the user
+        orbits, the view changes faster than any pass ends, and an image of a view a moment
+        old is better than none.  A later pass stops as soon as another view is wanted."""
+        started = time.monotonic()
+        stop = (lambda: self._closed) if first else (lambda: self._moved_on(key))
+        try:
+            rgb = self._render(scaled_request(request, factor), stop)
+        except InterruptedError:
+            return False
+        except Exception as exc:  # a broken model, a worker that stopped: said in the viewport
+            with self._lock:
+                if not self._moved_on(key):
+                    self.error = str(exc) if isinstance(exc, NeulfError) else f"{type(exc).__name__}: {exc}"
+                    self._done_key = key
+            return False
+        with self._lock:
+            if self._closed:
+                return False
+            self._image = PreviewImage(key, factor >= 1.0, np.asarray(rgb), time.monotonic() - started)
+            self.renders += 1
+            if factor >= 1.0:
+                self._done_key = key
+            going_on = not self._moved_on(key)
+        if self._on_image is not None:
+            self._on_image()
+        return going_on
+
+
+def row_bands(request: dict, pixels: int):
+    """The request cut into bands of whole rows of at most `pixels` pixels: (first row, request).
+    Each band's K is the full image's with the principal point moved up by the band's first row,
+    so its pixels are the same rays as the full image's."""
+    rows = max(1, pixels // request["width"])
+    for top in range(0, request["height"], rows):
+        K = np.array(request["K"], dtype=np.float64)
+        K[1, 2] -= top
+        yield top, {**request, "K": K.tolist(), "height": min(rows, request["height"] - top)}
+
+
+def render_function(core):
+    """A PreviewRenderer's `render(request, should_stop)` through the extension's core
+    (core.Core): neulf_core's render of one view, one point a pixel, no depth.  In Blender's own
+    Python a newer view interrupts it between chunks.  A worker's render cannot be interrupted
+    but by killing the worker (whose start costs seconds), so there the view renders in bands
+    of WORKER_BAND_PIXELS, a call each, and stops between them: without that, a full-size pass
+    begun in a pause of an orbit held the viewport for its whole 0.4-2.3 s (at 960x540 to
+    1920x1080 on 2 cores; docs/BENCHMARKS.md, "The viewport preview")."""
+    def render(request, should_stop):
+        if core.in_process:
+            return core.call("render", depth=False, pixel_samples=1, should_stop=should_stop, **request)["rgb"]
+        bands = []
+        for _top, band in row_bands(request, WORKER_BAND_PIXELS):
+            if bands and should_stop():
+                raise InterruptedError("another view")
+            bands.append(core.call("render", depth=False, pixel_samples=1, **band)["rgb"])
+        return np.concatenate(bands, axis=0)
+    return render
 
 
 def status_line(renderer: PreviewRenderer, key) -> str:

@@ -690,7 +690,7 @@ def run_story(setup: dict) -> None:  # noqa: C901 - one story, told in order
                     continue  # (Blender 4.2's Python has no torch: its core is the worker, run next)
                 assert core.in_process == (mode == "AUTO"), mode
                 sizes = []
-                renderer = viewport.PreviewRenderer(engine._render_function(core),
+                renderer = viewport.PreviewRenderer(viewport.render_function(core),
                                                     on_image=lambda: sizes.append(renderer.image().rgb.shape[:2]))
                 renderer.want(key, request)
                 if mode == "WORKER":  # Blender's own call while the preview has the worker: they take turns

@@ -1,7 +1,8 @@
 """The speed benchmarks end to end on the tiny scene: benchmarks/train_step_time.py (both Adam
 variants train, a CSV row per run, --append adds to it) and benchmarks/sweep_time.py (the
 depth teacher's sweep timed, its targets' checksum the same on every repeat), and the others
-that time code: setup_time.py (each checkout's own code), jpeg_half_decode.py, train_scale.py."""
+that time code: setup_time.py (each checkout's own code), jpeg_half_decode.py, train_scale.py,
+viewport_preview.py (Blender's viewport preview through both of the extension's routes)."""
 
 from __future__ import annotations
 
@@ -235,3 +236,19 @@ def test_train_scale_scores_every_model_at_every_render_scale(tiny_scene, tmp_pa
         ("0.5", "24x18", "24x18"), ("0.5", "24x18", "48x36"), ("1.0", "48x36", "24x18"), ("1.0", "48x36", "48x36")]
     assert all(int(r["steps"]) > 0 and float(r["psnr"]) > 5 for r in rows)
     assert "| x0.5 |" in capsys.readouterr().out
+
+
+def test_viewport_preview_times_both_routes(tiny_scene, tmp_path, capsys):
+    from neulf_core.train import TrainConfig, train
+
+    model = tmp_path / "model"
+    train(tiny_scene, model, TrainConfig(steps=20, validate_seconds=1e9, checkpoint_seconds=1e9))
+    out = tmp_path / "viewport.csv"
+    load("viewport_preview").main(["--model", str(model), "--regions", "192x144", "--preview-pixels", "3000",
+                                   "--frames", "3", "--moving-seconds", "0.5", "--out", str(out)])
+    rows = list(csv.DictReader(open(out)))
+    assert [r["route"] for r in rows] == ["in-process", "worker"] and all(r["region"] == "192x144" for r in rows)
+    for row in rows:
+        assert 0 < float(row["coarse_ms_median"]) <= float(row["full_ms_median"]), row
+        assert float(row["moving_images_per_s"]) > 0 and row["views"] == "3", row
+    assert "| worker | 192x144 | 3,000 px |" in capsys.readouterr().out

@@ -193,3 +193,57 @@ def test_the_thread_ends_when_idle_and_starts_again(viewport, tiny_scene, tiny_m
     renderer.want(viewport.view_key(moved, "m", 0.0), moved)
     assert renderer.wait(60) and renderer.image().key == viewport.view_key(moved, "m", 0.0)
     renderer.close()
+
+
+def test_a_view_that_keeps_moving_still_gets_images(viewport, tiny_scene, tiny_model):
+    """An orbit changes the view faster than a pass ends: the coarse passes still run to their
+    end and are shown (interrupting them, as the full-size pass is, would show nothing at all)."""
+    calls, arrived = [], []
+    renderer = viewport.PreviewRenderer(in_process_render(calls), on_image=lambda: arrived.append(renderer.image()))
+    started, index = time.monotonic(), 0
+    while time.monotonic() - started < 1.5:
+        request = tiny_request(tiny_scene, tiny_model, shift=0.001 * index, scale=20)
+        renderer.want(viewport.view_key(request, "m", 0.0), request)
+        index += 1
+        time.sleep(0.005)
+    moving = list(arrived)
+    assert index > 3 * len(moving) and len(moving) >= 2, (index, len(moving))  # each image a view some asks old
+    assert not any(image.full_size for image in moving)
+    assert renderer.wait(120) and renderer.image().full_size  # once it stops: the last view at full size
+    assert renderer.image().key == viewport.view_key(request, "m", 0.0)
+    renderer.close()
+
+
+def test_bands_of_rows_are_the_full_image(viewport, tiny_scene, tiny_model):
+    """The worker route renders a view in bands it can stop between: together they are the
+    image rendered at once (the same rays; chunks of another size round alike to 1e-6)."""
+    from neulf_core.worker import Service
+
+    service = Service()
+    request = tiny_request(tiny_scene, tiny_model, scale=5)  # 240 x 180
+    bands = list(viewport.row_bands(request, 240 * 50 + 17))  # 50 rows a band, the last 30
+    assert [top for top, _ in bands] == [0, 50, 100, 150] and bands[-1][1]["height"] == 30
+    stitched = np.concatenate([service.render(depth=False, pixel_samples=1, **band)["rgb"] for _, band in bands])
+    whole = service.render(depth=False, pixel_samples=1, **request)["rgb"]
+    assert stitched.shape == whole.shape and np.abs(stitched - whole).max() < 1e-6
+
+
+def test_the_worker_route_stops_between_bands(viewport, monkeypatch):
+    """A worker's call cannot be interrupted: the route asks should_stop between its bands."""
+    asked = []
+
+    class WorkerCore:  # the core's worker route as render_function sees it: calls that run to their end
+        in_process = False
+
+        def call(self, op, **args):
+            asked.append(args["height"])
+            return {"rgb": np.zeros((args["height"], args["width"], 3), np.float32)}
+
+    monkeypatch.setattr(viewport, "WORKER_BAND_PIXELS", 100 * 10)
+    render = viewport.render_function(WorkerCore())
+    request = {"K": np.eye(3).tolist(), "width": 100, "height": 45, "R": np.eye(3).tolist(), "t": [0, 0, 0]}
+    assert render(request, lambda: False).shape == (45, 100, 3) and asked == [10, 10, 10, 10, 5]
+    asked.clear()
+    with pytest.raises(InterruptedError):
+        render(request, lambda: len(asked) >= 2)
+    assert asked == [10, 10]
