@@ -78,13 +78,17 @@ class NeulfRenderEngine(bpy.types.RenderEngine):
             bpy.app.timers.register(_redraw_while_rendering, first_interval=REDRAW_INTERVAL)
 
     def _preview_renderer(self) -> viewport.PreviewRenderer:
-        renderer = getattr(self, "_neulf_preview", None)
-        if renderer is None:
-            from .preferences import get_core
+        """This viewport's renderer, made again when the preferences chose another core."""
+        from .preferences import get_core
 
-            core = get_core()  # (read here, on Blender's thread: the preferences are bpy data)
+        core = get_core()  # (read here, on Blender's thread: the preferences are bpy data)
+        wanted = (core.python, core.extra_paths, core.device, core.mode)
+        renderer = getattr(self, "_neulf_preview", None)
+        if renderer is None or getattr(self, "_neulf_core", None) != wanted:
+            if renderer is not None:
+                renderer.close()
             renderer = viewport.PreviewRenderer(viewport.render_function(core))
-            self._neulf_preview = renderer
+            self._neulf_preview, self._neulf_core = renderer, wanted
             _RENDERERS.add(renderer)
         return renderer
 
@@ -100,7 +104,9 @@ class NeulfRenderEngine(bpy.types.RenderEngine):
                                            data=gpu.types.Buffer("FLOAT", rgba.size, rgba))
             self._neulf_texture = cached = (shown, texture)
         gpu.state.blend_set("ALPHA_PREMULT")
-        self.bind_display_space_shader(scene)  # scene-linear to the display, as Blender's own engines
+        # (Blender's viewport applies the scene's view transform to what an engine draws, so the
+        # texture holds scene-linear values, as F12's Combined pass; this binds the image shader)
+        self.bind_display_space_shader(scene)
         draw_texture_2d(cached[1], (0, 0), width, height)  # (a coarse image is stretched over the region)
         self.unbind_display_space_shader()
         gpu.state.blend_set("NONE")

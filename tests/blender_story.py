@@ -712,6 +712,32 @@ def run_story(setup: dict) -> None:  # noqa: C901 - one story, told in order
             finally:
                 prefs().render_mode = "AUTO"
                 mod("core").shutdown()
+        # The engine's own reading of a viewport (region and RegionView3D stood in by their
+        # attributes): the request above, and a key that a new checkpoint of the model changes.
+        from types import SimpleNamespace
+
+        region = SimpleNamespace(width=big * width, height=big * height)
+        view = SimpleNamespace(view_matrix=camera.matrix_world.inverted(), window_matrix=window)
+        seen, key_before = engine._viewport_view(scene, depsgraph, region, view)
+        assert seen["model_dir"] == request["model_dir"] and np.allclose(seen["K"], request["K"]) \
+            and np.allclose(seen["R"], request["R"]) and np.allclose(seen["t"], request["t"]), (seen, request)
+        assert engine._viewport_view(scene, depsgraph, region, view)[1] == key_before
+        checkpoint = Path(request["model_dir"]) / "checkpoint.pt"
+        stamp = checkpoint.stat().st_mtime
+        os.utime(checkpoint, (stamp + 5, stamp + 5))  # as a checkpoint of a model in training
+        try:
+            assert engine._viewport_view(scene, depsgraph, region, view)[1] != key_before
+        finally:
+            os.utime(checkpoint, (stamp, stamp))
+        saved = scene.neulf.model_dir
+        scene.neulf.model_dir = ""
+        try:
+            engine._viewport_view(scene, depsgraph, region, view)
+            raise AssertionError("a viewport without a model was rendered")
+        except Exception as exc:  # noqa: BLE001 - the NeulfError the viewport's corner shows
+            assert "no NeuLF model" in str(exc), exc
+        finally:
+            scene.neulf.model_dir = saved
         ortho = Matrix.Diagonal((0.5, 0.5, -0.02, 1.0))
         try:
             viewport.view_request(camera.matrix_world.inverted(), ortho, width, height, r.matrix_world)
