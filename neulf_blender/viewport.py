@@ -106,7 +106,7 @@ class PreviewRenderer:
         self._thread: threading.Thread | None = None
         self._closed = False
         self.error: str | None = None       # why the wanted view could not be rendered
-        self.renders = 0                    # images rendered (coarse and full), for the status line
+        self.renders = 0                    # images rendered (coarse and full passes)
 
     def want(self, key, request: dict) -> None:
         """Show this view: renders it unless it is the one being rendered or already shown."""

@@ -2,7 +2,8 @@
 variants train, a CSV row per run, --append adds to it) and benchmarks/sweep_time.py (the
 depth teacher's sweep timed, its targets' checksum the same on every repeat), and the others
 that time code: setup_time.py (each checkout's own code), jpeg_half_decode.py, train_scale.py,
-viewport_preview.py (Blender's viewport preview through both of the extension's routes)."""
+viewport_preview.py (Blender's viewport preview through both of the extension's routes), same_weights.py
+(whether two checkouts train to the same bits)."""
 
 from __future__ import annotations
 
@@ -252,3 +253,17 @@ def test_viewport_preview_times_both_routes(tiny_scene, tmp_path, capsys):
         assert 0 < float(row["coarse_ms_median"]) <= float(row["full_ms_median"]), row
         assert float(row["moving_images_per_s"]) > 0 and row["views"] == "3", row
     assert "| worker | 192x144 | 3,000 px |" in capsys.readouterr().out
+
+
+def test_same_weights_tells_the_same_training_from_another(tiny_scene, tmp_path, capsys):
+    bench = load("same_weights")
+    runs = {}
+    for name, seed in (("a", 0), ("b", 0), ("c", 1)):
+        runs[name] = tmp_path / f"{name}.json"
+        assert bench.main(["--scene", str(tiny_scene), "--steps", "12", "--seed", str(seed),
+                           "--out", str(runs[name])]) == 0
+    assert bench.main(["--compare", str(runs["a"]), str(runs["b"])]) == 0
+    assert "scene: the same (" in capsys.readouterr().out
+    assert bench.main(["--compare", str(runs["a"]), str(runs["c"])]) == 1
+    out = capsys.readouterr().out
+    assert "entries differ" in out and ".state_dict." in out  # the weights themselves
