@@ -3,7 +3,7 @@ through the PreviewRenderer and core the engine uses, on a camera path through t
 
     python benchmarks/viewport_preview.py --model MODEL_DIR [--regions 960x540,1920x1080] \
         [--preview-pixels 20000,40000,80000] [--routes in-process,worker] [--frames 12] \
-        [--moving-seconds 4] [--out docs/viewport_preview.csv]
+        [--moving-seconds 4] [--focus D --aperture A] [--out docs/viewport_preview.csv]
 
 Two ways of looking, per route (Blender's own Python, or the worker process a stock Blender
 uses), viewport size and coarse-pass size:
@@ -13,7 +13,11 @@ uses), viewport size and coarse-pass size:
 - **moving**: a new view of the spiral every 1/30 s for `--moving-seconds` (a user orbiting
   without a pause): how many images a second the viewport gets to show, and how old the view
   of each is when it arrives.
-The views are the model's own rig (`Service.spiral`), its intrinsics stretched to each region.
+The views are the model's own rig (`Service.spiral`), its intrinsics stretched to each region;
+with `--focus` and `--aperture` (model units) each view has that depth of field, as a viewport
+looking through a camera whose depth of field is on (at most viewport.COARSE_LENS_SAMPLES lens
+samples in the coarse pass, FULL_LENS_SAMPLES at full size; the CSV gives the largest blur at
+full size in pixels).
 Appends to docs/viewport_preview.csv (or --out) and prints a markdown table.
 """
 
@@ -52,32 +56,48 @@ def extension_modules():
             importlib.import_module("neulf_ext.neulf_blender.core"))
 
 
-def path_requests(model: Path, width: int, height: int, frames: int) -> list[dict]:
+def path_requests(model: Path, width: int, height: int, frames: int, lens: dict) -> list[dict]:
     """The spiral's views at width x height (the rig's K stretched to the region)."""
     path = Service().spiral(str(model), frames=frames)
     K = np.array(path["K"], dtype=np.float64)
     K[0] *= width / path["width"]
     K[1] *= height / path["height"]
-    return [{"model_dir": str(model), "K": K.tolist(), "width": width, "height": height, "R": R, "t": t}
+    return [{"model_dir": str(model), "K": K.tolist(), "width": width, "height": height, "R": R, "t": t, **lens}
             for R, t in zip(path["R"], path["t"])]
 
 
-def stopped(viewport, renderer, requests: list[dict]) -> tuple[list[float], list[float]]:
-    """Seconds from asking for each view to its coarse image and to its full-size one."""
-    coarse, full = [], []
+def largest_blur_px(model: Path, request: dict) -> float:
+    """The largest circle of confusion (pixels) of the request's depth of field over the slab's
+    depth range (refocus.max_blur_radius_px), 0 for a pinhole."""
+    from neulf_core.refocus import max_blur_radius_px
+
+    if not request.get("aperture"):
+        return 0.0
+    slab = Service().model_info(str(model))["slab"]
+    return max_blur_radius_px(request["K"][0][0], request["aperture"], request["focus_distance"], slab["z_near"],
+                              slab["z_far"])
+
+
+def stopped(viewport, renderer, requests: list[dict]) -> tuple[list[float], list[float], list[float]]:
+    """Seconds from asking for each view to its coarse image, to the pass of four times its
+    pixels (where the region has one) and to its full-size image."""
+    coarse, middle, full = [], [], []
     for request in requests:
         key = viewport.view_key(request, request["model_dir"], 0.0)
         asked = time.perf_counter()
         renderer.want(key, request)
-        first = None
+        arrivals, last = [], None
         while renderer.busy:
             shown = renderer.image()
-            if first is None and shown is not None and shown.key == key:
-                first = time.perf_counter() - asked
+            if shown is not None and shown.key == key and shown is not last:
+                last = shown
+                arrivals.append(time.perf_counter() - asked)
             time.sleep(0.001)
         full.append(time.perf_counter() - asked)
-        coarse.append(first if first is not None else full[-1])  # (a region within the coarse size: one pass)
-    return coarse, full
+        coarse.append(arrivals[0] if arrivals else full[-1])  # (a region within the coarse size: one pass)
+        if len(renderer.passes(request["width"], request["height"])) == 3 and len(arrivals) >= 2:
+            middle.append(arrivals[1])
+    return coarse, middle, full
 
 
 def moving(viewport, renderer, requests: list[dict], seconds: float) -> tuple[float, float]:
@@ -115,28 +135,34 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--moving-seconds", type=float, default=4.0)
     parser.add_argument("--out", type=Path, default=DOCS / "viewport_preview.csv")
     parser.add_argument("--label", default="")
+    parser.add_argument("--focus", type=float, help="a depth of field's focus distance (model units)")
+    parser.add_argument("--aperture", type=float, help="its lens radius (model units)")
     args = parser.parse_args(argv)
 
     viewport, core_module = extension_modules()
     regions = [tuple(int(v) for v in size.split("x")) for size in args.regions.split(",")]
     pixel_options = [int(v) for v in args.preview_pixels.split(",")]
+    lens = {"focus_distance": args.focus, "aperture": args.aperture} if args.aperture else {}
     rows = []
     for route in args.routes.split(","):
         core = core_module.Core(sys.executable, mode="WORKER" if route == "worker" else "AUTO")
         assert core.in_process == (route == "in-process"), route
         render = viewport.render_function(core)
         for width, height in regions:
-            requests = path_requests(args.model, width, height, args.frames)
+            requests = path_requests(args.model, width, height, args.frames, lens)
             render(requests[0], lambda: False)  # warm up: the model loaded, the worker started
             for pixels in pixel_options:
                 renderer = viewport.PreviewRenderer(render, preview_pixels=pixels)
-                coarse, full = stopped(viewport, renderer, requests)
+                coarse, middle, full = stopped(viewport, renderer, requests)
                 rate, age = moving(viewport, renderer, requests, args.moving_seconds)
                 renderer.close()
                 row = {"date": date.today().isoformat(), "machine": machine(), "torch_threads": torch.get_num_threads(),
                        "label": args.label, "model": args.model.name, "route": route, "region": f"{width}x{height}",
                        "preview_pixels": pixels, "views": len(requests),
+                       "focus_distance": args.focus if lens else "", "aperture": args.aperture if lens else "",
+                       "largest_blur_px": round(largest_blur_px(args.model, requests[0]), 1),
                        "coarse_ms_median": round(1000 * statistics.median(coarse), 1),
+                       "four_times_ms_median": round(1000 * statistics.median(middle), 1) if middle else "",
                        "full_ms_median": round(1000 * statistics.median(full), 1),
                        "moving_images_per_s": round(rate, 2), "moving_age_ms_median": round(1000 * age, 1)}
                 rows.append(row)
@@ -145,11 +171,14 @@ def main(argv: list[str] | None = None) -> None:
                       flush=True)
         core_module.shutdown()
     append_rows(args.out, rows)
-    print("\n| route | region | coarse pass at most | stopped: to the coarse image | to full size | moving: images a second | their age |")
-    print("|---|---|---|---|---|---|---|")
+    print("\n| route | region | coarse pass at most | stopped: to the coarse image | to 4 x its pixels | to full size "
+          "| moving: images a second | their age |")
+    print("|---|---|---|---|---|---|---|---|")
     for row in rows:
+        middle = f"{row['four_times_ms_median']:.0f} ms" if row["four_times_ms_median"] != "" else "-"
         print(f"| {row['route']} | {row['region']} | {row['preview_pixels']:,} px | {row['coarse_ms_median']:.0f} ms | "
-              f"{row['full_ms_median']:.0f} ms | {row['moving_images_per_s']:.1f} | {row['moving_age_ms_median']:.0f} ms |")
+              f"{middle} | {row['full_ms_median']:.0f} ms | {row['moving_images_per_s']:.1f} | "
+              f"{row['moving_age_ms_median']:.0f} ms |")
 
 
 if __name__ == "__main__":

@@ -121,15 +121,18 @@ class NeulfRenderEngine(bpy.types.RenderEngine):
 
 
 def _viewport_view(scene, depsgraph, region, view) -> tuple[dict, tuple]:
-    """The render request of the viewport's pinhole (in the model's frame) and the key of its
-    preview image."""
+    """The render request of the viewport's pinhole (in the model's frame; looking through the
+    scene camera, with the camera's depth of field) and the key of its preview image."""
     from .operators import model_dir
 
     model = model_dir(scene)  # (raises with what to do when there is none)
     root = bpy.data.objects.get(scene.neulf.root_name) if scene.neulf.root_name else None
     root_matrix = root.evaluated_get(depsgraph).matrix_world if root is not None else Matrix.Identity(4)
     request = viewport.view_request(view.view_matrix, view.window_matrix, region.width, region.height, root_matrix)
-    request.pop("scale")
+    scale = request.pop("scale")
+    if view.view_perspective == "CAMERA" and scene.camera is not None and scene.camera.type == "CAMERA":
+        # Through the camera: its depth of field too, so a picked focus shows as it renders.
+        request.update(capture.lens_request(scene.camera.evaluated_get(depsgraph), scale))
     try:
         stamp = os.stat(Path(model) / "checkpoint.pt").st_mtime
     except OSError:

@@ -4,8 +4,8 @@ view's matrices in and draws what comes out.
 
 Nothing renders while Blender draws.  The engine's `view_draw` tells a PreviewRenderer which
 view it shows and draws the newest finished image; the renderer's thread renders that view
-coarse first (at most PREVIEW_PIXELS pixels), then, while the view stays, at the region's full
-size.  While the user orbits, each coarse pass runs to its end and is shown, and the next one
+coarse first (at most PREVIEW_PIXELS pixels), then, while the view stays, at four times those
+pixels and at the region's full size.  While the user orbits, each coarse pass runs to its end and is shown, and the next one
 takes the newest view.  A view already rendered renders nothing again, so redraws (overlays,
 a moving mouse) cost no network pass.
 """
@@ -23,6 +23,11 @@ from . import convert
 from ..neulf_core.errors import NeulfError
 
 PREVIEW_PIXELS = 40_000  # the coarse pass of a new view (about 267 x 150)
+# A camera's depth of field in the preview: at most this many lens samples in the coarse pass and
+# in the full-size one (F12: up to refocus.MAX_SAMPLES, 96).  Each sample is a pass of the network:
+# at 14 samples a coarse pass took 0.8 s instead of 43 ms (docs/BENCHMARKS.md, "The viewport preview").
+COARSE_LENS_SAMPLES = 4
+FULL_LENS_SAMPLES = 16
 WORKER_BAND_PIXELS = 40_000  # a worker renders a full-size view in bands of this many pixels (about 50 ms each)
 IDLE_SECONDS = 10.0      # a renderer's thread ends after this long with nothing to render
 
@@ -72,11 +77,13 @@ def coarse_factor(width: int, height: int, pixels: int = PREVIEW_PIXELS) -> floa
 
 def view_key(request: dict, model: str, model_stamp: float) -> tuple:
     """What decides a preview image: the view (to a hundred-thousandth, so float noise in
-    Blender's matrices does not re-render) and the model, with its file's time (a model being
-    trained refreshes the preview at each checkpoint)."""
+    Blender's matrices does not re-render), the camera's depth of field where the view looks
+    through it, and the model, with its file's time (a model being trained refreshes the
+    preview at each checkpoint)."""
     numbers = tuple(round(float(x), 5) for x in np.ravel([request["K"], request["R"]]))
     position = tuple(round(float(x), 5) for x in request["t"])
-    return (model, model_stamp, request["width"], request["height"], numbers, position)
+    lens = tuple(round(float(request[k]), 6) for k in ("focus_distance", "aperture") if request.get(k) is not None)
+    return (model, model_stamp, request["width"], request["height"], numbers, position, lens)
 
 
 @dataclass(frozen=True)
@@ -90,8 +97,9 @@ class PreviewImage:
 class PreviewRenderer:
     """Renders the newest view asked for, in a thread of its own: coarse, then full size.
 
-    `render(request, should_stop)` returns the image of a request (engine.py: neulf_core's
-    render through the extension's core); it may raise InterruptedError when `should_stop()`,
+    `render(request, should_stop)` returns the image of a request (render_function: neulf_core's
+    render through the extension's core; a pass's request carries its `max_lens_samples`, fewer
+    for the coarse pass); it may raise InterruptedError when `should_stop()`,
     which turns true once another view is wanted.  `on_image()` is called from the thread after
     each finished image (the engine asks Blender for a redraw)."""
 
@@ -165,12 +173,18 @@ class PreviewRenderer:
             if wanted is None:
                 return
             key, request = wanted
-            coarse = coarse_factor(request["width"], request["height"], self.preview_pixels)
-            for first, factor in ((True, coarse), (False, 1.0)) if coarse < 1.0 else ((True, 1.0),):
+            for index, factor in enumerate(self.passes(request["width"], request["height"])):
+                first = index == 0
                 if not first and self._moved_on(key):
                     break
                 if not self._render_pass(key, request, factor, first):
                     break
+
+    def passes(self, width: int, height: int) -> list[float]:
+        """The scales a view renders at, coarse to full: at most preview_pixels, then four times
+        as many (where that is still below full size), then full size."""
+        scales = [coarse_factor(width, height, self.preview_pixels), coarse_factor(width, height, 4 * self.preview_pixels)]
+        return sorted({scale for scale in scales if scale < 1.0}) + [1.0]
 
     def _render_pass(self, key, request: dict, factor: float, first: bool) -> bool:
         """One image of the view; whether to go on to its next pass.  A view's first pass runs
@@ -179,8 +193,9 @@ class PreviewRenderer:
         old is better than none.  A later pass stops as soon as another view is wanted."""
         started = time.monotonic()
         stop = (lambda: self._closed) if first else (lambda: self._moved_on(key))
+        lens_samples = COARSE_LENS_SAMPLES if factor < 1.0 else FULL_LENS_SAMPLES
         try:
-            rgb = self._render(scaled_request(request, factor), stop)
+            rgb = self._render({**scaled_request(request, factor), "max_lens_samples": lens_samples}, stop)
         except InterruptedError:
             return False
         except Exception as exc:  # a broken model, a worker that stopped: said in the viewport
@@ -215,20 +230,23 @@ def row_bands(request: dict, pixels: int):
 
 def render_function(core):
     """A PreviewRenderer's `render(request, should_stop)` through the extension's core
-    (core.Core): neulf_core's render of one view, one point a pixel, no depth.  In Blender's own
+    (core.Core): neulf_core's render of one view, one point a pixel, no depth (a depth of field
+    with the request's `max_lens_samples`, which PreviewRenderer sets per pass).  In Blender's own
     Python a newer view interrupts it between chunks.  A worker's render cannot be interrupted
     but by killing the worker (whose start costs seconds), so there the view renders in bands
     of WORKER_BAND_PIXELS, a call each, and stops between them: without that, a full-size pass
     begun in a pause of an orbit held the viewport for its whole 0.4-2.3 s (at 960x540 to
     1920x1080 on 2 cores; docs/BENCHMARKS.md, "The viewport preview")."""
+    options = {"depth": False, "pixel_samples": 1}
+
     def render(request, should_stop):
         if core.in_process:
-            return core.call("render", depth=False, pixel_samples=1, should_stop=should_stop, **request)["rgb"]
+            return core.call("render", should_stop=should_stop, **options, **request)["rgb"]
         bands = []
         for _top, band in row_bands(request, WORKER_BAND_PIXELS):
             if bands and should_stop():
                 raise InterruptedError("another view")
-            bands.append(core.call("render", depth=False, pixel_samples=1, **band)["rgb"])
+            bands.append(core.call("render", **options, **band)["rgb"])
         return np.concatenate(bands, axis=0)
     return render
 

@@ -717,11 +717,25 @@ def run_story(setup: dict) -> None:  # noqa: C901 - one story, told in order
         from types import SimpleNamespace
 
         region = SimpleNamespace(width=big * width, height=big * height)
-        view = SimpleNamespace(view_matrix=camera.matrix_world.inverted(), window_matrix=window)
+        view = SimpleNamespace(view_matrix=camera.matrix_world.inverted(), window_matrix=window,
+                               view_perspective="PERSP")
         seen, key_before = engine._viewport_view(scene, depsgraph, region, view)
         assert seen["model_dir"] == request["model_dir"] and np.allclose(seen["K"], request["K"]) \
             and np.allclose(seen["R"], request["R"]) and np.allclose(seen["t"], request["t"]), (seen, request)
         assert engine._viewport_view(scene, depsgraph, region, view)[1] == key_before
+        # Through the camera with its depth of field on: the preview renders it (F12's lens request).
+        dof = camera.data.dof
+        saved_dof = (dof.use_dof, dof.focus_object, dof.focus_distance, dof.aperture_fstop)
+        dof.use_dof, dof.focus_object, dof.focus_distance, dof.aperture_fstop = True, None, 3.0, 0.5
+        try:
+            through = SimpleNamespace(**{**vars(view), "view_perspective": "CAMERA"})
+            lensed, key_lens = engine._viewport_view(scene, bpy.context.evaluated_depsgraph_get(), region, through)
+            expected_lens = mod("capture").lens_request(camera, mod("convert").uniform_scale(np.array(r.matrix_world)))
+            assert expected_lens and all(abs(lensed[k] - v) < 1e-9 for k, v in expected_lens.items()), \
+                (lensed, expected_lens)
+            assert key_lens != key_before and "focus_distance" not in seen
+        finally:
+            dof.use_dof, dof.focus_object, dof.focus_distance, dof.aperture_fstop = saved_dof
         checkpoint = Path(request["model_dir"]) / "checkpoint.pt"
         stamp = checkpoint.stat().st_mtime
         os.utime(checkpoint, (stamp + 5, stamp + 5))  # as a checkpoint of a model in training

@@ -85,6 +85,10 @@ def test_scaled_request_keeps_every_point_where_it_was(viewport):
     small_xy = (np.asarray(small["K"]) @ point)[:2] / point[2]
     assert np.allclose(small_xy, full_xy * [75 / 300, 50 / 200])  # the image's edges stay the image's edges
     assert viewport.scaled_request(request, 1.0) == request
+    renderer = viewport.PreviewRenderer(None)
+    assert renderer.passes(200, 150) == [1.0] and renderer.passes(300, 200) == [viewport.coarse_factor(300, 200), 1.0]
+    coarse, four_times, full = renderer.passes(1920, 1080)
+    assert full == 1.0 and four_times == pytest.approx(2 * coarse)
     assert viewport.coarse_factor(200, 150) == 1.0 and viewport.coarse_factor(1920, 1080) ** 2 * 1920 * 1080 == \
         pytest.approx(viewport.PREVIEW_PIXELS)
 
@@ -162,7 +166,9 @@ def test_a_newer_view_replaces_the_one_rendering(viewport, tiny_scene, tiny_mode
     assert renderer.wait(180)
     final = renderer.image()
     assert final.key == viewport.view_key(second, "m", 0.0) and final.full_size
-    assert len(calls) <= 4 and calls[-1] == (second["width"], second["height"])  # (the first view's passes stopped)
+    passes = [(round(second["width"] * f), round(second["height"] * f)) for f in renderer.passes(960, 720)]
+    assert len(passes) == 3 and calls[-3:] == passes  # the second view: coarse, four times that, full size
+    assert len(calls) <= 5  # (the first view: its coarse pass, and at most the start of the next, stopped)
     renderer.close()
 
 
@@ -247,3 +253,31 @@ def test_the_worker_route_stops_between_bands(viewport, monkeypatch):
     with pytest.raises(InterruptedError):
         render(request, lambda: len(asked) >= 2)
     assert asked == [10, 10]
+
+
+def test_a_depth_of_field_renders_in_the_preview_with_few_lens_samples(viewport, tiny_scene, tiny_model):
+    """Looking through the camera, the engine adds its depth of field to the request: it is part
+    of the preview's key, and the core renders it with at most FULL_LENS_SAMPLES samples at full
+    size (the coarse pass: COARSE_LENS_SAMPLES)."""
+    from neulf_core.worker import Service
+
+    core = importlib.import_module("neulf_ext.neulf_blender.core").Core(sys.executable, mode="AUTO")
+    assert core.in_process
+    pinhole = tiny_request(tiny_scene, tiny_model, scale=4)
+    lens = {**pinhole, "focus_distance": 1.5, "aperture": 0.05}  # focused well before the plane at 3: a blur
+    assert viewport.view_key(lens, "m", 0.0) != viewport.view_key(pinhole, "m", 0.0)
+    asked, through_core = [], viewport.render_function(core)
+    renderer = viewport.PreviewRenderer(lambda request, stop: asked.append(request["max_lens_samples"])
+                                        or through_core(request, stop), preview_pixels=5000)
+    renderer.want(viewport.view_key(lens, "m", 0.0), lens)
+    assert renderer.wait(120) and renderer.error is None, renderer.error
+    shown = renderer.image().rgb
+    service = Service()
+    few = service.render(depth=False, pixel_samples=1, max_lens_samples=viewport.FULL_LENS_SAMPLES, **lens)["rgb"]
+    sharp = service.render(depth=False, pixel_samples=1, **pinhole)["rgb"]
+    assert asked == [viewport.COARSE_LENS_SAMPLES] * 2 + [viewport.FULL_LENS_SAMPLES]  # (coarse, 4 x, full)
+    assert np.abs(shown - few).max() < 1e-5
+    assert np.abs(shown - sharp).mean() > 5e-3  # (the blur is there)
+    many = service.render(depth=False, pixel_samples=1, **lens)["rgb"]  # F12's: up to refocus.MAX_SAMPLES
+    assert 0 < np.abs(few - many).mean() < 0.3 * np.abs(few - sharp).mean()  # fewer samples, the same blur
+    renderer.close()
