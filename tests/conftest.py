@@ -9,6 +9,7 @@ plane's centre, plus 3D points sampled on the plane (they give the slab its dept
 
 from __future__ import annotations
 
+import importlib
 import importlib.util
 import os
 import sys
@@ -159,6 +160,20 @@ def make_tiny_scene(folder: Path, shift=(0.0, 0.0, 0.0), fmt: str = "binary") ->
     points = np.column_stack([xy, 3.0 + 0.3 * xy[:, 0]])
     write_colmap_model(folder / "sparse" / "0", camera, poses, names, points, fmt=fmt)
     return folder
+
+
+@pytest.fixture(scope="session")
+def extension_module(tmp_path_factory):
+    """`load(name)`: neulf_blender's module `name` imported as the installed extension would be
+    (the repository root as the package `neulf_ext`, whose modules import neulf_core relatively),
+    without Blender: the modules that do not import bpy."""
+    parent = tmp_path_factory.mktemp("pkg")
+    (parent / "neulf_ext").symlink_to(Path(__file__).resolve().parents[1], target_is_directory=True)
+    sys.path.insert(0, str(parent))
+    try:
+        yield lambda name: importlib.import_module(f"neulf_ext.neulf_blender.{name}")
+    finally:
+        sys.path.remove(str(parent))
 
 
 @pytest.fixture(scope="session")

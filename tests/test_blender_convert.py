@@ -23,17 +23,10 @@ REPO = Path(__file__).resolve().parents[1]
 
 
 @pytest.fixture(scope="module")
-def ext(tmp_path_factory):
-    parent = tmp_path_factory.mktemp("pkg")
-    (parent / "neulf_ext").symlink_to(REPO, target_is_directory=True)
-    sys.path.insert(0, str(parent))
-    try:
-        convert = importlib.import_module("neulf_ext.neulf_blender.convert")
-        jobs = importlib.import_module("neulf_ext.neulf_blender.jobs")
-        assert "bpy" not in sys.modules or sys.modules.get("bpy") is not None
-        yield type("Ext", (), {"convert": convert, "jobs": jobs})
-    finally:
-        sys.path.remove(str(parent))
+def ext(extension_module):
+    convert, jobs = extension_module("convert"), extension_module("jobs")
+    assert "bpy" not in sys.modules or sys.modules.get("bpy") is not None
+    return type("Ext", (), {"convert": convert, "jobs": jobs})
 
 
 def test_root_init_imports_without_bpy(ext):

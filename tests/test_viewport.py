@@ -6,7 +6,6 @@ drawing itself needs a GPU context, which headless Blender does not have."""
 
 from __future__ import annotations
 
-import importlib
 import sys
 import time
 from pathlib import Path
@@ -14,18 +13,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-REPO = Path(__file__).resolve().parents[1]
-
-
 @pytest.fixture(scope="module")
-def viewport(tmp_path_factory):
-    parent = tmp_path_factory.mktemp("pkg")
-    (parent / "neulf_ext").symlink_to(REPO, target_is_directory=True)
-    sys.path.insert(0, str(parent))
-    try:
-        yield importlib.import_module("neulf_ext.neulf_blender.viewport")
-    finally:
-        sys.path.remove(str(parent))
+def viewport(extension_module):
+    return extension_module("viewport")
 
 
 def blender_projection(K, width, height, near=0.1, far=100.0) -> np.ndarray:
@@ -255,13 +245,14 @@ def test_the_worker_route_stops_between_bands(viewport, monkeypatch):
     assert asked == [10, 10]
 
 
-def test_a_depth_of_field_renders_in_the_preview_with_few_lens_samples(viewport, tiny_scene, tiny_model):
+def test_a_depth_of_field_renders_in_the_preview_with_few_lens_samples(viewport, extension_module, tiny_scene,
+                                                                      tiny_model):
     """Looking through the camera, the engine adds its depth of field to the request: it is part
     of the preview's key, and the core renders it with at most FULL_LENS_SAMPLES samples at full
     size (the coarse pass: COARSE_LENS_SAMPLES)."""
     from neulf_core.worker import Service
 
-    core = importlib.import_module("neulf_ext.neulf_blender.core").Core(sys.executable, mode="AUTO")
+    core = extension_module("core").Core(sys.executable, mode="AUTO")  # (the engine's in Blender's own Python)
     assert core.in_process
     pinhole = tiny_request(tiny_scene, tiny_model, scale=4)
     lens = {**pinhole, "focus_distance": 1.5, "aperture": 0.05}  # focused well before the plane at 3: a blur
