@@ -114,10 +114,13 @@ class NeulfRenderEngine(bpy.types.RenderEngine):
     def __del__(self):  # (Blender frees the viewport's engine when the shading leaves Rendered)
         try:
             renderer = getattr(self, "_neulf_preview", None)
-        except ReferenceError:  # (the Blender side already gone; its thread ends when idle)
-            return
+        except ReferenceError:  # (the Blender side already gone; the thread ends when idle)
+            renderer = None
         if renderer is not None:
             renderer.close()
+        parent = getattr(super(), "__del__", None)  # (none in bpy 4.2-5.0; Blender's docs call it)
+        if parent is not None:
+            parent()
 
 
 def _viewport_view(scene, depsgraph, region, view) -> tuple[dict, tuple]:
