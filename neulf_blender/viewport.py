@@ -5,9 +5,9 @@ view's matrices in and draws what comes out.
 Nothing renders while Blender draws.  The engine's `view_draw` tells a PreviewRenderer which
 view it shows and draws the newest finished image; the renderer's thread renders that view
 coarse first (at most PREVIEW_PIXELS pixels), then, while the view stays, at four times those
-pixels and at the region's full size.  While the user orbits, each coarse pass runs to its end and is shown, and the next one
-takes the newest view.  A view already rendered renders nothing again, so redraws (overlays,
-a moving mouse) cost no network pass.
+pixels and at the region's full size.  While the user orbits, each coarse pass runs to its end
+and is shown, and the next one takes the newest view.  A view already rendered renders nothing
+again, so redraws (overlays, a moving mouse) cost no network pass.
 """
 
 from __future__ import annotations
@@ -23,8 +23,8 @@ from . import convert
 from ..neulf_core.errors import NeulfError
 
 PREVIEW_PIXELS = 40_000  # the coarse pass of a new view (about 267 x 150)
-# A camera's depth of field in the preview: at most this many lens samples in the coarse pass and
-# in the full-size one (F12: up to refocus.MAX_SAMPLES, 96).  Each sample is a pass of the network:
+# A camera's depth of field in the preview: at most this many lens samples in the passes below full
+# size and in the full-size one (F12: up to refocus.MAX_SAMPLES, 96).  Each sample is a pass of the network:
 # at 14 samples a coarse pass took 0.8 s instead of 43 ms (docs/BENCHMARKS.md, "The viewport preview").
 COARSE_LENS_SAMPLES = 4
 FULL_LENS_SAMPLES = 16
