@@ -504,10 +504,31 @@ class NEULF_OT_use_capture_camera(_Reporting, bpy.types.Operator):
         return {"FINISHED"}
 
 
+class NEULF_OT_viewport_preview(_Reporting, bpy.types.Operator):
+    """Fly through the light field: this 3D viewport's Rendered shading with the NeuLF engine (again: back to Solid)"""
+
+    bl_idname = "neulf.viewport_preview"
+    bl_label = "Preview in Viewport"
+
+    def run(self, context):
+        from .engine import NeulfRenderEngine
+
+        space = context.space_data
+        if space is None or space.type != "VIEW_3D":
+            raise NeulfError("run Preview in Viewport from a 3D viewport's NeuLF panel.")
+        if space.shading.type == "RENDERED" and context.scene.render.engine == NeulfRenderEngine.bl_idname:
+            space.shading.type = "SOLID"
+            return {"FINISHED"}
+        model_dir(context.scene)  # (says what to do when there is no model to look through)
+        context.scene.render.engine = NeulfRenderEngine.bl_idname
+        space.shading.type = "RENDERED"
+        return {"FINISHED"}
+
+
 def menu_import(self, context):
     self.layout.operator(NEULF_OT_import_colmap.bl_idname, text="NeuLF Capture (COLMAP/LLFF)")
 
 
 CLASSES = (NEULF_OT_import_colmap, NEULF_OT_reconstruct, NEULF_OT_load_model, NEULF_OT_train, NEULF_OT_cancel_train,
            NEULF_OT_render_camera, NEULF_OT_spiral_path,
-           NEULF_OT_render_video, NEULF_OT_use_capture_camera)
+           NEULF_OT_render_video, NEULF_OT_use_capture_camera, NEULF_OT_viewport_preview)

@@ -108,6 +108,7 @@ class NEULF_PT_main(bpy.types.Panel):
         col.label(text="Render", icon="RENDER_STILL")
         col.operator("neulf.render_camera", icon="RENDER_STILL")
         col.prop(props, "pixel_samples")
+        col.operator("neulf.viewport_preview", icon="SHADING_RENDERED")
         col.operator("neulf.pick_focus", icon="EYEDROPPER")
         row = col.row(align=True)
         row.prop(props, "spiral_frames")

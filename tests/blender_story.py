@@ -752,6 +752,24 @@ def run_story(setup: dict) -> None:  # noqa: C901 - one story, told in order
             assert "no NeuLF model" in str(exc), exc
         finally:
             scene.neulf.model_dir = saved
+        # The panel's button: this viewport in Rendered shading with the NeuLF engine, again: Solid.
+        window = bpy.context.window
+        area = next(a for a in window.screen.areas if a.type == "VIEW_3D")
+        space = area.spaces.active
+        saved_engine, saved_shading = scene.render.engine, space.shading.type
+        scene.render.engine, space.shading.type = "CYCLES", "SOLID"
+        try:
+            with bpy.context.temp_override(window=window, area=area, space_data=space):
+                assert bpy.ops.neulf.viewport_preview() == {"FINISHED"}
+                assert scene.render.engine == "NEULF" and space.shading.type == "RENDERED"
+                assert bpy.ops.neulf.viewport_preview() == {"FINISHED"}
+                assert space.shading.type == "SOLID"
+            properties = next(a for a in window.screen.areas if a.type == "PROPERTIES")
+            with bpy.context.temp_override(window=window, area=properties, space_data=properties.spaces.active):
+                refused = error_of(lambda: bpy.ops.neulf.viewport_preview()).strip()
+            assert "3D viewport" in refused and "\n" not in refused, refused
+        finally:
+            scene.render.engine, space.shading.type = saved_engine, saved_shading
         ortho = Matrix.Diagonal((0.5, 0.5, -0.02, 1.0))
         try:
             viewport.view_request(camera.matrix_world.inverted(), ortho, width, height, r.matrix_world)
