@@ -55,11 +55,11 @@ def fingerprint(value, out: dict, key: str = "") -> dict:
 
 def model_fingerprint(folder: Path) -> dict:
     """Every checkpoint under `folder` (the model and its members), the RNG states aside."""
-    import torch
+    from neulf_core.checkpoint import load_checkpoint  # (the checkout's own, imported from --root)
 
     out = {}
     for checkpoint in sorted(folder.rglob("checkpoint.pt")):
-        payload = torch.load(checkpoint, map_location="cpu", weights_only=False)
+        payload = load_checkpoint(checkpoint.parent)
         payload.pop("rng", None)
         fingerprint(payload, out, str(checkpoint.parent.relative_to(folder)))
     return out
