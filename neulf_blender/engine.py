@@ -24,6 +24,13 @@ class NeulfRenderEngine(bpy.types.RenderEngine):
     bl_use_preview = False
     bl_use_postprocess = True
 
+    def update_render_passes(self, scene=None, renderlayer=None):
+        """The passes F12 fills: Combined, and Depth where the view layer asks for its Z pass
+        (Properties > View Layer > NeuLF Passes), for the compositor and multilayer EXR."""
+        self.register_pass(scene, renderlayer, "Combined", 4, "RGBA", "COLOR")
+        if renderlayer.use_pass_z:
+            self.register_pass(scene, renderlayer, "Depth", 1, "Z", "VALUE")
+
     def render(self, depsgraph):
         from .operators import model_dir
         from .preferences import get_core
@@ -31,6 +38,7 @@ class NeulfRenderEngine(bpy.types.RenderEngine):
         scene = depsgraph.scene_eval
         camera = scene.camera
         original = bpy.data.scenes.get(scene.name) or scene
+        want_depth = bool(depsgraph.view_layer_eval.use_pass_z)
         try:
             root = bpy.data.objects.get(scene.neulf.root_name) if scene.neulf.root_name else None
             root_matrix = root.evaluated_get(depsgraph).matrix_world if root is not None else None
@@ -39,7 +47,7 @@ class NeulfRenderEngine(bpy.types.RenderEngine):
             scale = request.pop("scale")
             request.update(capture.lens_request(camera.evaluated_get(depsgraph), scale))
             self.update_stats("", "NeuLF: rendering")
-            result = get_core().call("render", model_dir=model_dir(original), depth=False, chunk=scene.neulf.chunk,
+            result = get_core().call("render", model_dir=model_dir(original), depth=want_depth, chunk=scene.neulf.chunk,
                                      pixel_samples=int(scene.neulf.pixel_samples),
                                      on_progress=self.update_progress, should_stop=self.test_break, **request)
         except InterruptedError:
@@ -50,7 +58,10 @@ class NeulfRenderEngine(bpy.types.RenderEngine):
         width, height = request["width"], request["height"]
         rgb = convert.srgb_to_linear(result["rgb"])  # the Combined pass is scene-linear
         render_result = self.begin_result(0, 0, width, height)
-        render_result.layers[0].passes["Combined"].rect.foreach_set(convert.image_rows_for_blender(rgb))
+        passes = render_result.layers[0].passes
+        passes["Combined"].rect.foreach_set(convert.image_rows_for_blender(rgb))
+        if want_depth and result.get("depth") is not None and "Depth" in passes:
+            passes["Depth"].rect.foreach_set(convert.depth_rows_for_blender(result["depth"] * scale))
         self.end_result(render_result)
         for note in result.get("warnings", []):
             self.report({"WARNING"}, note)

@@ -116,4 +116,40 @@ class NEULF_PT_main(bpy.types.Panel):
         col.operator("neulf.render_video", icon="RENDER_ANIMATION")
 
 
-CLASSES = (NEULF_PT_main,)
+class NEULF_PT_view_layer_passes(bpy.types.Panel):
+    """Properties > View Layer, with the NeuLF engine: the passes F12 writes besides the image
+    (Blender's own Passes panels list only their engines' passes)."""
+
+    bl_label = "NeuLF Passes"
+    bl_idname = "NEULF_PT_view_layer_passes"
+    bl_space_type = "PROPERTIES"
+    bl_region_type = "WINDOW"
+    bl_context = "view_layer"
+
+    @classmethod
+    def poll(cls, context):
+        return context.engine == "NEULF"
+
+    def draw(self, context):
+        layout = self.layout
+        layout.use_property_split = True
+        layout.prop(context.view_layer, "use_pass_z", text="Z")
+        layout.label(text="Depth along the view axis, in scene units")
+        hint = multilayer_exr_hint(context.scene)
+        if hint:
+            _wrapped_label(layout, context, hint, icon="ERROR")
+
+
+def multilayer_exr_hint(scene) -> str | None:
+    """Blender 5.0.1 fails to save any multilayer EXR whose pixels are not square ("Error
+    writing render result"; Cycles too), and a capture whose fx and fy differ gets such pixels."""
+    render = scene.render
+    if bpy.app.version < (5, 0, 0) or render.pixel_aspect_x == render.pixel_aspect_y:
+        return None
+    if not any(layer.use_pass_z for layer in scene.view_layers):
+        return None
+    return ("Blender 5.0 cannot save a multilayer EXR with non-square pixels (Output > Format > Aspect, "
+            "set from this capture's camera): save the Z pass as its own EXR with a compositor File Output node.")
+
+
+CLASSES = (NEULF_PT_main, NEULF_PT_view_layer_passes)

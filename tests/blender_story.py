@@ -384,7 +384,7 @@ def run_story(setup: dict) -> None:  # noqa: C901 - one story, told in order
         mean_psnr = psnr(photo.mean((0, 1), keepdims=True) + 0 * photo, photo)
         assert model_psnr > mean_psnr + 3, (model_psnr, mean_psnr)
         depth = image_array("NeuLF Depth")[..., 0]
-        ctx["render"] = rendered
+        ctx["render"], ctx["depth"] = rendered, depth
         return f"PSNR {model_psnr:.2f} dB vs mean colour {mean_psnr:.2f} dB; depth median {np.median(depth):.3f} " \
                f"(true {np.median(true_depth):.3f})"
 
@@ -597,6 +597,55 @@ def run_story(setup: dict) -> None:  # noqa: C901 - one story, told in order
             r.matrix_world = original
             bpy.context.view_layer.update()
 
+    def _f12_depth_pass(scene):
+        """F12 with the view layer's Z pass on, saved as a multilayer EXR (what a compositor
+        reads): its Depth is render_camera's depth in scene units, its Combined render_camera's
+        image.  With square pixels: Blender 5.0.1 cannot write a multilayer EXR whose pixel
+        aspect is not 1 (Cycles neither; the panel says so), and this capture's pixels are not."""
+        from exr_file import read_exr
+
+        render, settings, view_layer = scene.render, scene.render.image_settings, scene.view_layers[0]
+        aspect, depth = (render.pixel_aspect_x, render.pixel_aspect_y), settings.color_depth
+        assert aspect[0] != aspect[1], aspect  # the capture's fx != fy
+        panel = bpy.types.NEULF_PT_view_layer_passes
+        assert panel.poll(bpy.context)  # the pass's checkbox is shown with the NeuLF engine
+        view_layer.use_pass_z = True
+        hint = mod("panel").multilayer_exr_hint(scene)
+        assert (hint is not None) == (bpy.app.version >= (5, 0, 0)), hint
+        try:
+            render.pixel_aspect_x = render.pixel_aspect_y = 1.0
+            assert mod("panel").multilayer_exr_hint(scene) is None
+            assert bpy.ops.neulf.render_camera() == {"FINISHED"}
+            reference, reference_depth = image_array("NeuLF Render"), image_array("NeuLF Depth")[..., 0]
+            if hasattr(settings, "media_type"):
+                settings.media_type = "MULTI_LAYER_IMAGE"  # (5.0; 4.2 has no media_type)
+            settings.file_format = "OPEN_EXR_MULTILAYER"
+            settings.color_depth, settings.exr_codec = "32", "NONE"
+            render.filepath = str(work / "f12_passes.exr")
+            bpy.ops.render.render(write_still=True)
+            channels = read_exr(work / "f12_passes.exr")
+        finally:
+            view_layer.use_pass_z = False
+            render.pixel_aspect_x, render.pixel_aspect_y = aspect
+            if hasattr(settings, "media_type"):
+                settings.media_type = "IMAGE"
+            settings.file_format, settings.color_depth = "PNG", depth
+        layer = next(name.split(".")[0] for name in channels if name.endswith(".Depth.Z"))
+        z = channels[f"{layer}.Depth.Z"]
+        linear = np.stack([channels[f"{layer}.Combined.{c}"] for c in "RGB"], axis=2)
+        srgb = np.where(linear <= 0.0031308, 12.92 * linear, 1.055 * np.clip(linear, 0, None) ** (1 / 2.4) - 0.055)
+        colour = np.abs(srgb - reference).max()
+        assert colour <= 1 / 255 + 1e-6, colour
+        seen = reference_depth > 0  # render_camera's depth image holds 0 where the field has none
+        assert seen.mean() > 0.9, seen.mean()
+        error = np.abs(z[seen] - reference_depth[seen]).max() / reference_depth[seen].max()
+        assert error < 1e-4, error
+        assert np.all(z[~seen] == np.float32(1e10)), np.unique(z[~seen])
+        return (f"its Z pass in a multilayer EXR is render_camera's depth (median {np.median(z[seen]):.3f}, "
+                f"largest difference {error:.1e} of the farthest; {np.count_nonzero(~seen)} pixels empty) and its "
+                f"Combined render_camera's image within {colour * 255:.2f}/255"
+                + (f"; non-square pixels: '{hint}'" if hint else ""))
+
     @story.step("engine_f12", "render_camera")
     def _():
         scene = bpy.context.scene
@@ -623,6 +672,7 @@ def run_story(setup: dict) -> None:  # noqa: C901 - one story, told in order
             to_one, to_four = (np.abs(one - ctx[k]).mean() for k in ("render_one_point", "render"))
             assert to_one < to_four, (to_one, to_four)
             bpy.ops.render.render(write_still=True)  # the 4-point still again, for what follows
+        passes = _f12_depth_pass(scene)
         assert "NEULF" in bpy.types.DATA_PT_camera_dof.COMPAT_ENGINES
         # Depth of field: a wide aperture focused far behind the scene blurs the image
         # (synthetic aperture through the model) without changing its overall colour.
@@ -636,8 +686,8 @@ def run_story(setup: dict) -> None:  # noqa: C901 - one story, told in order
         change = np.abs(blurred - still).mean()
         sharpness = _laplacian_variance(blurred) / _laplacian_variance(still)
         assert sharpness < 0.5 and abs(blurred.mean() - still.mean()) < 0.03, (sharpness, blurred.mean(), still.mean())
-        return (f"F12 matches render_camera within {diff * 255:.1f}/255; DOF keeps {sharpness:.0%} of the sharpness "
-                f"(variance of the Laplacian) and changes pixels by {change * 255:.1f}/255 on average")
+        return (f"F12 matches render_camera within {diff * 255:.1f}/255; {passes}; DOF keeps {sharpness:.0%} of the "
+                f"sharpness (variance of the Laplacian) and changes pixels by {change * 255:.1f}/255 on average")
 
     @story.step("viewport_preview", "render_camera")
     def _():

@@ -98,6 +98,16 @@ def test_image_rows_and_colour(ext):
     assert ext.convert.srgb_to_linear(np.array([0.0, 0.5, 1.0])) == pytest.approx([0.0, 0.21404, 1.0], abs=1e-4)
 
 
+def test_depth_rows_for_a_z_pass(ext):
+    """F12's Depth pass: Blender's bottom-row-first order, and Cycles' 1e10 where the light field
+    has no depth (a compositor's Z Combine then puts CG in front, not behind a hole)."""
+    depth = np.array([[1.5, np.nan, 2.0], [3.0, 4.0, np.inf]], np.float32)
+    flat = ext.convert.depth_rows_for_blender(depth)
+    assert flat.dtype == np.float32 and flat.shape == (6,)
+    assert flat.tolist() == [3.0, 4.0, 1e10, 1.5, 1e10, 2.0]
+    assert ext.convert.NO_DEPTH == 1e10
+
+
 def test_single_pixel_K_is_that_pixels_ray():
     torch = pytest.importorskip("torch")
     from neulf_core.rays import pinhole_rays
