@@ -78,10 +78,12 @@ from neulf_core.render import LightField  # noqa: E402
 from neulf_core.slab import slab_frame  # noqa: E402
 from neulf_core.scene import Scene, View, camera_spacing, find_model_dir, load_scene, scaled_size, split_views  # noqa: E402
 from neulf_core.teacher import TEACHER_FADE, teacher_fade  # noqa: E402
-from neulf_core.train import (COARSE_TO_FINE_MAX_VIEWS, CONSISTENCY_MAX_VIEWS, FAR_OFF_POSE_DEGREES,  # noqa: E402
-                              CONSISTENCY_ALWAYS_MAX_VIEWS, DEPTH_LAYERS_MIN_VIEWS, LOSSES_MIN_PASSES,
-                              LOSSES_UNTIL_POSES_RIGHT, MANY_PHOTOS_FAR_OFF_POSE_DEGREES, TrainConfig,
-                              losses_by_default, losses_stop_at_pose_check, many_photos_held, poses_far_off, train)
+from neulf_core.train import TrainConfig, train  # noqa: E402
+from neulf_core.pose_check import (FAR_OFF_POSE_DEGREES, MANY_PHOTOS_FAR_OFF_POSE_DEGREES,  # noqa: E402
+                                   many_photos_held, poses_far_off)
+from neulf_core.rules import (COARSE_TO_FINE_MAX_VIEWS, CONSISTENCY_MAX_VIEWS, CONSISTENCY_ALWAYS_MAX_VIEWS,  # noqa: E402
+                              DEPTH_LAYERS_MIN_VIEWS, LOSSES_MIN_PASSES, LOSSES_UNTIL_POSES_RIGHT, losses_by_default,
+                              losses_stop_at_pose_check)
 
 DOCS = REPO / "docs"
 CANCLIP = REPO.parent / "shared" / "data" / "canclip"
@@ -93,7 +95,7 @@ FEWER_VIEWS_SCENES = ("canclip", "hci", "lambertian")
 # The losses study: scenes and shares of the training views (deep: lambertian, fern; shallow: canclip).
 LOSSES_PLAN = {"lambertian": (1.0, 0.5, 0.25), "shiny": (1.0,), "fern": (1.0, 0.5, 0.25), "canclip": (1.0, 0.25)}
 # ... and the default in the same minute where it is neither column: 11 to 20 photos of a deep
-# scene, whose losses stop where the pose check finds the poses right (train.losses_by_default).
+# scene, whose losses stop where the pose check finds the poses right (rules.losses_by_default).
 LOSSES_DEFAULT_PLAN = {"lambertian": (1.0,), "shiny": (1.0,), "fern": (1.0,)}
 # The coarse-to-fine study: the fewer-views shares with at most 13 training views (coarse to
 # fine's default), trained without it as well.
@@ -429,8 +431,8 @@ def score_views(model_dir: Path, held: list[View], scale: float, fit_poses: bool
             "pose_gauge": (light_field.meta.get("pose_corrections") or {}).get("depth_like"),
             "pose_check_degrees": light_field.meta.get("pose_check", {}).get("median_degrees"),
             "pose_check_halfway": light_field.meta.get("pose_check", {}).get("halfway_degrees"),
-            "field_restarted": "field_restart" in light_field.meta,  # far-off poses (train.poses_far_off)
-            # Only the geometry started again (train.many_photos_held; None: not restarted, or logged before).
+            "field_restarted": "field_restart" in light_field.meta,  # far-off poses (pose_check.poses_far_off)
+            # Only the geometry started again (pose_check.many_photos_held; None: not restarted, or logged before).
             "restart_geometry_only": (light_field.meta.get("field_restart") or {}).get("geometry_only"),
             # Whether it started the depth layers again too, smoother (None: not restarted, or logged before).
             "restart_depth_layers": (light_field.meta.get("field_restart") or {}).get("depth_layers"),
@@ -518,7 +520,7 @@ def trained_with_another_surface_mix(row: dict) -> bool:
     """Whether a logged fast run of a deep scene (its `deep_scene`, the slab it trained in) was
     trained otherwise than the default now trains deep scenes: with one surface (rows logged
     before the back surface existed have none, or an empty cell in the CSV;
-    train.default_back_surface), or with its surfaces blended otherwise than the fast preset
+    rules.default_back_surface), or with its surfaces blended otherwise than the fast preset
     blends them (`back_surface_blend`; rows logged before it was recorded blended colours).
     The study runs it again."""
     preset = get_preset(row["preset"])
@@ -544,9 +546,9 @@ def trained_with_another_fade(row: dict) -> bool:
 
 def trained_with_another_losses_rule(row: dict) -> bool:
     """Whether a logged run whose multi-view losses the default decided (`consistency` empty,
-    a preset that leaves them to train.losses_by_default) trained with them otherwise than the
+    a preset that leaves them to rules.losses_by_default) trained with them otherwise than the
     rule now decides for its photo count, depth and step budget, or kept them on where the
-    pose check, finding its poses right, now ends them (train.losses_stop_at_pose_check;
+    pose check, finding its poses right, now ends them (rules.losses_stop_at_pose_check;
     `losses_until_step`, logged since): the study runs it again.  Minutes runs stand (their
     passes were counted at the rate they measured), and so do runs whose scene is not at hand
     to count its pixels."""
@@ -584,7 +586,7 @@ def trained_with_another_pose_gauge(row: dict) -> bool:
 
 def trained_with_another_restart_rule(row: dict) -> bool:
     """Whether a logged run that refined its poses on a scene that is not deep started its
-    field again (`field_restarted`) otherwise than train.poses_far_off now decides from what
+    field again (`field_restarted`) otherwise than pose_check.poses_far_off now decides from what
     the far-off check measured (`far_off_degrees`, `far_off_points_held`): the study runs it
     again.  Rows logged before the fifty-fifth session restarted from 0.4 degrees whatever
     their photo count and logged neither; the default's (its pose check; the preset's SfM
@@ -1133,7 +1135,7 @@ def losses_table(rows: list[dict]) -> list[str]:
             done_on = [r["steps_done"] for r in on if r.get("status") == "finished"]
             passes = (np.mean(done_on) * batch / (views * image_pixels(on[0]["path"], on[0]["scale"]))
                       if done_on and isinstance(views, int) else None)
-            # What the default decides when its minutes buy the steps these runs made (train.default_consistency).
+            # What the default decides when its minutes buy the steps these runs made (rules.default_consistency).
             rule = None if deep is None or passes is None else losses_by_default(deep, views, passes)
             default = {None: "?", True: "on", False: "off", LOSSES_UNTIL_POSES_RIGHT: "on until the pose check"}[rule]
             passes_text = "-" if passes is None else f"{passes:.0f}"
@@ -1375,8 +1377,8 @@ def older_pose_gauge_note(rows: list[dict]) -> list[str]:
 
 
 def older_restart_rule_note(rows: list[dict]) -> list[str]:
-    """Which runs started their field again for far-off poses otherwise than train.poses_far_off
-    and train.many_photos_held now decide, and were not re-run since, by study."""
+    """Which runs started their field again for far-off poses otherwise than pose_check.poses_far_off
+    and pose_check.many_photos_held now decide, and were not re-run since, by study."""
     return stale_rows_note([r for r in rows if trained_with_another_restart_rule(r)],
                            "runs started their field again for far-off poses otherwise than the rule now decides "
                            f"(before the fifty-fifth session from {FAR_OFF_POSE_DEGREES:g}° whatever the photo count; "

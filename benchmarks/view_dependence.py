@@ -58,7 +58,7 @@ MARKER_END = "<!-- view dependence end -->"
 CSV_COLUMNS = ["label", "method", "variant", "seed", "steps", "train_seconds", "render_seconds", "parameters", "psnr",
                "psnr_mask", "psnr_outside", "psnr_far", "mask_share", "psnr_per_view", "date", "machine", "key"]
 # The light field's runs are keyed by the trainer's rules as of the back surface's feature blend
-# (on for this deep scene, train.default_back_surface; the two surfaces' texture features blended
+# (on for this deep scene, rules.default_back_surface; the two surfaces' texture features blended
 # and decoded once, since the fifty-second session).  Earlier keys name the runs of older rules:
 # no config, one surface; the back surface alone, the two surfaces' colours blended.
 LIGHT_FIELD_CONFIG = {"back_surface": "by rule", "back_surface_blend": "features"}

@@ -26,10 +26,11 @@ from .metrics import psnr
 from .render import LightField
 from .scene import Scene, load_scene, scaled_size, split_views
 from .slab import fit_slab
-from .train import (LOSSES_DECISION_STEP, TrainConfig, TrainResult, _emit, announce_default_losses, default_back_surface,
-                    default_coarse_to_fine,
-                    default_consistency, default_depth_detail_reads, default_geometry_tv,
-                    default_max_passes, train, with_default_scale)
+from .train import TrainConfig, TrainResult, train
+from .progress import emit as _emit
+from .rules import (LOSSES_DECISION_STEP, announce_default_losses, default_back_surface, default_coarse_to_fine,
+                    default_consistency, default_depth_detail_reads, default_geometry_tv, default_max_passes,
+                    with_default_scale)
 
 PRESET = "auto"
 FACTORS = (1.0, 0.7, 0.5)    # finest texture size / the default (~1 texel per pixel); area 1, 1/2, 1/4
@@ -149,9 +150,9 @@ def _search_and_train(scene: Scene, model_dir: Path, config: TrainConfig, progre
 
 
 def final_model_defaults(scene: Scene, config: TrainConfig, progress) -> TrainConfig:
-    """`config` with the view-count rules left to the default (train.default_consistency,
-    train.default_coarse_to_fine, train.default_depth_detail_reads, train.default_geometry_tv,
-    train.default_max_passes, train.default_back_surface) decided once, for the final
+    """`config` with the view-count rules left to the default (rules.default_consistency,
+    rules.default_coarse_to_fine, rules.default_depth_detail_reads, rules.default_geometry_tv,
+    rules.default_max_passes, rules.default_back_surface) decided once, for the final
     model's training views: the search runs (fewer views: the validation views are carved
     out) train as the model will."""
     train_views, _ = split_views(scene, config.holdout_every, config.exclude)
@@ -178,7 +179,7 @@ def final_model_defaults(scene: Scene, config: TrainConfig, progress) -> TrainCo
 
 def _steps_per_minute(scene: Scene, config: TrainConfig) -> float:
     """The step rate with the multi-view losses on that train() counts a minutes budget at
-    (train.measured_steps_per_minute), from a run of its first steps in a scratch folder (its
+    (rules.measured_steps_per_minute), from a run of its first steps in a scratch folder (its
     steps end it; a minute at least, so that a short budget on a busy machine still gets
     there, and 0 if it did not)."""
     probe = replace(config, steps=LOSSES_DECISION_STEP + 1, minutes=max(config.minutes, 1.0), consistency=None,

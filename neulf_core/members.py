@@ -285,7 +285,7 @@ def _rule_pending(model_dir: Path) -> bool:
 def training_pixels(scene, config) -> int:
     """The training views' pixels at the training scale (what a pass goes over)."""
     from .scene import scaled_size, split_views
-    from .train import training_scale
+    from .rules import training_scale
 
     train_views, _ = split_views(scene, config.holdout_every, config.exclude)
     scale = training_scale(scene.views, config)
@@ -299,7 +299,7 @@ def _decide_upfront(scene, config, progress, split: str) -> int | None:
     if config.minutes and not asked_batch:
         return None  # learnt from the step rate in the first member (train._train)
     from .presets import get_preset
-    from .train import budget_passes
+    from .rules import budget_passes
 
     if asked_batch:  # two at any budget: no passes to count
         count = RULE_MEMBERS
@@ -426,7 +426,7 @@ def train_members(train_one: Callable, scene, model_dir: Path, config, images_di
         remove_stale_temporaries(folder)
         steps, minutes, batch = member_budget(config, count, member, split)
         # A member after the first follows the first one's verdict on the poses
-        # (train._first_members_poses): the corrections it refined, fixed, or none and no check
+        # (pose_check.first_members_poses): the corrections it refined, fixed, or none and no check
         # of its own.  Each refining its own settles the scene in a frame of its own (the
         # corrections' depth-like part wanders with the seed, poses.py) and their mean blurs
         # the frames.  CanClip's 6 photos with pose noise, 3000 steps, three seeds, held-out

@@ -22,7 +22,7 @@ class Preset:
     lr_schedule: str = "exponential"          # how it gets there: "exponential" or "cosine" (train.learning_rate_factor)
     batch_size: int = 8192
     adam_beta2: float = 0.999                 # Adam's second-moment decay (the paper: PyTorch's default)
-    consistency: bool | None = False          # the paper's multi-view losses by default; None: train.default_consistency (docs/DEPTH.md)
+    consistency: bool | None = False          # the paper's multi-view losses by default; None: rules.default_consistency (docs/DEPTH.md)
     teacher: bool = False                     # early depth pulled toward the classic plane sweep (teacher.py, docs/DEPTH.md)
     point_depth: bool = False                 # keypoint rays pulled toward their SfM point's depth (point_depth.py)
     # The default's pose check (train.py, poses.poses_look_off): refine the poses from the start

@@ -7,6 +7,12 @@ import sys
 import time
 
 
+def emit(progress, **event) -> None:
+    """Send one event to a `progress` callback, where there is one."""
+    if progress is not None:
+        progress(event)
+
+
 class JsonLines:
     """One JSON object per event, flushed at once (the Blender worker reads these)."""
 

@@ -226,9 +226,10 @@ def losses_as_for_11_to_20_photos(monkeypatch, poses_off: bool) -> list:
     `poses_off`: returns a list that gets an item for every step trained with the losses."""
     import neulf_core.poses as poses_module
     import neulf_core.train as train_module
+    import neulf_core.rules as rules_module
 
-    monkeypatch.setattr(train_module, "CONSISTENCY_ALWAYS_MAX_VIEWS", 3)
-    monkeypatch.setattr(train_module, "LOSSES_MIN_PASSES", 0.0)
+    monkeypatch.setattr(rules_module, "CONSISTENCY_ALWAYS_MAX_VIEWS", 3)
+    monkeypatch.setattr(rules_module, "LOSSES_MIN_PASSES", 0.0)
     monkeypatch.setattr(poses_module, "poses_look_off", lambda degrees, second_look=False: poses_off)
     calls = []
     real = train_module.multiview_losses

@@ -294,12 +294,12 @@ def test_the_default_scale_keeps_each_photo_under_the_pixel_budget(tiny_scene, t
     """Without a scale a run trains at the largest 1/k at which the largest photo has at most
     DEFAULT_SCALE_PIXELS pixels, says so, and keeps it in the model; a resumed model keeps its
     own scale whatever the rule says now; a given scale is used as it is."""
-    from neulf_core import train as training
-    from neulf_core.train import default_scale
+    import neulf_core.rules as rules_module
+    from neulf_core.rules import default_scale
 
     assert [default_scale(size) for size in ((960, 540), (512, 512), (504, 378), (320, 240))] == [0.5, 0.5, 1.0, 1.0]
     assert default_scale((4032, 3024)) == 1 / 8 and default_scale((3840, 2160)) == 1 / 7  # 504x378, 549x309
-    monkeypatch.setattr(training, "DEFAULT_SCALE_PIXELS", 500)  # the tiny scene's 48x36 photos: 1/2
+    monkeypatch.setattr(rules_module, "DEFAULT_SCALE_PIXELS", 500)  # the tiny scene's 48x36 photos: 1/2
     events = []
     train(tiny_scene, tmp_path / "m", small_config(3), progress=events.append)
     meta = json.loads((tmp_path / "m" / METADATA_NAME).read_text())
@@ -307,7 +307,7 @@ def test_the_default_scale_keeps_each_photo_under_the_pixel_budget(tiny_scene, t
     said = [e["message"] for e in events if e.get("event") == "stage" and "scale" in e]
     assert said == ["training at 1/2 of the photos' size (24x18; their full 48x36 with --scale 1: slower, for detail "
                     "the model's texture cannot keep)"]
-    monkeypatch.setattr(training, "DEFAULT_SCALE_PIXELS", 100)  # would now say 1/5
+    monkeypatch.setattr(rules_module, "DEFAULT_SCALE_PIXELS", 100)  # would now say 1/5
     train(tiny_scene, tmp_path / "m", small_config(6), resume=True)
     meta = json.loads((tmp_path / "m" / METADATA_NAME).read_text())
     assert meta["train_config"]["scale"] == 0.5 and meta["progress"]["step"] == 6
@@ -324,7 +324,7 @@ def test_the_default_scale_keeps_each_photo_under_the_pixel_budget(tiny_scene, t
         "scale 1 trains on photos of 48x36 (0 M pixels in all, 25 times the default's): slow to start and to train, and "
         "memory-hungry, for detail the model's texture cannot keep; the default scale (no --scale; Image Scale 0 in "
         "Blender) trains at 10x7"]
-    monkeypatch.setattr(training, "DEFAULT_SCALE_PIXELS", 200)  # 24x18 = 432 is within 4 times 200
+    monkeypatch.setattr(rules_module, "DEFAULT_SCALE_PIXELS", 200)  # 24x18 = 432 is within 4 times 200
     events = []
     train(tiny_scene, tmp_path / "within", small_config(2, scale=0.5), progress=events.append)
     assert not [e for e in events if e.get("event") == "warning"]

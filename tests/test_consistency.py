@@ -231,7 +231,7 @@ def test_a_run_saved_with_the_srgb_space_transform_resumes_in_it(tiny_scene, tmp
 
 
 def test_losses_by_default_only_for_up_to_20_photos_of_a_deep_scene():
-    from neulf_core.train import CONSISTENCY_ALWAYS_MAX_VIEWS, CONSISTENCY_MAX_VIEWS, LOSSES_UNTIL_POSES_RIGHT, losses_by_default
+    from neulf_core.rules import CONSISTENCY_ALWAYS_MAX_VIEWS, CONSISTENCY_MAX_VIEWS, LOSSES_UNTIL_POSES_RIGHT, losses_by_default
 
     assert losses_by_default(True, 4) is True                        # the synthetic scene's 25 % (+1.29 dB)
     assert losses_by_default(True, 8) is True                        # fern's half (+0.26 dB)
@@ -248,7 +248,7 @@ def test_losses_by_default_only_for_up_to_20_photos_of_a_deep_scene():
 
 
 def test_losses_until_the_poses_are_right_stop_at_the_check_unless_colours_are_learned():
-    from neulf_core.train import LOSSES_UNTIL_POSES_RIGHT, losses_stop_at_pose_check
+    from neulf_core.rules import LOSSES_UNTIL_POSES_RIGHT, losses_stop_at_pose_check
 
     rule = LOSSES_UNTIL_POSES_RIGHT
     assert losses_stop_at_pose_check(rule, colours_learned=False, poses_found_right=True)
@@ -261,7 +261,8 @@ def test_losses_by_default_need_a_budget_that_passes_over_the_photos_often_enoug
     """Fern's 17 views: at 504x378 for 1.5 minutes the losses did not pay, at 252x189 for 1
     minute they did; a step budget counts as it is, a minutes budget at the rate the run
     measured (None until it has)."""
-    from neulf_core.train import LOSSES_MIN_PASSES, LOSSES_UNTIL_POSES_RIGHT as until_right, TrainConfig, budget_passes, default_consistency
+    from neulf_core.train import TrainConfig
+    from neulf_core.rules import LOSSES_MIN_PASSES, LOSSES_UNTIL_POSES_RIGHT as until_right, budget_passes, default_consistency
 
     def slab(near, far):
         return Slab(np.eye(3), np.zeros(3), 0.0, (near + far) / 2, near, far, -np.ones(4), np.ones(4))
@@ -291,7 +292,7 @@ def test_losses_by_default_need_a_budget_that_passes_over_the_photos_often_enoug
 
 
 def test_the_measured_rate_counts_the_losses_cost_per_step():
-    from neulf_core.train import LOSSES_DECISION_STEP, LOSSES_RATE_FROM_STEP, LOSSES_STEP_COST, measured_steps_per_minute
+    from neulf_core.rules import LOSSES_DECISION_STEP, LOSSES_RATE_FROM_STEP, LOSSES_STEP_COST, measured_steps_per_minute
 
     timed = LOSSES_DECISION_STEP - LOSSES_RATE_FROM_STEP
     assert measured_steps_per_minute(timed * 0.05) == pytest.approx(1200 / LOSSES_STEP_COST)  # 20 steps a second without them
@@ -305,8 +306,9 @@ def test_the_measured_rate_counts_the_losses_cost_per_step():
 ])
 def test_training_applies_the_default_and_the_flag(tiny_scene, tmp_path, monkeypatch, near, far, asked, expected):
     import neulf_core.train as train_module
+    import neulf_core.rules as rules_module
 
-    monkeypatch.setattr(train_module, "LOSSES_MIN_PASSES", 0.0)  # 2 steps of a tiny scene: the budget rule aside
+    monkeypatch.setattr(rules_module, "LOSSES_MIN_PASSES", 0.0)  # 2 steps of a tiny scene: the budget rule aside
     calls = []
     real = train_module.multiview_losses
     monkeypatch.setattr(train_module, "multiview_losses", lambda *a, **k: calls.append(1) or real(*a, **k))
@@ -336,10 +338,11 @@ def test_a_minutes_budget_decides_the_losses_at_the_rate_it_measures(tiny_scene,
     default turns them on if the budget, counted at that rate, passes over the photos often
     enough (here: a budget that buys no step at all would not), says so, and records it."""
     import neulf_core.train as train_module
+    import neulf_core.rules as rules_module
 
-    monkeypatch.setattr(train_module, "LOSSES_MIN_PASSES", 1e-9)
+    monkeypatch.setattr(rules_module, "LOSSES_MIN_PASSES", 1e-9)
     if rate is not None:
-        monkeypatch.setattr(train_module, "measured_steps_per_minute", lambda seconds: rate)
+        monkeypatch.setattr(rules_module, "measured_steps_per_minute", lambda seconds: rate)
     steps_with_losses = []
     real = train_module.multiview_losses
     events = []
@@ -349,7 +352,7 @@ def test_a_minutes_budget_decides_the_losses_at_the_rate_it_measures(tiny_scene,
         return real(*args, **kwargs)
 
     monkeypatch.setattr(train_module, "multiview_losses", counting)
-    decision = train_module.LOSSES_DECISION_STEP
+    decision = rules_module.LOSSES_DECISION_STEP
     # Both budgets: the steps end it (so the test does not depend on the machine's speed), the
     # minutes make the default wait for the measured rate.
     config = train_module.TrainConfig(preset="fast", steps=decision + 5, minutes=10.0, near=1.0, far=6.0,
@@ -375,8 +378,9 @@ def test_a_minutes_budget_too_short_to_measure_leaves_the_losses_off(tiny_scene,
 
 def test_a_resumed_model_keeps_what_the_default_decided(tiny_scene, tmp_path, monkeypatch):
     import neulf_core.train as train_module
+    import neulf_core.rules as rules_module
 
-    monkeypatch.setattr(train_module, "LOSSES_MIN_PASSES", 0.0)
+    monkeypatch.setattr(rules_module, "LOSSES_MIN_PASSES", 0.0)
     calls = []
     real = train_module.multiview_losses
     monkeypatch.setattr(train_module, "multiview_losses", lambda *a, **k: calls.append(1) or real(*a, **k))
@@ -411,9 +415,10 @@ def test_losses_until_the_poses_are_right_follow_the_pose_check(tiny_scene, tmp_
     the photos' colours are learned.  The stop is recorded and said."""
     import neulf_core.poses as poses_module
     import neulf_core.train as train_module
+    import neulf_core.rules as rules_module
 
-    monkeypatch.setattr(train_module, "CONSISTENCY_ALWAYS_MAX_VIEWS", 3)  # the tiny scene's 7 training views
-    monkeypatch.setattr(train_module, "LOSSES_MIN_PASSES", 0.0)
+    monkeypatch.setattr(rules_module, "CONSISTENCY_ALWAYS_MAX_VIEWS", 3)  # the tiny scene's 7 training views
+    monkeypatch.setattr(rules_module, "LOSSES_MIN_PASSES", 0.0)
     monkeypatch.setattr(poses_module, "poses_look_off", lambda degrees, second_look=False: poses_off)
     events = []
     steps_with_losses = []
@@ -424,14 +429,14 @@ def test_losses_until_the_poses_are_right_follow_the_pose_check(tiny_scene, tmp_
         return real(*args, **kwargs)
 
     monkeypatch.setattr(train_module, "multiview_losses", counting)
-    steps = 2 * train_module.POSE_CHECK_STEP + 4
+    steps = 2 * poses_module.POSE_CHECK_STEP + 4
     config = train_module.TrainConfig(preset="fast", steps=steps, near=1.0, far=6.0, batch_size=64, consistency_rays=16,
                                       appearance=appearance, refine_poses=refine_poses, validate_seconds=1e9,
                                       teacher=False, point_depth=False, field_overrides={"texture_size": [16, 16]})
     train_module.train(tiny_scene, tmp_path / "m", config, progress=events.append)
     meta = json.loads((tmp_path / "m" / "model.json").read_text())
-    assert meta["multiview_losses"] is True and meta["multiview_losses_rule"] == train_module.LOSSES_UNTIL_POSES_RIGHT
-    check = train_module.POSE_CHECK_STEP
+    assert meta["multiview_losses"] is True and meta["multiview_losses_rule"] == rules_module.LOSSES_UNTIL_POSES_RIGHT
+    check = poses_module.POSE_CHECK_STEP
     assert steps_with_losses == list(range(check if stops else steps))
     assert meta.get("multiview_losses_until_step") == (check if stops else None)
     said = [e["message"] for e in events if "without the multi-view losses" in e.get("message", "")]
@@ -442,17 +447,19 @@ def test_losses_until_the_poses_are_right_follow_the_pose_check(tiny_scene, tmp_
 def test_a_resumed_run_keeps_the_losses_stopped_or_waiting_for_the_check(tiny_scene, tmp_path, monkeypatch):
     """A checkpoint written before the pose check resumes with the losses on until it; one
     written after the check stopped them resumes without them."""
+    import neulf_core.poses as poses_module
     import neulf_core.train as train_module
+    import neulf_core.rules as rules_module
     from conftest import losses_as_for_11_to_20_photos
 
     calls = losses_as_for_11_to_20_photos(monkeypatch, poses_off=False)
-    check = train_module.POSE_CHECK_STEP
+    check = poses_module.POSE_CHECK_STEP
     config = train_module.TrainConfig(preset="fast", steps=check * 2 + 4, near=1.0, far=6.0, batch_size=64,
                                       consistency_rays=16, validate_seconds=1e9, teacher=False, point_depth=False,
                                       field_overrides={"texture_size": [16, 16]})
     train_module.train(tiny_scene, tmp_path / "m", config, should_stop=lambda: len(calls) >= check // 2)  # a cancel
     meta = json.loads((tmp_path / "m" / "model.json").read_text())
-    assert meta["multiview_losses_rule"] == train_module.LOSSES_UNTIL_POSES_RIGHT and len(calls) == check // 2
+    assert meta["multiview_losses_rule"] == rules_module.LOSSES_UNTIL_POSES_RIGHT and len(calls) == check // 2
     assert "multiview_losses_until_step" not in meta
     train_module.train(tiny_scene, tmp_path / "m", config, resume=True)
     assert len(calls) == check  # on until the check, as an uninterrupted run

@@ -104,7 +104,7 @@ def test_depth_detail_correction_is_shared_by_every_viewpoint_of_a_surface_point
 
 
 def test_the_depth_detail_is_read_twice_for_few_photos():
-    from neulf_core.train import default_coarse_to_fine, default_depth_detail_reads
+    from neulf_core.rules import default_coarse_to_fine, default_depth_detail_reads
 
     assert default_depth_detail_reads(4) == default_depth_detail_reads(13) == 2
     assert default_depth_detail_reads(14) == default_depth_detail_reads(70) == 1  # the synthetic scene's 14: -0.19 dB
@@ -112,7 +112,7 @@ def test_the_depth_detail_is_read_twice_for_few_photos():
 
 
 def test_few_photos_get_a_stronger_smoothness_prior_on_the_geometry():
-    from neulf_core.train import FEW_VIEWS_GEOMETRY_TV, default_coarse_to_fine, default_geometry_tv
+    from neulf_core.rules import FEW_VIEWS_GEOMETRY_TV, default_coarse_to_fine, default_geometry_tv
 
     assert default_geometry_tv(4) == default_geometry_tv(13) == FEW_VIEWS_GEOMETRY_TV == 3e-3
     assert default_geometry_tv(14) == make_config("disparity", {}).tv_weight == 1e-3  # the field's own
@@ -250,7 +250,7 @@ def test_depth_layers_shift_with_the_camera_like_a_surface_at_their_depth():
 
 
 def test_depth_layers_by_default_only_on_shallow_scenes():
-    from neulf_core.train import DEFAULT_DEPTH_LAYERS, default_depth_layers
+    from neulf_core.rules import DEFAULT_DEPTH_LAYERS, default_depth_layers
 
     def slab(near, far):
         return Slab(np.eye(3), np.zeros(3), 0.0, (near + far) / 2, near, far, -np.ones(4), np.ones(4))
@@ -338,7 +338,7 @@ def test_back_surface_by_default_on_deep_scenes_and_the_cli_flags(tiny_scene, tm
     from neulf_core.cli import main
     from neulf_core.render import LightField
     from neulf_core.scene import load_scene
-    from neulf_core.train import default_back_surface
+    from neulf_core.rules import default_back_surface
 
     def slab(near, far):
         return Slab(np.eye(3), np.zeros(3), 0.0, (near + far) / 2, near, far, -np.ones(4), np.ones(4))
@@ -580,7 +580,8 @@ def test_coarse_to_fine_by_default_with_few_photos_and_the_cli_flags(tiny_scene,
     from neulf_core.cli import main
     from neulf_core.render import LightField
     from neulf_core.scene import load_scene
-    from neulf_core.train import COARSE_TO_FINE, TrainConfig, default_coarse_to_fine, train
+    from neulf_core.train import TrainConfig, train
+    from neulf_core.rules import COARSE_TO_FINE, default_coarse_to_fine
 
     assert default_coarse_to_fine(4) and default_coarse_to_fine(13)          # 25 % of the synthetic scene, 50 % of CanClip
     assert not default_coarse_to_fine(14) and not default_coarse_to_fine(26)  # all of them
@@ -617,7 +618,8 @@ def test_coarse_to_fine_by_default_with_few_photos_and_the_cli_flags(tiny_scene,
 
 
 def test_few_photos_stop_after_a_hundred_passes_over_their_pixels():
-    from neulf_core.train import FEW_PHOTOS_MAX_PASSES, TrainConfig, default_coarse_to_fine, pass_step_limit
+    from neulf_core.train import TrainConfig
+    from neulf_core.rules import FEW_PHOTOS_MAX_PASSES, default_coarse_to_fine, pass_step_limit
 
     # The synthetic scene's 4 views at 160x120, 8192-ray steps: 938 steps (its held-out views
     # fall from 28.60 dB at 1000 steps to 28.03 at 5000); its 14 views train on.
@@ -634,7 +636,8 @@ def test_few_photos_stop_after_a_hundred_passes_over_their_pixels():
 def test_a_time_budget_ends_at_the_pass_limit_and_resume_can_lift_it(tiny_scene, tmp_path, capsys):
     from neulf_core.checkpoint import load_checkpoint
     from neulf_core.cli import main
-    from neulf_core.train import TrainConfig, pass_step_limit, train
+    from neulf_core.train import TrainConfig, train
+    from neulf_core.rules import pass_step_limit
 
     events = []
     quick = dict(batch_size=256, teacher=False, validate_seconds=1e9, checkpoint_seconds=1e9)

@@ -177,9 +177,8 @@ def test_later_members_follow_the_first_members_verdict_on_the_poses(tiny_scene,
     """Where the first member's pose check drops the refinement, the second neither refines nor
     checks its own (a check of its own could refine on a borderline capture, in a frame of its own)."""
     import neulf_core.poses as poses_module
-    import neulf_core.train as train_module
 
-    monkeypatch.setattr(train_module, "POSE_CHECK_STEP", 5)
+    monkeypatch.setattr(poses_module, "POSE_CHECK_STEP", 5)
     monkeypatch.setattr(poses_module, "POSE_CHECK_DEGREES", 90.0)  # any correction: the poses are right
     monkeypatch.setattr(poses_module, "POSE_CHECK_UNSURE_DEGREES", 90.0)
     result, events = run(tiny_scene, tmp_path / "ens", config(steps=40, seed=3, members=2, refine_poses=None))
@@ -197,7 +196,7 @@ def test_later_members_follow_the_first_members_verdict_on_the_poses(tiny_scene,
 def test_a_second_member_that_refined_its_own_poses_resumes_so(tiny_scene, tmp_path, monkeypatch):
     """A second member stopped by a version that refined each member's poses apart (or whose
     first member did not refine) holds corrections of its own: resumed, it goes on with them."""
-    from neulf_core import train as train_module
+    import neulf_core.pose_check as pose_check_module
 
     cfg = config(steps=60, seed=3, members=2, refine_poses=True)
 
@@ -206,7 +205,7 @@ def test_a_second_member_that_refined_its_own_poses_resumes_so(tiny_scene, tmp_p
 
     with monkeypatch.context() as patch:
         # as before the corrections were shared: each member refines and checks its own
-        patch.setattr(train_module, "_first_members_poses", lambda config, *args: (config, None, False))
+        patch.setattr(pose_check_module, "first_members_poses", lambda config, *args: (config, None, False))
         result, _ = run(tiny_scene, tmp_path / "old", cfg, stop_when=in_second_member)
     assert result.status == "cancelled"
     result, _ = run(tiny_scene, tmp_path / "old", config(steps=60, seed=3), resume=True)
@@ -599,11 +598,11 @@ def test_a_later_member_follows_the_first_ones_verdict_on_the_losses(tiny_scene,
     member stops the multi-view losses where its pose check finds the poses right; a later
     member, which has no check of its own, trains without them from its start (with them
     throughout where the first found the poses off)."""
-    import neulf_core.train as train_module
+    import neulf_core.poses as poses_module
     from conftest import losses_as_for_11_to_20_photos
 
     calls = losses_as_for_11_to_20_photos(monkeypatch, poses_off)
-    check = train_module.POSE_CHECK_STEP
+    check = poses_module.POSE_CHECK_STEP
     each = 2 * check + 4
     cfg = config(steps=2 * each, members=2, refine_poses=None, near=1.0, far=6.0, consistency_rays=16, batch_size=64)
     run(tiny_scene, tmp_path / "m", cfg)
@@ -617,6 +616,7 @@ def test_a_later_member_follows_the_first_ones_verdict_on_the_losses(tiny_scene,
 def test_the_rate_is_the_median_steps_so_a_few_slow_steps_do_not_decide():
     """A shared machine's hiccup (here 5 of 100 steps taking 50 times as long) must not read as
     a slow run: the rule times the median step."""
+    import neulf_core.poses as poses_module
     import neulf_core.train as train_module
 
     steady, hiccups = [0.02] * 95, [1.0] * 5
@@ -627,14 +627,14 @@ def test_the_rate_is_the_median_steps_so_a_few_slow_steps_do_not_decide():
     assert meta["members_rule"]["steps_per_minute"] == pytest.approx(3000.0)
     assert meta["members_rule"]["passes"] == pytest.approx(3000 * 8192 / 268800, abs=0.1)
     assert meta["members_rule"]["count"] == 2  # 91 passes; the mean step would read 36 and one member
-    assert train_module.MEMBERS_RATE_FROM_STEP >= train_module.POSE_CHECK_STEP  # timed after the pose check
+    assert train_module.MEMBERS_RATE_FROM_STEP >= poses_module.POSE_CHECK_STEP  # timed after the pose check
 
 
 def test_members_that_split_the_batch_count_the_budgets_passes_together():
     """A member of half the batch decides what counts passes (the multi-view losses) as one run
     of the whole budget would: each counting its own half dropped the losses where one run keeps
-    them, and lost 6 dB under pose noise (train.budget_rays_per_step)."""
-    from neulf_core.train import budget_rays_per_step
+    them, and lost 6 dB under pose noise (rules.budget_rays_per_step)."""
+    from neulf_core.rules import budget_rays_per_step
 
     assert budget_rays_per_step(config(batch_size=4096, members=2, members_split="batch")) == 8192
     assert budget_rays_per_step(config(batch_size=4096, members=2)) == 4096  # members of the steps: their own batch

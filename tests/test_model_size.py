@@ -230,9 +230,10 @@ def test_auto_decides_the_losses_once_for_its_search_and_its_model(tiny_scene, t
     """The search runs train on fewer views (the validation view is carved out): with the
     rule's threshold between the two counts they must still train as the final model does."""
     import neulf_core.train as train_module
+    import neulf_core.rules as rules_module
 
-    monkeypatch.setattr(train_module, "CONSISTENCY_MAX_VIEWS", max_views)  # 7 training views, 6 in the search
-    monkeypatch.setattr(train_module, "LOSSES_MIN_PASSES", 0.0)  # 12 steps of a tiny scene: the budget rule aside
+    monkeypatch.setattr(rules_module, "CONSISTENCY_MAX_VIEWS", max_views)  # 7 training views, 6 in the search
+    monkeypatch.setattr(rules_module, "LOSSES_MIN_PASSES", 0.0)  # 12 steps of a tiny scene: the budget rule aside
     calls = []
     real = train_module.multiview_losses
     monkeypatch.setattr(train_module, "multiview_losses", lambda *a, **k: calls.append(1) or real(*a, **k))
@@ -250,9 +251,9 @@ def test_auto_with_a_time_budget_decides_the_losses_once_at_the_measured_rate(ti
     """A minutes budget: the step rate is measured once, before the search, and the losses'
     verdict at that rate holds for every candidate and the final model."""
     import neulf_core.autosize as autosize_module
-    import neulf_core.train as train_module
+    import neulf_core.rules as rules_module
 
-    monkeypatch.setattr(train_module, "LOSSES_MIN_PASSES", 1e-9)
+    monkeypatch.setattr(rules_module, "LOSSES_MIN_PASSES", 1e-9)
     measured = []
     real_rate = autosize_module._steps_per_minute
 
@@ -277,11 +278,11 @@ def test_auto_rate_probe_that_cannot_measure_counts_no_steps(tiny_scene, monkeyp
     """A probe whose run ends before the rate is measured says 0 steps a minute (the losses
     then stay off), not a missing key."""
     import neulf_core.autosize as autosize_module
-    import neulf_core.train as train_module
+    import neulf_core.rules as rules_module
 
     config = fast_config(None, preset="auto", minutes=0.05, near=1.0, far=6.0, teacher=False)
     assert autosize_module._steps_per_minute(tiny_scene, config) > 0
-    monkeypatch.setattr(train_module, "LOSSES_DECISION_STEP", 10_000)  # never reached in the probe's steps
+    monkeypatch.setattr(rules_module, "LOSSES_DECISION_STEP", 10_000)  # never reached in the probe's steps
     assert autosize_module._steps_per_minute(tiny_scene, config) == 0.0
 
 
@@ -290,8 +291,9 @@ def test_auto_decides_coarse_to_fine_once_for_its_search_and_its_model(tiny_scen
     """As with the losses: 7 training views, 6 in the search runs; with the threshold between
     the two, every run trains as the final model does."""
     import neulf_core.train as train_module
+    import neulf_core.rules as rules_module
 
-    monkeypatch.setattr(train_module, "COARSE_TO_FINE_MAX_VIEWS", max_views)
+    monkeypatch.setattr(rules_module, "COARSE_TO_FINE_MAX_VIEWS", max_views)
     ramps, surfaces = [], []
     real = train_module._build_field
     signature = inspect.signature(real)
@@ -307,7 +309,7 @@ def test_auto_decides_coarse_to_fine_once_for_its_search_and_its_model(tiny_scen
     assert ramps == [expected] * 4  # 3 candidates and the final run
     assert len(set(surfaces)) == 1 and surfaces[0] is not None  # the back surface too: decided once
     config = json.loads((tmp_path / "auto" / METADATA_NAME).read_text())["field_config"]
-    assert config["geometry_coarse_to_fine"] == (train_module.COARSE_TO_FINE if expected else 0.0)
+    assert config["geometry_coarse_to_fine"] == (rules_module.COARSE_TO_FINE if expected else 0.0)
 
 
 @pytest.mark.parametrize("max_views, expected", [(7, 2), (6, 1)])
@@ -316,13 +318,14 @@ def test_auto_decides_the_depth_detail_reads_once_for_its_search_and_its_model(t
     """The same for reading the depth detail twice, the geometry's smoothness prior, and
     the pass limit: 7 training views, 6 in the search runs; the decoders learn at the preset's factor."""
     import neulf_core.train as train_module
+    import neulf_core.rules as rules_module
 
-    monkeypatch.setattr(train_module, "FEW_PHOTOS_MAX_VIEWS", max_views)
+    monkeypatch.setattr(rules_module, "FEW_PHOTOS_MAX_VIEWS", max_views)
     reads, passes = [], []
     real = train_module._build_field
-    real_limit = train_module.pass_step_limit
-    monkeypatch.setattr(train_module, "pass_step_limit", lambda config, field, n, *rest: passes.append(
-        train_module.max_passes(config, field, n)) or real_limit(config, field, n, *rest))
+    real_limit = rules_module.pass_step_limit
+    monkeypatch.setattr(rules_module, "pass_step_limit", lambda config, field, n, *rest: passes.append(
+        rules_module.max_passes(config, field, n)) or real_limit(config, field, n, *rest))
 
     def recording(*args, **kwargs):
         field, preset = real(*args, **kwargs)
@@ -332,10 +335,10 @@ def test_auto_decides_the_depth_detail_reads_once_for_its_search_and_its_model(t
 
     monkeypatch.setattr(train_module, "_build_field", recording)
     train_auto(tiny_scene, tmp_path / "auto", fast_config(8, preset="auto", teacher=False))
-    tv = train_module.FEW_VIEWS_GEOMETRY_TV if expected == 2 else 1e-3
+    tv = rules_module.FEW_VIEWS_GEOMETRY_TV if expected == 2 else 1e-3
     scales = FAST_FIELD["geometry_spatial_res"]
     assert reads == [(expected, tv, FAST_FIELD["decoder_lr_factor"], scales)] * 4  # 3 candidates and the final run
-    assert passes == [train_module.FEW_PHOTOS_MAX_PASSES if expected == 2 else 0.0] * 4
+    assert passes == [rules_module.FEW_PHOTOS_MAX_PASSES if expected == 2 else 0.0] * 4
     assert json.loads((tmp_path / "auto" / METADATA_NAME).read_text())["field_config"]["depth_detail_reads"] == expected
 
 

@@ -323,11 +323,10 @@ def test_the_pose_check_keeps_or_drops_the_refinement_and_saves_its_verdict(tiny
     dropped, the corrections and their optimizer state are gone and a resumed run trains on
     without them; kept, they go on moving.  The verdict is in model.json and the checkpoint."""
     import neulf_core.poses as poses_module
-    import neulf_core.train as train_module
     from neulf_core.checkpoint import load_checkpoint
     from neulf_core.train import TrainConfig, train
 
-    monkeypatch.setattr(train_module, "POSE_CHECK_STEP", 5)
+    monkeypatch.setattr(poses_module, "POSE_CHECK_STEP", 5)
     monkeypatch.setattr(poses_module, "POSE_CHECK_DEGREES", threshold)
     monkeypatch.setattr(poses_module, "POSE_CHECK_UNSURE_DEGREES", threshold)  # no second look here
     events = []
@@ -358,11 +357,10 @@ def test_the_published_networks_train_with_fixed_poses_unless_asked(tiny_scene, 
     blur whose corrections fit the blur (presets.Preset.pose_check), so those presets train
     with the poses as given, and refine them only when asked."""
     import neulf_core.poses as poses_module
-    import neulf_core.train as train_module
     from neulf_core.checkpoint import load_checkpoint
     from neulf_core.train import TrainConfig, train
 
-    monkeypatch.setattr(train_module, "POSE_CHECK_STEP", 3)
+    monkeypatch.setattr(poses_module, "POSE_CHECK_STEP", 3)
     monkeypatch.setattr(poses_module, "POSE_CHECK_DEGREES", 0.0)  # the default's check would keep any correction
     monkeypatch.setattr(poses_module, "POSE_CHECK_UNSURE_DEGREES", 0.0)
     events = []
@@ -375,11 +373,10 @@ def test_the_published_networks_train_with_fixed_poses_unless_asked(tiny_scene, 
 
 def test_a_run_stopped_before_the_pose_check_checks_when_resumed(tiny_scene, tmp_path, monkeypatch):
     import neulf_core.poses as poses_module
-    import neulf_core.train as train_module
     from neulf_core.checkpoint import load_checkpoint
     from neulf_core.train import TrainConfig, train
 
-    monkeypatch.setattr(train_module, "POSE_CHECK_STEP", 8)
+    monkeypatch.setattr(poses_module, "POSE_CHECK_STEP", 8)
     monkeypatch.setattr(poses_module, "POSE_CHECK_DEGREES", 0.0)  # any correction: off
     steps = iter(range(1000))
     first = []
@@ -437,10 +434,10 @@ def test_the_pose_check_finds_poses_that_are_off(tiny_scene, tmp_path):
 
 
 def test_a_minutes_budget_that_ends_before_the_pose_check_is_checked_at_its_end(tiny_scene, tmp_path, monkeypatch):
-    import neulf_core.train as train_module
+    import neulf_core.poses as poses_module
     from neulf_core.train import TrainConfig, train
 
-    monkeypatch.setattr(train_module, "POSE_CHECK_STEP", 10 ** 6)
+    monkeypatch.setattr(poses_module, "POSE_CHECK_STEP", 10 ** 6)
     events = []
     result = train(tiny_scene, tmp_path / "m", TrainConfig(minutes=0.01, max_passes=0, batch_size=256, teacher=False),
                    progress=events.append)
@@ -487,12 +484,11 @@ def test_an_unsure_pose_check_refines_on_and_decides_at_its_second_look(tiny_sce
     still undecided in its checkpoint), and the second look decides.  A run stopped between
     the two looks resumes undecided and looks again at the second look's step."""
     import neulf_core.poses as poses_module
-    import neulf_core.train as train_module
     from neulf_core.checkpoint import load_checkpoint
     from neulf_core.train import TrainConfig, train
 
-    monkeypatch.setattr(train_module, "POSE_CHECK_STEP", 5)
-    monkeypatch.setattr(train_module, "POSE_SECOND_LOOK_STEP", 9)
+    monkeypatch.setattr(poses_module, "POSE_CHECK_STEP", 5)
+    monkeypatch.setattr(poses_module, "POSE_SECOND_LOOK_STEP", 9)
     monkeypatch.setattr(poses_module, "POSE_CHECK_DEGREES", 1e9)
     monkeypatch.setattr(poses_module, "POSE_CHECK_UNSURE_DEGREES", 0.0)  # every first look unsure
     monkeypatch.setattr(poses_module, "POSE_SECOND_LOOK_DEGREES", second_threshold)
@@ -557,12 +553,12 @@ def test_a_held_out_cameras_pose_is_fitted_to_its_photo(tiny_scene, tmp_path, ca
 
 
 def test_the_far_off_bar_is_higher_for_many_photos_the_points_held():
-    """train.poses_far_off: with more than COARSE_TO_FINE_MAX_VIEWS photos whose first steps
+    """pose_check.poses_far_off: with more than COARSE_TO_FINE_MAX_VIEWS photos whose first steps
     the SfM points' depth held, the field starts again only from MANY_PHOTOS_FAR_OFF_POSE_DEGREES
     (there the corrections do not stall at moderate error: docs/STABILITY.md); with fewer
     photos, or nothing holding the first steps (`--refine-poses`), from FAR_OFF_POSE_DEGREES."""
-    from neulf_core.train import (COARSE_TO_FINE_MAX_VIEWS, FAR_OFF_POSE_DEGREES, MANY_PHOTOS_FAR_OFF_POSE_DEGREES,
-                                  poses_far_off)
+    from neulf_core.pose_check import FAR_OFF_POSE_DEGREES, MANY_PHOTOS_FAR_OFF_POSE_DEGREES, poses_far_off
+    from neulf_core.rules import COARSE_TO_FINE_MAX_VIEWS
 
     few, many = COARSE_TO_FINE_MAX_VIEWS, COARSE_TO_FINE_MAX_VIEWS + 1
     assert FAR_OFF_POSE_DEGREES < MANY_PHOTOS_FAR_OFF_POSE_DEGREES
@@ -579,7 +575,7 @@ def test_the_far_off_restart_keeps_the_texture_for_many_photos_the_points_held(v
     the far-off restart starts only the geometry again (fresh, its Adam moments gone); the
     texture and the colour decoder keep their weights and moments.  Otherwise all starts again.
     The geometry is the depth layers too; their smoothness rises with the planes'."""
-    import neulf_core.train as train_module
+    import neulf_core.pose_check as pose_check_module
     from neulf_core.fields import build_field, make_config
 
     torch.manual_seed(0)
@@ -595,7 +591,7 @@ def test_the_far_off_restart_keeps_the_texture_for_many_photos_the_points_held(v
             return 1.0
 
     meta = {"point_depth": {"rays": 10}} if points_held else {}
-    train_module._restart_for_far_off_poses(field, optimizer, FarOff(), meta, None, 100, 0, fraction=0.1,
+    pose_check_module.restart_for_far_off_poses(field, optimizer, FarOff(), meta, None, 100, 0, fraction=0.1,
                                             n_train_views=views)
     assert meta["field_restart"]["geometry_only"] is geometry_only
     with torch.random.fork_rng(devices=[]):
@@ -608,7 +604,7 @@ def test_the_far_off_restart_keeps_the_texture_for_many_photos_the_points_held(v
         assert (optimizer.state.get(parameter) in (None, {})) is started, name
     assert torch.equal(after["textures.0"], before["textures.0"]) is geometry_only
     assert not torch.equal(after["layers"], before["layers"])  # (geometry: started again either way)
-    factor = train_module.FAR_OFF_GEOMETRY_TV
+    factor = pose_check_module.FAR_OFF_GEOMETRY_TV
     assert field.field_config["tv_weight"] == pytest.approx(factor * tv)
     assert field.field_config["geometry_layer_tv"] == pytest.approx(factor * layer_tv)
     assert meta["field_restart"]["depth_layers"] is True
@@ -625,18 +621,20 @@ def test_far_off_poses_restart_the_field_with_smoother_geometry(tiny_scene, tmp_
     resumed run keeps the smoother geometry and does not restart again.  Deep scenes and
     smaller corrections train on as they were.  With few photos (`few`: the tiny scene's 7
     counted as few) the restarted texture also sharpens coarse to fine from the check on."""
-    import neulf_core.train as train_module
+    import neulf_core.pose_check as pose_check_module
+    import neulf_core.poses as poses_module
     from neulf_core.checkpoint import load_checkpoint
     from neulf_core.fields import build_field, make_config
     from neulf_core.slab import Slab
-    from neulf_core.train import FAR_OFF_GEOMETRY_TV, TrainConfig, train
+    from neulf_core.train import TrainConfig, train
+    from neulf_core.pose_check import FAR_OFF_GEOMETRY_TV
 
-    monkeypatch.setattr(train_module, "POSE_CHECK_STEP", 5)
-    monkeypatch.setattr(train_module, "FAR_OFF_POSE_DEGREES", threshold)
-    monkeypatch.setattr(train_module, "MANY_PHOTOS_FAR_OFF_POSE_DEGREES", threshold)
+    monkeypatch.setattr(poses_module, "POSE_CHECK_STEP", 5)
+    monkeypatch.setattr(pose_check_module, "FAR_OFF_POSE_DEGREES", threshold)
+    monkeypatch.setattr(pose_check_module, "MANY_PHOTOS_FAR_OFF_POSE_DEGREES", threshold)
     monkeypatch.setattr(Slab, "is_deep", property(lambda self: deep))
-    monkeypatch.setattr(train_module, "FEW_PHOTOS_TEXTURE_MAX_VIEWS", 7 if few else 6)
-    real, seen = train_module._restart_for_far_off_poses, {}
+    monkeypatch.setattr(pose_check_module, "FEW_PHOTOS_TEXTURE_MAX_VIEWS", 7 if few else 6)
+    real, seen = pose_check_module.restart_for_far_off_poses, {}
 
     def watched(field_module, optimizer, poses, meta, progress, step, seed, **kwargs):
         before = {k: v.clone() for k, v in field_module.state_dict().items()}
@@ -649,7 +647,7 @@ def test_far_off_poses_restart_the_field_with_smoother_geometry(tiny_scene, tmp_
                     state=[optimizer.state.get(p) for p in field_module.parameters()],
                     config=dict(field_module.field_config))
 
-    monkeypatch.setattr(train_module, "_restart_for_far_off_poses", watched)
+    monkeypatch.setattr(pose_check_module, "restart_for_far_off_poses", watched)
     events = []
     train(tiny_scene, tmp_path / "m", TrainConfig(steps=12, batch_size=512, refine_poses=True, teacher=False),
           progress=events.append)

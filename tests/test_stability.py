@@ -164,7 +164,8 @@ def test_study_runs_end_to_end(stability, tiny_scene, tmp_path, monkeypatch):
     # each member at its own, where the minutes rule made two (3 s pass over them far more
     # than 60 times on most machines).
     from conftest import TINY_HEIGHT, TINY_WIDTH
-    from neulf_core.train import TrainConfig, losses_by_default, pass_step_limit
+    from neulf_core.train import TrainConfig
+    from neulf_core.rules import losses_by_default, pass_step_limit
     limit = pass_step_limit(TrainConfig(), "disparity", 4, 4 * TINY_WIDTH * TINY_HEIGHT, 8192)
     assert all(r["train_seconds"] >= 2.5 or r["steps_done"] == (r.get("members") or 1) * limit for r in timed), \
         [(r["train_seconds"], r["steps_done"], r.get("members"), limit) for r in timed]
@@ -522,7 +523,7 @@ def test_the_fewer_views_target_states_its_standard_error(stability):
 
 
 def test_a_deep_scene_trained_with_other_surfaces_is_run_again(stability, tiny_scene, tmp_path):
-    """Since deep scenes train with a back surface (train.default_back_surface) whose features
+    """Since deep scenes train with a back surface (rules.default_back_surface) whose features
     the fast preset blends (DisparityConfig.back_surface_blend), a fast run of one logged
     without `back_surface` (or with an empty CSV cell), or with a back surface but no blend or
     the colour blend, is trained again; one logged since, a shallow scene's, the paper
@@ -558,7 +559,7 @@ def test_a_run_whose_losses_the_rule_now_decides_otherwise_is_run_again(stabilit
     is trained again where the pose check found its poses right and its colours were not learned
     (the losses now stop there), and stands where the check kept refining, where none ran, or
     where the colours were learned; runs whose losses were asked for, and minutes runs, stand."""
-    from neulf_core.train import CONSISTENCY_ALWAYS_MAX_VIEWS
+    from neulf_core.rules import CONSISTENCY_ALWAYS_MAX_VIEWS
 
     # (66 steps, 22 passes: enough for the losses, and two members by the members rule, as logged;
     # the surfaces and the fade as the default's now)
@@ -598,12 +599,12 @@ def test_the_losses_table_says_how_long_the_defaults_losses_ran(stability):
 
 def test_a_run_that_started_its_field_again_otherwise_than_the_rule_now_decides_is_run_again(stability, tiny_scene,
                                                                                              tmp_path):
-    """train.poses_far_off: a logged run of a shallow scene that refined its poses and started
+    """pose_check.poses_far_off: a logged run of a shallow scene that refined its poses and started
     its field again (or not) otherwise than the rule now decides from what it logged is run
     again.  Rows logged before the far-off check was: the default's judged by its pose check's
     statistic (the preset's points held its first steps), forced ones stand (no points: the
     old rule's bar)."""
-    from neulf_core.train import FAR_OFF_POSE_DEGREES, MANY_PHOTOS_FAR_OFF_POSE_DEGREES
+    from neulf_core.pose_check import FAR_OFF_POSE_DEGREES, MANY_PHOTOS_FAR_OFF_POSE_DEGREES
 
     job = stability.Job("tiny", str(tiny_scene), str(tiny_scene), 1.0, "fast", 80, 0, pose_degrees=0.5)
     between = (FAR_OFF_POSE_DEGREES + MANY_PHOTOS_FAR_OFF_POSE_DEGREES) / 2

@@ -72,7 +72,7 @@ class DisparityConfig:
     # from the slab origin, so a depth edge near one of them stays put as the camera moves.
     # Sharper depth and +1.2 dB on the dense HCI light field, +0.45 dB on Statue, but -0.25 dB
     # on fern and -0.5 dB on the synthetic scene (wide depth ranges), ~10 % slower per step:
-    # the trainer turns them on for shallow scenes only (train.default_depth_layers).
+    # the trainer turns them on for shallow scenes only (rules.default_depth_layers).
     geometry_layers: int = 0
     geometry_layer_res: int = 128
     geometry_layer_channels: int = 2
@@ -92,7 +92,7 @@ class DisparityConfig:
     depth_detail_channels: int = 4
     # How many times a ray reads the detail, each time where the last correction put its surface
     # point (as parallax mapping iterates).  The trainer reads it twice for captures of at most
-    # 13 photos (train.default_depth_detail_reads): there the planes' depth is further off, and
+    # 13 photos (rules.default_depth_detail_reads): there the planes' depth is further off, and
     # a read where it puts the point learns a correction for the wrong point.  The synthetic
     # scene at 2400 steps, seeds 0 / 1, two reads against one: 4 views +0.27 / +0.21 dB, 7
     # views +0.23 / +0.12, but 14 views -0.19 / -0.19 (a higher training PSNR: with many photos
@@ -102,13 +102,13 @@ class DisparityConfig:
     depth_detail_reads: int = 1
     # Coarse to fine: the finer geometry scales fade in over this share of the training budget
     # (0: all from the start); the trainer sets it for captures of few photos
-    # (train.default_coarse_to_fine).
+    # (rules.default_coarse_to_fine).
     geometry_coarse_to_fine: float = 0.0
     # Texture coarse to fine: the texture's finer levels fade in, coarse to fine, over this
     # share of the training budget from `texture_ramp_start` on (0: all from the start), as
     # BARF fades in its encoding so that poses can be registered against a blurred scene
     # first.  The trainer sets it where it restarts the field for far-off poses with few
-    # photos (train.FEW_PHOTOS_TEXTURE_COARSE_TO_FINE; start_texture_coarse_to_fine).
+    # photos (pose_check.FEW_PHOTOS_TEXTURE_COARSE_TO_FINE; start_texture_coarse_to_fine).
     texture_coarse_to_fine: float = 0.0
     texture_ramp_start: float = 0.0
     # A back surface (`train --back-surface`): each ray sees a front surface and one behind it,
@@ -118,7 +118,7 @@ class DisparityConfig:
     # texel of neither, where two can blend two right colours as the photo's pixel does.  As
     # measured the gain is mostly elsewhere: on the synthetic scene +0.02 / +0.11 dB inside the
     # shiny objects' mask (their outlines included), +0.38 outside it (docs/VIEW_DEPENDENCE.md).
-    # The trainer turns it on for deep scenes (train.default_back_surface, with the numbers).
+    # The trainer turns it on for deep scenes (rules.default_back_surface, with the numbers).
     # Off here, so models saved before read as they were.
     back_surface: bool = False
     # How the two surfaces mix: "colour" decodes each surface's texture features to a colour and
