@@ -18,7 +18,8 @@ for (CanClip), the per-photo exposure compensation, few photos (4), and a run ca
 A fingerprint holds, for every checkpoint a model folder holds (members too), a SHA-256 of each
 tensor (weights, optimizer state, pose corrections, exposure transforms) and every number and
 string of its metadata and progress, timings left out, and a hash of the progress events the
-run reported.  Used in the seventieth session for the trainer's rewrite (docs/STABILITY.md).
+run reported.  Used in the seventieth session for the trainer's rewrite and in the seventy-first for
+moving its rules into rules.py and pose_check.py (docs/STABILITY.md).
 """
 
 from __future__ import annotations

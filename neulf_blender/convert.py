@@ -13,6 +13,8 @@ import math
 
 import numpy as np
 
+from ..neulf_core.exr import NO_DEPTH, depth_for_compositing, srgb_to_linear  # noqa: F401 (the extension's)
+
 FLIP = np.diag([1.0, -1.0, -1.0, 1.0])  # COLMAP camera axes <-> Blender camera axes
 SENSOR_WIDTH = 36.0
 
@@ -141,17 +143,7 @@ def image_rows_for_blender(rgb: np.ndarray, alpha: float = 1.0) -> np.ndarray:
     return rgba.ravel()
 
 
-NO_DEPTH = 1e10  # what Cycles' Depth pass holds where a pixel sees no surface
-
-
 def depth_rows_for_blender(depth: np.ndarray) -> np.ndarray:
     """(H, W) depth along the view axis, top-row-first, NaN where the light field has none ->
-    flat float32 bottom-row-first for a Z pass, NaN as Cycles' empty pixels (a compositor's
-    Z Combine or Defocus then treats them as far away, not as a hole)."""
-    depth = np.asarray(depth, dtype=np.float32)[::-1]
-    return np.where(np.isfinite(depth), depth, np.float32(NO_DEPTH)).astype(np.float32).ravel()
-
-
-def srgb_to_linear(rgb: np.ndarray) -> np.ndarray:
-    rgb = np.clip(np.asarray(rgb, dtype=np.float32), 0.0, 1.0)
-    return np.where(rgb <= 0.04045, rgb / 12.92, ((rgb + 0.055) / 1.055) ** 2.4).astype(np.float32)
+    flat float32 bottom-row-first for a Z pass, NaN as Cycles' empty pixels (NO_DEPTH)."""
+    return depth_for_compositing(depth)[::-1].ravel()

@@ -176,14 +176,18 @@ def _load_cameras_json(path: Path) -> list[dict]:
     return parsed
 
 
-def _save_rendering(out: Path, stem: str, rendering, want_depth: bool) -> None:
+def _save_rendering(out: Path, stem: str, rendering, want_depth: bool, exr: bool = False) -> None:
+    from .exr import rendering_channels, write_exr
     from .images import save_rgb
     from .video import depth_to_colour
 
     save_rgb(out / f"{stem}.png", rendering.rgb)
-    if want_depth and rendering.depth is not None:
-        np.save(out / f"{stem}_depth.npy", rendering.depth.astype(np.float32))
-        save_rgb(out / f"{stem}_depth.png", depth_to_colour(rendering.depth))
+    depth = rendering.depth if want_depth else None
+    if depth is not None:
+        np.save(out / f"{stem}_depth.npy", depth.astype(np.float32))
+        save_rgb(out / f"{stem}_depth.png", depth_to_colour(depth))
+    if exr:
+        write_exr(out / f"{stem}.exr", rendering_channels(rendering.rgb, depth))
     for note in rendering.warnings:
         print(f"warning ({stem}): {note}", file=sys.stderr)
 
@@ -265,7 +269,7 @@ def cmd_render(args) -> int:
             if not rendering.valid.any():  # a picture of the background colour only: say so, render the rest
                 blind.append(cam["name"])
                 continue
-            _save_rendering(out, cam["name"], rendering, args.depth)
+            _save_rendering(out, cam["name"], rendering, args.depth, args.exr)
             count += 1
         if blind:
             raise NeulfError(_looking_away(blind, light_field, count, out))
@@ -284,7 +288,7 @@ def cmd_render(args) -> int:
                 rendering = _render_pinhole(light_field, cam, args, focus_options)
             else:
                 rendering = light_field.render_view(view, scale, depth=args.depth, pixel_samples=args.pixel_samples)
-            _save_rendering(out, view.stem, rendering, args.depth)
+            _save_rendering(out, view.stem, rendering, args.depth, args.exr)
             count += 1
     print(f"rendered {count} image(s) into {out} in {time.perf_counter() - started:.1f} s")
     return 0
@@ -483,6 +487,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--cameras", help="JSON file of pinhole cameras (see README)")
     p.add_argument("--out", required=True)
     p.add_argument("--depth", action="store_true", help="also write <stem>_depth.npy and a colour map")
+    p.add_argument("--exr", action="store_true",
+                   help="also write <stem>.exr for compositing: R, G, B scene-linear float and, with --depth, Z "
+                        "(depth along the optical axis, scene units; 1e10 where none, as Cycles)")
     p.add_argument("--scale", type=float, help="image scale (default: the trained scale)")
     p.add_argument("--focus-distance", type=float, help="refocus: focal depth along the optical axis (scene units)")
     p.add_argument("--aperture", type=float, default=0.0, help="refocus: lens radius in scene units (0: pinhole)")

@@ -592,6 +592,19 @@ def test_cli_train_render_eval(cli_model, tiny_scene, tmp_path, capfd):
         assert Image.open(out / f"{stem}_depth.png").size == (48, 36)
     assert "rendered 2 image(s)" in capfd.readouterr().out
 
+    # The same for compositing: --exr writes the colour scene-linear and the depth as Z.
+    from exr_file import read_exr
+    from neulf_core.exr import srgb_to_linear
+
+    assert main(["render", str(cli_model), "--scene", str(tiny_scene), "--views", "view_00", "--depth", "--exr",
+                 "--out", str(out)]) == 0
+    channels = read_exr(out / "view_00.exr")
+    assert sorted(channels) == ["B", "G", "R", "Z"] and channels["Z"].shape == (36, 48)
+    assert np.array_equal(channels["Z"], np.load(out / "view_00_depth.npy"))  # finite here: no 1e10
+    png = np.asarray(Image.open(out / "view_00.png"), np.float32) / 255
+    linear = np.stack([channels[c] for c in "RGB"], axis=2)
+    assert np.abs(linear - srgb_to_linear(png)).max() < 0.01  # the PNG rounds the same colours to 8 bits
+
     # Arbitrary pinhole cameras from JSON, at another size.
     cams = tmp_path / "cams.json"
     R = np.eye(3)
