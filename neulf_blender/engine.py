@@ -57,7 +57,8 @@ class NeulfRenderEngine(bpy.types.RenderEngine):
             return
         width, height = request["width"], request["height"]
         rgb = convert.srgb_to_linear(result["rgb"])  # the Combined pass is scene-linear
-        render_result = self.begin_result(0, 0, width, height)
+        # Blender calls render once for each view layer: this call's result is its own layer's.
+        render_result = self.begin_result(0, 0, width, height, layer=depsgraph.view_layer.name)
         passes = render_result.layers[0].passes
         passes["Combined"].rect.foreach_set(convert.image_rows_for_blender(rgb))
         if want_depth and result.get("depth") is not None and "Depth" in passes:

@@ -141,15 +141,18 @@ class NEULF_PT_view_layer_passes(bpy.types.Panel):
 
 
 def multilayer_exr_hint(scene) -> str | None:
-    """Blender 5.0.1 fails to save any multilayer EXR whose pixels are not square ("Error
-    writing render result"; Cycles too), and a capture whose fx and fy differ gets such pixels."""
+    """Blender 5.0.1 fails to save a multilayer EXR whose pixels are not square once it holds
+    more than the Combined pass ("Error writing render result"; Cycles' renders too), and a
+    capture whose fx and fy differ gets such pixels.  Said for 5.0, where it was seen (4.2 saves
+    them); later versions are unchecked."""
     render = scene.render
-    if bpy.app.version < (5, 0, 0) or render.pixel_aspect_x == render.pixel_aspect_y:
+    if bpy.app.version[:2] != (5, 0) or render.pixel_aspect_x == render.pixel_aspect_y:
         return None
     if not any(layer.use_pass_z for layer in scene.view_layers):
         return None
-    return ("Blender 5.0 cannot save a multilayer EXR with non-square pixels (Output > Format > Aspect, "
-            "set from this capture's camera): save the Z pass as its own EXR with a compositor File Output node.")
+    return ("Blender 5.0 cannot save a multilayer EXR with a Z pass and non-square pixels (Output > Format > "
+            "Aspect, set from this capture's camera): save the Z pass as its own EXR with a compositor File "
+            "Output node.")
 
 
 CLASSES = (NEULF_PT_main, NEULF_PT_view_layer_passes)

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import os
 import struct
+import tempfile
 from pathlib import Path
 
 import numpy as np
@@ -41,9 +42,12 @@ def write_exr(path: str | Path, channels: dict[str, np.ndarray]) -> None:
     if not channels:
         raise ValueError("an EXR file needs at least one channel")
     planes = {name: np.ascontiguousarray(plane, dtype="<f4") for name, plane in sorted(channels.items())}
-    height, width = next(iter(planes.values())).shape
-    if any(plane.shape != (height, width) for plane in planes.values()):
-        raise ValueError("every channel of an EXR file has the same size")
+    shape = next(iter(planes.values())).shape
+    if any(plane.shape != shape for plane in planes.values()) or len(shape) != 2:
+        raise ValueError("every channel of an EXR file is an image (height, width) of the same size")
+    height, width = shape
+    if not height or not width:
+        raise ValueError("an EXR file holds at least one pixel")
     header = _header(list(planes), width, height)
     line_bytes = 8 + 4 * width * len(planes)  # y, byte count, then each channel's row
     first_line = len(header) + 8 * height  # after the header and the offset table
@@ -54,9 +58,14 @@ def write_exr(path: str | Path, channels: dict[str, np.ndarray]) -> None:
         lines += struct.pack("<ii", y, 4 * width * len(planes)) + rows[y].tobytes()
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    partial = path.with_name(path.name + ".partial")
-    partial.write_bytes(header + offsets.tobytes() + bytes(lines))
-    os.replace(partial, path)
+    descriptor, partial = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".partial", dir=path.parent)
+    try:
+        with os.fdopen(descriptor, "wb") as file:
+            file.write(header + offsets.tobytes() + bytes(lines))
+        os.replace(partial, path)
+    finally:
+        if os.path.exists(partial):
+            os.unlink(partial)
 
 
 def _header(names: list[str], width: int, height: int) -> bytes:

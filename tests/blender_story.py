@@ -598,20 +598,32 @@ def run_story(setup: dict) -> None:  # noqa: C901 - one story, told in order
             bpy.context.view_layer.update()
 
     def _f12_depth_pass(scene):
-        """F12 with the view layer's Z pass on, saved as a multilayer EXR (what a compositor
+        """F12 with a view layer's Z pass on, saved as a multilayer EXR (what a compositor
         reads): its Depth is render_camera's depth in scene units, its Combined render_camera's
-        image.  With square pixels: Blender 5.0.1 cannot write a multilayer EXR whose pixel
-        aspect is not 1 (Cycles neither; the panel says so), and this capture's pixels are not."""
+        image; each view layer gets its own passes (a second layer asks for Z, the first does
+        not), and a root scaled 2.5 times scales the depth so.  With square pixels: Blender
+        5.0.1 cannot write a multilayer EXR with a Z pass whose pixel aspect is not 1 (Cycles
+        neither; the panel says so), and this capture's pixels are not."""
         from exr_file import read_exr
 
-        render, settings, view_layer = scene.render, scene.render.image_settings, scene.view_layers[0]
+        render, settings, first = scene.render, scene.render.image_settings, scene.view_layers[0]
         aspect, depth = (render.pixel_aspect_x, render.pixel_aspect_y), settings.color_depth
         assert aspect[0] != aspect[1], aspect  # the capture's fx != fy
         panel = bpy.types.NEULF_PT_view_layer_passes
         assert panel.poll(bpy.context)  # the pass's checkbox is shown with the NeuLF engine
-        view_layer.use_pass_z = True
+        first.use_pass_z = True
         hint = mod("panel").multilayer_exr_hint(scene)
-        assert (hint is not None) == (bpy.app.version >= (5, 0, 0)), hint
+        assert (hint is not None) == (bpy.app.version[:2] == (5, 0)), hint
+        first.use_pass_z = False
+        second = scene.view_layers.new("Second")
+        second.use_pass_z = True
+        r, original = root(), root().matrix_world.copy()
+
+        def f12(name):
+            render.filepath = str(work / name)
+            bpy.ops.render.render(write_still=True)
+            return read_exr(work / name)
+
         try:
             render.pixel_aspect_x = render.pixel_aspect_y = 1.0
             assert mod("panel").multilayer_exr_hint(scene) is None
@@ -621,28 +633,38 @@ def run_story(setup: dict) -> None:  # noqa: C901 - one story, told in order
                 settings.media_type = "MULTI_LAYER_IMAGE"  # (5.0; 4.2 has no media_type)
             settings.file_format = "OPEN_EXR_MULTILAYER"
             settings.color_depth, settings.exr_codec = "32", "NONE"
-            render.filepath = str(work / "f12_passes.exr")
-            bpy.ops.render.render(write_still=True)
-            channels = read_exr(work / "f12_passes.exr")
+            channels = f12("f12_passes.exr")
+            r.matrix_world = original @ Matrix.Scale(2.5, 4)  # the camera, a child of the root, with it
+            bpy.context.view_layer.update()
+            scaled = f12("f12_passes_scaled.exr")
         finally:
-            view_layer.use_pass_z = False
+            r.matrix_world = original
+            scene.view_layers.remove(second)
+            bpy.context.view_layer.update()
             render.pixel_aspect_x, render.pixel_aspect_y = aspect
             if hasattr(settings, "media_type"):
                 settings.media_type = "IMAGE"
             settings.file_format, settings.color_depth = "PNG", depth
-        layer = next(name.split(".")[0] for name in channels if name.endswith(".Depth.Z"))
-        z = channels[f"{layer}.Depth.Z"]
-        linear = np.stack([channels[f"{layer}.Combined.{c}"] for c in "RGB"], axis=2)
-        srgb = np.where(linear <= 0.0031308, 12.92 * linear, 1.055 * np.clip(linear, 0, None) ** (1 / 2.4) - 0.055)
-        colour = np.abs(srgb - reference).max()
-        assert colour <= 1 / 255 + 1e-6, colour
+        layers = sorted({name.split(".")[0] for name in channels})
+        assert layers == sorted([first.name, "Second"]), layers
+        assert f"{first.name}.Depth.Z" not in channels  # no Z asked for there
+        z = channels["Second.Depth.Z"]
+        for layer in layers:  # each layer its own image (before, the second overwrote the first's)
+            linear = np.stack([channels[f"{layer}.Combined.{c}"] for c in "RGB"], axis=2)
+            srgb = np.where(linear <= 0.0031308, 12.92 * linear,
+                            1.055 * np.clip(linear, 0, None) ** (1 / 2.4) - 0.055)
+            colour = np.abs(srgb - reference).max()
+            assert colour <= 1 / 255 + 1e-6, (layer, colour)
         seen = reference_depth > 0  # render_camera's depth image holds 0 where the field has none
         assert seen.mean() > 0.9, seen.mean()
         error = np.abs(z[seen] - reference_depth[seen]).max() / reference_depth[seen].max()
         assert error < 1e-4, error
         assert np.all(z[~seen] == np.float32(1e10)), np.unique(z[~seen])
+        ratio = np.median(scaled["Second.Depth.Z"][seen] / z[seen])
+        assert abs(ratio - 2.5) < 1e-3, ratio
         return (f"its Z pass in a multilayer EXR is render_camera's depth (median {np.median(z[seen]):.3f}, "
-                f"largest difference {error:.1e} of the farthest; {np.count_nonzero(~seen)} pixels empty) and its "
+                f"largest difference {error:.1e} of the farthest; {np.count_nonzero(~seen)} pixels empty), "
+                f"{ratio:.4f} times it with the root scaled 2.5 times, each of 2 view layers its own passes, and its "
                 f"Combined render_camera's image within {colour * 255:.2f}/255"
                 + (f"; non-square pixels: '{hint}'" if hint else ""))
 

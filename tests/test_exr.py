@@ -31,11 +31,16 @@ def test_written_channels_read_back_exactly(tmp_path):
     assert [p.name for p in tmp_path.iterdir()] == ["a.exr"]  # written beside and renamed: no partial file left
 
 
-def test_channels_of_other_sizes_or_none_are_refused(tmp_path):
+def test_channels_of_other_sizes_none_or_empty_are_refused(tmp_path):
     with pytest.raises(ValueError, match="same size"):
         write_exr(tmp_path / "b.exr", {"R": np.zeros((2, 3)), "G": np.zeros((3, 2))})
-    with pytest.raises(ValueError, match="at least one"):
+    with pytest.raises(ValueError, match="same size"):
+        write_exr(tmp_path / "b.exr", {"R": np.zeros((2, 3, 3))})
+    with pytest.raises(ValueError, match="at least one channel"):
         write_exr(tmp_path / "b.exr", {})
+    with pytest.raises(ValueError, match="at least one pixel"):  # (Blender's reader refuses such a file)
+        write_exr(tmp_path / "b.exr", {"R": np.zeros((0, 3))})
+    assert list(tmp_path.iterdir()) == []
 
 
 def test_a_renderings_channels_are_linear_colour_and_compositing_depth():
