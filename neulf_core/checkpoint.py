@@ -13,14 +13,13 @@ from __future__ import annotations
 
 import io
 import json
-import os
-import tempfile
 import zipfile
 from pathlib import Path
 
 import torch
 
 from .errors import NeulfError
+from .files import atomic_write_bytes
 
 FORMAT = "neulf-checkpoint"
 VERSION = 1
@@ -41,22 +40,6 @@ GRID_MIN_DIMS = 3
 # resumed run trains on (train._train); "state_dict" holds them filled, for rendering.
 TRAINING_STATE_KEY = "state_dict_before_fill"
 NOT_FOR_RENDERING = ("state_dict", "optimizer", "rng", TRAINING_STATE_KEY)
-
-
-def atomic_write_bytes(path: Path, data: bytes) -> None:
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as handle:
-            handle.write(data)
-            handle.flush()
-            os.fsync(handle.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
 
 
 def _torch_bytes(obj) -> bytes:

@@ -10,12 +10,12 @@ openexr.com): one part, scanlines, no compression, 32-bit float channels.
 
 from __future__ import annotations
 
-import os
 import struct
-import tempfile
 from pathlib import Path
 
 import numpy as np
+
+from .files import atomic_write_bytes
 
 MAGIC = 20000630
 VERSION = 2  # single part, scanlines, short names
@@ -37,8 +37,8 @@ def depth_for_compositing(depth: np.ndarray) -> np.ndarray:
 
 
 def write_exr(path: str | Path, channels: dict[str, np.ndarray]) -> None:
-    """Write (H, W) float channels, row 0 at the top, to an uncompressed OpenEXR file; written
-    beside and renamed into place, so a reader never sees half a file."""
+    """Write (H, W) float channels, row 0 at the top, to an uncompressed OpenEXR file (atomically:
+    files.atomic_write_bytes)."""
     if not channels:
         raise ValueError("an EXR file needs at least one channel")
     planes = {name: np.ascontiguousarray(plane, dtype="<f4") for name, plane in sorted(channels.items())}
@@ -56,16 +56,7 @@ def write_exr(path: str | Path, channels: dict[str, np.ndarray]) -> None:
     lines = bytearray()
     for y in range(height):
         lines += struct.pack("<ii", y, 4 * width * len(planes)) + rows[y].tobytes()
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    descriptor, partial = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".partial", dir=path.parent)
-    try:
-        with os.fdopen(descriptor, "wb") as file:
-            file.write(header + offsets.tobytes() + bytes(lines))
-        os.replace(partial, path)
-    finally:
-        if os.path.exists(partial):
-            os.unlink(partial)
+    atomic_write_bytes(path, header + offsets.tobytes() + bytes(lines))
 
 
 def _header(names: list[str], width: int, height: int) -> bytes:

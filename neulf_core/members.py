@@ -211,7 +211,7 @@ def _start_state(model_dir: Path, count: int, seed: int, split: str = "steps") -
 
 
 def _write_state(model_dir: Path, state: dict) -> None:
-    from .checkpoint import atomic_write_bytes
+    from .files import atomic_write_bytes
 
     atomic_write_bytes(Path(model_dir) / STATE_NAME, json.dumps(state, indent=2).encode())
 

@@ -44,8 +44,9 @@ from dataclasses import replace
 from pathlib import Path
 from typing import Callable
 
-from .checkpoint import (CHECKPOINT_NAME, METADATA_NAME, MODEL_NAME, atomic_write_bytes, checkpoint_path,
+from .checkpoint import (CHECKPOINT_NAME, METADATA_NAME, MODEL_NAME, checkpoint_path,
                          remove_stale_temporaries)
+from .files import atomic_write_bytes
 from .scene import Scene, load_scene
 
 STATE_NAME = "starts.json"

@@ -18,7 +18,8 @@ from PIL import Image
 from skimage.metrics import peak_signal_noise_ratio, structural_similarity
 
 from conftest import assert_same_weights
-from neulf_core.checkpoint import CHECKPOINT_NAME, METADATA_NAME, atomic_write_bytes, load_checkpoint
+from neulf_core.checkpoint import CHECKPOINT_NAME, METADATA_NAME, load_checkpoint
+from neulf_core.files import atomic_write_bytes
 from neulf_core.cli import main
 from neulf_core.errors import NeulfError
 from neulf_core.metrics import psnr, ssim
@@ -375,6 +376,29 @@ def test_atomic_write_failure_keeps_the_old_file(tmp_path):
     assert [p.name for p in tmp_path.iterdir()] == ["file.bin"]
     atomic_write_bytes(target, b"new")
     assert target.read_bytes() == b"new" and [p.name for p in tmp_path.iterdir()] == ["file.bin"]
+
+
+@pytest.mark.skipif(os.name != "posix", reason="file modes are POSIX")
+def test_written_files_get_the_users_permissions(tmp_path, cli_model):
+    """A model, a render's EXR: readable by the user's group and others as any file the user
+    writes (0666 less the umask), not 0600 as tempfile.mkstemp made them (a render farm or a
+    second account could not read the model)."""
+    from neulf_core.exr import write_exr
+
+    previous = os.umask(0o022)
+    try:
+        atomic_write_bytes(tmp_path / "a.bin", b"x")
+        write_exr(tmp_path / "b.exr", {"R": np.zeros((2, 2))})
+        os.umask(0o077)
+        atomic_write_bytes(tmp_path / "c.bin", b"x")
+    finally:
+        os.umask(previous)
+    modes = {p.name: p.stat().st_mode & 0o777 for p in tmp_path.iterdir()}
+    assert modes == {"a.bin": 0o644, "b.exr": 0o644, "c.bin": 0o600}, modes
+    current = os.umask(0o022)
+    os.umask(current)
+    trained = {p.name: p.stat().st_mode & 0o777 for p in cli_model.iterdir() if p.is_file()}
+    assert trained and all(mode == 0o666 & ~current for mode in trained.values()), (trained, oct(current))
 
 
 def rewrite_checkpoint(model: Path, change) -> None:
