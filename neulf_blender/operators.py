@@ -10,7 +10,7 @@ import bpy
 import numpy as np
 from bpy.props import FloatProperty, IntProperty, StringProperty
 
-from . import capture, handlers, jobs, tasks
+from . import capture, compositing, handlers, jobs, tasks
 from .jobs import job_status_text, pose_text
 from .preferences import get_core, get_prefs, worker_python
 from .properties import CHOICE_OPTION
@@ -525,10 +525,28 @@ class NEULF_OT_viewport_preview(_Reporting, bpy.types.Operator):
         return {"FINISHED"}
 
 
+class NEULF_OT_composite_cg(_Reporting, bpy.types.Operator):
+    """Put CG objects into the light field: the objects of the collection 'NeuLF CG Objects' render with Cycles through the scene camera in a second scene, and this scene's compositor shows them in front of or behind the light field by depth (Z Combine)"""
+
+    bl_idname = "neulf.composite_cg"
+    bl_label = "Composite CG Objects"
+    bl_options = {"REGISTER", "UNDO"}
+
+    def run(self, context):
+        from .engine import NeulfRenderEngine
+
+        scene = context.scene
+        cg = compositing.set_up(scene)
+        scene.render.engine = NeulfRenderEngine.bl_idname  # the plate: F12 renders the light field here
+        self.report({"INFO"}, f"objects in the collection '{compositing.CG_COLLECTION}' render in the scene "
+                              f"'{cg.name}' (Cycles) and are composited by depth at F12")
+        return {"FINISHED"}
+
+
 def menu_import(self, context):
     self.layout.operator(NEULF_OT_import_colmap.bl_idname, text="NeuLF Capture (COLMAP/LLFF)")
 
 
 CLASSES = (NEULF_OT_import_colmap, NEULF_OT_reconstruct, NEULF_OT_load_model, NEULF_OT_train, NEULF_OT_cancel_train,
            NEULF_OT_render_camera, NEULF_OT_spiral_path,
-           NEULF_OT_render_video, NEULF_OT_use_capture_camera, NEULF_OT_viewport_preview)
+           NEULF_OT_render_video, NEULF_OT_use_capture_camera, NEULF_OT_viewport_preview, NEULF_OT_composite_cg)

@@ -114,6 +114,7 @@ class NEULF_PT_main(bpy.types.Panel):
         row.prop(props, "spiral_frames")
         row.operator("neulf.spiral_path", text="Spiral Path", icon="CURVE_BEZCIRCLE")
         col.operator("neulf.render_video", icon="RENDER_ANIMATION")
+        col.operator("neulf.composite_cg", icon="NODE_COMPOSITING")
 
 
 class NEULF_PT_view_layer_passes(bpy.types.Panel):

@@ -33,7 +33,7 @@ GRID = [(x, y) for y in (-0.3, 0.0, 0.3) for x in (-0.3, 0.0, 0.3)]
 
 STEPS = ["install", "import", "cameras_match_pycolmap", "slab_planes", "reimport_no_duplicates", "train_blocking",
          "train_options", "train_timer_resume", "train_cancel", "train_cancel_resume", "members", "render_camera", "pixel_samples",
-         "render_worker_process", "focus_at", "pick_focus_frame", "pick_focus_click", "root_scale", "engine_f12", "viewport_preview", "spiral_video", "save_reload",
+         "render_worker_process", "focus_at", "pick_focus_frame", "pick_focus_click", "root_scale", "engine_f12", "composite_cg", "viewport_preview", "spiral_video", "save_reload",
          "blend_moved", "quit_while_training", "reconstruct_photos", "user_errors", "dependencies_status",
          "install_dependencies"]
 
@@ -710,6 +710,111 @@ def run_story(setup: dict) -> None:  # noqa: C901 - one story, told in order
         assert sharpness < 0.5 and abs(blurred.mean() - still.mean()) < 0.03, (sharpness, blurred.mean(), still.mean())
         return (f"F12 matches render_camera within {diff * 255:.1f}/255; {passes}; DOF keeps {sharpness:.0%} of the "
                 f"sharpness (variance of the Laplacian) and changes pixels by {change * 255:.1f}/255 on average")
+
+    def _cube_depth(cg, camera, scene):
+        """Depth along the camera's axis of the CG scene's first surface through each pixel
+        centre (Blender's own ray casts), inf where none."""
+        from mathutils import Vector
+
+        K = mod("capture").camera_request(scene, camera)["K"]
+        frame = camera.matrix_world.to_3x3().normalized()
+        origin, forward = camera.matrix_world.translation.copy(), -frame.col[2]
+        depsgraph = cg.view_layers[0].depsgraph
+        depsgraph.update()  # (4.2 evaluates a scene that is not the window's only when asked)
+        depth = np.full((HEIGHT, WIDTH), np.inf)
+        for row in range(HEIGHT):
+            for col in range(WIDTH):
+                local = Vector(((col + 0.5 - K[0][2]) / K[0][0], -(row + 0.5 - K[1][2]) / K[1][1], -1.0))
+                hit, location, *_ = cg.ray_cast(depsgraph, origin, (frame @ local).normalized())
+                if hit:
+                    depth[row, col] = (location - origin).dot(forward)
+        return depth
+
+    @story.step("composite_cg", "engine_f12")
+    def _():
+        # A CG cube set astride the light field's surface: Composite CG Objects renders it with
+        # Cycles through the scene camera, and F12's compositor shows it where it is nearer than
+        # the light field's depth (Z Combine).  Checked against the cube's own depth, by Blender's
+        # ray casts through each pixel centre, and render_camera's image and depth.
+        from mathutils import Euler
+
+        scene, camera = bpy.context.scene, bpy.context.scene.camera
+        compositing = mod("compositing")
+        plate, plate_depth = ctx["render"], ctx["depth"]
+        frame = camera.matrix_world.to_3x3().normalized()
+        origin, forward = camera.matrix_world.translation.copy(), -frame.col[2]
+        centre = origin + forward * (float(np.median(plate_depth[plate_depth > 0])) + 0.45)  # its front astride
+        half = 0.7
+        corners = [(x, y, z) for x in (-half, half) for y in (-half, half) for z in (-half, half)]
+        faces = [(0, 1, 3, 2), (4, 6, 7, 5), (0, 4, 5, 1), (2, 3, 7, 6), (0, 2, 6, 4), (1, 5, 7, 3)]
+        mesh = bpy.data.meshes.new("story_cg_cube")
+        mesh.from_pydata(corners, [], faces)
+        material = bpy.data.materials.new("story_cg_red")
+        material.use_nodes = True
+        nodes = material.node_tree.nodes
+        nodes.clear()
+        emission, output = nodes.new("ShaderNodeEmission"), nodes.new("ShaderNodeOutputMaterial")
+        emission.inputs["Color"].default_value = (1.0, 0.0, 0.0, 1.0)
+        material.node_tree.links.new(emission.outputs[0], output.inputs["Surface"])
+        mesh.materials.append(material)
+        cube = bpy.data.objects.new("story_cg_cube", mesh)
+        cube.location = centre
+        cube.rotation_euler = Euler((0.5, 0.7, 0.3))  # faces slanted across the light field's surface
+
+        scene.camera = None
+        refused = error_of(lambda: bpy.ops.neulf.composite_cg())  # no camera: said, nothing made
+        scene.camera = camera
+        assert "set a scene camera first" in refused and compositing.cg_scene_name(scene) not in bpy.data.scenes
+        try:
+            users_own = compositing._compositor_tree(scene).nodes.new("CompositorNodeBlur")  # a tree of the user's
+            refused_tree = error_of(lambda: bpy.ops.neulf.composite_cg())
+            assert "compositor node tree of its own" in refused_tree, refused_tree
+            users_own.id_data.nodes.remove(users_own)
+            assert bpy.ops.neulf.composite_cg() == {"FINISHED"}
+            cg = bpy.data.scenes[compositing.cg_scene_name(scene)]
+            bpy.data.collections[compositing.CG_COLLECTION].objects.link(cube)
+            cg.cycles.samples = 16
+            assert bpy.ops.neulf.composite_cg() == {"FINISHED"}  # again: brought up to date, not doubled
+            assert len(cg.collection.children) == 1 and len(cg.collection.objects) == 1
+            settings = scene.render.image_settings
+            if hasattr(settings, "media_type"):
+                settings.media_type = "IMAGE"
+            settings.file_format, settings.color_mode = "PNG", "RGB"
+            scene.render.filepath = str(work / "composite.png")
+            bpy.ops.render.render(write_still=True)
+            composite = load_png(work / "composite.png")
+            cube_depth = _cube_depth(cg, camera, scene)
+        finally:  # the later steps render the light field alone
+            if hasattr(scene, "compositing_node_group"):
+                scene.compositing_node_group = None
+            else:
+                scene.use_nodes = False
+            for leftover in (bpy.data.scenes.get(compositing.cg_scene_name(scene)),):
+                if leftover is not None:
+                    bpy.data.scenes.remove(leftover)
+            if compositing.CG_COLLECTION in bpy.data.collections:
+                bpy.data.collections.remove(bpy.data.collections[compositing.CG_COLLECTION])
+            scene.view_layers[0].use_pass_z = False
+
+        red = np.array([1.0, 0.0, 0.0])
+        inside = np.isfinite(cube_depth)
+        edge = np.zeros_like(inside)  # the cube's outline: antialiased, a blend of both
+        edge[1:-1, 1:-1] = (inside[1:-1, 1:-1] != inside[:-2, 1:-1]) | (inside[1:-1, 1:-1] != inside[2:, 1:-1]) | \
+                           (inside[1:-1, 1:-1] != inside[1:-1, :-2]) | (inside[1:-1, 1:-1] != inside[1:-1, 2:])
+        nearer = inside & (cube_depth < plate_depth - 0.05)
+        behind = inside & (cube_depth > plate_depth + 0.05)
+        clear = ~inside & ~edge
+        assert nearer.sum() > 50 and behind.sum() > 50, (nearer.sum(), behind.sum())  # astride the surface
+        shows_cube = np.abs(composite - red).max(axis=2) < 0.06
+        shows_plate = np.abs(composite - plate).max(axis=2) < 4 / 255
+        interior = ~edge
+        agree_near = (shows_cube & nearer & interior).sum() / (nearer & interior).sum()
+        agree_behind = (shows_plate & behind & interior).sum() / (behind & interior).sum()
+        agree_clear = (shows_plate & clear).sum() / clear.sum()
+        assert agree_near > 0.97 and agree_behind > 0.97 and agree_clear > 0.99, (agree_near, agree_behind, agree_clear)
+        return (f"{refused_tree}; {(nearer & interior).sum()} pixels where the cube is nearer than the light field show the cube "
+                f"({agree_near:.1%}), {(behind & interior).sum()} where it is behind show the light field "
+                f"({agree_behind:.1%}), the rest the light field ({agree_clear:.1%})")
 
     @story.step("viewport_preview", "render_camera")
     def _():
