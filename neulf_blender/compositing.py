@@ -46,6 +46,22 @@ def set_up(scene) -> bpy.types.Scene:
     return cg
 
 
+def out_of_step(scene) -> str | None:
+    """What no longer matches between this scene and its CG scene (size, frames, camera), which
+    Z Combine needs pixel for pixel; None where they match or there is no CG scene."""
+    cg = bpy.data.scenes.get(cg_scene_name(scene))
+    if cg is None or cg is scene:
+        return None
+    differ = [name for name in RENDER_SETTINGS if getattr(cg.render, name) != getattr(scene.render, name)]
+    differ += [name for name in FRAME_SETTINGS if getattr(cg, name) != getattr(scene, name)]
+    if cg.camera != scene.camera:
+        differ.append("camera")
+    if not differ:
+        return None
+    return (f"the CG scene '{cg.name}' differs from this one in {', '.join(differ)}: press Composite CG Objects "
+            "again, so that the CG lines up with the light field")
+
+
 def _cg_collection(scene) -> bpy.types.Collection:
     collection = bpy.data.collections.get(CG_COLLECTION)
     if collection is None:

@@ -11,7 +11,7 @@ from pathlib import Path
 import bpy
 from mathutils import Matrix
 
-from . import capture, convert, viewport
+from . import capture, compositing, convert, viewport
 from ..neulf_core.errors import NeulfError
 
 _RENDERERS = weakref.WeakSet()  # the viewports' PreviewRenderers, for the redraw timer
@@ -66,6 +66,9 @@ class NeulfRenderEngine(bpy.types.RenderEngine):
         self.end_result(render_result)
         for note in result.get("warnings", []):
             self.report({"WARNING"}, note)
+        mismatch = compositing.out_of_step(original)
+        if mismatch:
+            self.report({"WARNING"}, mismatch)
 
     # ------------------------------------------------------------------ the viewport
 

@@ -4,7 +4,7 @@ import textwrap
 
 import bpy
 
-from . import tasks
+from . import compositing, tasks
 from .operators import TRAINED_ELSEWHERE
 
 CHARS_PER_PIXEL = 1 / 7.0  # the UI font's average advance at 1x scale, for wrapping labels
@@ -115,6 +115,9 @@ class NEULF_PT_main(bpy.types.Panel):
         row.operator("neulf.spiral_path", text="Spiral Path", icon="CURVE_BEZCIRCLE")
         col.operator("neulf.render_video", icon="RENDER_ANIMATION")
         col.operator("neulf.composite_cg", icon="NODE_COMPOSITING")
+        mismatch = compositing.out_of_step(context.scene)
+        if mismatch:
+            _wrapped_label(layout, context, mismatch, icon="ERROR")
 
 
 class NEULF_PT_view_layer_passes(bpy.types.Panel):

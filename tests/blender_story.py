@@ -784,6 +784,12 @@ def run_story(setup: dict) -> None:  # noqa: C901 - one story, told in order
             bpy.ops.render.render(write_still=True)
             composite = load_png(work / "composite.png")
             cube_depth = _cube_depth(cg, camera, scene)
+            assert compositing.out_of_step(scene) is None
+            scene.render.resolution_percentage = 50
+            mismatch = compositing.out_of_step(scene)  # F12 and the panel say it
+            assert "resolution_percentage" in mismatch and "press Composite CG Objects again" in mismatch, mismatch
+            assert bpy.ops.neulf.composite_cg() == {"FINISHED"} and compositing.out_of_step(scene) is None
+            scene.render.resolution_percentage = 100
         finally:  # the later steps render the light field alone
             if hasattr(scene, "compositing_node_group"):
                 scene.compositing_node_group = None
