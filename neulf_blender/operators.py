@@ -526,7 +526,7 @@ class NEULF_OT_viewport_preview(_Reporting, bpy.types.Operator):
 
 
 class NEULF_OT_composite_cg(_Reporting, bpy.types.Operator):
-    """Put CG objects into the light field: the objects of the collection 'NeuLF CG Objects' render with Cycles through the scene camera in a second scene, and this scene's compositor shows them in front of or behind the light field by depth (Z Combine)"""
+    """Put CG objects into the light field: the objects of the collection '<scene> CG Objects' render with Cycles through the scene camera in a second scene, and this scene's compositor shows them in front of or behind the light field by depth (Z Combine)"""
 
     bl_idname = "neulf.composite_cg"
     bl_label = "Composite CG Objects"
@@ -536,9 +536,9 @@ class NEULF_OT_composite_cg(_Reporting, bpy.types.Operator):
         from .engine import NeulfRenderEngine
 
         scene = context.scene
-        cg = compositing.set_up(scene)
+        cg = compositing.set_up(scene, context.view_layer)
         scene.render.engine = NeulfRenderEngine.bl_idname  # the plate: F12 renders the light field here
-        self.report({"INFO"}, f"objects in the collection '{compositing.CG_COLLECTION}' render in the scene "
+        self.report({"INFO"}, f"objects in the collection '{scene.neulf.cg_collection.name}' render in the scene "
                               f"'{cg.name}' (Cycles) and are composited by depth at F12")
         return {"FINISHED"}
 

@@ -1,7 +1,7 @@
 """The add-on's settings on the scene: one PropertyGroup, `scene.neulf`."""
 
 import bpy
-from bpy.props import BoolProperty, EnumProperty, FloatProperty, IntProperty, StringProperty
+from bpy.props import BoolProperty, EnumProperty, FloatProperty, IntProperty, PointerProperty, StringProperty
 
 def _relative_path_options() -> set:
     """Blender 4.5+ warns about '//' paths unless the property says it supports them; 4.2
@@ -51,6 +51,12 @@ class NeulfSceneSettings(bpy.types.PropertyGroup):
                               description="Trained NeuLF model folder (stored relative to the .blend)")
     collection_name: StringProperty(name="Collection", description="Collection of the imported capture")
     root_name: StringProperty(name="Root", description="Root empty of the capture: move it to orient the scene")
+    cg_scene: PointerProperty(type=bpy.types.Scene, name="CG Scene",
+                              description="The scene Composite CG Objects renders the CG objects in")
+    cg_collection: PointerProperty(type=bpy.types.Collection, name="CG Objects",
+                                   description="The objects Composite CG Objects puts into the light field")
+    is_cg_scene: BoolProperty(name="CG Scene", default=False, options={"HIDDEN"},
+                              description="This scene renders another scene's CG objects (compositing.py)")
     fingerprint: StringProperty(description="Identifies the imported reconstruction")
 
     import_points: BoolProperty(name="Sparse Points", default=True, description="Import the sparse 3D points")

@@ -730,6 +730,17 @@ def run_story(setup: dict) -> None:  # noqa: C901 - one story, told in order
                     depth[row, col] = (location - origin).dot(forward)
         return depth
 
+    def _users_compositor_tree(scene):
+        """5.0: the tree Blender's New button makes in the compositor (Render Layers, Reroute,
+        Viewer, Group Output), assigned to the scene; 4.2 (a tree of the scene's own): None."""
+        if not hasattr(scene, "compositing_node_group"):
+            return None
+        tree = bpy.data.node_groups.new("Users Compositing", "CompositorNodeTree")
+        for kind in ("CompositorNodeRLayers", "NodeReroute", "CompositorNodeViewer", "NodeGroupOutput"):
+            tree.nodes.new(kind)
+        scene.compositing_node_group = tree
+        return tree
+
     @story.step("composite_cg", "engine_f12")
     def _():
         # A CG cube set astride the light field's surface: Composite CG Objects renders it with
@@ -761,20 +772,37 @@ def run_story(setup: dict) -> None:  # noqa: C901 - one story, told in order
         cube.location = centre
         cube.rotation_euler = Euler((0.5, 0.7, 0.3))  # faces slanted across the light field's surface
 
+        scenes_before = len(bpy.data.scenes)
         scene.camera = None
         refused = error_of(lambda: bpy.ops.neulf.composite_cg())  # no camera: said, nothing made
         scene.camera = camera
-        assert "set a scene camera first" in refused and compositing.cg_scene_name(scene) not in bpy.data.scenes
+        assert "set a scene camera first" in refused and len(bpy.data.scenes) == scenes_before
+        users_tree = _users_compositor_tree(scene)
+        refused_tree = "the user's compositor group kept, with a fake user"
         try:
-            users_own = compositing._compositor_tree(scene).nodes.new("CompositorNodeBlur")  # a tree of the user's
-            refused_tree = error_of(lambda: bpy.ops.neulf.composite_cg())
-            assert "compositor node tree of its own" in refused_tree, refused_tree
-            users_own.id_data.nodes.remove(users_own)
+            if users_tree is None:  # 4.2: the scene's own tree with a node of the user's is refused, untouched
+                scene.use_nodes = True
+                users_own = scene.node_tree.nodes.new("CompositorNodeBlur")
+                scene.use_nodes = False
+                refused_tree = error_of(lambda: bpy.ops.neulf.composite_cg())
+                assert "compositor node tree of its own" in refused_tree and not scene.use_nodes, refused_tree
+                scene.node_tree.nodes.remove(users_own)
             assert bpy.ops.neulf.composite_cg() == {"FINISHED"}
-            cg = bpy.data.scenes[compositing.cg_scene_name(scene)]
-            bpy.data.collections[compositing.CG_COLLECTION].objects.link(cube)
+            cg, objects = scene.neulf.cg_scene, scene.neulf.cg_collection
+            assert cg.neulf.is_cg_scene and cg.cycles.samples == compositing.CG_SAMPLES
+            if users_tree is not None:  # 5.0: a group of its own; the user's stays in the file
+                assert scene.compositing_node_group is not users_tree and users_tree.use_fake_user
+            with bpy.context.temp_override(scene=cg):  # run in the CG scene: said, nothing made
+                in_cg = error_of(lambda: bpy.ops.neulf.composite_cg())
+            assert "run Composite CG Objects in the light field's scene" in in_cg, in_cg
+            objects.objects.link(cube)
             cg.cycles.samples = 16
+            name = scene.name
+            scene.name, objects.name = "Renamed", "Renamed objects"  # the links are pointers, not names
             assert bpy.ops.neulf.composite_cg() == {"FINISHED"}  # again: brought up to date, not doubled
+            scene.name = name
+            assert scene.neulf.cg_scene is cg and scene.neulf.cg_collection is objects
+            assert len(bpy.data.scenes) == scenes_before + 1
             assert len(cg.collection.children) == 1 and len(cg.collection.objects) == 1
             settings = scene.render.image_settings
             if hasattr(settings, "media_type"):
@@ -792,14 +820,17 @@ def run_story(setup: dict) -> None:  # noqa: C901 - one story, told in order
             scene.render.resolution_percentage = 100
         finally:  # the later steps render the light field alone
             if hasattr(scene, "compositing_node_group"):
+                ours = scene.compositing_node_group
                 scene.compositing_node_group = None
+                for tree in (ours, users_tree):
+                    if tree is not None:
+                        bpy.data.node_groups.remove(tree)
             else:
                 scene.use_nodes = False
-            for leftover in (bpy.data.scenes.get(compositing.cg_scene_name(scene)),):
-                if leftover is not None:
-                    bpy.data.scenes.remove(leftover)
-            if compositing.CG_COLLECTION in bpy.data.collections:
-                bpy.data.collections.remove(bpy.data.collections[compositing.CG_COLLECTION])
+            if scene.neulf.cg_scene is not None:
+                bpy.data.scenes.remove(scene.neulf.cg_scene)
+            if scene.neulf.cg_collection is not None:
+                bpy.data.collections.remove(scene.neulf.cg_collection)
             scene.view_layers[0].use_pass_z = False
 
         red = np.array([1.0, 0.0, 0.0])
