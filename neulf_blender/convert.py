@@ -134,12 +134,13 @@ def uniform_scale(matrix) -> float:
     return float(abs(np.linalg.det(M[:3, :3])) ** (1.0 / 3.0))
 
 
-def image_rows_for_blender(rgb: np.ndarray, alpha: float = 1.0) -> np.ndarray:
-    """(H, W, 3) top-row-first -> flat float32 RGBA bottom-row-first (Blender's pixel order)."""
+def image_rows_for_blender(rgb: np.ndarray, alpha: float | np.ndarray = 1.0) -> np.ndarray:
+    """(H, W, 3) top-row-first, and an alpha (a number, or (H, W) top-row-first) -> flat float32
+    RGBA bottom-row-first (Blender's pixel order)."""
     height, width = rgb.shape[:2]
     rgba = np.empty((height, width, 4), np.float32)
     rgba[..., :3] = rgb[::-1]
-    rgba[..., 3] = alpha
+    rgba[..., 3] = alpha if np.isscalar(alpha) else np.asarray(alpha)[::-1]
     return rgba.ravel()
 
 

@@ -57,10 +57,15 @@ class NeulfRenderEngine(bpy.types.RenderEngine):
             return
         width, height = request["width"], request["height"]
         rgb = convert.srgb_to_linear(result["rgb"])  # the Combined pass is scene-linear
+        alpha = 1.0
+        if scene.render.film_transparent and result.get("valid") is not None:
+            # Film > Transparent: no alpha where a ray misses the light slab (and no colour: premultiplied)
+            alpha = result["valid"].astype("float32")
+            rgb = rgb * alpha[..., None]
         # Blender calls render once for each view layer: this call's result is its own layer's.
         render_result = self.begin_result(0, 0, width, height, layer=depsgraph.view_layer.name)
         passes = render_result.layers[0].passes
-        passes["Combined"].rect.foreach_set(convert.image_rows_for_blender(rgb))
+        passes["Combined"].rect.foreach_set(convert.image_rows_for_blender(rgb, alpha))
         if want_depth and result.get("depth") is not None and "Depth" in passes:
             passes["Depth"].rect.foreach_set(convert.depth_rows_for_blender(result["depth"] * scale))
         self.end_result(render_result)

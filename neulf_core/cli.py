@@ -187,7 +187,7 @@ def _save_rendering(out: Path, stem: str, rendering, want_depth: bool, exr: bool
         np.save(out / f"{stem}_depth.npy", depth.astype(np.float32))
         save_rgb(out / f"{stem}_depth.png", depth_to_colour(depth))
     if exr:
-        write_exr(out / f"{stem}.exr", rendering_channels(rendering.rgb, depth))
+        write_exr(out / f"{stem}.exr", rendering_channels(rendering.rgb, depth, rendering.valid))
     for note in rendering.warnings:
         print(f"warning ({stem}): {note}", file=sys.stderr)
 
@@ -488,8 +488,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", required=True)
     p.add_argument("--depth", action="store_true", help="also write <stem>_depth.npy and a colour map")
     p.add_argument("--exr", action="store_true",
-                   help="also write <stem>.exr for compositing: R, G, B scene-linear float and, with --depth, Z "
-                        "(depth along the optical axis, scene units; 1e10 where none, as Cycles)")
+                   help="also write <stem>.exr for compositing: R, G, B scene-linear float, A (0 where a pixel's ray "
+                        "misses the light slab) and, with --depth, Z (depth along the optical axis, scene units; 1e10 "
+                        "where none, as Cycles)")
     p.add_argument("--scale", type=float, help="image scale (default: the trained scale)")
     p.add_argument("--focus-distance", type=float, help="refocus: focal depth along the optical axis (scene units)")
     p.add_argument("--aperture", type=float, default=0.0, help="refocus: lens radius in scene units (0: pinhole)")

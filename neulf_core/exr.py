@@ -2,8 +2,8 @@
 
 A compositor (Nuke, Blender, Resolve) wants the render as scene-linear floats with its depth
 beside it, not an 8-bit PNG and a .npy: `render --exr` writes `<stem>.exr` with the channels
-R, G, B (linear) and, with `--depth`, Z (depth along the optical axis, scene units), as a
-renderer writes a single-layer EXR.  Only numpy: the Blender extension imports this module in
+R, G, B (linear), A (0 where a pixel's ray misses the light slab) and, with `--depth`, Z (depth
+along the optical axis, scene units), as a renderer writes a single-layer EXR.  Only numpy: the Blender extension imports this module in
 Blender's own Python, which has no torch.  The file layout is OpenEXR's ("OpenEXR File Layout",
 openexr.com): one part, scanlines, no compression, 32-bit float channels.
 """
@@ -73,10 +73,17 @@ def _header(names: list[str], width: int, height: int) -> bytes:
     return header + b"\0"
 
 
-def rendering_channels(rgb: np.ndarray, depth: np.ndarray | None) -> dict[str, np.ndarray]:
-    """A rendering's EXR channels: R, G, B scene-linear, and Z where depth was rendered."""
+def rendering_channels(rgb: np.ndarray, depth: np.ndarray | None, valid: np.ndarray | None = None
+                       ) -> dict[str, np.ndarray]:
+    """A rendering's EXR channels: R, G, B scene-linear, Z where depth was rendered, and A where
+    `valid` says which rays the light field can represent (1; 0 where a ray misses the slab, whose
+    colour is then 0 too: EXR's colours are premultiplied by their alpha)."""
     linear = srgb_to_linear(rgb)
+    if valid is not None:
+        linear = np.where(np.asarray(valid)[..., None], linear, np.float32(0.0))
     channels = {"R": linear[..., 0], "G": linear[..., 1], "B": linear[..., 2]}
+    if valid is not None:
+        channels["A"] = np.asarray(valid, dtype=np.float32)
     if depth is not None:
         channels["Z"] = depth_for_compositing(depth)
     return channels

@@ -133,7 +133,8 @@ class Service:
         rendering = field.render(np.asarray(K), int(width), int(height), np.asarray(R), np.asarray(t), depth=depth,
                                  chunk=int(chunk), on_chunk=report, focus_distance=focus_distance, aperture=aperture,
                                  pixel_samples=int(pixel_samples), **lens)
-        return {"rgb": rendering.rgb, "depth": rendering.depth, "warnings": list(rendering.warnings)}
+        return {"rgb": rendering.rgb, "depth": rendering.depth, "valid": rendering.valid,
+                "warnings": list(rendering.warnings)}
 
     def depth_at(self, model_dir: str, K, R, t, x: float, y: float) -> dict:
         """Depth along the optical axis of the ray through image point (x, y) (pixel units,

@@ -668,6 +668,38 @@ def run_story(setup: dict) -> None:  # noqa: C901 - one story, told in order
                 f"Combined render_camera's image within {colour * 255:.2f}/255"
                 + (f"; non-square pixels: '{hint}'" if hint else ""))
 
+    def _f12_transparent_film(scene):
+        """Film > Transparent: alpha 0 (and no colour) where a pixel's ray misses the light slab,
+        1 elsewhere.  The camera turned 70 degrees sideways, so part of its view leaves the slab."""
+        from mathutils import Matrix as _Matrix
+
+        camera, settings = scene.camera, scene.render.image_settings
+        original = camera.matrix_world.copy()
+        scene.render.film_transparent = True
+        settings.color_mode = "RGBA"
+        try:
+            camera.matrix_world = original @ _Matrix.Rotation(math.radians(70), 4, "Y")
+            bpy.context.view_layer.update()
+            scene.render.filepath = str(work / "f12_transparent.png")
+            bpy.ops.render.render(write_still=True)
+            image = bpy.data.images.load(str(work / "f12_transparent.png"), check_existing=False)
+            width, height = image.size
+            rgba = np.empty(width * height * 4, np.float32)
+            image.pixels.foreach_get(rgba)
+            bpy.data.images.remove(image)
+        finally:
+            camera.matrix_world = original
+            bpy.context.view_layer.update()
+            scene.render.film_transparent = False
+            settings.color_mode = "RGB"
+        rgba = rgba.reshape(height, width, 4)
+        alpha = rgba[..., 3]
+        off = alpha == 0
+        assert set(np.unique(alpha).tolist()) <= {0.0, 1.0}, np.unique(alpha)
+        assert 0.1 < off.mean() < 0.9, off.mean()  # part of the view on the slab, part off it
+        assert np.all(rgba[off][:, :3] == 0), rgba[off][:, :3].max()
+        return f"with a transparent film {off.mean():.0%} of a camera turned 70 degrees is off the slab: alpha 0, no colour"
+
     @story.step("engine_f12", "render_camera")
     def _():
         scene = bpy.context.scene
@@ -708,8 +740,10 @@ def run_story(setup: dict) -> None:  # noqa: C901 - one story, told in order
         change = np.abs(blurred - still).mean()
         sharpness = _laplacian_variance(blurred) / _laplacian_variance(still)
         assert sharpness < 0.5 and abs(blurred.mean() - still.mean()) < 0.03, (sharpness, blurred.mean(), still.mean())
+        transparent = _f12_transparent_film(scene)
         return (f"F12 matches render_camera within {diff * 255:.1f}/255; {passes}; DOF keeps {sharpness:.0%} of the "
-                f"sharpness (variance of the Laplacian) and changes pixels by {change * 255:.1f}/255 on average")
+                f"sharpness (variance of the Laplacian) and changes pixels by {change * 255:.1f}/255 on average; "
+                f"{transparent}")
 
     def _cube_depth(cg, camera, scene):
         """Depth along the camera's axis of the CG scene's first surface through each pixel

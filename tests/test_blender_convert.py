@@ -96,6 +96,9 @@ def test_image_rows_and_colour(ext):
     rows = flat.reshape(2, 3, 4)
     assert (rows[1, :, :3] == 1).all() and (rows[0, :, :3] == 0).all() and (rows[..., 3] == 1).all()
     assert ext.convert.srgb_to_linear(np.array([0.0, 0.5, 1.0])) == pytest.approx([0.0, 0.21404, 1.0], abs=1e-4)
+    alpha = np.array([[1.0, 0.0, 1.0], [0.0, 1.0, 1.0]], np.float32)  # Film > Transparent: 0 off the slab
+    rows = ext.convert.image_rows_for_blender(rgb, alpha).reshape(2, 3, 4)
+    assert rows[..., 3].tolist() == [[0.0, 1.0, 1.0], [1.0, 0.0, 1.0]]  # bottom row first, as the colours
 
 
 def test_depth_rows_for_a_z_pass(ext):

@@ -623,7 +623,8 @@ def test_cli_train_render_eval(cli_model, tiny_scene, tmp_path, capfd):
     assert main(["render", str(cli_model), "--scene", str(tiny_scene), "--views", "view_00", "--depth", "--exr",
                  "--out", str(out)]) == 0
     channels = read_exr(out / "view_00.exr")
-    assert sorted(channels) == ["B", "G", "R", "Z"] and channels["Z"].shape == (36, 48)
+    assert sorted(channels) == ["A", "B", "G", "R", "Z"] and channels["Z"].shape == (36, 48)
+    assert (channels["A"] == 1.0).all()  # every ray of a training rig's view crosses the slab
     assert np.array_equal(channels["Z"], np.load(out / "view_00_depth.npy"))  # finite here: no 1e10
     png = np.asarray(Image.open(out / "view_00.png"), np.float32) / 255
     linear = np.stack([channels[c] for c in "RGB"], axis=2)

@@ -50,7 +50,10 @@ def test_a_renderings_channels_are_linear_colour_and_compositing_depth():
     assert channels["G"][0, 0] == pytest.approx(0.21404, abs=1e-5) and channels["B"][0, 0] == 1.0
     assert channels["R"][0, 1] == pytest.approx(0.04045 / 12.92)
     assert channels["Z"].tolist() == [[2.5, NO_DEPTH]]
-    assert "Z" not in rendering_channels(rgb, None)
+    assert "Z" not in rendering_channels(rgb, None) and "A" not in rendering_channels(rgb, None)
+    with_alpha = rendering_channels(rgb, depth, np.array([[True, False]]))
+    assert with_alpha["A"].tolist() == [[1.0, 0.0]]
+    assert with_alpha["B"][0, 1] == 0.0 and with_alpha["B"][0, 0] == 1.0  # premultiplied: no colour off the slab
     assert depth_for_compositing(np.array([np.inf, -np.inf, 1.0])).tolist() == [NO_DEPTH, NO_DEPTH, 1.0]
     assert srgb_to_linear(np.array([-0.5, 1.5])).tolist() == [0.0, 1.0]
 
