@@ -671,14 +671,12 @@ def run_story(setup: dict) -> None:  # noqa: C901 - one story, told in order
     def _f12_transparent_film(scene):
         """Film > Transparent: alpha 0 (and no colour) where a pixel's ray misses the light slab,
         1 elsewhere.  The camera turned 70 degrees sideways, so part of its view leaves the slab."""
-        from mathutils import Matrix as _Matrix
-
         camera, settings = scene.camera, scene.render.image_settings
         original = camera.matrix_world.copy()
         scene.render.film_transparent = True
         settings.color_mode = "RGBA"
         try:
-            camera.matrix_world = original @ _Matrix.Rotation(math.radians(70), 4, "Y")
+            camera.matrix_world = original @ Matrix.Rotation(math.radians(70), 4, "Y")
             bpy.context.view_layer.update()
             scene.render.filepath = str(work / "f12_transparent.png")
             bpy.ops.render.render(write_still=True)
