@@ -41,6 +41,7 @@ def set_up(scene, view_layer) -> bpy.types.Scene:
     if collection not in cg.collection.children_recursive:
         cg.collection.children.link(collection)
     cg.camera = scene.camera
+    _follow_camera_markers(cg, scene)
     _follow_render_settings(cg, scene)
     cg.render.film_transparent = True  # the light field shows where no CG object is
     cg.view_layers[0].use_pass_z = True
@@ -57,7 +58,10 @@ def out_of_step(scene) -> str | None:
         return None
     differ = [name for name in RENDER_SETTINGS if getattr(cg.render, name) != getattr(scene.render, name)]
     differ += [name for name in FRAME_SETTINGS if getattr(cg, name) != getattr(scene, name)]
-    if cg.camera != scene.camera:
+    if _camera_switches(cg) != _camera_switches(scene):
+        differ.append("camera markers")
+    elif not _camera_switches(scene) and cg.camera != scene.camera:
+        # (with markers, each scene's camera follows its markers only as it renders a frame)
         differ.append("camera")
     if not differ:
         return None
@@ -89,6 +93,25 @@ def _cg_collection(scene) -> bpy.types.Collection:
     if collection not in scene.collection.children_recursive:
         scene.collection.children.link(collection)
     return collection
+
+
+def _camera_switches(scene) -> list:
+    """The scene's timeline markers bound to a camera, as (frame, camera) in frame order: Blender
+    switches the scene's camera at each of them as it renders an animation."""
+    return sorted(((marker.frame, marker.camera) for marker in scene.timeline_markers if marker.camera is not None),
+                  key=lambda switch: (switch[0], switch[1].name))
+
+
+def _follow_camera_markers(cg, scene) -> None:
+    """The light field scene's camera switches copied into the CG scene (its own camera-bound
+    markers replaced), with their cameras linked into it, so each frame's CG renders through the
+    camera the light field renders through."""
+    for marker in [marker for marker in cg.timeline_markers if marker.camera is not None]:
+        cg.timeline_markers.remove(marker)
+    for frame, camera in _camera_switches(scene):
+        cg.timeline_markers.new(f"{NODE_PREFIX}{camera.name}", frame=frame).camera = camera
+        if camera.name not in cg.collection.objects:
+            cg.collection.objects.link(camera)
 
 
 def _follow_render_settings(cg, scene) -> None:

@@ -773,6 +773,46 @@ def run_story(setup: dict) -> None:  # noqa: C901 - one story, told in order
         scene.compositing_node_group = tree
         return tree
 
+    def _composite_camera_switch(scene, camera, cg, cube_depth):
+        """A camera-switching marker at frame 2 to a second camera, 0.8 units to the first one's
+        right: the CG scene gets the switch, so frame 2's composite shows the cube where the
+        second camera sees it, not where the first does."""
+        compositing = mod("compositing")
+        second = camera.copy()
+        second.name = "story_cg_second_camera"
+        scene.collection.objects.link(second)
+        second.matrix_world.translation = camera.matrix_world.translation + camera.matrix_world.to_3x3().col[0] * 0.8
+        switch = scene.timeline_markers.new("story_switch", frame=2)
+        switch.camera = second
+        first = scene.timeline_markers.new("story_first", frame=scene.frame_start)
+        first.camera = camera
+        try:
+            mismatch = compositing.out_of_step(scene)
+            assert "camera markers" in (mismatch or ""), mismatch
+            assert bpy.ops.neulf.composite_cg() == {"FINISHED"}
+            assert [(m.frame, m.camera) for m in cg.timeline_markers if m.camera] == [(1, camera), (2, second)]
+            scene.frame_set(2)
+            assert scene.camera is second and compositing.out_of_step(scene) is None  # no drift said mid-switch
+            bpy.ops.render.render(write_still=True)
+            composite = load_png(work / "composite.png")
+            second_depth = _cube_depth(cg, second, scene)
+            switch.frame = 3  # moved later: said until pressed again
+            assert "camera markers" in (compositing.out_of_step(scene) or "")
+        finally:
+            scene.frame_set(scene.frame_start)
+            for marker in (switch, first):
+                scene.timeline_markers.remove(marker)
+            scene.camera = camera
+            bpy.data.objects.remove(second)
+        red = np.abs(composite - np.array([1.0, 0.0, 0.0])).max(axis=2) < 0.06
+        seen_first, seen_second = np.isfinite(cube_depth), np.isfinite(second_depth)
+        only_first = seen_first & ~seen_second
+        assert only_first.sum() > 50 and red.sum() > 50, (only_first.sum(), red.sum())
+        assert (red & only_first).sum() == 0 and (red & ~seen_second).sum() <= 0.02 * red.sum(), \
+            ((red & only_first).sum(), (red & ~seen_second).sum())
+        return (f"frame 2's switch to a second camera copied: {red.sum()} cube pixels, none of them where only the "
+                f"first camera sees the cube ({only_first.sum()} pixels)")
+
     @story.step("composite_cg", "engine_f12")
     def _():
         # A CG cube set astride the light field's surface: Composite CG Objects renders it with
@@ -845,6 +885,7 @@ def run_story(setup: dict) -> None:  # noqa: C901 - one story, told in order
             composite = load_png(work / "composite.png")
             cube_depth = _cube_depth(cg, camera, scene)
             assert compositing.out_of_step(scene) is None
+            switched = _composite_camera_switch(scene, camera, cg, cube_depth)
             scene.render.resolution_percentage = 50
             mismatch = compositing.out_of_step(scene)  # F12 and the panel say it
             assert "resolution_percentage" in mismatch and "press Composite CG Objects again" in mismatch, mismatch
@@ -881,7 +922,7 @@ def run_story(setup: dict) -> None:  # noqa: C901 - one story, told in order
         agree_behind = (shows_plate & behind & interior).sum() / (behind & interior).sum()
         agree_clear = (shows_plate & clear).sum() / clear.sum()
         assert agree_near > 0.97 and agree_behind > 0.97 and agree_clear > 0.99, (agree_near, agree_behind, agree_clear)
-        return (f"{refused_tree}; {(nearer & interior).sum()} pixels where the cube is nearer than the light field show the cube "
+        return (f"{refused_tree}; {switched}; {(nearer & interior).sum()} pixels where the cube is nearer than the light field show the cube "
                 f"({agree_near:.1%}), {(behind & interior).sum()} where it is behind show the light field "
                 f"({agree_behind:.1%}), the rest the light field ({agree_clear:.1%})")
 
