@@ -22,10 +22,15 @@ def _matrix(array) -> Matrix:
 
 
 def find_capture(scene):
-    """(collection, root) of the imported capture, or (None, None)."""
+    """(collection, root) of the imported capture, or (None, None).  Pointers, so renaming
+    either keeps the link and a full copy of the scene finds its own copies; a .blend saved
+    before them names them (read here, replaced at the next import)."""
     props = scene.neulf
-    collection = bpy.data.collections.get(props.collection_name) if props.collection_name else None
-    root = bpy.data.objects.get(props.root_name) if props.root_name else None
+    collection, root = props.capture_collection, props.root
+    if collection is None and props.collection_name:
+        collection = bpy.data.collections.get(props.collection_name)
+    if root is None and props.root_name:
+        root = bpy.data.objects.get(props.root_name)
     return collection, root
 
 
@@ -155,7 +160,8 @@ def build_capture(context, description: dict, *, import_points: bool = True):
         bpy.data.objects.remove(members[("points", None)])
 
     props = scene.neulf
-    props.collection_name, props.root_name = collection.name, root.name
+    props.capture_collection, props.root = collection, root
+    props.collection_name = props.root_name = ""
     props.fingerprint = description["fingerprint"]
     # The middle camera of the rig becomes the active one; the scene renders at its photo size.
     middle = views[int(np.argmin(np.linalg.norm(centres - centres.mean(0), axis=1)))]["name"]

@@ -40,7 +40,7 @@ class NeulfRenderEngine(bpy.types.RenderEngine):
         original = bpy.data.scenes.get(scene.name) or scene
         want_depth = bool(depsgraph.view_layer_eval.use_pass_z)
         try:
-            root = bpy.data.objects.get(scene.neulf.root_name) if scene.neulf.root_name else None
+            _collection, root = capture.find_capture(original)
             root_matrix = root.evaluated_get(depsgraph).matrix_world if root is not None else None
             request = capture.camera_request(scene, camera.evaluated_get(depsgraph) if camera else None,
                                              root_matrix=root_matrix)
@@ -149,7 +149,7 @@ def _viewport_view(scene, depsgraph, region, view) -> tuple[dict, tuple]:
     from .operators import model_dir
 
     model = model_dir(scene)  # (raises with what to do when there is none)
-    root = bpy.data.objects.get(scene.neulf.root_name) if scene.neulf.root_name else None
+    _collection, root = capture.find_capture(scene)
     root_matrix = root.evaluated_get(depsgraph).matrix_world if root is not None else Matrix.Identity(4)
     request = viewport.view_request(view.view_matrix, view.window_matrix, region.width, region.height, root_matrix)
     scale = request.pop("scale")

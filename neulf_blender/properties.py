@@ -49,8 +49,14 @@ class NeulfSceneSettings(bpy.types.PropertyGroup):
                                description="Images folder when it is not SCENE/images (optional)")
     model_dir: StringProperty(name="Model", subtype="DIR_PATH", options=PATH_OPTIONS,
                               description="Trained NeuLF model folder (stored relative to the .blend)")
-    collection_name: StringProperty(name="Collection", description="Collection of the imported capture")
-    root_name: StringProperty(name="Root", description="Root empty of the capture: move it to orient the scene")
+    capture_collection: PointerProperty(type=bpy.types.Collection, name="Capture Collection",
+                                        description="Collection of the imported capture")
+    root: PointerProperty(type=bpy.types.Object, name="Root",
+                          description="Root empty of the capture: move it to orient the scene")
+    # .blend files saved before the pointers above name the collection and the root instead
+    # (a name breaks when the user renames either, or copies the scene): read, never written.
+    collection_name: StringProperty(options={"HIDDEN"})
+    root_name: StringProperty(options={"HIDDEN"})
     cg_scene: PointerProperty(type=bpy.types.Scene, name="CG Scene",
                               description="The scene Composite CG Objects renders the CG objects in")
     cg_collection: PointerProperty(type=bpy.types.Collection, name="CG Objects",

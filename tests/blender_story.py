@@ -157,11 +157,11 @@ def run_story(setup: dict) -> None:  # noqa: C901 - one story, told in order
         return bpy.context.preferences.addons[PACKAGE].preferences
 
     def cameras():
-        coll = bpy.data.collections[bpy.context.scene.neulf.collection_name]
+        coll = bpy.context.scene.neulf.capture_collection
         return sorted((o for o in coll.objects if o.type == "CAMERA"), key=lambda o: o["neulf_view"])
 
     def root():
-        return bpy.data.objects[bpy.context.scene.neulf.root_name]
+        return bpy.context.scene.neulf.root
 
     def image_array(name):
         image = bpy.data.images[name]
@@ -581,6 +581,41 @@ def run_story(setup: dict) -> None:  # noqa: C901 - one story, told in order
         return f"click at region ({mx}, {my}) -> pixel ({target[0]:.2f}, {target[1]:.2f}) -> focus {picked:.4f}; " + \
             " | ".join(messages.values())
 
+    def _f12_renamed_root(scene):
+        """F12 through the moved, renamed root: render_camera's image (the engine finds the root
+        by the same pointer; by name it lost it and rendered 76 % of the pixels off the slab)."""
+        render, engine, path = scene.render, scene.render.engine, scene.render.filepath
+        settings = render.image_settings
+        if hasattr(settings, "media_type"):
+            settings.media_type = "IMAGE"
+        settings.file_format, dither = "PNG", render.dither_intensity
+        render.engine, render.dither_intensity, render.filepath = "NEULF", 0.0, str(work / "f12_renamed_root.png")
+        try:
+            bpy.ops.render.render(write_still=True)
+        finally:
+            render.engine, render.dither_intensity, render.filepath = engine, dither, path
+        diff = np.abs(load_png(work / "f12_renamed_root.png") - ctx["render"]).max()
+        assert diff <= 2 / 255 + 1e-6, diff
+
+    def _root_found_after_renames(scene, r):
+        """The moved root is still the capture's after the user renames it and its collection
+        (pointers), and in a .blend saved before the pointers (names, read only)."""
+        props, collection = scene.neulf, scene.neulf.capture_collection
+        names = r.name, collection.name
+        try:
+            r.name, collection.name = "Renamed root", "Renamed capture"
+            assert bpy.ops.neulf.render_camera() == {"FINISHED"}
+            assert np.abs(image_array("NeuLF Render") - ctx["render"]).max() <= 1 / 255 + 1e-6
+            _f12_renamed_root(scene)
+            props.root, props.capture_collection = None, None  # an older .blend's names
+            props.root_name, props.collection_name = r.name, collection.name
+            assert mod("capture").find_capture(scene) == (collection, r)
+        finally:
+            props.root, props.capture_collection = r, collection
+            props.root_name = props.collection_name = ""
+            r.name, collection.name = names
+        return "renamed root and collection still found (pointers); an older .blend's names read"
+
     @story.step("root_scale", "focus_at")
     def _():
         scene = bpy.context.scene
@@ -593,9 +628,11 @@ def run_story(setup: dict) -> None:  # noqa: C901 - one story, told in order
             assert abs(scene.camera.data.dof.focus_distance - 2.5 * ctx["focus"]) < 1e-3 * ctx["focus"]
             assert bpy.ops.neulf.render_camera() == {"FINISHED"}  # the same view, the scene only moved
             assert np.abs(image_array("NeuLF Render") - ctx["render"]).max() <= 1 / 255 + 1e-6
+            found_by = _root_found_after_renames(scene, r)
         finally:
             r.matrix_world = original
             bpy.context.view_layer.update()
+        return found_by
 
     def _f12_depth_pass(scene):
         """F12 with a view layer's Z pass on, saved as a multilayer EXR (what a compositor
