@@ -37,6 +37,25 @@ def render_size(resolution_x: int, resolution_y: int, percentage: int) -> tuple[
     return int(resolution_x * percentage / 100), int(resolution_y * percentage / 100)
 
 
+def border_region(width: int, height: int, border_x: tuple[float, float],
+                  border_y: tuple[float, float]) -> tuple[int, int, int, int]:
+    """The pixels a render region (Output > Format > Render Region) renders, as Blender cuts
+    them (each edge truncated to a whole pixel; the y fractions count from the bottom):
+    (left, top, width, height) with a top-left origin."""
+    left, right = int(border_x[0] * width), int(border_x[1] * width)
+    bottom, top = int(border_y[0] * height), int(border_y[1] * height)
+    return left, height - top, right - left, top - bottom
+
+
+def crop_request(request: dict, left: int, top: int, width: int, height: int) -> dict:
+    """A render request for the pixels of `request`'s image from (left, top), `width` x `height`:
+    the same camera with its principal point moved, so each pixel sees the ray it saw."""
+    K = [list(row) for row in request["K"]]
+    K[0][2] -= left
+    K[1][2] -= top
+    return dict(request, K=K, width=width, height=height)
+
+
 def K_from_blender(*, lens: float, sensor_width: float, sensor_height: float, sensor_fit: str, shift_x: float,
                    shift_y: float, width: int, height: int, pixel_aspect_x: float = 1.0,
                    pixel_aspect_y: float = 1.0) -> np.ndarray:

@@ -46,6 +46,7 @@ class NeulfRenderEngine(bpy.types.RenderEngine):
                                              root_matrix=root_matrix)
             scale = request.pop("scale")
             request.update(capture.lens_request(camera.evaluated_get(depsgraph), scale))
+            request = _region_only(request, scene.render)
             self.update_stats("", "NeuLF: rendering")
             result = get_core().call("render", model_dir=model_dir(original), depth=want_depth, chunk=scene.neulf.chunk,
                                      pixel_samples=int(scene.neulf.pixel_samples),
@@ -141,6 +142,19 @@ class NeulfRenderEngine(bpy.types.RenderEngine):
         parent = getattr(super(), "__del__", None)  # (none in bpy 4.2-5.0; Blender's docs call it)
         if parent is not None:
             parent()
+
+
+def _region_only(request: dict, render) -> dict:
+    """With a render region on, the request for its pixels only: Blender's render result then
+    holds just the region (cropped or not; Blender places it in the frame)."""
+    if not render.use_border:
+        return request
+    region = convert.border_region(request["width"], request["height"], (render.border_min_x, render.border_max_x),
+                                   (render.border_min_y, render.border_max_y))
+    if region[2] < 1 or region[3] < 1:
+        raise NeulfError("the render region is less than a pixel: draw a larger one (Ctrl+B in the camera view) "
+                         "or turn Render Region off.")
+    return convert.crop_request(request, *region)
 
 
 def _viewport_view(scene, depsgraph, region, view) -> tuple[dict, tuple]:

@@ -735,6 +735,33 @@ def run_story(setup: dict) -> None:  # noqa: C901 - one story, told in order
         assert np.all(rgba[off][:, :3] == 0), rgba[off][:, :3].max()
         return f"with a transparent film {off.mean():.0%} of a camera turned 70 degrees is off the slab: alpha 0, no colour"
 
+    def _f12_render_region(scene, still):
+        """F12 with a render region (Output > Format > Render Region), cropped to it and not:
+        the region's pixels are the full frame's, the rest of an uncropped frame empty."""
+        render = scene.render
+        render.use_border = True
+        render.border_min_x, render.border_max_x, render.border_min_y, render.border_max_y = 0.25, 0.75, 0.5, 1.0
+        left, top, width, height = mod("convert").border_region(WIDTH, HEIGHT, (0.25, 0.75), (0.5, 1.0))
+        region = still[top:top + height, left:left + width]
+        try:
+            for crop in (True, False):
+                render.use_crop_to_border = crop
+                bpy.ops.render.render(write_still=True)
+                image = load_png(work / "f12.png")
+                if crop:
+                    assert image.shape[:2] == (height, width), image.shape
+                    diff = np.abs(image - region).max()
+                else:
+                    assert image.shape[:2] == (HEIGHT, WIDTH), image.shape
+                    diff = np.abs(image[top:top + height, left:left + width] - region).max()
+                    outside = np.ones((HEIGHT, WIDTH), bool)
+                    outside[top:top + height, left:left + width] = False
+                    assert image[outside][:, :3].max() == 0.0, image[outside][:, :3].max()
+                assert diff <= 2 / 255 + 1e-6, (crop, diff)
+        finally:
+            render.use_border = render.use_crop_to_border = False
+        return f"a render region ({width} x {height}) cropped and not: its pixels the full frame's"
+
     @story.step("engine_f12", "render_camera")
     def _():
         scene = bpy.context.scene
@@ -751,6 +778,7 @@ def run_story(setup: dict) -> None:  # noqa: C901 - one story, told in order
         still = load_png(out)
         diff = np.abs(still - ctx["render"]).max()
         assert diff <= 2 / 255 + 1e-6, diff
+        region = _f12_render_region(scene, still)
         if "render_one_point" in ctx:  # F12 follows the panel's Pixel Samples too
             scene.neulf.pixel_samples = "1"
             try:
@@ -776,7 +804,7 @@ def run_story(setup: dict) -> None:  # noqa: C901 - one story, told in order
         sharpness = _laplacian_variance(blurred) / _laplacian_variance(still)
         assert sharpness < 0.5 and abs(blurred.mean() - still.mean()) < 0.03, (sharpness, blurred.mean(), still.mean())
         transparent = _f12_transparent_film(scene)
-        return (f"F12 matches render_camera within {diff * 255:.1f}/255; {passes}; DOF keeps {sharpness:.0%} of the "
+        return (f"F12 matches render_camera within {diff * 255:.1f}/255; {region}; {passes}; DOF keeps {sharpness:.0%} of the "
                 f"sharpness (variance of the Laplacian) and changes pixels by {change * 255:.1f}/255 on average; "
                 f"{transparent}")
 
