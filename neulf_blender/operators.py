@@ -82,6 +82,11 @@ def trained_elsewhere_text(owner: dict, progress: dict) -> str:
     return f"{TRAINED_ELSEWHERE} (pid {owner['pid']} on {owner['host']}){at}; when it stops, Train continues it"
 
 
+def model_not_found(path: str) -> str:
+    """The start of the status of a scene whose model folder `path` has gone."""
+    return f"model folder not found: {path};"
+
+
 def refresh_model_status(scene) -> str:
     """The scene's `last_status` (shown in the panel) from its model folder, e.g. when a .blend
     is opened after Blender quit during training: the folder, not the .blend, knows how far
@@ -94,7 +99,7 @@ def refresh_model_status(scene) -> str:
     if training is not None and training.running and os.path.normpath(training.model_dir) == path:
         return props.last_status  # this session's own job reports its progress
     if not Path(path).is_dir():
-        props.last_status = f"model folder not found: {path}; move it back or use Load Model"
+        props.last_status = f"{model_not_found(path)} move it back or use Load Model"
         return props.last_status
     meta = read_model_json(path)
     owner = training_holder(path)
@@ -188,12 +193,13 @@ class NEULF_OT_reconstruct(_Reporting, bpy.types.Operator):
         out = abspath(self.scene_dir) or str(Path(photos).parent / f"{Path(photos).name}_neulf")
         python, extra = worker_python(get_prefs(context))
         job = jobs.ReconstructJob(python, photos, out, env=jobs.core_environment(extra))
-        scene_name = context.scene.name
+        scene_name, opened = context.scene.name, tasks.opened_files
 
         def done(job):
-            scene = bpy.data.scenes.get(scene_name)
+            scene = bpy.data.scenes.get(scene_name) if tasks.same_file_since(opened) else None
             if job.state["status"] != "finished" or scene is None:
-                print(f"NeuLF: reconstruction {job.state['status']}: {job.state.get('error')}")
+                print(f"NeuLF: reconstruction {job.state['status']}: {job.state.get('error')}"
+                      + ("" if scene is not None else f"; the scene is in {out}: import it with Import COLMAP / LLFF"))
                 return
             with bpy.context.temp_override(scene=scene):
                 bpy.ops.neulf.import_colmap(directory=out)
@@ -268,6 +274,11 @@ def start_training(context, *, minutes=None, steps=None):
     if not scene_dir:
         raise NeulfError("import a capture first (NeuLF > Import), then train.")
     out = abspath(props.model_dir) or str(Path(scene_dir) / "neulf_model")
+    if not Path(out).is_dir() and props.last_status.startswith(model_not_found(out)):
+        # (a .blend opened away from its model: start over only where the user names a new folder)
+        raise NeulfError(f"the model folder {out} does not exist: move the .blend together with its model folder or "
+                         "point Load Model at the model; to start a new model there, create the folder first (or "
+                         "choose another).")
     owner = training_holder(out)
     if owner is not None:  # its checkpoints would overwrite ours, and the step to continue from is not known yet
         raise NeulfError(being_trained_message(out, owner, "it was started before, perhaps by a Blender that closed: "
@@ -294,28 +305,34 @@ def start_training(context, *, minutes=None, steps=None):
     job.state["resumed_from"] = resumed_from
     props.model_dir = store_path(out)
     props.last_status = (f"training from step {resumed_from}" if resume else "training")
-    scene_name = context.scene.name
 
     def done(job):
-        scene = bpy.data.scenes.get(scene_name)
-        if scene is None:
-            return
-        state = job.state
-        scene.neulf.last_status = (job_status_text(state) if state["status"] != "failed"
-                                   else f"failed: {state['error']}")
-        if state.get("val_psnr") is not None:
-            scene.neulf.last_psnr = float(state["val_psnr"])
-        if (Path(out) / "model.json").is_file():
-            with bpy.context.temp_override(scene=scene):
-                try:
-                    attach_model(bpy.context, out)
-                except NeulfError:
-                    pass
-                scene.neulf.last_status = (job_status_text(state) if state["status"] != "failed"
-                                           else f"failed: {state['error']}")
+        for scene in scenes_of_model(out):  # (by folder: the user may have opened another .blend since)
+            _show_training_result(scene, job.state, out)
 
     tasks.start("train", job, done)
     return job, resume
+
+
+def scenes_of_model(path: str) -> list:
+    """The open file's scenes whose model folder is `path`."""
+    path = os.path.normpath(path)
+    return [scene for scene in bpy.data.scenes if scene.neulf.model_dir and abspath(scene.neulf.model_dir) == path]
+
+
+def _show_training_result(scene, state: dict, out: str) -> None:
+    """A finished (cancelled, failed) training's status and model, in a scene of that model."""
+    status = job_status_text(state) if state["status"] != "failed" else f"failed: {state['error']}"
+    scene.neulf.last_status = status
+    if state.get("val_psnr") is not None:
+        scene.neulf.last_psnr = float(state["val_psnr"])
+    if (Path(out) / "model.json").is_file():
+        with bpy.context.temp_override(scene=scene):
+            try:
+                attach_model(bpy.context, out)
+            except NeulfError:
+                pass
+            scene.neulf.last_status = status
 
 
 class NEULF_OT_train(_Reporting, bpy.types.Operator):

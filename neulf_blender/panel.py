@@ -1,11 +1,13 @@
 """The N-panel (3D viewport > sidebar > NeuLF): capture, training, rendering."""
 
+import os
 import textwrap
+from pathlib import Path
 
 import bpy
 
 from . import compositing, tasks
-from .operators import TRAINED_ELSEWHERE
+from .operators import TRAINED_ELSEWHERE, abspath
 
 CHARS_PER_PIXEL = 1 / 7.0  # the UI font's average advance at 1x scale, for wrapping labels
 
@@ -85,7 +87,8 @@ class NEULF_PT_main(bpy.types.Panel):
         col.prop(props, "members")
         train = tasks.get("train")
         if train is not None and train.running:
-            _job_box(layout, train, "Training", "neulf.cancel_train")
+            ours = bool(props.model_dir) and abspath(props.model_dir) == os.path.normpath(train.model_dir)
+            _job_box(layout, train, "Training" if ours else f"Training {Path(train.model_dir).name}", "neulf.cancel_train")
         else:
             label = "Continue Training" if props.model_dir else "Train NeuLF"
             layout.operator("neulf.train", text=label, icon="PLAY")

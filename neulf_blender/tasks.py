@@ -9,6 +9,14 @@ import bpy
 
 ACTIVE: dict = {}   # name -> (job, on_done)
 INTERVAL = 0.5
+# Counts the files opened in this Blender (handlers.on_load_pre): a job keeps running when the
+# user opens another .blend, and its on_done must not write into that file's data.
+opened_files = 0
+
+
+def same_file_since(opened: int) -> bool:
+    """Whether the .blend open when `opened` was read (tasks.opened_files) is still open."""
+    return opened == opened_files
 
 
 def start(name: str, job, on_done=None) -> None:

@@ -34,7 +34,7 @@ GRID = [(x, y) for y in (-0.3, 0.0, 0.3) for x in (-0.3, 0.0, 0.3)]
 STEPS = ["install", "import", "cameras_match_pycolmap", "slab_planes", "reimport_no_duplicates", "train_blocking",
          "train_options", "train_timer_resume", "train_cancel", "train_cancel_resume", "members", "render_camera", "pixel_samples",
          "render_worker_process", "focus_at", "pick_focus_frame", "pick_focus_click", "root_scale", "engine_f12", "composite_cg", "viewport_preview", "spiral_video", "save_reload",
-         "blend_moved", "quit_while_training", "reconstruct_photos", "user_errors", "dependencies_status",
+         "blend_moved", "quit_while_training", "open_other_while_training", "reconstruct_photos", "user_errors", "dependencies_status",
          "install_dependencies"]
 
 
@@ -1158,15 +1158,32 @@ def run_story(setup: dict) -> None:  # noqa: C901 - one story, told in order
         blend = work / "scenes" / "capture.blend"
         blend.parent.mkdir(exist_ok=True)
         props = bpy.context.scene.neulf
+        assert not bpy.data.filepath and Path(props.model_dir).is_absolute()  # imported and trained before a save
+        capture = Path(props.scene_dir).resolve()
+
+        def folders(props):
+            return [Path(bpy.path.abspath(path)).resolve() for path in (props.model_dir, props.scene_dir)]
+
+        bpy.ops.wm.save_as_mainfile(filepath=str(blend))  # the first save makes the folders relative to it
+        assert props.model_dir.startswith("//") and props.scene_dir.startswith("//"), props.model_dir
+        assert folders(props) == [model.resolve(), capture], folders(props)
+        elsewhere = work / "save_as" / "deeper" / "capture.blend"
+        elsewhere.parent.mkdir(parents=True, exist_ok=True)
+        bpy.ops.wm.save_as_mainfile(filepath=str(elsewhere))  # Save As into another folder: the same folders
+        assert folders(props) == [model.resolve(), capture], (props.model_dir, folders(props))
+        copy = work / "save_copy" / "capture.blend"
+        copy.parent.mkdir(exist_ok=True)
+        bpy.ops.wm.save_as_mainfile(filepath=str(copy), copy=True)  # Save Copy: the open file's paths unchanged
+        assert folders(props) == [model.resolve(), capture], (props.model_dir, folders(props))
+        bpy.ops.wm.open_mainfile(filepath=str(copy))
+        assert folders(bpy.context.scene.neulf) == [model.resolve(), capture], bpy.context.scene.neulf.model_dir
+        bpy.ops.wm.open_mainfile(filepath=str(elsewhere))
         bpy.ops.wm.save_as_mainfile(filepath=str(blend))
-        assert bpy.ops.neulf.load_model(directory=str(model)) == {"FINISHED"}   # stored relative once saved
-        assert props.model_dir.startswith("//"), props.model_dir
-        bpy.ops.wm.save_mainfile()
         bpy.ops.wm.open_mainfile(filepath=str(blend))
         props = bpy.context.scene.neulf
-        assert Path(bpy.path.abspath(props.model_dir)).resolve() == model.resolve(), props.model_dir
+        assert folders(props) == [model.resolve(), capture], props.model_dir
         assert bpy.ops.neulf.render_camera() == {"FINISHED"}
-        return props.model_dir
+        return f"{props.model_dir} after a first save, a Save As elsewhere and a Save Copy (each resolving to the model)"
 
     def child(session: str, **args) -> dict:
         """Run a session of this script in a new bpy process (Blender started again), same user folder."""
@@ -1215,6 +1232,9 @@ def run_story(setup: dict) -> None:  # noqa: C901 - one story, told in order
         assert result["missing_status"].startswith("model folder not found:"), result["missing_status"]
         missing = result["missing_error"]
         assert missing.startswith("Error:") and "does not exist" in missing and missing.strip().count("\n") == 0, missing
+        refused = result["missing_train"]  # Train does not start a new model where the old one was
+        assert "does not exist" in refused and "create the folder first" in refused, refused
+        assert not result["missing_made"]
         return (f"reopened from {elsewhere.relative_to(work)}: model {result['model_dir']}, panel "
                 f"'{result['status']}', render equal within {diff * 255:.1f}/255; without the model folder: "
                 f"{missing.strip()}")
@@ -1279,6 +1299,36 @@ def run_story(setup: dict) -> None:  # noqa: C901 - one story, told in order
         assert resumed in b["report"] and b["last_status"].startswith(resumed), (b["report"], b["last_status"])
         return (f"Blender {', '.join(gone)} (the .blend, saved while training, says '{', '.join(saved)}'); reopened, "
                 f"the panel reads the model folder: '{opened}'; Train: {resumed}; {busy_text}")
+
+    @story.step("open_other_while_training", "install")
+    def _():
+        # Train pressed, then another .blend opened while the training runs: the training's end
+        # must not write its model or status into that file; the file it belongs to, reopened,
+        # finds the model finished.
+        tasks, operators = mod("tasks"), mod("operators")
+        bpy.ops.wm.read_homefile(use_empty=True)
+        other = work / "other_file" / "other.blend"
+        other.parent.mkdir(exist_ok=True)
+        bpy.ops.wm.save_as_mainfile(filepath=str(other))  # a file of the user's without a model
+        bpy.ops.wm.read_homefile(use_empty=True)
+        assert bpy.ops.neulf.import_colmap(directory=str(scene_dir)) == {"FINISHED"}
+        folder = work / "trained_file"
+        folder.mkdir(exist_ok=True)
+        props = bpy.context.scene.neulf
+        props.model_dir, props.members = str(folder / "model"), 1
+        job, _resumed = operators.start_training(bpy.context, steps=30)  # what Train does in the UI
+        bpy.ops.wm.save_as_mainfile(filepath=str(folder / "trained.blend"))  # saved while training
+        bpy.ops.wm.open_mainfile(filepath=str(other))
+        deadline = time.monotonic() + 180
+        while tasks.poll_all() and time.monotonic() < deadline:  # the UI timer's ticks, in the other file
+            time.sleep(0.05)
+        assert job.state["status"] == "finished", job.state
+        untouched = bpy.context.scene.neulf
+        assert untouched.model_dir == "" and untouched.last_status == "", (untouched.model_dir, untouched.last_status)
+        bpy.ops.wm.open_mainfile(filepath=str(folder / "trained.blend"))
+        status = bpy.context.scene.neulf.last_status
+        assert status.startswith("finished at step 30"), status
+        return f"the other file untouched; the training's own file reopened: '{status}'"
 
     @story.step("reconstruct_photos", "install")
     def _():
@@ -1438,6 +1488,8 @@ def run_session(setup: dict) -> dict:
             bpy.ops.wm.open_mainfile(filepath=setup["blend"])
             result["missing_status"] = bpy.context.scene.neulf.last_status
             result["missing_error"] = error_of(lambda: bpy.ops.neulf.render_camera())
+            result["missing_train"] = error_of(lambda: bpy.ops.neulf.train(steps=2))  # refused: no new model there
+            result["missing_made"] = Path(bpy.path.abspath(bpy.context.scene.neulf.model_dir)).exists()
         elif session == "quit_a":
             bpy.ops.wm.read_homefile(use_empty=True)
             assert bpy.ops.neulf.import_colmap(directory=setup["scene_dir"]) == {"FINISHED"}
