@@ -416,8 +416,46 @@ class NEULF_OT_render_camera(_Reporting, bpy.types.Operator):
 # ----------------------------------------------------------------------------- camera paths and video
 
 
+SPIRAL_CAMERA = "NeuLF Spiral"
+TRANSFORM_PATHS = ("location", "rotation_euler", "rotation_quaternion", "rotation_axis_angle")
+
+
+def spiral_camera(scene, camera):
+    """The camera to keyframe: the active one, unless it is one of the capture's (its pose is its
+    photo's), then a camera of the spiral's own with that camera's lens, parented to the root
+    like the capture's, made the scene camera."""
+    if camera.get(capture.ROLE) != "camera":
+        return camera
+    spiral = next((obj for obj in scene.objects if obj.get(capture.ROLE) == "spiral"), None)
+    if spiral is None:
+        spiral = bpy.data.objects.new(SPIRAL_CAMERA, camera.data.copy())
+        spiral.data.name = SPIRAL_CAMERA
+        spiral[capture.ROLE] = "spiral"
+        scene.collection.objects.link(spiral)
+        spiral.parent, spiral.matrix_parent_inverse = camera.parent, camera.matrix_parent_inverse.copy()
+    scene.camera = spiral
+    return spiral
+
+
+def clear_transform_keys(obj) -> None:
+    """Remove the object's location and rotation keyframes, keeping the rest of its animation
+    (a lens, a custom property, visibility)."""
+    animation = obj.animation_data
+    if animation is None or animation.action is None:
+        return
+    fcurves = animation.action.fcurves if hasattr(animation.action, "fcurves") else None
+    if getattr(animation, "action_slot", None) is not None:  # 4.4+: an action's curves are per slot
+        from bpy_extras import anim_utils
+
+        channelbag = anim_utils.action_get_channelbag_for_slot(animation.action, animation.action_slot)
+        fcurves = channelbag.fcurves if channelbag is not None else None
+    for fcurve in [fcurve for fcurve in (fcurves or []) if fcurve.data_path in TRANSFORM_PATHS]:
+        fcurves.remove(fcurve)
+
+
 class NEULF_OT_spiral_path(_Reporting, bpy.types.Operator):
-    """Keyframe a smooth spiral through the capture on the active camera (frame range set to it)"""
+    """Keyframe a smooth spiral through the capture on the active camera, or on a camera of its
+    own where the active one is a capture camera (frame range set to it)"""
 
     bl_idname = "neulf.spiral_path"
     bl_label = "Spiral Camera Path"
@@ -434,8 +472,8 @@ class NEULF_OT_spiral_path(_Reporting, bpy.types.Operator):
         path = get_core(context).call("spiral", model_dir=model_dir(scene), frames=frames)
         _collection, root = capture.find_capture(scene)
         root_matrix = root.matrix_world.copy() if root is not None else capture.Matrix.Identity(4)
-        if camera.animation_data is not None:
-            camera.animation_data_clear()
+        camera = spiral_camera(scene, camera)
+        clear_transform_keys(camera)
         parent_inverse = (camera.parent.matrix_world.inverted() if camera.parent is not None
                           else capture.Matrix.Identity(4))
         start = scene.frame_start
@@ -490,7 +528,10 @@ class NEULF_OT_render_video(_Reporting, bpy.types.Operator):
         model_dir(scene)  # a clear error before the render starts
         if scene.camera is None:
             raise NeulfError("the scene has no active camera.")
-        path = abspath(self.filepath) if self.filepath else abspath("//neulf.mp4")
+        path = abspath(self.filepath or "//neulf.mp4")
+        if not os.path.isabs(path):  # ('//' in a file never saved: no folder to be relative to)
+            raise NeulfError(f"'{self.filepath or '//neulf.mp4'}' is relative to the .blend, which is not saved yet: "
+                             "save it first, or choose the video's folder.")
         if not path.lower().endswith(".mp4"):
             path += ".mp4"
         Path(path).parent.mkdir(parents=True, exist_ok=True)
@@ -498,7 +539,10 @@ class NEULF_OT_render_video(_Reporting, bpy.types.Operator):
         configure_video(scene, path)
         if bpy.app.background:
             bpy.ops.render.render(animation=True, scene=scene.name)
-            self.report({"INFO"}, f"wrote {path}")
+            written = Path(scene.render.frame_path(frame=scene.frame_start))  # (the name Blender gives the video)
+            if not written.is_file():
+                raise NeulfError(f"Blender wrote no video at {written}: see the console for why.")
+            self.report({"INFO"}, f"wrote {written}")
         else:
             bpy.ops.render.render("INVOKE_DEFAULT", animation=True, scene=scene.name)
         return {"FINISHED"}

@@ -1132,17 +1132,50 @@ def run_story(setup: dict) -> None:  # noqa: C901 - one story, told in order
         return f"projection -> pinhole within K {worst['K']:.1e} px, R {worst['R']:.1e}, t {worst['t']:.1e}; " \
             + "; ".join(lines)
 
+    def _spiral_keeps_other_keys(scene, spiral):
+        """Spiral Camera Path again, on its own camera now active: the same camera (no second),
+        its location / rotation keys replaced, a lens key of the user's kept."""
+        spiral.data.keyframe_insert("lens", frame=1)
+        spiral.keyframe_insert("hide_render", frame=1)
+        cameras_before = sum(obj.type == "CAMERA" for obj in bpy.data.objects)
+        assert bpy.ops.neulf.spiral_path(frames=3) == {"FINISHED"}
+        assert scene.camera is spiral and sum(obj.type == "CAMERA" for obj in bpy.data.objects) == cameras_before
+        assert spiral.data.animation_data is not None and spiral.animation_data is not None
+        paths = sorted({fcurve.data_path for fcurve in _fcurves_of(spiral)})
+        assert paths == ["hide_render", "location", "rotation_euler"], paths
+        assert all(len(fcurve.keyframe_points) == (3 if fcurve.data_path != "hide_render" else 1)
+                   for fcurve in _fcurves_of(spiral)), [(f.data_path, len(f.keyframe_points)) for f in _fcurves_of(spiral)]
+        return "pressed again: the same camera, its transform keys replaced (3 each), a visibility key kept"
+
+    def _fcurves_of(obj):
+        animation = obj.animation_data
+        if getattr(animation, "action_slot", None) is not None:
+            from bpy_extras import anim_utils
+            return anim_utils.action_get_channelbag_for_slot(animation.action, animation.action_slot).fcurves
+        return animation.action.fcurves
+
     @story.step("spiral_video", "render_camera")
     def _():
         scene = bpy.context.scene
         scene.frame_start = 1
+        capture_camera = scene.camera
+        assert capture_camera.get("neulf_role") == "camera"
+        photo_pose = capture_camera.matrix_world.copy()
         assert bpy.ops.neulf.spiral_path(frames=3) == {"FINISHED"}
         assert scene.frame_end == 3
+        spiral = scene.camera  # a camera of its own: the capture camera keeps its photo's pose
+        assert spiral is not capture_camera and spiral.name == "NeuLF Spiral", spiral.name
+        assert spiral.data.lens == capture_camera.data.lens and capture_camera.animation_data is None
+        kept = _spiral_keeps_other_keys(scene, spiral)
         poses = []
         for frame in (1, 2, 3):
             scene.frame_set(frame)
             poses.append(np.array(scene.camera.matrix_world))
         assert not np.allclose(poses[0], poses[1])
+        assert np.allclose(np.array(capture_camera.matrix_world), np.array(photo_pose))
+        assert not bpy.data.filepath  # the default '//neulf.mp4' in a file never saved: said, not lost
+        unsaved = error_of(lambda: bpy.ops.neulf.render_video())
+        assert "not saved yet" in unsaved and unsaved.strip().count("\n") == 0, unsaved
         video = work / "spiral.mp4"
         assert bpy.ops.neulf.render_video(filepath=str(video)) == {"FINISHED"}
         written = video if video.is_file() else next(work.glob("spiral*.mp4"))
@@ -1151,7 +1184,7 @@ def run_story(setup: dict) -> None:  # noqa: C901 - one story, told in order
         bpy.data.movieclips.remove(clip)
         assert count == 3, count
         ctx["video"] = str(written)
-        return f"{written.name}: {count} frames"
+        return f"{written.name}: {count} frames through '{spiral.name}' (the capture camera untouched); {kept}"
 
     @story.step("save_reload", "render_camera")
     def _():
