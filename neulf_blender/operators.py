@@ -223,6 +223,9 @@ def attach_model(context, path: str) -> dict:
     props = context.scene.neulf
     meta = read_model_json(path)
     if not meta:
+        if (Path(path) / "model.json").is_file():
+            raise NeulfError(f"{path}/model.json cannot be read (damaged or not a NeuLF model's): copy the model "
+                             "folder again from where it came, or train a new model into another folder.")
         raise NeulfError(f"{path} holds no NeuLF model (model.json missing).")
     props.model_dir = store_path(path)
     progress = meta.get("progress", {})
@@ -353,6 +356,10 @@ class NEULF_OT_train(_Reporting, bpy.types.Operator):
         steps = self.steps or (props.train_steps if not self.minutes else 0)
         minutes = self.minutes or props.train_minutes
         job, resume = start_training(context, minutes=None if steps else minutes, steps=steps or None)
+        kept = read_model_json(job.model_dir).get("train_config", {}).get("preset") if resume else None
+        if kept and kept != props.preset:  # (a model's network cannot change; its options apply to a new one)
+            self.report({"WARNING"}, f"the model keeps its preset '{kept}': the panel's '{props.preset}' applies to a "
+                                     "new model (choose another Model folder)")
         if not bpy.app.background:
             self.report({"INFO"}, (f"continuing from step {job.state['resumed_from']}" if resume else "training")
                         + " in the background")

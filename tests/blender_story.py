@@ -298,10 +298,16 @@ def run_story(setup: dict) -> None:  # noqa: C901 - one story, told in order
             assert "poses corrected by" in props.last_status, props.last_status
             # the status line says when the default trained with the multi-view losses
             assert ("multi-view losses" in props.last_status) == meta["multiview_losses"], props.last_status
-            return props.last_status
+            status = props.last_status
+            props.preset = "authors"  # continued: the model keeps its network, and says so
+            report = reports_of(lambda: bpy.ops.neulf.train(steps=12))
+            assert "keeps its preset 'fast'" in report, report
+            assert json.loads((options_model / "model.json").read_text())["train_config"]["preset"] == "fast"
+            return status
+
         finally:
             props.model_dir, props.appearance, props.refine_poses = saved, "AUTO", "AUTO"
-            props.stop_early = True
+            props.stop_early, props.preset = True, "fast"
 
     @story.step("train_timer_resume", "train_blocking")
     def _():
@@ -1401,6 +1407,11 @@ def run_story(setup: dict) -> None:  # noqa: C901 - one story, told in order
         messages = [error_of(call) for call in (
             lambda: bpy.ops.neulf.render_camera(), lambda: bpy.ops.neulf.import_colmap(directory=str(work)),
             lambda: bpy.ops.neulf.focus_at(x=1, y=1))]
+        damaged = work / "damaged_model"  # a model.json cut short: said so, not "missing"
+        damaged.mkdir(exist_ok=True)
+        (damaged / "model.json").write_text('{"preset": "fa')
+        messages.append(error_of(lambda: bpy.ops.neulf.load_model(directory=str(damaged))))
+        assert "cannot be read" in messages[-1], messages[-1]
         assert all("Traceback" not in m and m.startswith("Error:") for m in messages), messages
         return " | ".join(m.strip() for m in messages)
 
