@@ -176,8 +176,9 @@ def build_capture(context, description: dict, *, import_points: bool = True):
 # ----------------------------------------------------------------------------- Blender camera -> pinhole
 
 
-def camera_request(scene, camera_obj, matrix_world=None, root_matrix=None) -> dict:
-    """The pinhole a Blender camera renders, in the model's COLMAP frame.
+def camera_request(scene, camera_obj, matrix_world=None, root_matrix=None, shift_x=None) -> dict:
+    """The pinhole a Blender camera renders, in the model's COLMAP frame (`matrix_world` and
+    `shift_x`: a stereo eye's, where they differ from the camera's own).
 
     Returns K, width, height, R, t (world-to-camera, model units) and `scale`, the root's
     uniform scale (model units x scale = Blender units)."""
@@ -193,7 +194,8 @@ def camera_request(scene, camera_obj, matrix_world=None, root_matrix=None) -> di
     if cam.type != "PERSP":
         raise NeulfError(f"camera {camera_obj.name} is {cam.type.lower()}; NeuLF renders perspective cameras only.")
     K = convert.K_from_blender(lens=cam.lens, sensor_width=cam.sensor_width, sensor_height=cam.sensor_height,
-                               sensor_fit=cam.sensor_fit, shift_x=cam.shift_x, shift_y=cam.shift_y, width=width,
+                               sensor_fit=cam.sensor_fit, shift_x=cam.shift_x if shift_x is None else shift_x,
+                               shift_y=cam.shift_y, width=width,
                                height=height, pixel_aspect_x=render.pixel_aspect_x, pixel_aspect_y=render.pixel_aspect_y)
     relative = np.array(root_matrix.inverted()) @ np.array(matrix_world)
     try:

@@ -32,30 +32,44 @@ class NeulfRenderEngine(bpy.types.RenderEngine):
             self.register_pass(scene, renderlayer, "Depth", 1, "Z", "VALUE")
 
     def render(self, depsgraph):
+        scene = depsgraph.scene_eval
+        original = bpy.data.scenes.get(scene.name) or scene
+        for view in _views(scene.render):  # (each eye of a stereo render, or the one view)
+            if not self._render_view(depsgraph, original, view):
+                return
+        mismatch = compositing.out_of_step(original)
+        if mismatch:
+            self.report({"WARNING"}, mismatch)
+
+    def _render_view(self, depsgraph, original, view: str) -> bool:
+        """Render one view (a stereo eye by name, or "" without multiview) of this call's view
+        layer into its result; False where it stopped (cancelled, or an error reported)."""
         from .operators import model_dir
         from .preferences import get_core
 
         scene = depsgraph.scene_eval
-        camera = scene.camera
-        original = bpy.data.scenes.get(scene.name) or scene
+        camera = scene.camera.evaluated_get(depsgraph) if scene.camera else None
         want_depth = bool(depsgraph.view_layer_eval.use_pass_z)
         try:
+            eye = {}
+            if view and camera is not None:  # Blender's own eye placement (interocular, convergence mode)
+                self.active_view_set(view)
+                eye = dict(matrix_world=self.camera_model_matrix(camera), shift_x=self.camera_shift_x(camera))
             _collection, root = capture.find_capture(original)
             root_matrix = root.evaluated_get(depsgraph).matrix_world if root is not None else None
-            request = capture.camera_request(scene, camera.evaluated_get(depsgraph) if camera else None,
-                                             root_matrix=root_matrix)
+            request = capture.camera_request(scene, camera, root_matrix=root_matrix, **eye)
             scale = request.pop("scale")
-            request.update(capture.lens_request(camera.evaluated_get(depsgraph), scale))
+            request.update(capture.lens_request(camera, scale))
             request = _region_only(request, scene.render)
-            self.update_stats("", "NeuLF: rendering")
+            self.update_stats("", f"NeuLF: rendering {view}".rstrip())
             result = get_core().call("render", model_dir=model_dir(original), depth=want_depth, chunk=scene.neulf.chunk,
                                      pixel_samples=int(scene.neulf.pixel_samples),
                                      on_progress=self.update_progress, should_stop=self.test_break, **request)
         except InterruptedError:
-            return
+            return False
         except NeulfError as exc:
             self.report({"ERROR"}, str(exc))
-            return
+            return False
         width, height = request["width"], request["height"]
         rgb = convert.srgb_to_linear(result["rgb"])  # the Combined pass is scene-linear
         alpha = 1.0
@@ -64,7 +78,7 @@ class NeulfRenderEngine(bpy.types.RenderEngine):
             alpha = result["valid"].astype("float32")
             rgb = rgb * alpha[..., None]
         # Blender calls render once for each view layer: this call's result is its own layer's.
-        render_result = self.begin_result(0, 0, width, height, layer=depsgraph.view_layer.name)
+        render_result = self.begin_result(0, 0, width, height, layer=depsgraph.view_layer.name, view=view)
         passes = render_result.layers[0].passes
         passes["Combined"].rect.foreach_set(convert.image_rows_for_blender(rgb, alpha))
         if want_depth and result.get("depth") is not None and "Depth" in passes:
@@ -72,9 +86,7 @@ class NeulfRenderEngine(bpy.types.RenderEngine):
         self.end_result(render_result)
         for note in result.get("warnings", []):
             self.report({"WARNING"}, note)
-        mismatch = compositing.out_of_step(original)
-        if mismatch:
-            self.report({"WARNING"}, mismatch)
+        return True
 
     # ------------------------------------------------------------------ the viewport
 
@@ -142,6 +154,16 @@ class NeulfRenderEngine(bpy.types.RenderEngine):
         parent = getattr(super(), "__del__", None)  # (none in bpy 4.2-5.0; Blender's docs call it)
         if parent is not None:
             parent()
+
+
+def _views(render) -> list[str]:
+    """The views Blender renders: with Stereoscopy on, its left and right eyes (Stereo 3D) or
+    every view in use (Multi-View); else one, unnamed."""
+    if not render.use_multiview:
+        return [""]
+    if render.views_format == "STEREO_3D":
+        return [view.name for view in render.views if view.use and view.name in ("left", "right")]
+    return [view.name for view in render.views if view.use]
 
 
 def _region_only(request: dict, render) -> dict:

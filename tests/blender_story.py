@@ -768,6 +768,41 @@ def run_story(setup: dict) -> None:  # noqa: C901 - one story, told in order
             render.use_border = render.use_crop_to_border = False
         return f"a render region ({width} x {height}) cropped and not: its pixels the full frame's"
 
+    def _f12_stereo(scene):
+        """F12 with Stereoscopy (Stereo 3D, parallel eyes 0.2 apart about the camera): each eye is
+        Render Camera's image of the camera moved half that to its side."""
+        render, camera = scene.render, scene.camera
+        stereo, settings = camera.data.stereo, render.image_settings
+        saved = stereo.convergence_mode, stereo.interocular_distance, stereo.pivot, settings.views_format
+        render.use_multiview, render.views_format = True, "STEREO_3D"
+        stereo.convergence_mode, stereo.interocular_distance, stereo.pivot = "PARALLEL", 0.2, "CENTER"
+        settings.views_format = "INDIVIDUAL"
+        render.filepath = str(work / "f12_stereo")
+        try:
+            bpy.ops.render.render(write_still=True)
+            eyes = {side: load_png(next(work.glob(f"f12_stereo_{side}*.png"))) for side in "LR"}
+        finally:
+            render.use_multiview = False
+            stereo.convergence_mode, stereo.interocular_distance, stereo.pivot, settings.views_format = saved
+            render.filepath = str(work / "f12.png")
+        differences = []
+        for side, sign in (("L", -1.0), ("R", 1.0)):
+            eye = camera.copy()
+            scene.collection.objects.link(eye)
+            eye.matrix_world = camera.matrix_world.copy()
+            eye.matrix_world.translation = camera.matrix_world.translation + camera.matrix_world.to_3x3().normalized().col[0] * (0.1 * sign)
+            scene.camera = eye
+            try:
+                assert bpy.ops.neulf.render_camera() == {"FINISHED"}
+            finally:
+                scene.camera = camera
+                bpy.data.objects.remove(eye)
+            differences.append(np.abs(eyes[side] - image_array("NeuLF Render")).max())
+        apart = np.abs(eyes["L"] - eyes["R"]).mean()
+        assert max(differences) <= 2 / 255 + 1e-6 and apart > 0.01, (differences, apart)
+        return (f"stereo: each eye Render Camera's image of the camera moved 0.1 to its side within "
+                f"{max(differences) * 255:.1f}/255 (the eyes differ by {apart * 255:.1f}/255 on average)")
+
     @story.step("engine_f12", "render_camera")
     def _():
         scene = bpy.context.scene
@@ -785,6 +820,7 @@ def run_story(setup: dict) -> None:  # noqa: C901 - one story, told in order
         diff = np.abs(still - ctx["render"]).max()
         assert diff <= 2 / 255 + 1e-6, diff
         region = _f12_render_region(scene, still)
+        region += "; " + _f12_stereo(scene)
         if "render_one_point" in ctx:  # F12 follows the panel's Pixel Samples too
             scene.neulf.pixel_samples = "1"
             try:
