@@ -195,8 +195,8 @@ def camera_request(scene, camera_obj, matrix_world=None, root_matrix=None, shift
         raise NeulfError(f"camera {camera_obj.name} is {cam.type.lower()}; NeuLF renders perspective cameras only.")
     K = convert.K_from_blender(lens=cam.lens, sensor_width=cam.sensor_width, sensor_height=cam.sensor_height,
                                sensor_fit=cam.sensor_fit, shift_x=cam.shift_x if shift_x is None else shift_x,
-                               shift_y=cam.shift_y, width=width,
-                               height=height, pixel_aspect_x=render.pixel_aspect_x, pixel_aspect_y=render.pixel_aspect_y)
+                               shift_y=cam.shift_y, width=width, height=height,
+                               pixel_aspect_x=render.pixel_aspect_x, pixel_aspect_y=render.pixel_aspect_y)
     relative = np.array(root_matrix.inverted()) @ np.array(matrix_world)
     try:
         R, t = convert.pose_from_matrix(relative)

@@ -1,8 +1,8 @@
 """Application handlers.  On save, each scene's folders (capture, images, model) are written
 relative to where the .blend is saved: Save As into another folder, or a first save of a file
 that imported and trained before it had a place, keeps them pointing at the same folders (and
-moving the .blend together with them keeps the link).  On file load, each scene's training status is read again from its
-model folder: after Blender quit (or crashed) while training, the .blend holds whatever it
+moving the .blend together with them keeps the link).  On file load, each scene's training
+status is read again from its model folder: after Blender quit (or crashed) while training, the .blend holds whatever it
 had when it was saved, while the model folder's model.json holds the progress of the last
 checkpoint.  The panel then says how far the model got, and Train continues it.  Where another
 process still trains the folder (the training an earlier Blender left behind, saving its last
@@ -36,6 +36,8 @@ def on_save_pre(filepath="", *_args):
     if not filepath:  # (the startup file)
         return
     for scene in bpy.data.scenes:
+        if scene.library is not None:  # (a linked scene is its library's to save)
+            continue
         for name in PATH_PROPERTIES:
             value = getattr(scene.neulf, name)
             if value:

@@ -198,8 +198,10 @@ class NEULF_OT_reconstruct(_Reporting, bpy.types.Operator):
         def done(job):
             scene = bpy.data.scenes.get(scene_name) if tasks.same_file_since(opened) else None
             if job.state["status"] != "finished" or scene is None:
-                print(f"NeuLF: reconstruction {job.state['status']}: {job.state.get('error')}"
-                      + ("" if scene is not None else f"; the scene is in {out}: import it with Import COLMAP / LLFF"))
+                found = job.state["status"] == "finished"  # (another .blend was opened meanwhile)
+                print(f"NeuLF: reconstruction {job.state['status']}: "
+                      + (f"the scene is in {out}: import it with Import COLMAP / LLFF" if found
+                         else str(job.state.get("error"))))
                 return
             with bpy.context.temp_override(scene=scene):
                 bpy.ops.neulf.import_colmap(directory=out)

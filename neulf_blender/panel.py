@@ -88,7 +88,8 @@ class NEULF_PT_main(bpy.types.Panel):
         train = tasks.get("train")
         if train is not None and train.running:
             ours = bool(props.model_dir) and abspath(props.model_dir) == os.path.normpath(train.model_dir)
-            _job_box(layout, train, "Training" if ours else f"Training {Path(train.model_dir).name}", "neulf.cancel_train")
+            label = "Training" if ours else f"Training {Path(train.model_dir).name}"  # (another file's model)
+            _job_box(layout, train, label, "neulf.cancel_train")
         else:
             label = "Continue Training" if props.model_dir else "Train NeuLF"
             layout.operator("neulf.train", text=label, icon="PLAY")
