@@ -6,6 +6,7 @@ Every user-caused error ends in one line on stderr and exit status 2, never a tr
 from __future__ import annotations
 
 import argparse
+import errno
 import json
 import os
 import signal
@@ -23,6 +24,68 @@ EXIT_USAGE = 2
 class _Parser(argparse.ArgumentParser):
     def error(self, message):  # one clear line instead of usage + message
         raise NeulfError(f"{message} (see: {self.prog} --help)")
+
+
+def _number(kind, lowest: float, *, above: bool):
+    """An argparse type: a finite `kind` (int or float) above (or at least) `lowest`; NaN, inf and
+    the rest get one line saying what the option takes."""
+    words = f"{'above' if above else 'at least'} {lowest:g}"
+
+    def parse(text: str):
+        try:
+            value = kind(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"'{text}' is not a{'n integer' if kind is int else ' number'}") from None
+        if not np.isfinite(value) or (value <= lowest if above else value < lowest):
+            raise argparse.ArgumentTypeError(f"'{text}': give a {'whole' if kind is int else 'finite'} number {words}")
+        return value
+
+    parse.__name__ = kind.__name__  # (argparse names the type in its messages)
+    return parse
+
+
+POSITIVE = _number(float, 0, above=True)
+NON_NEGATIVE = _number(float, 0, above=False)
+POSITIVE_INT = _number(int, 0, above=True)
+NON_NEGATIVE_INT = _number(int, 0, above=False)
+MAX_DEPTH_LAYERS = 64  # (8 is the default's; each layer is a plane of the geometry: thousands exhaust memory)
+
+
+VIDEO_SUFFIXES = (".mp4", ".mov", ".mkv", ".m4v")
+
+
+def _output_folder(path) -> Path:
+    """The folder `--out` names, made where missing; a file there, or a folder that cannot be
+    written (read-only, no permission), is said before anything is computed."""
+    out = Path(path)
+    if out.exists() and not out.is_dir():
+        raise NeulfError(f"{out} is a file, not a folder: give --out a folder to write into.")
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise NeulfError(f"cannot make the folder {out}: {exc.strerror or exc}; give --out another folder.") from None
+    if not os.access(out, os.W_OK):
+        raise NeulfError(f"cannot write into {out} (read-only, or no permission): give --out another folder.")
+    return out
+
+
+def _video_file(path) -> Path:
+    """The video file `--out` names, its folder checked as `_output_folder` checks one."""
+    out = Path(path)
+    if out.is_dir() or out.suffix.lower() not in VIDEO_SUFFIXES:
+        raise NeulfError(f"--out {out}: give a video file name ending in {', '.join(VIDEO_SUFFIXES)} (H.264).")
+    _output_folder(out.parent)
+    return out
+
+
+def _os_error_line(exc: OSError) -> str:
+    """One line for a file the command could not read or write (the disk full, a folder made
+    read-only meanwhile, ...), instead of a traceback."""
+    where = f" {exc.filename}" if exc.filename else ""
+    if exc.errno == errno.ENOSPC:
+        return (f"the disk is full (writing{where}): free some space and run the command again; a training keeps "
+                "its last checkpoint, which --resume continues.")
+    return f"cannot read or write{where}: {exc.strerror or exc}. Check the path and its permissions."
 
 
 def _names(text: str | None) -> list[str] | None:
@@ -60,8 +123,8 @@ def cmd_train(args) -> int:
     preset = get_preset(args.preset)  # fail before loading the scene and drawing progress, not after
     overrides = {}
     if args.depth_layers is not None:
-        if preset.field != "disparity" or args.depth_layers < 0:
-            raise NeulfError("--depth-layers takes a count of 0 or more, with the fast or auto preset.")
+        if preset.field != "disparity" or args.depth_layers > MAX_DEPTH_LAYERS:
+            raise NeulfError(f"--depth-layers takes a count from 0 to {MAX_DEPTH_LAYERS}, with the fast or auto preset.")
         overrides["geometry_layers"] = args.depth_layers
     if args.max_passes is not None and args.max_passes < 0:
         raise NeulfError("--max-passes takes a number of passes (0: no limit).")
@@ -80,6 +143,8 @@ def cmd_train(args) -> int:
         max_passes=args.max_passes,
         two_starts=args.two_starts, pixel_jitter=args.pixel_jitter, members=args.members, members_split=args.members_split,
     )
+    if args.resume:
+        _say_what_resume_keeps(args)
     stop = {"signal": None, "reader_gone": False}
 
     def on_signal(signum, _frame):
@@ -112,6 +177,47 @@ def cmd_train(args) -> int:
                   f"{args.scene_dir} --out {args.out} --resume --minutes/--steps ...", file=sys.stderr)
         return 128 + int(stop["signal"] or signal.SIGINT)
     return 0
+
+
+# The options a model keeps from its first training (train._config_for_resume), by their
+# TrainConfig field, and how the command line gives them.
+KEPT_ON_RESUME = {"preset": "preset", "holdout_every": "holdout_every", "exclude": "exclude", "seed": "seed",
+                  "batch_size": "batch_size", "scale": "scale", "st_depth": "st_depth", "near": "near", "far": "far",
+                  "sweep_teacher": "teacher", "point_depth": "point_depth", "consistency": "consistency",
+                  "appearance": "appearance", "refine_poses": "refine_poses", "coarse_to_fine": "coarse_to_fine",
+                  "back_surface": "back_surface", "two_starts": "two_starts", "pixel_jitter": "pixel_jitter"}
+
+
+def _say_what_resume_keeps(args) -> None:
+    """--resume continues the model as it was trained: an option asked for that differs from
+    the model's own is said (not silently dropped), as is a folder with nothing to resume."""
+    from .checkpoint import checkpoint_path
+
+    if not checkpoint_path(Path(args.out)).is_file():
+        print(f"note: {args.out} holds no model to resume yet: training a new one.", file=sys.stderr)
+        return
+    try:
+        saved = json.loads((Path(args.out) / "model.json").read_text()).get("train_config", {})
+    except (OSError, ValueError):
+        return  # (the checkpoint itself is read, and checked, by training)
+    asked = {dest: getattr(args, dest) for dest in KEPT_ON_RESUME if dest in getattr(args, "given", ())}
+    if "exclude" in asked:
+        asked["exclude"] = _names(asked["exclude"])
+    differ = [f"--{dest.replace('_', '-')} (the model's: {saved.get(field)!r})" for dest, field in KEPT_ON_RESUME.items()
+              if dest in asked and field in saved and asked[dest] != saved[field]]
+    if differ:
+        print(f"warning: --resume continues the model as it was trained, so these options keep the model's own "
+              f"values: {', '.join(differ)}; to train with them, give --out a new folder.", file=sys.stderr)
+
+
+def _given_options(argv: list[str]) -> set[str]:
+    """The destinations of the options written on the command line (not argparse's defaults)."""
+    given = set()
+    for token in argv:
+        if token.startswith("--"):
+            name = token[2:].split("=", 1)[0]
+            given.add(name[3:].replace("-", "_") if name.startswith("no-") else name.replace("-", "_"))
+    return given
 
 
 class _Reporter:
@@ -153,6 +259,8 @@ def _load_cameras_json(path: Path) -> list[dict]:
         data = json.loads(Path(path).read_text())
     except FileNotFoundError:
         raise NeulfError(f"cameras file {path} does not exist.") from None
+    except IsADirectoryError:
+        raise NeulfError(f"--cameras {path} is a folder: give the cameras' JSON file.") from None
     except (json.JSONDecodeError, UnicodeDecodeError) as exc:
         raise NeulfError(f"cameras file {path} is not valid JSON ({exc}).") from None
     cameras = data if isinstance(data, list) else data.get("cameras", data.get("views")) if isinstance(data, dict) else None
@@ -164,16 +272,27 @@ def _load_cameras_json(path: Path) -> list[dict]:
             K = np.asarray(cam["K"], dtype=np.float64).reshape(3, 3)
             R = np.asarray(cam["R"], dtype=np.float64).reshape(3, 3)
             t = np.asarray(cam["t"], dtype=np.float64).reshape(3)
-            width, height = int(cam["width"]), int(cam["height"])
+            width, height = _pixel_count(cam["width"]), _pixel_count(cam["height"])
         except (KeyError, TypeError, ValueError) as exc:
             raise NeulfError(f"camera {i} in {path} needs K (3x3), R (3x3), t (3), width and height: {exc!r} is wrong.") from None
         if not np.allclose(R @ R.T, np.eye(3), atol=1e-4) or np.linalg.det(R) < 0:
             raise NeulfError(f"camera {i} in {path}: R is not a rotation matrix.")
         if not (np.isfinite(K).all() and np.isfinite(t).all() and K[0, 0] > 0 and K[1, 1] > 0):
             raise NeulfError(f"camera {i} in {path}: K needs positive focal lengths K[0][0], K[1][1], and K and t finite values.")
+        if not np.allclose(K[2], [0.0, 0.0, 1.0]):
+            raise NeulfError(f"camera {i} in {path}: K's last row must be [0, 0, 1] (a pinhole's), not {K[2].tolist()}.")
         name = Path(str(cam.get("name", f"camera_{i:03d}"))).stem
+        if any(other["name"] == name for other in parsed):  # (the second image would overwrite the first)
+            raise NeulfError(f"two cameras in {path} are named '{name}': give each its own name (its image's file name).")
         parsed.append({"name": name, "K": K, "R": R, "t": t, "width": width, "height": height})
     return parsed
+
+
+def _pixel_count(value) -> int:
+    """An image size from JSON: a whole number (not true/false, not 480.5)."""
+    if isinstance(value, bool) or not float(value).is_integer():
+        raise ValueError(f"{value!r} (an image size is a whole number of pixels)")
+    return int(value)
 
 
 def _save_rendering(out: Path, stem: str, rendering, want_depth: bool, exr: bool = False) -> None:
@@ -220,18 +339,23 @@ def _focus_options(args):
     if args.focus_pixel:
         try:
             pixel = tuple(float(v) for v in args.focus_pixel.split(","))
-            assert len(pixel) == 2
+            assert len(pixel) == 2 and np.isfinite(pixel).all()
         except (ValueError, AssertionError):
             raise NeulfError(f"--focus-pixel wants X,Y in pixels (top-left origin), not '{args.focus_pixel}'.") from None
     if args.aperture > 0 and args.focus_distance is None and pixel is None:
         raise NeulfError("--aperture needs --focus-distance D or --focus-pixel X,Y.")
     if args.focus_distance is not None and args.focus_distance <= 0:
         raise NeulfError("--focus-distance must be positive (depth along the optical axis, scene units).")
+    if args.aperture == 0 and (args.focus_distance is not None or pixel is not None):
+        print("warning: a focus without --aperture or --f-stop renders a pinhole: everything is sharp.", file=sys.stderr)
     return args.focus_distance, args.aperture, pixel
 
 
 def _render_pinhole(light_field, cam: dict, args, focus_options):
     focus, aperture, pixel = focus_options
+    if pixel is not None and not (0 <= pixel[0] < cam["width"] and 0 <= pixel[1] < cam["height"]):
+        raise NeulfError(f"--focus-pixel {pixel[0]:g},{pixel[1]:g} is outside {cam['name']}'s {cam['width']} x "
+                         f"{cam['height']} image (X from the left, Y from the top, in pixels).")
     if pixel is not None:
         focus = light_field.depth_at(cam["K"], cam["R"], cam["t"], *pixel)
         print(f"{cam['name']}: focus at pixel {pixel} -> depth {focus:.4g}", file=sys.stderr)
@@ -254,13 +378,14 @@ def cmd_render(args) -> int:
 
     if (args.scene is None) == (args.cameras is None):
         raise NeulfError("render needs either --scene SCENE_DIR --views NAME,... or --cameras CAMERAS.json.")
+    if args.cameras and args.views:
+        raise NeulfError("--views names views of --scene; --cameras renders every camera of its file: give one of them.")
     if args.scale is not None and args.scale <= 0:
         raise NeulfError(f"--scale must be positive, not {args.scale}.")
     focus_options = _focus_options(args)
     refocus = focus_options[1] > 0 or focus_options[2] is not None
     light_field = LightField.load(args.model_dir, args.device, args.precision)
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
+    out = _output_folder(args.out)
     count, started = 0, time.perf_counter()
     if args.cameras:
         blind = []
@@ -300,6 +425,8 @@ def cmd_render(args) -> int:
 def cmd_eval(args) -> int:
     from .evaluate import evaluate_model
 
+    if args.out or Path(args.model_dir).is_dir():  # (a mistyped model folder gets its own message, no eval/ made)
+        _output_folder(args.out or Path(args.model_dir) / "eval")
     report = evaluate_model(args.model_dir, args.scene, images_dir=args.images, out_dir=args.out,
                             views=_names(args.views), device=args.device, fit_poses=args.fit_poses,
                             pixel_samples=args.pixel_samples)
@@ -335,6 +462,7 @@ def cmd_video(args) -> int:
     from .render import LightField
     from .video import write_video
 
+    out = _video_file(args.out)
     light_field = LightField.load(args.model_dir, args.device, args.precision)
     centres, K, width, height = _rig_from_meta(light_field)
     poses = spiral_path(light_field.slab, centres, frames=args.frames)
@@ -345,7 +473,7 @@ def cmd_video(args) -> int:
             yield light_field.render(K, width, height, R, t, depth=False, pixel_samples=args.pixel_samples).rgb
             print(f"\rframe {i + 1}/{len(poses)}", end="", file=sys.stderr, flush=True)
 
-    count = write_video(frames(), args.out, fps=args.fps)
+    count = write_video(frames(), out, fps=args.fps)
     seconds = time.perf_counter() - started
     print(f"\nwrote {count} frames to {args.out} ({seconds / count * 1000:.0f} ms per frame)", file=sys.stderr)
     return 0
@@ -399,23 +527,23 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("scene_dir")
     p.add_argument("--out", required=True, help="model folder")
     p.add_argument("--images", help="images folder (default: SCENE/images, else SCENE/images_N)")
-    p.add_argument("--scale", type=float, help="train at this image scale (default: the largest 1/k at which a photo "
+    p.add_argument("--scale", type=POSITIVE, help="train at this image scale (default: the largest 1/k at which a photo "
                    "has at most 200,000 pixels: 1/2 for 960x540 photos, 1/8 for 12-megapixel ones)")
     p.add_argument("--preset", default="fast", help="fast (default), auto (fast, texture sized per scene), planes, authors (8x256 MLP), paper (20x256 MLP)")
     budget = p.add_mutually_exclusive_group()
-    budget.add_argument("--minutes", type=float, help="training time budget (total, including resumed time)")
-    budget.add_argument("--steps", type=int, help="training steps (total, including resumed steps)")
-    p.add_argument("--holdout-every", type=int, default=8, help="hold out every Nth view (0: none)")
+    budget.add_argument("--minutes", type=POSITIVE, help="training time budget (total, including resumed time)")
+    budget.add_argument("--steps", type=POSITIVE_INT, help="training steps (total, including resumed steps)")
+    p.add_argument("--holdout-every", type=NON_NEGATIVE_INT, default=8, help="hold out every Nth view (0: none)")
     p.add_argument("--exclude", help="comma-separated view names to hold out instead")
     p.add_argument("--resume", action="store_true", help="continue the model in --out")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seed", type=NON_NEGATIVE_INT, default=0)
     p.add_argument("--progress", choices=("bar", "json"), default="bar", help="bar on stderr, or JSON lines on stdout")
-    p.add_argument("--checkpoint-seconds", type=float, default=60.0)
-    p.add_argument("--validate-seconds", type=float, default=10.0, help="how often to log held-out PSNR")
-    p.add_argument("--batch-size", type=int)
-    p.add_argument("--st-depth", type=float, help="st plane depth along the slab axis (scene units)")
-    p.add_argument("--near", type=float)
-    p.add_argument("--far", type=float)
+    p.add_argument("--checkpoint-seconds", type=POSITIVE, default=60.0)
+    p.add_argument("--validate-seconds", type=POSITIVE, default=10.0, help="how often to log held-out PSNR")
+    p.add_argument("--batch-size", type=POSITIVE_INT)
+    p.add_argument("--st-depth", type=POSITIVE, help="st plane depth along the slab axis (scene units)")
+    p.add_argument("--near", type=POSITIVE)
+    p.add_argument("--far", type=POSITIVE)
     p.add_argument("--consistency", action=argparse.BooleanOptionalAction, default=None,
                    help="the paper's multi-view photometric and depth losses (default: fast/auto turn them on for deep "
                         "scenes with at most 10 training views when the budget passes over the training pixels at "
@@ -438,7 +566,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="pull the rays through the training photos' keypoints toward the depth of the COLMAP points "
                         "they observe, triangulated again from the training photos (default: on for fast/auto where "
                         "the model keeps tracks, off where the poses are refined; docs/STABILITY.md)")
-    p.add_argument("--depth-layers", type=int, metavar="N",
+    p.add_argument("--depth-layers", type=NON_NEGATIVE_INT, metavar="N",
                    help="fast/auto presets: N depth layers in the geometry (0: none; default: 8 when the scene's "
                         "far/near depth ratio is at most 3 and there are 18 or more training views, else none): sharper depth edges on shallow scenes, "
                         "worse on deep ones; docs/DEPTH.md")
@@ -450,7 +578,7 @@ def build_parser() -> argparse.ArgumentParser:
                         "blended (default: on for deep scenes, far/near above 3: the project's scene +0.2-0.4 dB, fern "
                         "level; Statue +0.48 dB when asked, CanClip -0.13; about 1.4x the time a step and 1.5x a "
                         "render; docs/TRAINING.md)")
-    p.add_argument("--max-passes", type=float, metavar="N",
+    p.add_argument("--max-passes", type=NON_NEGATIVE, metavar="N",
                    help="fast/auto presets: stop once the steps have passed over the training pixels N times, "
                         "whatever the budget (default: 100 with at most 13 training views, where more training "
                         "only memorises the photos; none with more; 0: no limit): docs/STABILITY.md")
@@ -460,11 +588,11 @@ def build_parser() -> argparse.ArgumentParser:
                         "photos better (default: when the budget pays for the second start's steps and the poses "
                         "are not being refined; with few photos one run in three otherwise settles worse): "
                         "docs/STABILITY.md")
-    p.add_argument("--pixel-jitter", type=float, default=0.0, metavar="W",
+    p.add_argument("--pixel-jitter", type=NON_NEGATIVE, default=0.0, metavar="W",
                    help="train each ray at a random point of a square W pixels wide around its pixel centre (1: "
                         "anywhere in its pixel; default 0: off; renders with a pixel filter, such as Cycles', gain "
                         "and steady, real photos lose; 16 bytes more memory a training ray): docs/TRAINING.md")
-    p.add_argument("--members", type=int, metavar="N",
+    p.add_argument("--members", type=POSITIVE_INT, metavar="N",
                    help="train N light fields apart (seeds S, S+1000, ...), each with 1/N of the budget, and render "
                         "the mean of their colours: better and steadier where one run has stopped gaining from more "
                         "steps, N times the render time (default: 2 where the budget passes over the training "
@@ -491,12 +619,12 @@ def build_parser() -> argparse.ArgumentParser:
                    help="also write <stem>.exr for compositing: R, G, B scene-linear float, A (0 where a pixel's ray "
                         "misses the light slab) and, with --depth, Z (depth along the optical axis, scene units; 1e10 "
                         "where none, as Cycles)")
-    p.add_argument("--scale", type=float, help="image scale (default: the trained scale)")
-    p.add_argument("--focus-distance", type=float, help="refocus: focal depth along the optical axis (scene units)")
-    p.add_argument("--aperture", type=float, default=0.0, help="refocus: lens radius in scene units (0: pinhole)")
+    p.add_argument("--scale", type=POSITIVE, help="image scale (default: the trained scale)")
+    p.add_argument("--focus-distance", type=POSITIVE, help="refocus: focal depth along the optical axis (scene units)")
+    p.add_argument("--aperture", type=NON_NEGATIVE, default=0.0, help="refocus: lens radius in scene units (0: pinhole)")
     p.add_argument("--focus-pixel", help="refocus: X,Y pixel whose depth becomes the focus distance")
-    p.add_argument("--f-stop", type=float, help="refocus: aperture as an f-number (with --focal-length) instead of --aperture")
-    p.add_argument("--focal-length", type=float, help="refocus: the lens's focal length in scene units, for --f-stop")
+    p.add_argument("--f-stop", type=POSITIVE, help="refocus: aperture as an f-number (with --focal-length) instead of --aperture")
+    p.add_argument("--focal-length", type=POSITIVE, help="refocus: the lens's focal length in scene units, for --f-stop")
     p.add_argument("--device")
     _precision_argument(p)
     _pixel_samples_argument(p)
@@ -523,8 +651,8 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("video", help="render a spiral camera path through the capture to MP4")
     p.add_argument("model_dir")
     p.add_argument("--out", required=True, help="video file (.mp4)")
-    p.add_argument("--frames", type=int, default=60)
-    p.add_argument("--fps", type=int, default=30)
+    p.add_argument("--frames", type=POSITIVE_INT, default=60)
+    p.add_argument("--fps", type=POSITIVE_INT, default=30)
     p.add_argument("--device")
     _precision_argument(p)
     _pixel_samples_argument(p)
@@ -532,7 +660,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("demo", help="render a small Blender scene, reconstruct, train, render (needs bpy)")
     p.add_argument("--out", default="neulf_demo")
-    p.add_argument("--minutes", type=float, default=3.0)
+    p.add_argument("--minutes", type=POSITIVE, default=3.0)
     p.add_argument("--keep", action="store_true", help="reuse scene files already in --out")
     p.set_defaults(run=cmd_demo)
     return parser
@@ -540,7 +668,9 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     try:
+        argv = sys.argv[1:] if argv is None else argv
         args = build_parser().parse_args(argv)
+        args.given = _given_options(argv)
         return args.run(args)
     except NeulfError as exc:
         from .progress import end_line
@@ -554,3 +684,9 @@ def main(argv: list[str] | None = None) -> int:
     except MemoryError:
         print("error: out of memory; train at a smaller --scale or render smaller images.", file=sys.stderr)
         return 1
+    except OSError as exc:
+        from .progress import end_line
+
+        end_line()
+        print(f"error: {_os_error_line(exc)}", file=sys.stderr)
+        return EXIT_USAGE

@@ -26,7 +26,9 @@ def evaluate_model(model_dir, scene_dir, *, images_dir=None, out_dir=None, views
     light_field = LightField.load(model_dir, device, precision="full")  # scores are float32's
     scene = load_scene(scene_dir, images_dir)
     light_field.check_scene(scene)
-    names = views or light_field.meta["scene"]["held_out"]
+    names = views if views not in (None, [], ["held-out"]) else light_field.meta["scene"]["held_out"]
+    if names == ["all"]:  # (the training views too: how well the model fits its photos)
+        names = [view.name for view in scene.views]
     if not names:
         raise NeulfError("the model was trained without held-out views (--holdout-every 0); name views with --views.")
     out = Path(out_dir) if out_dir else Path(model_dir) / "eval"

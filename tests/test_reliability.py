@@ -678,3 +678,128 @@ def test_a_second_training_of_the_same_model_folder_is_refused(tiny_scene, tmp_p
     with training_lock(tmp_path / "held"):
         assert (tmp_path / "held" / LOCK_NAME).is_file()
     assert not (tmp_path / "held").exists()  # nothing was written: no empty folder left behind
+
+
+# ----------------------------------------------------------------------------- outputs and numbers
+
+
+def test_output_that_is_a_file_is_said_before_rendering(model, tiny_scene, tmp_path, capfd, record_property):
+    """--out naming a file (or a folder inside one): one line before anything is computed, for
+    render, eval and video alike (they raised FileExistsError / NotADirectoryError)."""
+    taken = tmp_path / "taken"
+    taken.write_text("the user's file")
+    cams = camera_json(tmp_path / "c.json", [pinhole("novel", [0, 0, 0], [0, 0, 3])])
+    expect_error(["render", model, "--cameras", cams, "--out", taken], capfd, record_property, "is a file")
+    expect_error(["render", model, "--cameras", cams, "--out", taken / "sub"], capfd, record_property, "cannot make")
+    expect_error(["eval", model, "--scene", tiny_scene, "--out", taken], capfd, record_property, "is a file")
+    expect_error(["video", model, "--out", taken / "spiral.mp4", "--frames", 2], capfd, record_property, "is a file")
+    assert taken.read_text() == "the user's file"
+
+
+@pytest.mark.parametrize("name", ["spiral", "a_folder"])
+def test_video_needs_a_video_file_name(name, model, tmp_path, capfd, record_property):
+    (tmp_path / "a_folder").mkdir()
+    expect_error(["video", model, "--out", tmp_path / name, "--frames", 2], capfd, record_property,
+                 "give a video file name ending in .mp4")
+
+
+def test_a_full_disk_is_one_line():
+    """The error a full disk raises (written to /dev/full, a real ENOSPC) becomes one line that
+    says what to do, as main() prints it for any command."""
+    from neulf_core.cli import _os_error_line
+
+    if not Path("/dev/full").exists():
+        pytest.skip("no /dev/full on this system")
+    with pytest.raises(OSError) as caught:
+        with open("/dev/full", "w") as full:
+            full.write("x")
+    line = _os_error_line(caught.value)
+    assert line.startswith("the disk is full") and "--resume" in line, line
+
+
+NOT_NUMBERS = {
+    # options: what each took before (a traceback, or a run that did nothing)
+    "train --scale nan": ["train", "SCENE", "--out", "OUT", "--steps", "2", "--scale", "nan"],  # ValueError
+    "train --minutes nan": ["train", "SCENE", "--out", "OUT", "--minutes", "nan"],  # 0 steps, exit 0
+    "train --checkpoint-seconds -5": ["train", "SCENE", "--out", "OUT", "--steps", "2", "--checkpoint-seconds", "-5"],
+    "train --holdout-every -1": ["train", "SCENE", "--out", "OUT", "--steps", "2", "--holdout-every", "-1"],
+    "train --depth-layers 100000": ["train", "SCENE", "--out", "OUT", "--steps", "2", "--depth-layers", "100000"],
+    "render --scale inf": ["render", "MODEL", "--scene", "SCENE", "--views", "all", "--out", "OUT", "--scale", "inf"],
+    "render --aperture nan": ["render", "MODEL", "--cameras", "CAMS", "--out", "OUT", "--aperture", "nan",
+                              "--focus-distance", "3"],
+    "render --aperture inf": ["render", "MODEL", "--cameras", "CAMS", "--out", "OUT", "--aperture", "inf",
+                              "--focus-distance", "3"],
+    "video --frames -1": ["video", "MODEL", "--out", "OUT.mp4", "--frames", "-1"],
+    "video --fps 0": ["video", "MODEL", "--out", "OUT.mp4", "--fps", "0"],  # wrote 24 fps
+}
+
+
+@pytest.mark.parametrize("case", list(NOT_NUMBERS))
+def test_numbers_that_are_not_numbers(case, model, tiny_scene, tmp_path, capfd, record_property):
+    cams = camera_json(tmp_path / "c.json", [pinhole("novel", [0, 0, 0], [0, 0, 3])])
+    swap = {"SCENE": tiny_scene, "OUT": tmp_path / "out", "MODEL": model, "CAMS": cams, "OUT.mp4": tmp_path / "v.mp4"}
+    argv = [swap.get(arg, arg) for arg in NOT_NUMBERS[case]]
+    line = expect_error(argv, capfd, record_property)
+    assert ("give a" in line and "number" in line) or "--depth-layers takes a count from 0 to" in line, line
+    assert not (tmp_path / "out").exists() and not (tmp_path / "v.mp4").exists()
+
+
+CAMERA_JSON_PROBLEMS = {
+    # what is wrong: (how to break the file, text of the one line)
+    "a folder": (lambda path: path.mkdir(), "is a folder"),
+    "two cameras of one name": (lambda path: camera_json(path, [pinhole("same", [0, 0, 0], [0, 0, 3])] * 2),
+                                "are named 'same'"),
+    "K's last row not 0 0 1": (lambda path: camera_json(path, [dict(pinhole("k", [0, 0, 0], [0, 0, 3]),
+                                                                    K=[[40, 0, 16], [0, 40, 12], [0, 0, 2]])]),
+                               "K's last row must be [0, 0, 1]"),
+    "a width of 32.5": (lambda path: camera_json(path, [dict(pinhole("w", [0, 0, 0], [0, 0, 3]), width=32.5)]),
+                        "whole number of pixels"),
+    "a width of true": (lambda path: camera_json(path, [dict(pinhole("w", [0, 0, 0], [0, 0, 3]), width=True)]),
+                        "whole number of pixels"),
+}
+
+
+@pytest.mark.parametrize("how", list(CAMERA_JSON_PROBLEMS))
+def test_camera_json_problems(how, model, tmp_path, capfd, record_property):
+    """Each was a traceback (a folder), a lost image (two of one name: the second overwrote the
+    first) or a silent misreading (K's last row ignored, 32.5 read as 32, true as 1)."""
+    make, expected = CAMERA_JSON_PROBLEMS[how]
+    path = tmp_path / "cameras.json"
+    make(path)
+    expect_error(["render", model, "--cameras", path, "--out", tmp_path / "out"], capfd, record_property, expected)
+
+
+def test_focus_pixel_outside_the_image(model, tmp_path, capfd, record_property):
+    cams = camera_json(tmp_path / "c.json", [pinhole("novel", [0, 0, 0], [0, 0, 3])])
+    expect_error(["render", model, "--cameras", cams, "--out", tmp_path / "out", "--aperture", "0.05",
+                  "--focus-pixel", "9999,10"], capfd, record_property, "outside novel's 32 x 24 image")
+
+
+def test_resume_says_which_asked_options_the_model_keeps(model, tiny_scene, tmp_path, capfd, record_property):
+    """--resume continues the model as it was trained; options asked for that differ from its
+    own are said (they were dropped without a word), and the run goes on."""
+    resumed = shutil.copytree(model, tmp_path / "model")
+    code, _, err = run_cli(["train", tiny_scene, "--out", resumed, "--resume", "--steps", "4", "--batch-size", "256",
+                            "--validate-seconds", "1e9", "--seed", "5", "--holdout-every", "4", "--progress", "json"],
+                           capfd)
+    record_property("message", err.strip())
+    assert code == 0, err
+    warning = next(line for line in err.splitlines() if line.startswith("warning: --resume"))
+    assert "--seed (the model's: 0)" in warning and "--holdout-every (the model's: 8)" in warning, warning
+    assert "--batch-size" not in warning  # (asked as the model has it: nothing to say)
+    meta = json.loads((resumed / METADATA_NAME).read_text())
+    assert meta["train_config"]["seed"] == 0 and meta["progress"]["step"] == 4
+    code, _, err = run_cli(["train", tiny_scene, "--out", tmp_path / "new", "--resume", *QUICK_TRAIN], capfd)
+    assert code == 0 and "holds no model to resume yet: training a new one" in err, err
+
+
+def test_eval_takes_all_and_held_out(model, tiny_scene, tmp_path, capfd):
+    code, out, err = run_cli(["eval", model, "--scene", tiny_scene, "--views", "all", "--out", tmp_path / "all",
+                              "--pixel-samples", "1"], capfd)
+    assert code == 0, err
+    assert len(json.loads((tmp_path / "all" / "eval.json").read_text())["views"]) == len(VIEW_NAMES)
+    code, out, err = run_cli(["eval", model, "--scene", tiny_scene, "--views", "held-out", "--out", tmp_path / "held",
+                              "--pixel-samples", "1"], capfd)
+    assert code == 0, err
+    assert [row["view"] for row in json.loads((tmp_path / "held" / "eval.json").read_text())["views"]] == \
+        ["view_00.png", "view_08.png"]
