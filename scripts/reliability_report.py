@@ -107,6 +107,23 @@ CASES = [
         f"{REL}::test_large_render_has_bounded_peak_memory"]),
     Case("The .blend saved and reopened elsewhere: model paths are relative and resolve", [
         f"{STORY}[save_reload]", f"{STORY}[blend_moved]"]),
+    Case("Another .blend opened while training: the training's end writes nothing into it", [
+        f"{STORY}[open_other_while_training]"]),
+    Case("An output that cannot be written: a file in the way, a folder inside a file, a full disk", [
+        f"{REL}::test_output_that_is_a_file_is_said_before_rendering",
+        *_ids(f"{REL}::test_video_needs_a_video_file_name", "spiral", "a_folder"),
+        f"{REL}::test_a_full_disk_is_one_line"]),
+    Case("Options that are not numbers: NaN, inf, zero or negative where they must be positive, an absurd count", [
+        *_ids(f"{REL}::test_numbers_that_are_not_numbers", "train --scale nan", "train --minutes nan",
+              "train --checkpoint-seconds -5", "train --holdout-every -1", "train --depth-layers 100000",
+              "render --scale inf", "render --aperture nan", "render --aperture inf", "video --frames -1",
+              "video --fps 0")]),
+    Case("A camera file that is a folder, names two cameras alike, or whose K or size is not a pinhole's", [
+        *_ids(f"{REL}::test_camera_json_problems", "a folder", "two cameras of one name", "K's last row not 0 0 1",
+              "a width of 32.5", "a width of true"),
+        f"{REL}::test_focus_pixel_outside_the_image"]),
+    Case("--resume with options other than the model's: said, the model kept", [
+        f"{REL}::test_resume_says_which_asked_options_the_model_keeps"]),
     Case("No network access unless the user asks for the dependency install, with the declared permission", [
         f"{REL}::test_no_network_unless_the_user_installs", f"{STORY}[install_dependencies]"]),
 ]
