@@ -178,6 +178,12 @@ def _read(path: Path, model_dir: Path, map_location) -> dict:
     if not Path(model_dir).expanduser().exists():
         raise NeulfError(f"model folder {model_dir} does not exist; train one with: python -m neulf_core train SCENE --out {model_dir}")
     if not path.is_file():
+        from .lock import training_holder
+
+        holder = training_holder(model_dir)
+        if holder is not None:  # (its first checkpoint is still to come)
+            raise NeulfError(f"{model_dir} is being trained (process {holder['pid']}) and has no checkpoint yet: wait "
+                             "for its first one (every 60 s by default), then render it.")
         raise NeulfError(f"{model_dir} holds no trained model ({CHECKPOINT_NAME} missing); train one with: python -m neulf_core train SCENE --out {model_dir}")
     damaged = _damaged_member(path)
     try:

@@ -803,3 +803,21 @@ def test_eval_takes_all_and_held_out(model, tiny_scene, tmp_path, capfd):
     assert code == 0, err
     assert [row["view"] for row in json.loads((tmp_path / "held" / "eval.json").read_text())["views"]] == \
         ["view_00.png", "view_08.png"]
+
+
+def test_render_of_a_model_before_its_first_checkpoint(tmp_path, capfd, record_property):
+    """A model folder whose training runs but has not saved yet: said so (it read 'holds no
+    trained model; train one', which a second training would then be refused)."""
+    from neulf_core.lock import LOCK_NAME
+
+    folder = tmp_path / "m"
+    folder.mkdir()
+    sleeper = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"])
+    try:
+        (folder / LOCK_NAME).write_text(json.dumps({"pid": sleeper.pid, "host": platform.node()}))
+        cams = camera_json(tmp_path / "c.json", [pinhole("novel", [0, 0, 0], [0, 0, 3])])
+        expect_error(["render", folder, "--cameras", cams, "--out", tmp_path / "out"], capfd, record_property,
+                     f"is being trained (process {sleeper.pid}) and has no checkpoint yet")
+    finally:
+        sleeper.kill()
+        sleeper.wait()
