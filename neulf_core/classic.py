@@ -47,6 +47,32 @@ def undistort_to_pinhole(view: View, scale: float, photo: np.ndarray | None = No
     return resampled[0].permute(1, 2, 0).round().clamp(0, 255).byte().numpy(), K
 
 
+def common_size(images, Ks) -> tuple[list[np.ndarray], list[np.ndarray]]:
+    """The pinhole photos (H, W, 3) and their K, all resampled to one size, so they stack into
+    one tensor: a scene's photo files may differ in size (a resized copy among them; scene.py
+    scales each view's intrinsics to its file).  The common size is the most frequent one (on
+    a tie the largest); a photo of another size is resized bilinearly to it and its K scaled
+    with it, x and y apart (pixel centres at +0.5: the edges map onto the edges)."""
+    sizes = [np.asarray(image).shape[:2] for image in images]
+    if len(set(sizes)) <= 1:
+        return list(images), list(Ks)
+    counts: dict = {}
+    for size in sizes:
+        counts[size] = counts.get(size, 0) + 1
+    height, width = max(counts, key=lambda size: (counts[size], size[0] * size[1]))
+    out_images, out_Ks = [], []
+    for image, K, (h, w) in zip(images, Ks, sizes):
+        if (h, w) != (height, width):
+            tensor = torch.from_numpy(np.array(image)).permute(2, 0, 1)[None].float()
+            tensor = F.interpolate(tensor, size=(height, width), mode="bilinear", align_corners=False,
+                                   antialias=h > height or w > width)
+            image = tensor[0].permute(1, 2, 0).round().clamp(0, 255).byte().numpy()
+            K = np.diag([width / w, height / h, 1.0]) @ np.asarray(K, dtype=np.float64)
+        out_images.append(image)
+        out_Ks.append(K)
+    return out_images, out_Ks
+
+
 @dataclass
 class SweepDepth:
     """The plane sweep's per-pixel depth, (H * W,) tensors: `unit` in [0, 1]
@@ -70,6 +96,7 @@ class ClassicLightField:
         self.device = torch.device(device)
         images, Ks = zip(*(undistort_to_pinhole(v, scale, photo)
                            for v, photo in zip(views, photos if photos is not None else [None] * len(views))))
+        images, Ks = common_size(images, Ks)
         self.images = torch.stack([torch.from_numpy(np.array(i)).permute(2, 0, 1) for i in images]).to(self.device)  # (V, 3, H, W) uint8
         self.K = torch.as_tensor(np.stack(Ks), device=self.device, dtype=torch.float32)
         self.R = torch.as_tensor(np.stack([v.R for v in views]), device=self.device, dtype=torch.float32)

@@ -100,7 +100,20 @@ class Scene:
 
 
 def scaled_size(size: tuple[int, int], scale: float) -> tuple[int, int]:
+    check_scale(scale)
     return max(1, int(round(size[0] * scale))), max(1, int(round(size[1] * scale)))
+
+
+def check_scale(scale) -> float:
+    """`scale` as a float; a NeulfError where it is not a finite positive number (NaN or
+    infinity would fail far downstream, in int(), with Python's own message)."""
+    try:
+        value = float(scale)
+    except (TypeError, ValueError):
+        raise NeulfError(f"the image scale must be a number, not {scale!r}; give e.g. --scale 0.5.") from None
+    if not np.isfinite(value) or value <= 0:
+        raise NeulfError(f"the image scale must be a finite number above 0, not {scale}; give e.g. --scale 0.5.")
+    return value
 
 
 # ----------------------------------------------------------------------------- finding the model
@@ -284,15 +297,34 @@ def _load_colmap(scene_dir: Path, model_dir: Path, images_dir: Path | None) -> S
     notes: list[str] = []
     views = []
     for image in registered:
+        _check_colmap_camera(recon.cameras[image.camera_id], image.name, model_dir)
         camera = copy.copy(recon.cameras[image.camera_id])  # views may be rescaled one by one
         path = paths[image.name]
         _fit_camera_to_file(camera, path, notes)
         pose = image.cam_from_world()
         matrix = np.asarray(pose.matrix(), dtype=np.float64)
+        if not np.all(np.isfinite(matrix)):
+            raise NeulfError(
+                f"the COLMAP model in {model_dir} gives image {image.name} a pose that is not finite (NaN or "
+                "infinity in its rotation or translation); export the model again from COLMAP or rerun reconstruct."
+            )
         keypoints, point_ids = _triangulated_keypoints(image, recon.cameras[image.camera_id], camera)
         views.append(View(image.name, camera, matrix[:, :3].copy(), matrix[:, 3].copy(), path, keypoints, point_ids))
     points = np.array([p.xyz for p in recon.points3D.values()], dtype=np.float64).reshape(-1, 3)
     return Scene(scene_dir, views, points, "colmap", notes=_dedupe(notes))
+
+
+def _check_colmap_camera(camera: pycolmap.Camera, image_name: str, model_dir: Path) -> None:
+    """Refuse a camera whose size or intrinsics are unusable (NaN, infinite, not positive)."""
+    params = np.asarray(camera.params, dtype=np.float64)
+    focal = params[list(camera.focal_length_idxs())]
+    if camera.width < 1 or camera.height < 1 or not np.all(np.isfinite(params)) or not np.all(focal > 0):
+        shown = ", ".join(f"{v:g}" for v in params)
+        raise NeulfError(
+            f"the COLMAP model in {model_dir} gives image {image_name} an unusable camera {camera.camera_id} "
+            f"({camera.model_name}, {camera.width}x{camera.height}, params {shown}): the size and focal length must be "
+            "positive and every parameter finite; export the model again from COLMAP or rerun reconstruct."
+        )
 
 
 def _triangulated_keypoints(image, model_camera: pycolmap.Camera, camera: pycolmap.Camera):
@@ -342,12 +374,7 @@ def _dedupe(items: list[str]) -> list[str]:
 def _load_llff(scene_dir: Path, images_dir: Path | None) -> Scene:
     """LLFF's poses_bounds.npy: per view a 3x5 [down, right, backwards, centre, (h, w, f)]
     camera-to-world matrix, then near and far depth."""
-    try:
-        data = np.load(scene_dir / "poses_bounds.npy")
-        poses = data[:, :15].reshape(-1, 3, 5).astype(np.float64)
-        bounds = data[:, 15:17].astype(np.float64)
-    except Exception as exc:
-        raise NeulfError(f"cannot read {scene_dir / 'poses_bounds.npy'} ({exc}); it should be an (N, 17) array.") from None
+    poses, bounds = _read_poses_bounds(scene_dir / "poses_bounds.npy")
     if images_dir is None:
         raise NeulfError(f"no images folder in {scene_dir}; pass --images DIR.")
     files = list_images(images_dir)
@@ -371,7 +398,54 @@ def _load_llff(scene_dir: Path, images_dir: Path | None) -> Scene:
         views.append(View(path.name, camera, R, -R @ centre, path))
     order = np.argsort([v.name for v in views])
     views = [views[i] for i in order]
-    return Scene(scene_dir, views, np.zeros((0, 3)), "llff", depth_bounds=bounds[order], notes=_dedupe(notes))
+    return Scene(scene_dir, views, np.zeros((0, 3)), "llff", depth_bounds=None if bounds is None else bounds[order],
+                 notes=_dedupe(notes))
+
+
+def _read_poses_bounds(path: Path) -> tuple[np.ndarray, np.ndarray | None]:
+    """((N, 3, 5) poses, (N, 2) near/far or None) from poses_bounds.npy, every row checked:
+    a NaN or a zero there fails far downstream (in int(), in an index) without saying where."""
+    try:
+        data = np.load(path, allow_pickle=False)
+    except Exception as exc:
+        detail = str(exc).strip().splitlines()[-1] if str(exc).strip() else type(exc).__name__
+        raise NeulfError(f"cannot read {path} ({detail}); it should be LLFF's (N, 17) array of numbers.") from None
+    if data.dtype.kind not in "fiu" or data.ndim != 2 or data.shape[1] not in (15, 17) or len(data) == 0:
+        raise NeulfError(
+            f"{path} holds a {data.dtype} array of shape {data.shape}; LLFF's poses_bounds.npy is an (N, 17) array of "
+            "numbers, a row per photo (a 3x5 pose with height, width and focal length, then near and far depth; "
+            "(N, 15) without them)."
+        )
+    data = data.astype(np.float64)
+    poses = data[:, :15].reshape(-1, 3, 5)
+    bounds = data[:, 15:17] if data.shape[1] == 17 else None
+    for row, pose in enumerate(poses):
+        where = f"{path.name} row {row} (counting from 0: photo {row + 1} in sorted order)"
+        height, width, focal = pose[:, 4]
+        if not np.all(np.isfinite(pose[:, 4])) or min(height, width, focal) <= 0 or min(height, width) < 1:
+            raise NeulfError(
+                f"{where} gives the camera height, width and focal length as {height:g}, {width:g}, {focal:g}: all "
+                "three must be finite and positive; regenerate poses_bounds.npy (LLFF's imgs2poses)."
+            )
+        rotation, centre = pose[:, :3], pose[:, 3]
+        if not np.all(np.isfinite(rotation)) or not np.all(np.isfinite(centre)):
+            raise NeulfError(
+                f"{where} has a camera rotation or centre that is not finite (NaN or infinity): "
+                "regenerate poses_bounds.npy (LLFF's imgs2poses)."
+            )
+        if not np.allclose(rotation.T @ rotation, np.eye(3), atol=1e-2) or np.linalg.det(rotation) < 0:
+            raise NeulfError(
+                f"{where} has camera axes that are not a rotation (its first three columns must be unit length, at "
+                "right angles, and right-handed as [down, right, backwards]): regenerate poses_bounds.npy."
+            )
+        if bounds is not None:
+            near, far = bounds[row]
+            if not (np.isfinite(near) and np.isfinite(far) and 0 < near < far):
+                raise NeulfError(
+                    f"{where} gives near and far depths {near:g} and {far:g}: they must be finite with "
+                    "0 < near < far; regenerate poses_bounds.npy (LLFF's imgs2poses)."
+                )
+    return poses, bounds
 
 
 # ----------------------------------------------------------------------------- held-out views

@@ -191,8 +191,13 @@ def scene_depths(scene: Scene, rotation: np.ndarray, origin: np.ndarray) -> np.n
         if len(z) >= 8:
             lo, hi = np.percentile(z, [1, 99])
             return z[(z >= lo) & (z <= hi)]
-    if scene.depth_bounds is not None:
+    if scene.depth_bounds is not None and np.size(scene.depth_bounds):
         return np.array([scene.depth_bounds[:, 0].min(), scene.depth_bounds[:, 1].max()])
+    if scene.kind == "llff":
+        raise NeulfError(
+            "poses_bounds.npy holds no near/far depths (15 numbers a row, not 17), so the scene's depth is unknown; "
+            "give the depth of the st plane and the depth range with --st-depth, --near, --far."
+        )
     raise NeulfError(
         "the model has no usable 3D points in front of the cameras, so the scene's depth is unknown; "
         "rerun reconstruct, or give the depth of the st plane and the depth range with --st-depth, --near, --far."

@@ -69,3 +69,38 @@ def test_the_sweep_projects_each_plane_where_the_cameras_see_it(tiny_scene):
         seen.append(inside)
     seen = torch.cat(seen, 1)
     assert bool(seen.any()) and not bool(seen.all())  # points inside the photos and outside them both checked
+
+
+def test_photos_of_different_sizes_are_swept_together(tiny_scene, tmp_path):
+    """One photo file at half the size of the others (scene.py scales its intrinsics to the
+    file): the sweep resamples it to the others' size with its K, so it renders and gives the
+    depth teacher its targets as the full-size photo does (before: torch.stack failed)."""
+    import shutil
+
+    from PIL import Image
+
+    from neulf_core.teacher import compute_sweep_depth_targets
+
+    folder = tmp_path / "mixed"
+    shutil.copytree(tiny_scene, folder)
+    small = folder / "images" / "view_02.png"
+    Image.open(small).resize((24, 18), Image.BILINEAR).save(small)
+    mixed = load_scene(folder)
+    assert mixed.views[2].size == (24, 18)
+    train_views, _ = split_views(mixed, holdout_every=0)
+    classic = ClassicLightField(train_views, fit_slab(mixed, train_views), 1.0)
+    _, full = _classic(tiny_scene)
+    assert classic.images.shape == full.images.shape
+    np.testing.assert_allclose(classic.K.numpy(), full.K.numpy(), rtol=1e-6)  # its K scaled back with it
+    camera = tiny_camera()
+    centre = np.array([0.1, -0.02, 0.0])  # next to view_02, which it sees most of
+    R = look_at_rotation(centre, TINY_LOOK_AT)
+    truth = render_tiny_view(camera, R, -R @ centre)
+    K = camera.calibration_matrix()
+    assert psnr(classic.render(K, camera.width, camera.height, R, -R @ centre, mode="plane"), truth) > 30
+    # The photo itself, at its own size, through the others (the depth teacher's render).
+    image = classic.render_view(mixed.views[2], 1.0, mode="sweep", depths=8, exclude=2)
+    assert image.shape == (18, 24, 3)
+    unit, confidence = compute_sweep_depth_targets(train_views, classic.slab, 1.0, sweep_scale=1.0)
+    assert unit.shape == confidence.shape == (8 * 48 * 36 + 24 * 18,)
+    assert bool(unit.isfinite().all()) and bool(confidence.isfinite().all())

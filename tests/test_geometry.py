@@ -281,6 +281,19 @@ def test_fit_slab_overrides_and_invalid_depths():
     assert fit_slab(no_points, train, st_depth=4.0, near=2.0, far=7.0).z_st == 4.0
 
 
+def test_llff_scene_without_bounds_needs_the_depths_given():
+    """An LLFF poses_bounds.npy of 15 numbers a row has no near/far (scene.depth_bounds None,
+    test_scene_loading): the slab says which depths to give instead of failing on an index."""
+    rig = synthetic_rig(model="PINHOLE")
+    llff = Scene(Path("llff"), rig.views, np.zeros((0, 3)), "llff")
+    with pytest.raises(NeulfError, match=r"no near/far depths.*--st-depth, --near, --far"):
+        fit_slab(llff, llff.views)
+    empty = Scene(Path("llff"), rig.views, np.zeros((0, 3)), "llff", depth_bounds=np.zeros((len(rig.views), 0)))
+    with pytest.raises(NeulfError, match="no near/far depths"):
+        fit_slab(empty, empty.views)
+    assert fit_slab(llff, llff.views, st_depth=4.0, near=2.0, far=7.0).z_st == 4.0
+
+
 def test_slab_dict_round_trip_and_planes():
     scene = synthetic_rig()
     slab = fit_slab(scene, scene.views)

@@ -15,7 +15,7 @@ from PIL import Image
 from conftest import look_at_rotation, scene_or_skip, write_colmap_model
 from neulf_core.errors import NeulfError
 from neulf_core.images import image_size, load_rgb, load_rgb_sizes, resolve_image_paths
-from neulf_core.scene import Scene, View, find_model_dir, load_scene, split_views
+from neulf_core.scene import Scene, View, find_model_dir, load_scene, scaled_size, split_views
 
 
 def model_views(model_dir: Path) -> dict[str, pycolmap.Image]:
@@ -488,3 +488,105 @@ def test_split_exclude_and_none():
         split_views(named_scene(3), exclude=["v00", "v01"])
     with pytest.raises(NeulfError, match="training views remain"):
         split_views(named_scene(2), holdout_every=1)
+
+
+# ----------------------------------------------------------------------------- damaged poses and scales
+
+
+def llff_scene(folder: Path, count: int = 4, columns: int = 17) -> Path:
+    """A small LLFF scene: `count` 48x36 photos and their poses_bounds.npy (rows of a 3x5
+    [down, right, backwards, centre, (h, w, f)] matrix, then near and far when columns is 17)."""
+    rows = []
+    for i in range(count):
+        centre = np.array([0.1 * i, 0.05 * (i % 2), 0.0])
+        R = look_at_rotation(centre, np.array([0.0, 0.0, 3.0]))
+        right, down, forward = R  # the rows of world-to-camera are the camera axes in the world
+        pose = np.column_stack([down, right, -forward, centre, [36.0, 48.0, 40.0]])
+        rows.append(np.concatenate([pose.ravel(), [2.0, 5.0]])[:columns])
+        write_image(folder / "images" / f"img{i:03d}.png", (48, 36), value=20 * i)
+    np.save(folder / "poses_bounds.npy", np.array(rows))
+    return folder
+
+
+def damage_llff(folder: Path, change) -> None:
+    data = np.load(folder / "poses_bounds.npy")
+    change(data)
+    np.save(folder / "poses_bounds.npy", data)
+
+
+def test_llff_poses_are_read_in_colmap_convention(tmp_path):
+    scene = load_scene(llff_scene(tmp_path))
+    assert scene.kind == "llff" and len(scene.views) == 4 and scene.depth_bounds.shape == (4, 2)
+    for i, view in enumerate(scene.views):
+        centre = np.array([0.1 * i, 0.05 * (i % 2), 0.0])
+        np.testing.assert_allclose(view.center, centre, atol=1e-12)
+        np.testing.assert_allclose(view.R, look_at_rotation(centre, np.array([0.0, 0.0, 3.0])), atol=1e-12)
+
+
+@pytest.mark.parametrize("change, message", [
+    (lambda a: a.__setitem__((2, 4), np.nan), r"row 2 .*height, width and focal length as nan, 48, 40"),
+    (lambda a: a.__setitem__((1, 14), 0.0), r"row 1 .*height, width and focal length as 36, 48, 0"),
+    (lambda a: a.__setitem__((3, 3), np.nan), r"row 3 .*rotation or centre that is not finite"),
+    (lambda a: a.__setitem__((0, 8), np.inf), r"row 0 .*rotation or centre that is not finite"),
+    (lambda a: a.__setitem__((1, 0), 3.0), r"row 1 .*not a rotation"),
+    (lambda a: a.__setitem__((2, 16), np.nan), r"row 2 .*near and far depths 2 and nan"),
+    (lambda a: a.__setitem__((2, 15), 6.0), r"row 2 .*near and far depths 6 and 5"),
+])
+def test_damaged_llff_rows_are_named(tmp_path, change, message):
+    folder = llff_scene(tmp_path)
+    damage_llff(folder, change)
+    with pytest.raises(NeulfError, match=message):
+        load_scene(folder)
+
+
+@pytest.mark.parametrize("array", [np.zeros((4, 16)), np.zeros(17), np.zeros((0, 17)), np.array([["a"] * 17] * 4)])
+def test_llff_arrays_of_another_shape_are_refused(tmp_path, array):
+    folder = llff_scene(tmp_path)
+    np.save(folder / "poses_bounds.npy", array)
+    with pytest.raises(NeulfError, match=r"poses_bounds.npy is an \(N, 17\) array"):
+        load_scene(folder)
+
+
+def test_llff_poses_without_bounds_load_without_depths(tmp_path):
+    """An (N, 15) file (poses, no near/far) loads; the slab then needs the depths given
+    (test_geometry: test_llff_scene_without_bounds_needs_the_depths_given)."""
+    scene = load_scene(llff_scene(tmp_path, columns=15))
+    assert scene.kind == "llff" and len(scene.views) == 4 and scene.depth_bounds is None
+
+
+@pytest.mark.parametrize("damage, message", [
+    ("pose", r"image c_view.jpg a pose that is not finite"),
+    ("nan focal", r"unusable camera 1 \(SIMPLE_RADIAL, 48x36, params nan"),
+    ("negative focal", r"unusable camera 1 \(SIMPLE_RADIAL, 48x36, params -40"),
+])
+def test_colmap_models_with_non_finite_poses_or_intrinsics_are_refused(tmp_path, damage, message):
+    camera = None
+    if damage != "pose":
+        focal = np.nan if damage == "nan focal" else -40.0
+        camera = pycolmap.Camera(model="SIMPLE_RADIAL", width=48, height=36, params=[focal, 24.0, 18.0, -0.05])
+    folder = lookup_scene(tmp_path, camera)
+    for name in NAMES:
+        write_image(folder / "images" / name, (48, 36))
+    if damage == "pose":
+        recon = pycolmap.Reconstruction(str(folder / "sparse" / "0"))
+        image = next(im for im in recon.images.values() if im.name == "c_view.jpg")
+        R = np.asarray(image.cam_from_world().matrix())[:, :3]
+        recon.frames[image.frame_id].rig_from_world = pycolmap.Rigid3d(np.column_stack([R, [np.nan, 0.0, 0.0]]))
+        recon.write_binary(str(folder / "sparse" / "0"))
+    with pytest.raises(NeulfError, match=message):
+        load_scene(folder)
+
+
+@pytest.mark.parametrize("scale", [float("nan"), float("inf"), -float("inf"), 0.0, -0.5, "half"])
+def test_scales_that_are_not_finite_and_positive_are_refused(tmp_path, scale):
+    folder = lookup_scene(tmp_path)
+    for name in NAMES:
+        write_image(folder / "images" / name, (48, 36))
+    view = load_scene(folder).views[0]
+    with pytest.raises(NeulfError, match="image scale"):
+        scaled_size(view.size, scale)
+    with pytest.raises(NeulfError, match="image scale"):
+        view.scaled_camera(scale)
+    with pytest.raises(NeulfError, match="image scale"):
+        view.load_image(scale)
+    assert scaled_size(view.size, 0.5) == (24, 18) and scaled_size(view.size, np.float32(2.0)) == (96, 72)
