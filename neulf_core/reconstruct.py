@@ -4,9 +4,14 @@
 feature matching, incremental mapping) and writes a SCENE_DIR::
 
     out_dir/
-        images/        the photos (hard links where possible, else copies; same file names)
+        images/        the photos (hard links where possible, else copies; same file names,
+                       except that WebP photos, which COLMAP cannot read, become PNG copies)
         sparse/0/      the COLMAP model, binary (the largest one when COLMAP found several)
         database.db    COLMAP's features and matches, kept for inspection or re-runs
+
+A run works in a hidden folder inside out_dir and changes nothing else there until the new
+model is made: a failed or cancelled run leaves out_dir as it was (a previous model included),
+and a photo already in out_dir/images is never overwritten by a different one of the same name.
 
 Written against pycolmap 4.2.1, whose API differs from older releases (options live in
 ``FeatureExtractionOptions`` / ``FeatureMatchingOptions`` / ``IncrementalPipelineOptions``,
@@ -19,13 +24,16 @@ let through, so the progress callback is the one place to watch a run.
 from __future__ import annotations
 
 import contextlib
+import filecmp
 import os
 import shutil
 import tempfile
 from pathlib import Path
 from typing import Callable, Iterator, Sequence
 
+import numpy as np
 import pycolmap
+from PIL import Image, ImageOps, UnidentifiedImageError
 
 from .errors import NeulfError
 from .images import IMAGE_EXTENSIONS, list_images
@@ -56,7 +64,9 @@ def reconstruct(
         images_dir: folder of photos (``IMAGE_EXTENSIONS``, any case; other files, hidden
             files and subfolders are ignored).
         out_dir: SCENE_DIR to write (created if needed). A previous ``database.db`` and
-            ``sparse/0`` there are replaced.
+            ``sparse/0`` there are replaced once the new model is made; photos already in
+            ``out_dir/images`` stay, and one that differs from a new photo of the same name
+            makes the run refuse before anything is changed.
         progress: called with ``{"stage", "message", "registered", "total"}`` dicts; stage is
             "features", "matching", "mapping" or "done". Exceptions it raises abort the run
             and propagate unchanged (a way to cancel).
@@ -79,41 +89,66 @@ def reconstruct(
     _check_options(camera_model, matcher, max_image_size)
     # COLMAP's RANSAC and mapper are randomised: a fixed seed makes reruns reproducible.
     pycolmap.set_random_seed(seed)
-    photos = find_photos(Path(images_dir))
+    photos = _drop_converted_duplicates(find_photos(Path(images_dir)))
     out_dir = Path(out_dir)
+    created_out_dir = not out_dir.exists()
+    work = None
     try:
-        scene_images = stage_photos(photos, out_dir / "images")
-        database, model_dir = _clear_previous_outputs(out_dir)
-    except OSError as error:
-        raise NeulfError(
-            f"Cannot write the scene folder {out_dir}: {error.strerror or error}; "
-            "choose a writable folder with free space."
-        ) from error
-    names = [photo.name for photo in photos]
-    reporter = _ProgressReporter(progress, total=len(names))
+        try:
+            out_dir.mkdir(parents=True, exist_ok=True)
+            # Everything is made in here first; out_dir itself changes only in _install_results.
+            work = Path(tempfile.mkdtemp(prefix=".reconstruct-", dir=out_dir))
+            scene_images = stage_photos(photos, work / "images")
+        except OSError as error:
+            raise _unwritable(out_dir, error) from error
+        names = scene_photo_names(photos)
+        _check_no_conflicting_photos(scene_images, names, out_dir / "images")
+        database = work / "database.db"
+        new_model_dir = work / "sparse"
+        model_dir = out_dir / "sparse" / "0"
+        reporter = _ProgressReporter(progress, total=len(names))
 
-    with _quiet_colmap_logging(), _colmap_errors_as_neulf_errors(reporter):
-        reporter.report("features", f"Extracting features from {len(names)} photos")
-        _extract_features(database, scene_images, names, camera_model, single_camera, max_image_size)
-        _check_every_photo_was_read(database, scene_images, names, single_camera)
-        reporter.report("features", f"Extracted features from {len(names)} photos")
+        with _quiet_colmap_logging(), _colmap_errors_as_neulf_errors(reporter):
+            reporter.report("features", f"Extracting features from {len(names)} photos")
+            _extract_features(database, scene_images, names, camera_model, single_camera, max_image_size)
+            _check_every_photo_was_read(database, scene_images, names, single_camera)
+            reporter.report("features", f"Extracted features from {len(names)} photos")
 
-        use_sequential = _use_sequential_matching(matcher, len(names))
-        reporter.report("matching", f"Matching features ({'sequential' if use_sequential else 'exhaustive'})")
-        _match_features(database, use_sequential)
-        matched_pairs = _count_matched_pairs(database)
-        reporter.report("matching", f"Matched {matched_pairs} photo pairs")
+            use_sequential = _use_sequential_matching(matcher, len(names))
+            reporter.report("matching", f"Matching features ({'sequential' if use_sequential else 'exhaustive'})")
+            _match_features(database, use_sequential)
+            matched_pairs = _count_matched_pairs(database, camera_model)
+            reporter.report("matching", f"Matched {matched_pairs} photo pairs")
 
-        reporter.report("mapping", "Registering photos")
-        reconstruction = _map_largest_model(database, scene_images, out_dir, reporter)
+            reporter.report("mapping", "Registering photos")
+            reconstruction = _map_largest_model(
+                database, scene_images, work, reporter, camera_model, matched_pairs
+            )
 
-        registered = reconstruction.num_reg_images()
-        _check_enough_registered(registered, len(names), min_registered_fraction)
-        model_dir.mkdir(parents=True)
-        reconstruction.write_binary(model_dir)
+            registered = reconstruction.num_reg_images()
+            _check_enough_registered(registered, len(names), min_registered_fraction)
+            new_model_dir.mkdir()
+            reconstruction.write_binary(new_model_dir)
+        try:
+            _install_results(work, scene_images, names, out_dir)
+        except OSError as error:
+            raise _unwritable(out_dir, error) from error
+    finally:
+        if work is not None:
+            shutil.rmtree(work, ignore_errors=True)
+        if created_out_dir:
+            with contextlib.suppress(OSError):
+                out_dir.rmdir()  # only if empty: a failed run into a new folder leaves nothing
 
     reporter.report("done", f"Registered {registered} of {len(names)} photos", registered=registered)
     return model_dir
+
+
+def _unwritable(out_dir: Path, error: OSError) -> NeulfError:
+    return NeulfError(
+        f"Cannot write the scene folder {out_dir}: {error.strerror or error}; "
+        "choose a writable folder with free space."
+    )
 
 
 # --------------------------------------------------------------------------- input checks
@@ -158,15 +193,107 @@ def _check_options(camera_model: str, matcher: str, max_image_size: int) -> None
 # ------------------------------------------------------------------------ scene folder
 
 
-def stage_photos(photos: Sequence[Path], images_out: Path) -> Path:
-    """Put the photos into ``images_out`` under their own names: hard links, else copies."""
-    images_out.mkdir(parents=True, exist_ok=True)
+# COLMAP (pycolmap 4.2.1) cannot decode these; they are staged as PNG copies made with Pillow.
+CONVERTED_EXTENSIONS = (".webp",)
+
+
+def _needs_conversion(photo: Path) -> bool:
+    return photo.suffix.lower() in CONVERTED_EXTENSIONS
+
+
+def scene_photo_names(photos: Sequence[Path]) -> list[str]:
+    """The names the photos get in the scene's images/ (and the COLMAP model), in order.
+
+    A photo keeps its name, except that one COLMAP cannot read becomes "<stem>.png"; or
+    "<name>.png" when another photo already has that name.
+    """
+    taken = {photo.name for photo in photos if not _needs_conversion(photo)}
+    names = []
     for photo in photos:
-        target = images_out / photo.name
-        if target.exists() and os.path.samefile(photo, target):
-            continue  # images_dir is out_dir/images itself, or a previous run linked it already
-        if target.exists() or target.is_symlink():
-            target.unlink()
+        if _needs_conversion(photo):
+            name = f"{photo.stem}.png"
+            if name in taken:
+                name = f"{photo.name}.png"
+            taken.add(name)
+            names.append(name)
+        else:
+            names.append(photo.name)
+    return names
+
+
+def _drop_converted_duplicates(photos: list[Path]) -> list[Path]:
+    """Drop a WebP photo whose PNG copy sits beside it (a scene's images/ used as input again)."""
+    by_name = {photo.name: photo for photo in photos}
+    kept = []
+    for photo in photos:
+        png = by_name.get(f"{photo.stem}.png")
+        if _needs_conversion(photo) and png is not None and _same_pixels(photo, png):
+            continue
+        kept.append(photo)
+    return kept
+
+
+def _read_upright(path: Path) -> Image.Image:
+    image = Image.open(path)
+    image.load()
+    return ImageOps.exif_transpose(image)
+
+
+def _same_pixels(first: Path, second: Path) -> bool:
+    try:
+        a, b = _read_upright(first), _read_upright(second)
+    except (UnidentifiedImageError, OSError, ValueError):
+        return False
+    return a.size == b.size and a.mode == b.mode and np.array_equal(np.asarray(a), np.asarray(b))
+
+
+def _convert_to_png(photo: Path, target: Path) -> None:
+    """Save ``photo`` upright (EXIF orientation applied, as training reads it) as a PNG."""
+    try:
+        image = _read_upright(photo)
+    except (UnidentifiedImageError, OSError, ValueError) as error:
+        raise NeulfError(
+            f"Could not read the photo {photo.name}: {error}; re-export it as PNG or JPEG, "
+            "or remove it from the folder."
+        ) from None
+    if image.mode not in ("1", "L", "LA", "I", "I;16", "P", "RGB", "RGBA"):
+        image = image.convert("RGB")
+    image.save(target, format="PNG", compress_level=1)
+
+
+def stage_photos(photos: Sequence[Path], images_out: Path) -> Path:
+    """Put the photos into ``images_out`` under their scene names: hard links, else copies.
+
+    WebP photos become PNG copies (see :func:`scene_photo_names`). A file of the same name
+    already there is kept if it holds the same photo; if it holds another, this raises
+    before anything is written.
+    """
+    images_out.mkdir(parents=True, exist_ok=True)
+    plan = list(zip(photos, scene_photo_names(photos)))
+    conflicts = [
+        name for photo, name in plan
+        if (images_out / name).exists() and not _needs_conversion(photo)
+        and not _same_file_contents(photo, images_out / name)
+    ]
+    if conflicts:
+        raise _conflict_error(conflicts, images_out)
+    for photo, name in plan:
+        target = images_out / name
+        if target.exists():
+            if not _needs_conversion(photo):
+                continue  # images_dir is images_out itself, or a previous run linked it already
+            converted = images_out / f".{name}.converting"
+            _convert_to_png(photo, converted)
+            if not _same_file_contents(converted, target):
+                converted.unlink()
+                raise _conflict_error([name], images_out)
+            converted.unlink()
+            continue
+        if target.is_symlink():
+            target.unlink()  # a dangling link: no photo to lose
+        if _needs_conversion(photo):
+            _convert_to_png(photo, target)
+            continue
         try:
             os.link(photo, target)
         except OSError:  # another file system, or one without hard links
@@ -174,19 +301,65 @@ def stage_photos(photos: Sequence[Path], images_out: Path) -> Path:
     return images_out
 
 
-def _clear_previous_outputs(out_dir: Path) -> tuple[Path, Path]:
-    """Remove a previous run's database and model; returns their paths.
+def _same_file_contents(first: Path, second: Path) -> bool:
+    try:
+        if os.path.samefile(first, second):
+            return True
+        if not (first.is_file() and second.is_file()):
+            return False
+        return filecmp.cmp(first, second, shallow=False) or _same_pixels(first, second)
+    except OSError:
+        return False
 
-    An old database would make COLMAP reuse stale features, and an old model left behind by a
-    failed run would look like a valid result for the new photos.
+
+def _conflict_error(names: list[str], images: Path) -> NeulfError:
+    return NeulfError(
+        f"{images} already holds another photo named {_short_list(names)}; nothing was changed: "
+        "choose a new --out folder for these photos, or rename the new photo(s)."
+    )
+
+
+def _check_no_conflicting_photos(staged: Path, names: list[str], images_out: Path) -> None:
+    """Refuse, before out_dir changes, to put a photo where another of its name already is."""
+    conflicts = []
+    for name in names:
+        target = images_out / name
+        if (target.exists() or target.is_symlink()) and not _same_file_contents(staged / name, target):
+            if target.is_symlink() and not target.exists():
+                continue  # a dangling link holds no photo; it is replaced
+            conflicts.append(name)
+    if conflicts:
+        raise _conflict_error(conflicts, images_out)
+
+
+def _install_results(work: Path, staged: Path, names: list[str], out_dir: Path) -> None:
+    """Move the new photos, database and model from ``work`` into ``out_dir``.
+
+    Photos are only added (one of the same name already there holds the same picture, as
+    checked before the run); the database and ``sparse/0`` are swapped by renames, so the old
+    model stays in place until the new one is complete.
     """
-    database = out_dir / "database.db"
-    for path in (database, out_dir / "database.db-wal", out_dir / "database.db-shm"):
-        path.unlink(missing_ok=True)
+    images_out = out_dir / "images"
+    images_out.mkdir(exist_ok=True)
+    for name in names:
+        target = images_out / name
+        if target.exists():
+            continue
+        if target.is_symlink():
+            target.unlink()
+        shutil.move(staged / name, target)
+    # An old WAL or shared-memory file would be replayed into the new database.
+    for suffix in ("-wal", "-shm"):
+        (out_dir / f"database.db{suffix}").unlink(missing_ok=True)
+    os.replace(work / "database.db", out_dir / "database.db")
+    for suffix in ("-wal", "-shm"):
+        if (work / f"database.db{suffix}").exists():
+            os.replace(work / f"database.db{suffix}", out_dir / f"database.db{suffix}")
     model_dir = out_dir / "sparse" / "0"
-    if model_dir.exists():
-        shutil.rmtree(model_dir)
-    return database, model_dir
+    model_dir.parent.mkdir(exist_ok=True)
+    if model_dir.exists() or model_dir.is_symlink():
+        os.replace(model_dir, work / "old-model")  # removed with work
+    os.replace(work / "sparse", model_dir)
 
 
 # -------------------------------------------------------------------------- pipeline
@@ -231,11 +404,16 @@ def _match_features(database: Path, sequential: bool) -> None:
 
 
 def _map_largest_model(
-    database: Path, images: Path, out_dir: Path, reporter: _ProgressReporter
+    database: Path,
+    images: Path,
+    work: Path,
+    reporter: _ProgressReporter,
+    camera_model: str = "SIMPLE_RADIAL",
+    matched_pairs: int = 0,
 ) -> pycolmap.Reconstruction:
     """Run incremental mapping and return the model with the most registered photos."""
     # pycolmap writes every model it finds; a scratch folder keeps sparse/ to the chosen one.
-    with tempfile.TemporaryDirectory(prefix=".mapping-", dir=out_dir) as scratch:
+    with tempfile.TemporaryDirectory(prefix=".mapping-", dir=work) as scratch:
         reconstructions = pycolmap.incremental_mapping(
             database,
             images,
@@ -245,7 +423,7 @@ def _map_largest_model(
             next_image_callback=reporter.next_image_registered,
         )
     if not reconstructions:
-        raise NeulfError(_NO_MATCHES_MESSAGE)
+        raise NeulfError(_no_model_message(camera_model, matched_pairs))
     return max(reconstructions.values(), key=lambda reconstruction: reconstruction.num_reg_images())
 
 
@@ -255,6 +433,33 @@ _NO_MATCHES_MESSAGE = (
     "No two photos could be matched: the photos need to overlap (each part of the scene seen "
     "in several photos), be sharp, and show textured surfaces rather than plain walls or sky."
 )
+
+# Models COLMAP starts from a focal-length guess alone; the others need their extra
+# (distortion or fisheye) parameters right from the first pair, and fail on photos they do not fit.
+_SIMPLE_CAMERA_MODELS = ("SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL")
+
+
+def _camera_model_message(camera_model: str, opening: str) -> str:
+    return (
+        f"{opening} with the camera model {camera_model}, the likely cause: run again with the default "
+        "camera model (leave out --camera-model, or pass --camera-model SIMPLE_RADIAL), or with one "
+        "that fits the lens."
+    )
+
+
+def _no_model_message(camera_model: str, matched_pairs: int) -> str:
+    """Why mapping made no model although photo pairs matched (checked before mapping)."""
+    if matched_pairs <= 0:
+        return _NO_MATCHES_MESSAGE
+    if camera_model not in _SIMPLE_CAMERA_MODELS:
+        return _camera_model_message(
+            camera_model, f"{matched_pairs} photo pair(s) matched, but no pair could start a model"
+        )
+    return (
+        f"{matched_pairs} photo pair(s) matched, but no pair could start a model: the photos need to be "
+        "taken from different positions (move the camera between photos rather than only turning it), "
+        "sharp and textured."
+    )
 
 
 def _check_every_photo_was_read(database: Path, images: Path, names: list[str], single_camera: bool) -> None:
@@ -276,8 +481,9 @@ def _check_every_photo_was_read(database: Path, images: Path, names: list[str], 
     if single_camera and odd_sized:
         raise NeulfError(
             f"{_short_list(odd_sized)} differ(s) in size from the other photos ({common_size}); with one "
-            "shared camera all photos must have the same size: use photos from one camera at one resolution, "
-            "or pass single_camera=False."
+            "shared camera all photos must have the same size: use photos from one camera at one resolution "
+            f"(resize these to {common_size}, or remove them from the folder); from Python, "
+            "reconstruct(..., single_camera=False) gives every photo its own camera instead."
         )
     raise NeulfError(
         f"COLMAP could not use {_short_list(skipped)}; check that these are valid photos or remove them."
@@ -295,13 +501,19 @@ def _photos_of_uncommon_size(images: Path, names: list[str]) -> tuple[list[str],
     return sorted(odd_sized), common_size
 
 
-def _count_matched_pairs(database: Path) -> int:
+def _count_matched_pairs(database: Path, camera_model: str = "SIMPLE_RADIAL") -> int:
     """Photo pairs with enough verified matches for mapping to use; raises if there are none."""
     # Checked before mapping, so the user gets this message instead of COLMAP's log error.
     min_matches = pycolmap.IncrementalPipelineOptions().min_num_matches
     with pycolmap.Database.open(database) as db:
         _, inlier_counts = db.read_two_view_geometry_num_inliers()
-    matched_pairs = sum(count >= min_matches for count in inlier_counts)
+        matched_pairs = sum(count >= min_matches for count in inlier_counts)
+        if matched_pairs == 0 and camera_model not in _SIMPLE_CAMERA_MODELS:
+            _, raw_matches = db.read_all_matches()
+            if any(len(matches) >= min_matches for matches in raw_matches):
+                # Features matched, yet no pair's geometry could be verified with this model.
+                opening = "The photos share features, but no pair of them could be verified"
+                raise NeulfError(_camera_model_message(camera_model, opening))
     if matched_pairs == 0:
         raise NeulfError(_NO_MATCHES_MESSAGE)
     return matched_pairs

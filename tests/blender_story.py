@@ -603,6 +603,33 @@ def run_story(setup: dict) -> None:  # noqa: C901 - one story, told in order
         diff = np.abs(load_png(work / "f12_renamed_root.png") - ctx["render"]).max()
         assert diff <= 2 / 255 + 1e-6, diff
 
+    def _full_copy_finds_its_own_root(scene):
+        """Scene > New > Full Copy: the copy's capture is its own copied root and collection
+        (found by name, the copy had turned the original's)."""
+        find_capture = mod("capture").find_capture
+        collection, r = find_capture(scene)
+        with bpy.context.temp_override(scene=scene):
+            assert bpy.ops.scene.new(type="FULL_COPY") == {"FINISHED"}
+        copy = next(other for other in bpy.data.scenes if other not in (scene, scene.neulf.cg_scene)
+                    and other.neulf.root is not None and other.neulf.root is not r)
+        try:
+            copied_collection, copied_root = find_capture(copy)
+            assert copied_root.name in copy.objects and copied_root.name not in scene.objects, copied_root.name
+            assert copied_collection is not collection and copied_collection in copy.collection.children_recursive
+            copied_name = copied_root.name
+        finally:
+            objects = [obj for obj in copy.objects if obj.name not in scene.objects]
+            collections = [c for c in copy.collection.children_recursive if c not in scene.collection.children_recursive]
+            if bpy.context.window is not None:
+                bpy.context.window.scene = scene
+            bpy.data.scenes.remove(copy)
+            for obj in objects:
+                bpy.data.objects.remove(obj)
+            for c in collections:
+                bpy.data.collections.remove(c)
+        assert bpy.context.scene is scene
+        return f"a full copy of the scene finds its own root ({copied_name})"
+
     def _root_found_after_renames(scene, r):
         """The moved root is still the capture's after the user renames it and its collection
         (pointers), and in a .blend saved before the pointers (names, read only)."""
@@ -613,6 +640,7 @@ def run_story(setup: dict) -> None:  # noqa: C901 - one story, told in order
             assert bpy.ops.neulf.render_camera() == {"FINISHED"}
             assert np.abs(image_array("NeuLF Render") - ctx["render"]).max() <= 1 / 255 + 1e-6
             _f12_renamed_root(scene)
+            copied = _full_copy_finds_its_own_root(scene)
             props.root, props.capture_collection = None, None  # an older .blend's names
             props.root_name, props.collection_name = r.name, collection.name
             assert mod("capture").find_capture(scene) == (collection, r)
@@ -620,7 +648,7 @@ def run_story(setup: dict) -> None:  # noqa: C901 - one story, told in order
             props.root, props.capture_collection = r, collection
             props.root_name = props.collection_name = ""
             r.name, collection.name = names
-        return "renamed root and collection still found (pointers); an older .blend's names read"
+        return f"renamed root and collection still found (pointers); {copied}; an older .blend's names read"
 
     @story.step("root_scale", "focus_at")
     def _():

@@ -273,9 +273,12 @@ def test_photo_of_another_size_with_single_camera(capture, tmp_path):
     photos, true_centres = capture
     folder = copy_photos(sorted(true_centres)[:3], photos, tmp_path / "photos")
     Image.open(photos / "view_00.png").resize((120, 90)).save(folder / "small.png")
-    expected = r"small.png differ\(s\) in size from the other photos \(200x150\).*single_camera=False"
-    with pytest.raises(NeulfError, match=expected):
+    # Worded for the CLI, which has no single_camera option, and for Python callers.
+    expected = r"small.png differ\(s\) in size from the other photos \(200x150\).*resize these to 200x150"
+    with pytest.raises(NeulfError, match=expected) as caught:
         reconstruct(folder, tmp_path / "scene")
+    assert "pass single_camera=False" not in str(caught.value)
+    assert "reconstruct(..., single_camera=False)" in str(caught.value)
 
 
 def test_photos_that_cannot_match(tmp_path):
@@ -326,3 +329,147 @@ def test_progress_callback_exception_passes_through(capture, tmp_path):
     with pytest.raises(Cancelled):
         reconstruct(capture[0], tmp_path / "scene", progress=cancel_during_mapping)
 
+
+
+# ------------------------------------------------ an existing scene folder is kept safe
+
+
+def scene_snapshot(scene):
+    """Every path under ``scene`` with its bytes (None for folders), hidden ones included."""
+    return {
+        str(path.relative_to(scene)): None if path.is_dir() else path.read_bytes()
+        for path in sorted(scene.rglob("*"))
+    }
+
+
+def fake_existing_scene(capture, folder):
+    """A scene folder from an earlier run: its photos, a model and a database (stand-ins)."""
+    photos, true_centres = capture
+    copy_photos(sorted(true_centres), photos, folder / "images")
+    (folder / "sparse" / "0").mkdir(parents=True)
+    (folder / "sparse" / "0" / "cameras.bin").write_bytes(b"the old model")
+    (folder / "database.db").write_bytes(b"the old database")
+    return folder
+
+
+def test_photo_of_same_name_never_overwritten(capture, tmp_path):
+    # The user's audit: new photos, one named like a photo of the scene but another picture,
+    # and some of another size. The old code deleted the model and replaced the user's photo.
+    photos, true_centres = capture
+    scene = fake_existing_scene(capture, tmp_path / "scene")
+    before = scene_snapshot(scene)
+    new = copy_photos(sorted(true_centres)[1:4], photos, tmp_path / "new")
+    write_noise_photos(tmp_path / "noise", 1)
+    (tmp_path / "noise" / "noise_00.png").rename(new / "view_00.png")  # same name, another photo
+    Image.open(photos / "view_05.png").resize((120, 90)).save(new / "small.png")
+
+    expected = r"already holds another photo named view_00.png.*choose a new --out"
+    with pytest.raises(NeulfError, match=expected) as caught:
+        reconstruct(new, scene)
+    assert "\n" not in str(caught.value)
+    assert scene_snapshot(scene) == before  # nothing changed: photos, model, database, no leftovers
+
+
+def test_failed_run_leaves_existing_scene_untouched(capture, tmp_path):
+    photos, true_centres = capture
+    scene = fake_existing_scene(capture, tmp_path / "scene")
+    before = scene_snapshot(scene)
+    new = copy_photos(sorted(true_centres)[:3], photos, tmp_path / "new")
+    Image.open(photos / "view_05.png").resize((120, 90)).save(new / "small.png")
+
+    with pytest.raises(NeulfError, match="differ"):
+        reconstruct(new, scene)
+    assert scene_snapshot(scene) == before  # the old model and database stay; small.png not added
+
+
+def test_failed_run_into_new_folder_leaves_nothing(capture, tmp_path):
+    class Cancelled(Exception):
+        pass
+
+    def cancel(event):
+        if event["stage"] == "mapping":
+            raise Cancelled()
+
+    with pytest.raises(Cancelled):
+        reconstruct(capture[0], tmp_path / "scene", progress=cancel)
+    assert not (tmp_path / "scene").exists()
+
+
+def test_rerun_same_photos_into_same_scene(capture, tmp_path):
+    # Re-running on the same photos (here copies: other files, the same bytes) is normal use.
+    photos, true_centres = capture
+    scene = tmp_path / "scene"
+    reconstruct(photos, scene)
+    first_photo = (scene / "images" / "view_00.png").stat().st_ino
+    model_dir = reconstruct(copy_photos(sorted(true_centres), photos, tmp_path / "copies"), scene)
+    assert pycolmap.Reconstruction(model_dir).num_reg_images() == len(true_centres)
+    assert (scene / "images" / "view_00.png").stat().st_ino == first_photo  # kept, not replaced
+    assert sorted(p.name for p in scene.iterdir()) == ["database.db", "images", "sparse"]  # no leftovers
+
+
+# ------------------------------------------------------------------------------ WebP
+
+
+def capture_with_webp(capture, folder, webp_names=("view_03.png", "view_06.png")):
+    photos, true_centres = capture
+    copy_photos(sorted(true_centres), photos, folder)
+    for name in webp_names:
+        Image.open(folder / name).save((folder / name).with_suffix(".webp"), lossless=True)
+        (folder / name).unlink()
+    return folder
+
+
+def test_webp_photos_are_staged_as_png(capture, tmp_path):
+    photos, true_centres = capture
+    folder = capture_with_webp(capture, tmp_path / "photos")
+    scene = tmp_path / "scene"
+
+    model_dir = reconstruct(folder, scene)
+
+    model = pycolmap.Reconstruction(model_dir)
+    assert model.num_reg_images() == len(true_centres)
+    assert model.find_image_with_name("view_03.png") is not None
+    assert sorted(p.name for p in (scene / "images").iterdir()) == sorted(true_centres)  # no .webp
+    staged = np.asarray(Image.open(scene / "images" / "view_03.png"))
+    assert np.array_equal(staged, np.asarray(Image.open(photos / "view_03.png")))
+
+    # Again in place, from the scene's own images/: the PNG copies stand for the WebP photos.
+    copy_photos(["view_03.webp"], folder, scene / "images")
+    model_dir = reconstruct(scene / "images", scene)
+    assert pycolmap.Reconstruction(model_dir).num_reg_images() == len(true_centres)
+
+
+def test_failed_run_with_webp_leaves_no_photos(capture, tmp_path):
+    folder = capture_with_webp(capture, tmp_path / "photos")
+    (folder / "broken.jpg").write_bytes(b"not a jpeg")
+    scene = tmp_path / "scene"
+    (scene / "images").mkdir(parents=True)
+
+    with pytest.raises(NeulfError, match="Could not read 1 photo.*broken.jpg"):
+        reconstruct(folder, scene)
+    assert list((scene / "images").iterdir()) == []
+    assert sorted(p.name for p in scene.iterdir()) == ["images"]
+
+
+# --------------------------------------------------------------- camera model failures
+
+
+def test_camera_model_named_when_matches_do_not_fit_it(capture, tmp_path):
+    # The photos match with the default model; with a fisheye one no pair verifies.
+    with pytest.raises(NeulfError, match="camera model OPENCV_FISHEYE, the likely cause.*--camera-model"):
+        reconstruct(capture[0], tmp_path / "scene", camera_model="OPENCV_FISHEYE")
+
+
+@pytest.mark.parametrize(
+    "camera_model, message",
+    [
+        pytest.param("SIMPLE_RADIAL", r"28 photo pair\(s\) matched, but no pair could start a model: .*different positions",
+                     id="default-model"),
+        pytest.param("OPENCV", r"28 photo pair\(s\) matched, but no pair could start a model with the camera model OPENCV",
+                     id="distortion-model"),
+    ],
+)
+def test_no_model_despite_matches(capture, tmp_path, monkeypatch, camera_model, message):
+    monkeypatch.setattr(reconstruct_module.pycolmap, "incremental_mapping", lambda *args, **kwargs: {})
+    with pytest.raises(NeulfError, match=message):
+        reconstruct(capture[0], tmp_path / "scene", camera_model=camera_model)
