@@ -122,6 +122,18 @@ CASES = [
         *_ids(f"{REL}::test_camera_json_problems", "a folder", "two cameras of one name", "K's last row not 0 0 1",
               "a width of 32.5", "a width of true"),
         f"{REL}::test_focus_pixel_outside_the_image"]),
+    Case("Reconstruct into a scene folder that holds a model: a failed run leaves it as it was, a same-named photo "
+         "is never overwritten", [
+        "tests/test_reconstruct.py::test_photo_of_same_name_never_overwritten",
+        "tests/test_reconstruct.py::test_failed_run_leaves_existing_scene_untouched",
+        "tests/test_reconstruct.py::test_failed_run_into_new_folder_leaves_nothing",
+        "tests/test_reconstruct.py::test_failed_run_with_webp_leaves_no_photos"]),
+    Case("A damaged LLFF poses_bounds.npy, a COLMAP model with non-finite values, photos of another size than the "
+         "others", [
+        "tests/test_scene_loading.py::test_damaged_llff_rows_are_named",
+        "tests/test_scene_loading.py::test_llff_arrays_of_another_shape_are_refused",
+        "tests/test_scene_loading.py::test_colmap_models_with_non_finite_poses_or_intrinsics_are_refused",
+        "tests/test_classic.py::test_photos_of_different_sizes_are_swept_together"]),
     Case("--resume with options other than the model's: said, the model kept", [
         f"{REL}::test_resume_says_which_asked_options_the_model_keeps"]),
     Case("No network access unless the user asks for the dependency install, with the declared permission", [
