@@ -130,9 +130,12 @@ CASES = [
         "tests/test_reconstruct.py::test_failed_run_with_webp_leaves_no_photos"]),
     Case("A damaged LLFF poses_bounds.npy, a COLMAP model with non-finite values, photos of another size than the "
          "others", [
-        "tests/test_scene_loading.py::test_damaged_llff_rows_are_named",
-        "tests/test_scene_loading.py::test_llff_arrays_of_another_shape_are_refused",
-        "tests/test_scene_loading.py::test_colmap_models_with_non_finite_poses_or_intrinsics_are_refused",
+        *_ids(f"{LOADING}::test_damaged_llff_rows_are_named", "nan height", "zero focal", "nan centre",
+              "inf rotation", "not a rotation", "nan far", "near past far"),
+        *_ids(f"{LOADING}::test_llff_arrays_of_another_shape_are_refused", "16 columns", "one dimension", "no rows",
+              "text"),
+        *_ids(f"{LOADING}::test_colmap_models_with_non_finite_poses_or_intrinsics_are_refused", "pose", "nan focal",
+              "negative focal"),
         "tests/test_classic.py::test_photos_of_different_sizes_are_swept_together"]),
     Case("--resume with options other than the model's: said, the model kept", [
         f"{REL}::test_resume_says_which_asked_options_the_model_keeps"]),

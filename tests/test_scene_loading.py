@@ -531,7 +531,7 @@ def test_llff_poses_are_read_in_colmap_convention(tmp_path):
     (lambda a: a.__setitem__((1, 0), 3.0), r"row 1 .*not a rotation"),
     (lambda a: a.__setitem__((2, 16), np.nan), r"row 2 .*near and far depths 2 and nan"),
     (lambda a: a.__setitem__((2, 15), 6.0), r"row 2 .*near and far depths 6 and 5"),
-])
+], ids=["nan height", "zero focal", "nan centre", "inf rotation", "not a rotation", "nan far", "near past far"])
 def test_damaged_llff_rows_are_named(tmp_path, change, message):
     folder = llff_scene(tmp_path)
     damage_llff(folder, change)
@@ -539,7 +539,8 @@ def test_damaged_llff_rows_are_named(tmp_path, change, message):
         load_scene(folder)
 
 
-@pytest.mark.parametrize("array", [np.zeros((4, 16)), np.zeros(17), np.zeros((0, 17)), np.array([["a"] * 17] * 4)])
+@pytest.mark.parametrize("array", [np.zeros((4, 16)), np.zeros(17), np.zeros((0, 17)), np.array([["a"] * 17] * 4)],
+                         ids=["16 columns", "one dimension", "no rows", "text"])
 def test_llff_arrays_of_another_shape_are_refused(tmp_path, array):
     folder = llff_scene(tmp_path)
     np.save(folder / "poses_bounds.npy", array)
@@ -558,7 +559,7 @@ def test_llff_poses_without_bounds_load_without_depths(tmp_path):
     ("pose", r"image c_view.jpg a pose that is not finite"),
     ("nan focal", r"unusable camera 1 \(SIMPLE_RADIAL, 48x36, params nan"),
     ("negative focal", r"unusable camera 1 \(SIMPLE_RADIAL, 48x36, params -40"),
-])
+], ids=["pose", "nan focal", "negative focal"])
 def test_colmap_models_with_non_finite_poses_or_intrinsics_are_refused(tmp_path, damage, message):
     camera = None
     if damage != "pose":
