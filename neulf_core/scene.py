@@ -178,6 +178,9 @@ def load_scene(scene_dir: str | Path, images_dir: str | Path | None = None) -> S
         return _load_colmap(scene_dir, model_dir, images_dir)
     if (scene_dir / "poses_bounds.npy").is_file():
         return _load_llff(scene_dir, images_dir)
+    if find_model_dir(scene_dir.parent) is not None and scene_dir.name == "sparse":
+        raise NeulfError(f"{scene_dir} is the COLMAP model's folder: give the scene folder above it, "
+                         f"{scene_dir.parent} (the one holding sparse/ and images/).")
     raise NeulfError(
         f"no camera model in {scene_dir}: expected sparse/0/cameras.bin (or .txt) from COLMAP, "
         f"or poses_bounds.npy from LLFF. To make one from photos run: python -m neulf_core reconstruct PHOTOS --out {scene_dir}"
