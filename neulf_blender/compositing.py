@@ -17,7 +17,8 @@ TREE_NAME = "NeuLF Compositing"
 TREE_MARK = "neulf_compositing"  # a custom property on the node trees this module builds
 NODE_PREFIX = "NeuLF "
 RENDER_SETTINGS = ("resolution_x", "resolution_y", "resolution_percentage", "pixel_aspect_x", "pixel_aspect_y",
-                   "use_border", "border_min_x", "border_max_x", "border_min_y", "border_max_y", "use_crop_to_border")
+                   "use_border", "border_min_x", "border_max_x", "border_min_y", "border_max_y", "use_crop_to_border",
+                   "use_multiview", "views_format")
 FRAME_SETTINGS = ("frame_start", "frame_end", "frame_step")
 CG_SAMPLES = 64  # a new scene's Cycles default (4096) makes every CG frame minutes long on a CPU
 # In Blender 4.2's scene tree, the nodes a new tree holds (and the viewer a click adds): replaced.
@@ -58,6 +59,8 @@ def out_of_step(scene) -> str | None:
         return None
     differ = [name for name in RENDER_SETTINGS if getattr(cg.render, name) != getattr(scene.render, name)]
     differ += [name for name in FRAME_SETTINGS if getattr(cg, name) != getattr(scene, name)]
+    if _views(cg) != _views(scene):
+        differ.append("stereoscopy views")
     if _camera_switches(cg) != _camera_switches(scene):
         differ.append("camera markers")
     elif not _camera_switches(scene) and cg.camera != scene.camera:
@@ -114,9 +117,19 @@ def _follow_camera_markers(cg, scene) -> None:
             cg.collection.objects.link(camera)
 
 
+def _views(scene) -> list:
+    """The scene's stereoscopy views as Blender renders them (name, in use, camera suffix)."""
+    return [(view.name, view.use, view.camera_suffix) for view in scene.render.views]
+
+
 def _follow_render_settings(cg, scene) -> None:
     for name in RENDER_SETTINGS:
         setattr(cg.render, name, getattr(scene.render, name))
+    for view in scene.render.views:  # (each eye of the CG, as the light field renders it)
+        copy = cg.render.views.get(view.name) or cg.render.views.new(view.name)
+        copy.use, copy.camera_suffix = view.use, view.camera_suffix
+    for view in [view for view in cg.render.views if view.name not in scene.render.views]:
+        cg.render.views.remove(view)
     for name in FRAME_SETTINGS:
         setattr(cg, name, getattr(scene, name))
     cg.render.fps, cg.render.fps_base = scene.render.fps, scene.render.fps_base

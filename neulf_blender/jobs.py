@@ -227,6 +227,7 @@ class TrainJob(ProcessJob):
         elif kind == "poses":  # Refine Poses: the corrections it found
             state["poses"] = {k: event.get(k) for k in ("median_degrees", "max_degrees", "median_shift", "max_shift")}
         elif kind in ("finished", "cancelled"):
+            state["ended"] = kind  # (said by the trainer itself: an exit status alone can be anything's)
             state.update(step=event.get("step", state["step"]), elapsed=event.get("elapsed", state["elapsed"]),
                          val_psnr=event.get("val_psnr", state["val_psnr"]), message=kind,
                          last_member_step=(event.get("member_steps") or [None])[-1])
@@ -238,6 +239,11 @@ class TrainJob(ProcessJob):
         if self._cancelled and self.state["status"] in ("failed", "finished"):
             self.state["status"] = "cancelled"
             self.state["error"] = None
+        elif self.state["status"] == "finished" and not self.state.get("ended"):
+            # exit status 0 without the trainer's last event: the interpreter ran something else
+            self.state.update(status="failed", error=(
+                f"{self.argv[0]} ended without training (no progress from neulf_core): choose a Python "
+                "with torch in the add-on's preferences (Python with torch), and press Check"))
 
 
 class ReconstructJob(ProcessJob):

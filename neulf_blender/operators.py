@@ -22,12 +22,26 @@ RENDER_IMAGE = "NeuLF Render"
 DEPTH_IMAGE = "NeuLF Depth"
 
 
-def abspath(path: str) -> str:
-    return os.path.normpath(bpy.path.abspath(path)) if path else ""
+def abspath(path: str, library=None) -> str:
+    """A '//' path made absolute: relative to the open .blend, or to `library`'s file for data
+    linked from it (a linked scene's model sits beside the file it was saved in)."""
+    return os.path.normpath(bpy.path.abspath(path, library=library)) if path else ""
+
+
+def scene_model_dir(scene) -> str:
+    """The scene's model folder, absolute ("" where it has none)."""
+    return abspath(scene.neulf.model_dir, scene.library)
+
+
+def refuse_linked(scene, what: str) -> None:
+    """Linked data cannot be changed for good (the library's file holds it): said, not half done."""
+    if scene.library is not None:
+        raise NeulfError(f"the scene {scene.name} is linked from {abspath(scene.library.filepath)}: "
+                         f"{what} in that file (or make the scene local: Object > Relations > Make Local).")
 
 
 def model_dir(scene) -> str:
-    path = abspath(scene.neulf.model_dir)
+    path = scene_model_dir(scene)
     if not path:
         raise NeulfError("no NeuLF model: train one (Train NeuLF) or load a model folder (Load Model).")
     if not Path(path).is_dir():
@@ -94,7 +108,7 @@ def refresh_model_status(scene) -> str:
     props = scene.neulf
     if not props.model_dir:
         return props.last_status
-    path = abspath(props.model_dir)
+    path = scene_model_dir(scene)
     training = tasks.get("train")
     if training is not None and training.running and os.path.normpath(training.model_dir) == path:
         return props.last_status  # this session's own job reports its progress
@@ -222,6 +236,7 @@ class NEULF_OT_reconstruct(_Reporting, bpy.types.Operator):
 
 def attach_model(context, path: str) -> dict:
     """Store the model folder (relative to the .blend) and show its slab."""
+    refuse_linked(context.scene, "load its model")
     props = context.scene.neulf
     meta = read_model_json(path)
     if not meta:
@@ -274,6 +289,7 @@ class NEULF_OT_load_model(_Reporting, bpy.types.Operator):
 
 def start_training(context, *, minutes=None, steps=None):
     """Start (or continue) training the scene's model in a separate process."""
+    refuse_linked(context.scene, "train its model")
     props = context.scene.neulf
     scene_dir = abspath(props.scene_dir)
     if not scene_dir:
@@ -322,7 +338,8 @@ def start_training(context, *, minutes=None, steps=None):
 def scenes_of_model(path: str) -> list:
     """The open file's scenes whose model folder is `path`."""
     path = os.path.normpath(path)
-    return [scene for scene in bpy.data.scenes if scene.neulf.model_dir and abspath(scene.neulf.model_dir) == path]
+    return [scene for scene in bpy.data.scenes
+            if scene.neulf.model_dir and scene.library is None and scene_model_dir(scene) == path]
 
 
 def _show_training_result(scene, state: dict, out: str) -> None:

@@ -7,7 +7,7 @@ from pathlib import Path
 import bpy
 
 from . import compositing, tasks
-from .operators import TRAINED_ELSEWHERE, abspath
+from .operators import TRAINED_ELSEWHERE, scene_model_dir
 
 CHARS_PER_PIXEL = 1 / 7.0  # the UI font's average advance at 1x scale, for wrapping labels
 
@@ -87,7 +87,7 @@ class NEULF_PT_main(bpy.types.Panel):
         col.prop(props, "members")
         train = tasks.get("train")
         if train is not None and train.running:
-            ours = bool(props.model_dir) and abspath(props.model_dir) == os.path.normpath(train.model_dir)
+            ours = bool(props.model_dir) and scene_model_dir(context.scene) == os.path.normpath(train.model_dir)
             label = "Training" if ours else f"Training {Path(train.model_dir).name}"  # (another file's model)
             _job_box(layout, train, label, "neulf.cancel_train")
         else:

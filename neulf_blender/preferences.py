@@ -56,11 +56,20 @@ def _on_change(self, _context):
     core.shutdown()
 
 
+def _on_python_change(self, context):
+    """Another interpreter: the last Check's verdict was about the one before."""
+    _on_change(self, context)
+    self.status = NOT_CHECKED
+
+
+NOT_CHECKED = "not checked yet: click Check"
+
+
 class NeulfPreferences(bpy.types.AddonPreferences):
     bl_idname = ADDON
 
     python_path: StringProperty(
-        name="Python with torch", subtype="FILE_PATH", update=_on_change,
+        name="Python with torch", subtype="FILE_PATH", update=_on_python_change,
         description="A Python interpreter that has torch and pycolmap (e.g. a conda env). "
                     "Empty: Blender's Python with the packages installed below")
     device: EnumProperty(name="Device", update=_on_change, items=[
@@ -72,7 +81,7 @@ class NeulfPreferences(bpy.types.AddonPreferences):
     torch_variant: EnumProperty(name="Torch Build", items=[
         ("DEFAULT", "Default", "pip's default torch for this system"),
         ("CPU", "CPU Only", "Smaller download; no GPU"), ("CUDA", "CUDA 12.8", "NVIDIA GPUs")])
-    status: StringProperty(name="Status", default="not checked yet: click Check")
+    status: StringProperty(name="Status", default=NOT_CHECKED)
 
     def draw(self, context):
         layout = self.layout
@@ -121,6 +130,8 @@ class NEULF_OT_check_dependencies(bpy.types.Operator):
         try:
             job = jobs.python_check_job(python, jobs.core_environment(extra))
         except Exception as exc:
+            if prefs is not None:
+                prefs.status = f"not usable: {exc}"
             self.report({"ERROR"}, str(exc))
             return {"CANCELLED"}
 

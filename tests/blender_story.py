@@ -14,6 +14,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import shutil
 import sys
 import time
 import traceback
@@ -34,7 +35,7 @@ GRID = [(x, y) for y in (-0.3, 0.0, 0.3) for x in (-0.3, 0.0, 0.3)]
 STEPS = ["install", "import", "cameras_match_pycolmap", "slab_planes", "reimport_no_duplicates", "train_blocking",
          "train_options", "train_timer_resume", "train_cancel", "train_cancel_resume", "members", "render_camera", "pixel_samples",
          "render_worker_process", "focus_at", "pick_focus_frame", "pick_focus_click", "root_scale", "engine_f12", "composite_cg", "viewport_preview", "spiral_video", "save_reload",
-         "blend_moved", "quit_while_training", "open_other_while_training", "reconstruct_photos", "user_errors", "dependencies_status",
+         "blend_moved", "linked_scene", "quit_while_training", "open_other_while_training", "reconstruct_photos", "user_errors", "dependencies_status",
          "install_dependencies"]
 
 
@@ -908,6 +909,34 @@ def run_story(setup: dict) -> None:  # noqa: C901 - one story, told in order
         scene.compositing_node_group = tree
         return tree
 
+    def _composite_stereo(scene, camera):
+        """Stereoscopy on (parallel eyes 0.4 apart about the camera): said as drift until pressed
+        again, then each eye's composite shows the cube, shifted between the eyes (the CG scene
+        had rendered no eye at all)."""
+        compositing = mod("compositing")
+        render, stereo, settings = scene.render, camera.data.stereo, scene.render.image_settings
+        saved = stereo.convergence_mode, stereo.interocular_distance, stereo.pivot, settings.views_format
+        render.use_multiview, render.views_format = True, "STEREO_3D"
+        stereo.convergence_mode, stereo.interocular_distance, stereo.pivot = "PARALLEL", 0.4, "CENTER"
+        settings.views_format = "INDIVIDUAL"
+        try:
+            assert "use_multiview" in (compositing.out_of_step(scene) or "")
+            assert bpy.ops.neulf.composite_cg() == {"FINISHED"} and compositing.out_of_step(scene) is None
+            render.filepath = str(work / "composite_stereo")
+            bpy.ops.render.render(write_still=True)
+            eyes = [load_png(next(work.glob(f"composite_stereo_{side}*.png"))) for side in "LR"]
+        finally:
+            render.use_multiview = False
+            stereo.convergence_mode, stereo.interocular_distance, stereo.pivot, settings.views_format = saved
+            render.filepath = str(work / "composite.png")
+            assert bpy.ops.neulf.composite_cg() == {"FINISHED"}
+        red = [np.abs(eye - np.array([1.0, 0.0, 0.0])).max(axis=2) < 0.06 for eye in eyes]
+        centres = [np.nonzero(mask)[1].mean() if mask.any() else float("nan") for mask in red]
+        assert min(mask.sum() for mask in red) > 50 and abs(centres[0] - centres[1]) > 0.5, \
+            ([mask.sum() for mask in red], centres)
+        return (f"stereo: the cube in both eyes ({red[0].sum()} and {red[1].sum()} pixels, its centre "
+                f"{centres[0] - centres[1]:.1f} pixels apart)")
+
     def _composite_camera_switch(scene, camera, cg, cube_depth):
         """A camera-switching marker at frame 2 to a second camera, 0.8 units to the first one's
         right: the CG scene gets the switch, so frame 2's composite shows the cube where the
@@ -1021,6 +1050,7 @@ def run_story(setup: dict) -> None:  # noqa: C901 - one story, told in order
             cube_depth = _cube_depth(cg, camera, scene)
             assert compositing.out_of_step(scene) is None
             switched = _composite_camera_switch(scene, camera, cg, cube_depth)
+            switched += "; " + _composite_stereo(scene, camera)
             scene.render.resolution_percentage = 50
             mismatch = compositing.out_of_step(scene)  # F12 and the panel say it
             assert "resolution_percentage" in mismatch and "press Composite CG Objects again" in mismatch, mismatch
@@ -1310,8 +1340,6 @@ def run_story(setup: dict) -> None:  # noqa: C901 - one story, told in order
     def _():
         # The .blend and its model folder moved together to another folder, opened by another
         # Blender: the model path is relative to the .blend and resolves there.
-        import shutil
-
         assert bpy.ops.neulf.render_camera() == {"FINISHED"}
         here = image_array("NeuLF Render").copy()
         blend = Path(bpy.data.filepath)
@@ -1341,6 +1369,37 @@ def run_story(setup: dict) -> None:  # noqa: C901 - one story, told in order
         return (f"reopened from {elsewhere.relative_to(work)}: model {result['model_dir']}, panel "
                 f"'{result['status']}', render equal within {diff * 255:.1f}/255; without the model folder: "
                 f"{missing.strip()}")
+
+    @story.step("linked_scene", "save_reload")
+    def _():
+        # A shot file in another folder links the capture's scene (File > Link): the scene's model
+        # path is relative to the file the scene lives in, and resolves there; Load Model, which
+        # would change linked data for the session only, is refused in one line.
+        blend = work / "scenes" / "capture.blend"
+        bpy.ops.wm.open_mainfile(filepath=str(blend))
+        name = bpy.context.scene.name
+        assert bpy.ops.neulf.render_camera() == {"FINISHED"}
+        direct = image_array("NeuLF Render").copy()
+        bpy.ops.wm.read_homefile(use_empty=True)
+        shot = work / "shots" / "deeper" / "shot.blend"
+        shot.parent.mkdir(parents=True, exist_ok=True)
+        bpy.ops.wm.save_as_mainfile(filepath=str(shot))
+        with bpy.data.libraries.load(str(blend), link=True, relative=True) as (_source, linked):
+            linked.scenes = [name]
+        differences = []
+        for reopened in (False, True):
+            if reopened:
+                bpy.ops.wm.save_mainfile()
+                bpy.ops.wm.open_mainfile(filepath=str(shot))
+            scene = next(scene for scene in bpy.data.scenes if scene.library is not None)
+            with bpy.context.temp_override(scene=scene):
+                assert bpy.ops.neulf.render_camera() == {"FINISHED"}
+                refused = error_of(lambda: bpy.ops.neulf.load_model(directory=str(model)))
+            differences.append(float(np.abs(image_array("NeuLF Render") - direct).max()))
+            assert "is linked from" in refused and refused.strip().count("\n") == 0, refused
+        assert max(differences) <= 1 / 255 + 1e-6, differences
+        return (f"linked into {shot.relative_to(work)}: Render Camera equals the capture file's within "
+                f"{max(differences) * 255:.1f}/255 (and after saving and reopening); {refused.strip()}")
 
     def reopened_while_trained_elsewhere(blend: Path, folder: Path) -> str:
         # The .blend opened while another process still trains its model folder (as the training
@@ -1476,6 +1535,13 @@ def run_story(setup: dict) -> None:  # noqa: C901 - one story, told in order
         (damaged / "model.json").write_text('{"preset": "fa')
         messages.append(error_of(lambda: bpy.ops.neulf.load_model(directory=str(damaged))))
         assert "cannot be read" in messages[-1], messages[-1]
+        p, chosen = prefs(), prefs().python_path  # a "Python" that is not one: Train must not say it finished
+        p.python_path = shutil.which("true") or "/bin/true"
+        try:
+            messages.append(error_of(lambda: bpy.ops.neulf.train(steps=5)))
+        finally:
+            p.python_path = chosen
+        assert "ended without training" in messages[-1] and "Python with torch" in messages[-1], messages[-1]
         assert all("Traceback" not in m and m.startswith("Error:") for m in messages), messages
         return " | ".join(m.strip() for m in messages)
 
@@ -1493,10 +1559,14 @@ def run_story(setup: dict) -> None:  # noqa: C901 - one story, told in order
         subprocess.run([worker_python or sys.executable, "-m", "venv", "--without-pip", str(bare)], check=True)
         p.python_path = str(bare / ("Scripts/python.exe" if os.name == "nt" else "bin/python"))
         try:
+            assert p.status == mod("preferences").NOT_CHECKED, p.status  # the verdict was the other Python's
             assert bpy.ops.neulf.check_dependencies() == {"FINISHED"}
             assert p.status.startswith("not usable:") and "has no '" in p.status, p.status
             assert "Install dependencies" in p.status, p.status
             missing = p.status
+            p.python_path = str(work / "no_such_python")  # one that does not start: said on the status line too
+            error_of(lambda: bpy.ops.neulf.check_dependencies())
+            assert p.status.startswith("not usable:"), p.status
         finally:
             p.python_path = chosen
         return f"{usable} | {missing}"
