@@ -116,7 +116,7 @@ class NEULF_PT_main(bpy.types.Panel):
         col.operator("neulf.pick_focus", icon="EYEDROPPER")
         row = col.row(align=True)
         row.prop(props, "spiral_frames")
-        row.operator("neulf.spiral_path", text="Spiral Path", icon="CURVE_BEZCIRCLE")
+        row.operator("neulf.spiral_path", text="Spiral Camera Path", icon="CURVE_BEZCIRCLE")
         col.operator("neulf.render_video", icon="RENDER_ANIMATION")
         col.operator("neulf.composite_cg", icon="NODE_COMPOSITING")
         mismatch = compositing.out_of_step(context.scene)

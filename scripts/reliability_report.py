@@ -109,6 +109,10 @@ CASES = [
         f"{STORY}[save_reload]", f"{STORY}[blend_moved]"]),
     Case("Another .blend opened while training: the training's end writes nothing into it", [
         f"{STORY}[open_other_while_training]"]),
+    Case("A scene linked from another .blend: its model resolves beside that file; changing it is refused", [
+        f"{STORY}[linked_scene]"]),
+    Case("A Python in the preferences that is not one, or does not start: Train and Check say so", [
+        f"{STORY}[user_errors]", f"{STORY}[dependencies_status]"]),
     Case("An output that cannot be written: a file in the way, a folder inside a file, a full disk", [
         f"{REL}::test_output_that_is_a_file_is_said_before_rendering",
         *_ids(f"{REL}::test_video_needs_a_video_file_name", "spiral", "a_folder"),
