@@ -33,7 +33,7 @@ class NeulfRenderEngine(bpy.types.RenderEngine):
 
     def render(self, depsgraph):
         scene = depsgraph.scene_eval
-        original = bpy.data.scenes.get(scene.name) or scene
+        original = scene.original  # (by name, a linked scene would find a local one of its name)
         for view in _views(scene.render):  # (each eye of a stereo render, or the one view)
             if not self._render_view(depsgraph, original, view):
                 return
@@ -95,7 +95,7 @@ class NeulfRenderEngine(bpy.types.RenderEngine):
 
     def view_draw(self, context, depsgraph):
         scene = depsgraph.scene_eval
-        original = bpy.data.scenes.get(scene.name) or scene
+        original = scene.original  # (by name, a linked scene would find a local one of its name)
         try:
             request, key = _viewport_view(original, depsgraph, context.region, context.region_data)
         except NeulfError as exc:

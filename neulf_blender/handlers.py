@@ -32,7 +32,7 @@ def on_save_pre(filepath="", *_args):
     """The folders as the file being written sees them (a Save Copy too)."""
     from .operators import abspath
 
-    _saving.clear()
+    on_save_post()  # (a save that failed on Blender 4.2, which calls no handler after it: restored now)
     if not filepath:  # (the startup file)
         return
     for scene in bpy.data.scenes:
@@ -107,8 +107,17 @@ def watch_other_trainings():
         bpy.app.timers.register(other_training_tick, first_interval=WATCH_INTERVAL, persistent=True)
 
 
+def _save_handlers():
+    """(handler, list) pairs; a save that fails restores the folders as one that succeeds does
+    (save_post_fail: Blender 4.4+; 4.2 has none)."""
+    pairs = [(on_save_pre, bpy.app.handlers.save_pre), (on_save_post, bpy.app.handlers.save_post)]
+    if hasattr(bpy.app.handlers, "save_post_fail"):
+        pairs.append((on_save_post, bpy.app.handlers.save_post_fail))
+    return pairs
+
+
 def register():
-    for handler, handlers in ((on_save_pre, bpy.app.handlers.save_pre), (on_save_post, bpy.app.handlers.save_post)):
+    for handler, handlers in _save_handlers():
         if handler not in handlers:
             handlers.append(handler)
     if on_load_pre not in bpy.app.handlers.load_pre:
@@ -118,7 +127,7 @@ def register():
 
 
 def unregister():
-    for handler, handlers in ((on_save_pre, bpy.app.handlers.save_pre), (on_save_post, bpy.app.handlers.save_post)):
+    for handler, handlers in _save_handlers():
         while handler in handlers:
             handlers.remove(handler)
     if bpy.app.timers.is_registered(other_training_tick):

@@ -469,6 +469,8 @@ def clear_transform_keys(obj) -> None:
     animation = obj.animation_data
     if animation is None or animation.action is None:
         return
+    if animation.action.users > 1:  # (shared with another object: its keys stay its own)
+        animation.action = animation.action.copy()
     fcurves = animation.action.fcurves if hasattr(animation.action, "fcurves") else None
     if getattr(animation, "action_slot", None) is not None:  # 4.4+: an action's curves are per slot
         from bpy_extras import anim_utils

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import argparse
 import errno
+import functools
 import json
 import os
 import signal
@@ -102,7 +103,16 @@ def cmd_reconstruct(args) -> int:
         total = f" ({event['registered']}/{event['total']})" if event.get("stage") == "mapping" else ""
         print(f"[{event['stage']}] {event['message']}{total}", file=sys.stderr, flush=True)
 
-    model = reconstruct(args.images_dir, args.out, progress=report, camera_model=args.camera_model)
+    def on_signal(_signum, _frame):  # (Blender's Cancel sends SIGTERM: the run's hidden folder is removed)
+        raise KeyboardInterrupt
+
+    signals = [signal.SIGTERM] + ([signal.SIGBREAK] if hasattr(signal, "SIGBREAK") else [])
+    previous = {s: signal.signal(s, on_signal) for s in signals}
+    try:
+        model = reconstruct(args.images_dir, args.out, progress=report, camera_model=args.camera_model)
+    finally:
+        for s, handler in previous.items():
+            signal.signal(s, handler)
     print(f"model written to {model}")
     return 0
 
@@ -181,8 +191,9 @@ def cmd_train(args) -> int:
 
 # The options a model keeps from its first training (train._config_for_resume), by their
 # TrainConfig field, and how the command line gives them.
-KEPT_ON_RESUME = {"preset": "preset", "holdout_every": "holdout_every", "exclude": "exclude", "seed": "seed",
-                  "batch_size": "batch_size", "scale": "scale", "st_depth": "st_depth", "near": "near", "far": "far",
+# (Not the seed and the batch: a kept second start and members of half the batch save their own.)
+KEPT_ON_RESUME = {"preset": "preset", "holdout_every": "holdout_every", "exclude": "exclude",
+                  "scale": "scale", "st_depth": "st_depth", "near": "near", "far": "far",
                   "sweep_teacher": "teacher", "point_depth": "point_depth", "consistency": "consistency",
                   "appearance": "appearance", "refine_poses": "refine_poses", "coarse_to_fine": "coarse_to_fine",
                   "back_surface": "back_surface", "two_starts": "two_starts", "pixel_jitter": "pixel_jitter"}
@@ -205,6 +216,9 @@ def _say_what_resume_keeps(args) -> None:
         asked["exclude"] = _names(asked["exclude"])
     differ = [f"--{dest.replace('_', '-')} (the model's: {saved.get(field)!r})" for dest, field in KEPT_ON_RESUME.items()
               if dest in asked and field in saved and asked[dest] != saved[field]]
+    layers = (saved.get("field_overrides") or {}).get("geometry_layers")
+    if "depth_layers" in getattr(args, "given", ()) and args.depth_layers != layers:
+        differ.append(f"--depth-layers (the model's: {'the rule' if layers is None else layers})")
     if differ:
         print(f"warning: --resume continues the model as it was trained, so these options keep the model's own "
               f"values: {', '.join(differ)}; to train with them, give --out a new folder.", file=sys.stderr)
@@ -514,8 +528,10 @@ def _pixel_samples_argument(p: argparse.ArgumentParser) -> None:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = _Parser(prog="python -m neulf_core", description="Neural 4D light fields (NeuLF) from forward-facing captures.")
-    sub = parser.add_subparsers(dest="command", required=True, parser_class=_Parser)
+    parser = _Parser(prog="python -m neulf_core", description="Neural 4D light fields (NeuLF) from forward-facing captures.",
+                     allow_abbrev=False)
+    # (whole option names: --resume's check reads which options were written)
+    sub = parser.add_subparsers(dest="command", required=True, parser_class=functools.partial(_Parser, allow_abbrev=False))
 
     p = sub.add_parser("reconstruct", help="photos -> COLMAP model (pycolmap SfM)")
     p.add_argument("images_dir")

@@ -47,6 +47,8 @@ def run_demo(out: Path, minutes: float = 3.0, keep: bool = False) -> dict:
     model_dir = out / "model"
     if not (keep and (scene_dir / "sparse" / "0").is_dir()):
         _say("2/5 reconstructing the cameras with pycolmap (features, matching, mapping)")
+        if (scene_dir / "images").is_dir():  # the demo's own photos of its last render (reconstruct keeps a folder's photos)
+            shutil.rmtree(scene_dir / "images")
         reconstruct(rendered / "images", scene_dir,
                     progress=lambda e: print(f"   [{e['stage']}] {e['message']}", file=sys.stderr, flush=True))
         if model_dir.exists():  # the demo's own model of the previous reconstruction: it no longer fits

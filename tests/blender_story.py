@@ -1300,6 +1300,10 @@ def run_story(setup: dict) -> None:  # noqa: C901 - one story, told in order
         bpy.ops.wm.save_as_mainfile(filepath=str(blend))  # the first save makes the folders relative to it
         assert props.model_dir.startswith("//") and props.scene_dir.startswith("//"), props.model_dir
         assert folders(props) == [model.resolve(), capture], folders(props)
+        failed = error_of(lambda: bpy.ops.wm.save_as_mainfile(filepath=str(work / "no_such" / "folder" / "x.blend")))
+        assert failed and not (work / "no_such").exists(), failed
+        if hasattr(bpy.app.handlers, "save_post_fail"):  # (4.4+; 4.2 restores them at the next save)
+            assert folders(props) == [model.resolve(), capture], (props.model_dir, folders(props))
         elsewhere = work / "save_as" / "deeper" / "capture.blend"
         elsewhere.parent.mkdir(parents=True, exist_ok=True)
         bpy.ops.wm.save_as_mainfile(filepath=str(elsewhere))  # Save As into another folder: the same folders

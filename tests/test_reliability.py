@@ -780,15 +780,15 @@ def test_resume_says_which_asked_options_the_model_keeps(model, tiny_scene, tmp_
     own are said (they were dropped without a word), and the run goes on."""
     resumed = shutil.copytree(model, tmp_path / "model")
     code, _, err = run_cli(["train", tiny_scene, "--out", resumed, "--resume", "--steps", "4", "--batch-size", "256",
-                            "--validate-seconds", "1e9", "--seed", "5", "--holdout-every", "4", "--progress", "json"],
+                            "--validate-seconds", "1e9", "--preset", "planes", "--holdout-every", "4", "--progress", "json"],
                            capfd)
     record_property("message", err.strip())
     assert code == 0, err
     warning = next(line for line in err.splitlines() if line.startswith("warning: --resume"))
-    assert "--seed (the model's: 0)" in warning and "--holdout-every (the model's: 8)" in warning, warning
+    assert "--preset (the model's: 'fast')" in warning and "--holdout-every (the model's: 8)" in warning, warning
     assert "--batch-size" not in warning  # (asked as the model has it: nothing to say)
     meta = json.loads((resumed / METADATA_NAME).read_text())
-    assert meta["train_config"]["seed"] == 0 and meta["progress"]["step"] == 4
+    assert meta["train_config"]["preset"] == "fast" and meta["progress"]["step"] == 4
     code, _, err = run_cli(["train", tiny_scene, "--out", tmp_path / "new", "--resume", *QUICK_TRAIN], capfd)
     assert code == 0 and "holds no model to resume yet: training a new one" in err, err
 
