@@ -496,6 +496,7 @@ class NEULF_OT_spiral_path(_Reporting, bpy.types.Operator):
         camera = scene.camera
         if camera is None:
             raise NeulfError("the scene has no active camera to animate.")
+        refuse_linked(scene, "keyframe its camera")
         frames = self.frames or scene.neulf.spiral_frames
         path = get_core(context).call("spiral", model_dir=model_dir(scene), frames=frames)
         _collection, root = capture.find_capture(scene)
@@ -625,6 +626,7 @@ class NEULF_OT_composite_cg(_Reporting, bpy.types.Operator):
         from .engine import NeulfRenderEngine
 
         scene = context.scene
+        refuse_linked(scene, "set up its CG compositing")
         cg = compositing.set_up(scene, context.view_layer)
         scene.render.engine = NeulfRenderEngine.bl_idname  # the plate: F12 renders the light field here
         self.report({"INFO"}, f"objects in the collection '{scene.neulf.cg_collection.name}' render in the scene "

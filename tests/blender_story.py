@@ -1399,6 +1399,9 @@ def run_story(setup: dict) -> None:  # noqa: C901 - one story, told in order
             with bpy.context.temp_override(scene=scene):
                 assert bpy.ops.neulf.render_camera() == {"FINISHED"}
                 refused = error_of(lambda: bpy.ops.neulf.load_model(directory=str(model)))
+                for call in (lambda: bpy.ops.neulf.spiral_path(frames=3), lambda: bpy.ops.neulf.composite_cg()):
+                    also = error_of(call)  # (they would change linked data for this session only)
+                    assert "is linked from" in also, also
             differences.append(float(np.abs(image_array("NeuLF Render") - direct).max()))
             assert "is linked from" in refused and refused.strip().count("\n") == 0, refused
         assert max(differences) <= 1 / 255 + 1e-6, differences
