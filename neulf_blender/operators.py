@@ -33,6 +33,11 @@ def scene_model_dir(scene) -> str:
     return abspath(scene.neulf.model_dir, scene.library)
 
 
+def is_model_of(scene, path: str) -> bool:
+    """Whether `path` (absolute) is the scene's model folder."""
+    return bool(scene.neulf.model_dir) and scene_model_dir(scene) == os.path.normpath(path)
+
+
 def refuse_linked(scene, what: str) -> None:
     """Linked data cannot be changed for good (the library's file holds it): said, not half done."""
     if scene.library is not None:
@@ -110,7 +115,7 @@ def refresh_model_status(scene) -> str:
         return props.last_status
     path = scene_model_dir(scene)
     training = tasks.get("train")
-    if training is not None and training.running and os.path.normpath(training.model_dir) == path:
+    if training is not None and training.running and is_model_of(scene, training.model_dir):
         return props.last_status  # this session's own job reports its progress
     if not Path(path).is_dir():
         props.last_status = f"{model_not_found(path)} move it back or use Load Model"
@@ -337,9 +342,7 @@ def start_training(context, *, minutes=None, steps=None):
 
 def scenes_of_model(path: str) -> list:
     """The open file's scenes whose model folder is `path`."""
-    path = os.path.normpath(path)
-    return [scene for scene in bpy.data.scenes
-            if scene.neulf.model_dir and scene.library is None and scene_model_dir(scene) == path]
+    return [scene for scene in bpy.data.scenes if scene.library is None and is_model_of(scene, path)]
 
 
 def _show_training_result(scene, state: dict, out: str) -> None:

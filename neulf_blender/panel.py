@@ -1,13 +1,12 @@
 """The N-panel (3D viewport > sidebar > NeuLF): capture, training, rendering."""
 
-import os
 import textwrap
 from pathlib import Path
 
 import bpy
 
 from . import compositing, tasks
-from .operators import TRAINED_ELSEWHERE, scene_model_dir
+from .operators import TRAINED_ELSEWHERE, is_model_of
 
 CHARS_PER_PIXEL = 1 / 7.0  # the UI font's average advance at 1x scale, for wrapping labels
 
@@ -87,7 +86,7 @@ class NEULF_PT_main(bpy.types.Panel):
         col.prop(props, "members")
         train = tasks.get("train")
         if train is not None and train.running:
-            ours = bool(props.model_dir) and scene_model_dir(context.scene) == os.path.normpath(train.model_dir)
+            ours = is_model_of(context.scene, train.model_dir)
             label = "Training" if ours else f"Training {Path(train.model_dir).name}"  # (another file's model)
             _job_box(layout, train, label, "neulf.cancel_train")
         else:

@@ -126,18 +126,13 @@ def cmd_train(args) -> int:
     from .progress import make_reporter
     from .train import TrainConfig, train
 
-    if args.minutes is not None and args.minutes <= 0 or args.steps is not None and args.steps <= 0:
-        raise NeulfError("--minutes and --steps must be positive.")
-    if args.batch_size is not None and args.batch_size <= 0:
-        raise NeulfError(f"--batch-size must be positive, not {args.batch_size}.")
+    # (numbers are checked by the parser's types: POSITIVE, NON_NEGATIVE, ...)
     preset = get_preset(args.preset)  # fail before loading the scene and drawing progress, not after
     overrides = {}
     if args.depth_layers is not None:
         if preset.field != "disparity" or args.depth_layers > MAX_DEPTH_LAYERS:
             raise NeulfError(f"--depth-layers takes a count from 0 to {MAX_DEPTH_LAYERS}, with the fast or auto preset.")
         overrides["geometry_layers"] = args.depth_layers
-    if args.max_passes is not None and args.max_passes < 0:
-        raise NeulfError("--max-passes takes a number of passes (0: no limit).")
     if args.coarse_to_fine is not None and preset.field != "disparity":
         raise NeulfError("--coarse-to-fine / --no-coarse-to-fine apply to the fast and auto presets only.")
     if args.back_surface is not None and preset.field != "disparity":
@@ -338,13 +333,11 @@ def _select_views(scene, light_field, names: list[str]):
 
 def _focus_options(args):
     """(focus_distance, aperture, focus_pixel) from the render options, checked."""
-    if args.aperture < 0:
-        raise NeulfError("--aperture is a lens radius in scene units and cannot be negative.")
     if args.f_stop is not None:
         if args.aperture:
             raise NeulfError("give either --aperture or --f-stop, not both.")
-        if args.f_stop <= 0 or not args.focal_length or args.focal_length <= 0:
-            raise NeulfError("--f-stop N needs a positive N and --focal-length F (the lens's focal length in scene units, "
+        if not args.focal_length:
+            raise NeulfError("--f-stop N needs --focal-length F (the lens's focal length in scene units, "
                              "e.g. 0.05 for a 50 mm lens in a scene measured in metres).")
         from .refocus import aperture_from_f_stop
 
@@ -358,8 +351,6 @@ def _focus_options(args):
             raise NeulfError(f"--focus-pixel wants X,Y in pixels (top-left origin), not '{args.focus_pixel}'.") from None
     if args.aperture > 0 and args.focus_distance is None and pixel is None:
         raise NeulfError("--aperture needs --focus-distance D or --focus-pixel X,Y.")
-    if args.focus_distance is not None and args.focus_distance <= 0:
-        raise NeulfError("--focus-distance must be positive (depth along the optical axis, scene units).")
     if args.aperture == 0 and (args.focus_distance is not None or pixel is not None):
         print("warning: a focus without --aperture or --f-stop renders a pinhole: everything is sharp.", file=sys.stderr)
     return args.focus_distance, args.aperture, pixel
@@ -394,8 +385,6 @@ def cmd_render(args) -> int:
         raise NeulfError("render needs either --scene SCENE_DIR --views NAME,... or --cameras CAMERAS.json.")
     if args.cameras and args.views:
         raise NeulfError("--views names views of --scene; --cameras renders every camera of its file: give one of them.")
-    if args.scale is not None and args.scale <= 0:
-        raise NeulfError(f"--scale must be positive, not {args.scale}.")
     focus_options = _focus_options(args)
     refocus = focus_options[1] > 0 or focus_options[2] is not None
     light_field = LightField.load(args.model_dir, args.device, args.precision)
