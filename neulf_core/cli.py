@@ -27,17 +27,18 @@ class _Parser(argparse.ArgumentParser):
         raise NeulfError(f"{message} (see: {self.prog} --help)")
 
 
-def _number(kind, lowest: float, *, above: bool):
-    """An argparse type: a finite `kind` (int or float) above (or at least) `lowest`; NaN, inf and
-    the rest get one line saying what the option takes."""
-    words = f"{'above' if above else 'at least'} {lowest:g}"
+def _number(kind, lowest: float, *, above: bool, highest: float | None = None):
+    """An argparse type: a finite `kind` (int or float) above (or at least) `lowest`, and at most
+    `highest` where given; NaN, inf and the rest get one line saying what the option takes."""
+    words = f"{'above' if above else 'at least'} {lowest:g}" + (f" and at most {highest:g}" if highest is not None else "")
 
     def parse(text: str):
         try:
             value = kind(text)
         except ValueError:
             raise argparse.ArgumentTypeError(f"'{text}' is not a{'n integer' if kind is int else ' number'}") from None
-        if not np.isfinite(value) or (value <= lowest if above else value < lowest):
+        if (not np.isfinite(value) or (value <= lowest if above else value < lowest)
+                or (highest is not None and value > highest)):
             raise argparse.ArgumentTypeError(f"'{text}': give a {'whole' if kind is int else 'finite'} number {words}")
         return value
 
@@ -49,6 +50,8 @@ POSITIVE = _number(float, 0, above=True)
 NON_NEGATIVE = _number(float, 0, above=False)
 POSITIVE_INT = _number(int, 0, above=True)
 NON_NEGATIVE_INT = _number(int, 0, above=False)
+# Training above the photos' own size would enlarge them: no detail gained, scale² the cost.
+TRAIN_SCALE = _number(float, 0, above=True, highest=1)
 MAX_DEPTH_LAYERS = 64  # (8 is the default's; each layer is a plane of the geometry: thousands exhaust memory)
 
 
@@ -532,7 +535,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("scene_dir")
     p.add_argument("--out", required=True, help="model folder")
     p.add_argument("--images", help="images folder (default: SCENE/images, else SCENE/images_N)")
-    p.add_argument("--scale", type=POSITIVE, help="train at this image scale (default: the largest 1/k at which a photo "
+    p.add_argument("--scale", type=TRAIN_SCALE, help="train at this image scale, at most 1 (default: the largest 1/k at which a photo "
                    "has at most 200,000 pixels: 1/2 for 960x540 photos, 1/8 for 12-megapixel ones)")
     p.add_argument("--preset", default="fast", help="fast (default), auto (fast, texture sized per scene), planes, authors (8x256 MLP), paper (20x256 MLP)")
     budget = p.add_mutually_exclusive_group()

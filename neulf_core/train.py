@@ -279,8 +279,10 @@ def _train(scene, model_dir: Path, config: TrainConfig, images_dir, resume: bool
 
 def _resumed_checkpoint(model_dir: Path, config: TrainConfig, resume: bool) -> dict | None:
     """The checkpoint a resumed run continues (None for a new one); refuses to overwrite a model."""
-    if config.scale is not None and config.scale <= 0:
-        raise NeulfError(f"--scale must be positive, not {config.scale}.")
+    if config.scale is not None and not 0 < config.scale <= 1:
+        raise NeulfError(f"--scale {config.scale:g} is out of range: give a value above 0 and at most 1 (1: the photos' "
+                         "own size; above it, training would enlarge the photos, which adds no detail and costs "
+                         "scale² more time and memory).")
     existing = checkpoint_path(model_dir).is_file()
     if existing and not resume:
         raise NeulfError(f"{model_dir} already holds a trained model; pass --resume to continue it, or choose another --out.")

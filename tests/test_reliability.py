@@ -724,6 +724,7 @@ NOT_NUMBERS = {
     "train --checkpoint-seconds -5": ["train", "SCENE", "--out", "OUT", "--steps", "2", "--checkpoint-seconds", "-5"],
     "train --holdout-every -1": ["train", "SCENE", "--out", "OUT", "--steps", "2", "--holdout-every", "-1"],
     "train --depth-layers 100000": ["train", "SCENE", "--out", "OUT", "--steps", "2", "--depth-layers", "100000"],
+    "train --scale 2": ["train", "SCENE", "--out", "OUT", "--steps", "2", "--scale", "2"],  # trained on enlarged photos
     "render --scale inf": ["render", "MODEL", "--scene", "SCENE", "--views", "all", "--out", "OUT", "--scale", "inf"],
     "render --aperture nan": ["render", "MODEL", "--cameras", "CAMS", "--out", "OUT", "--aperture", "nan",
                               "--focus-distance", "3"],
@@ -767,6 +768,17 @@ def test_camera_json_problems(how, model, tmp_path, capfd, record_property):
     path = tmp_path / "cameras.json"
     make(path)
     expect_error(["render", model, "--cameras", path, "--out", tmp_path / "out"], capfd, record_property, expected)
+
+
+def test_train_refuses_a_scale_above_one(tiny_scene, tmp_path):
+    """train() itself (the Python API) refuses to enlarge the photos, as the CLI does: 4 times
+    the rays for no detail."""
+    from neulf_core.errors import NeulfError
+    from neulf_core.train import TrainConfig, train
+
+    with pytest.raises(NeulfError, match="at most 1"):
+        train(tiny_scene, tmp_path / "model", TrainConfig(steps=2, scale=2.0))
+    assert not (tmp_path / "model").exists()
 
 
 def test_focus_pixel_outside_the_image(model, tmp_path, capfd, record_property):
