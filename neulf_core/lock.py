@@ -79,6 +79,40 @@ def _try_create(path: Path) -> bool:
     return True
 
 
+# A claim file still empty or half-written this young is a claim being made, not a dead one.
+CLAIM_BEING_WRITTEN_SECONDS = 60
+
+
+def claim(path: Path) -> None:
+    """Record this process at `path` (a new file), as a training lock does: for work folders
+    another run must not remove while this one uses them (reconstruct's)."""
+    if not _try_create(Path(path)):
+        raise FileExistsError(path)
+
+
+def claim_holder(path: Path) -> dict | None:
+    """The process whose claim `path` is, while it runs; None where there is no claim or its
+    process is gone.  A claim unreadable for its first minute counts as held (being written)."""
+    path = Path(path)
+    try:
+        age = time.time() - path.stat().st_mtime
+    except OSError:
+        return None
+    owner = _holder(path)
+    if owner is None and age < CLAIM_BEING_WRITTEN_SECONDS and not _readable(path):
+        return {"pid": "?", "host": platform.node(), "started": None}
+    return owner
+
+
+def _readable(path: Path) -> bool:
+    try:
+        owner = json.loads(path.read_text())
+        int(owner["pid"]), str(owner["host"])
+    except (OSError, ValueError, KeyError, TypeError):
+        return False
+    return True
+
+
 @contextlib.contextmanager
 def training_lock(model_dir: Path):
     model_dir = Path(model_dir)

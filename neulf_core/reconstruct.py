@@ -9,9 +9,12 @@ feature matching, incremental mapping) and writes a SCENE_DIR::
         sparse/0/      the COLMAP model, binary (the largest one when COLMAP found several)
         database.db    COLMAP's features and matches, kept for inspection or re-runs
 
-A run works in a hidden folder inside out_dir and changes nothing else there until the new
-model is made: a failed or cancelled run leaves out_dir as it was (a previous model included),
-and a photo already in out_dir/images is never overwritten by a different one of the same name.
+A run works in a hidden folder inside out_dir (``.reconstruct-*``, with its process recorded
+in it) and changes nothing else there until the new model is made: a failed or cancelled run
+leaves out_dir as it was (a previous model included), and a photo already in out_dir/images is
+never overwritten by a different one of the same name.  The hidden folder of a run killed
+outright (SIGKILL, a power cut) is removed by the next run into out_dir; a run into a folder
+another run is still reconstructing is refused (the two would install over each other).
 
 Written against pycolmap 4.2.1, whose API differs from older releases (options live in
 ``FeatureExtractionOptions`` / ``FeatureMatchingOptions`` / ``IncrementalPipelineOptions``,
@@ -26,8 +29,10 @@ from __future__ import annotations
 import contextlib
 import filecmp
 import os
+import platform
 import shutil
 import tempfile
+import time
 from pathlib import Path
 from typing import Callable, Iterator, Sequence
 
@@ -37,8 +42,14 @@ from PIL import Image, ImageOps, UnidentifiedImageError
 
 from .errors import NeulfError
 from .images import IMAGE_EXTENSIONS, list_images
+from .lock import claim, claim_holder
 
 MIN_PHOTOS = 3
+WORK_PREFIX = ".reconstruct-"
+WORK_OWNER = "owner.json"  # the process reconstructing in a work folder (lock.claim)
+# A work folder without a readable owner record is taken for a run's first instant (or a kill
+# in it) until it is this old; older ones (a kill, or an earlier version's run) are removed.
+UNCLAIMED_WORK_SECONDS = 3600
 # Exhaustive matching compares every pair: best for small captures, quadratic cost beyond.
 EXHAUSTIVE_MATCHING_MAX_PHOTOS = 100
 MATCHERS = ("auto", "exhaustive", "sequential")
@@ -97,7 +108,7 @@ def reconstruct(
         try:
             out_dir.mkdir(parents=True, exist_ok=True)
             # Everything is made in here first; out_dir itself changes only in _install_results.
-            work = Path(tempfile.mkdtemp(prefix=".reconstruct-", dir=out_dir))
+            work = _start_work_folder(out_dir)
             scene_images = stage_photos(photos, work / "images")
         except OSError as error:
             raise _unwritable(out_dir, error) from error
@@ -142,6 +153,52 @@ def reconstruct(
 
     reporter.report("done", f"Registered {registered} of {len(names)} photos", registered=registered)
     return model_dir
+
+
+def _start_work_folder(out_dir: Path) -> Path:
+    """This run's hidden folder in out_dir, its process recorded; work folders of runs that no
+    longer exist are removed first, and a run still going into out_dir is refused (checked again
+    once this run's folder is claimed, so two started at once do not both go on)."""
+    _refuse_another_run(out_dir, _other_runs(out_dir))
+    work = Path(tempfile.mkdtemp(prefix=WORK_PREFIX, dir=out_dir))
+    claim(work / WORK_OWNER)
+    others = _other_runs(out_dir, own=work)
+    if others:
+        shutil.rmtree(work, ignore_errors=True)
+        _refuse_another_run(out_dir, others)
+    return work
+
+
+def _other_runs(out_dir: Path, own: Path | None = None) -> list[tuple[Path, dict]]:
+    """(folder, owner) of the other work folders in out_dir whose process still runs; the
+    folders of runs that are gone are deleted on the way."""
+    running = []
+    for folder in sorted(out_dir.glob(WORK_PREFIX + "*")):
+        if folder == own or not folder.is_dir():
+            continue
+        owner = claim_holder(folder / WORK_OWNER)
+        if owner is not None:
+            running.append((folder, owner))
+        elif (folder / WORK_OWNER).is_file() or _age_seconds(folder) > UNCLAIMED_WORK_SECONDS:
+            shutil.rmtree(folder, ignore_errors=True)  # its process is gone: nothing in it is wanted
+    return running
+
+
+def _age_seconds(folder: Path) -> float:
+    try:
+        return time.time() - folder.stat().st_mtime
+    except OSError:
+        return 0.0
+
+
+def _refuse_another_run(out_dir: Path, others: list[tuple[Path, dict]]) -> None:
+    if others:
+        folder, owner = others[0]
+        gone = f" (if that process is gone, delete {folder})" if owner["host"] != platform.node() else ""
+        raise NeulfError(
+            f"{out_dir} is being reconstructed by process {owner['pid']} on {owner['host']}; wait for it to finish "
+            f"or stop it, or reconstruct into another folder{gone}."
+        )
 
 
 def _unwritable(out_dir: Path, error: OSError) -> NeulfError:

@@ -473,3 +473,75 @@ def test_no_model_despite_matches(capture, tmp_path, monkeypatch, camera_model, 
     monkeypatch.setattr(reconstruct_module.pycolmap, "incremental_mapping", lambda *args, **kwargs: {})
     with pytest.raises(NeulfError, match=message):
         reconstruct(capture[0], tmp_path / "scene", camera_model=camera_model)
+
+
+# ------------------------------------------------------------ runs killed outright, runs at once
+
+
+def work_folders(scene):
+    return sorted(scene.glob(reconstruct_module.WORK_PREFIX + "*"))
+
+
+def test_a_run_killed_outright_leaves_nothing_after_the_next(capture, tmp_path):
+    """SIGKILL (or a power cut) cannot clean up: its hidden work folder stays until the next
+    run into the folder, which removes it, and the scene is made as usual."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    scene = tmp_path / "scene"
+    script = f"from neulf_core.reconstruct import reconstruct; reconstruct({str(capture[0])!r}, {str(scene)!r})"
+    process = subprocess.Popen([sys.executable, "-c", script], cwd=Path(__file__).resolve().parent.parent)
+    deadline = time.monotonic() + 120
+    while not any((folder / "database.db").is_file() for folder in work_folders(scene)):
+        assert process.poll() is None and time.monotonic() < deadline, "the run ended before it was killed"
+        time.sleep(0.05)
+    os.kill(process.pid, signal.SIGKILL)
+    process.wait()
+    assert len(work_folders(scene)) == 1  # what the kill left
+
+    model_dir = reconstruct(capture[0], scene)
+
+    assert work_folders(scene) == []
+    assert pycolmap.Reconstruction(model_dir).num_reg_images() == len(capture[1])
+
+
+def test_a_run_into_a_folder_another_run_reconstructs_is_refused(capture, tmp_path):
+    """Two runs into one folder would install their models over each other: the second is
+    refused, naming the first's process, and leaves the first's work alone."""
+    import subprocess
+    import sys
+
+    scene = tmp_path / "scene"
+    other = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"])
+    try:
+        busy = scene / (reconstruct_module.WORK_PREFIX + "other")
+        busy.mkdir(parents=True)
+        (busy / reconstruct_module.WORK_OWNER).write_text(
+            f'{{"pid": {other.pid}, "host": "{__import__("platform").node()}", "started": 0}}')
+        with pytest.raises(NeulfError, match=f"being reconstructed by process {other.pid}"):
+            reconstruct(capture[0], scene)
+        assert work_folders(scene) == [busy] and not (scene / "images").exists()
+    finally:
+        other.kill()
+        other.wait()
+
+
+def test_unclaimed_work_folders_are_removed_only_when_old(capture, tmp_path):
+    """A work folder with no owner record (an earlier version's, or a kill in a run's first
+    instant) is removed once it is an hour old, and left alone before: it may be a run's start."""
+    import os
+    import time
+
+    scene = tmp_path / "scene"
+    old, young = scene / (reconstruct_module.WORK_PREFIX + "old"), scene / (reconstruct_module.WORK_PREFIX + "young")
+    for folder in (old, young):
+        folder.mkdir(parents=True)
+    hours_ago = time.time() - 2 * reconstruct_module.UNCLAIMED_WORK_SECONDS
+    os.utime(old, (hours_ago, hours_ago))
+
+    reconstruct(capture[0], scene)
+
+    assert work_folders(scene) == [young]
