@@ -377,7 +377,7 @@ def _dedupe(items: list[str]) -> list[str]:
 def _load_llff(scene_dir: Path, images_dir: Path | None) -> Scene:
     """LLFF's poses_bounds.npy: per view a 3x5 [down, right, backwards, centre, (h, w, f)]
     camera-to-world matrix, then near and far depth."""
-    poses, bounds = _read_poses_bounds(scene_dir / "poses_bounds.npy")
+    poses, bounds, bounds_notes = _read_poses_bounds(scene_dir / "poses_bounds.npy")
     if images_dir is None:
         raise NeulfError(f"no images folder in {scene_dir}; pass --images DIR.")
     files = list_images(images_dir)
@@ -387,7 +387,7 @@ def _load_llff(scene_dir: Path, images_dir: Path | None) -> Scene:
             "LLFF pairs them in sorted order, so the counts must match."
         )
     views = []
-    notes: list[str] = []
+    notes: list[str] = list(bounds_notes)
     for pose, path in zip(poses, files):
         height, width, focal = pose[:, 4]
         camera = pycolmap.Camera(
@@ -405,9 +405,12 @@ def _load_llff(scene_dir: Path, images_dir: Path | None) -> Scene:
                  notes=_dedupe(notes))
 
 
-def _read_poses_bounds(path: Path) -> tuple[np.ndarray, np.ndarray | None]:
-    """((N, 3, 5) poses, (N, 2) near/far or None) from poses_bounds.npy, every row checked:
-    a NaN or a zero there fails far downstream (in int(), in an index) without saying where."""
+def _read_poses_bounds(path: Path) -> tuple[np.ndarray, np.ndarray | None, list[str]]:
+    """((N, 3, 5) poses, (N, 2) near/far or None, notes) from poses_bounds.npy, every row
+    checked: a NaN or a zero in a pose fails far downstream (in int(), in an index) without
+    saying where, so it is refused, naming the row.  A row's near/far that is not usable
+    only narrows what the scene's depth range is read from: it becomes NaN, and a note says so
+    (None where no row has usable ones)."""
     try:
         data = np.load(path, allow_pickle=False)
     except Exception as exc:
@@ -441,14 +444,18 @@ def _read_poses_bounds(path: Path) -> tuple[np.ndarray, np.ndarray | None]:
                 f"{where} has camera axes that are not a rotation (its first three columns must be unit length, at "
                 "right angles, and right-handed as [down, right, backwards]): regenerate poses_bounds.npy."
             )
-        if bounds is not None:
+    notes = []
+    if bounds is not None:
+        with np.errstate(invalid="ignore"):  # (NaN compares False: not usable)
+            usable = np.isfinite(bounds).all(axis=1) & (bounds[:, 0] > 0) & (bounds[:, 0] < bounds[:, 1])
+        for row in np.flatnonzero(~usable):
             near, far = bounds[row]
-            if not (np.isfinite(near) and np.isfinite(far) and 0 < near < far):
-                raise NeulfError(
-                    f"{where} gives near and far depths {near:g} and {far:g}: they must be finite with "
-                    "0 < near < far; regenerate poses_bounds.npy (LLFF's imgs2poses)."
-                )
-    return poses, bounds
+            notes.append(f"{path.name} row {row} (photo {row + 1} in sorted order) gives near and far depths {near:g} and "
+                         f"{far:g}, which are not finite with 0 < near < far: "
+                         + ("the scene's depth range is read from the other rows." if usable.any() else
+                            "no row gives usable ones, so give the depths with --st-depth, --near and --far."))
+        bounds = np.where(usable[:, None], bounds, np.nan) if usable.any() else None
+    return poses, bounds, notes
 
 
 # ----------------------------------------------------------------------------- held-out views

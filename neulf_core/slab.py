@@ -191,12 +191,14 @@ def scene_depths(scene: Scene, rotation: np.ndarray, origin: np.ndarray) -> np.n
         if len(z) >= 8:
             lo, hi = np.percentile(z, [1, 99])
             return z[(z >= lo) & (z <= hi)]
-    if scene.depth_bounds is not None and np.size(scene.depth_bounds):
-        return np.array([scene.depth_bounds[:, 0].min(), scene.depth_bounds[:, 1].max()])
+    if scene.depth_bounds is not None and np.isfinite(scene.depth_bounds).any():
+        # (NaN: a row whose near/far were not usable, scene._read_poses_bounds)
+        return np.array([np.nanmin(scene.depth_bounds[:, 0]), np.nanmax(scene.depth_bounds[:, 1])])
     if scene.kind == "llff":
         raise NeulfError(
-            "poses_bounds.npy holds no near/far depths (15 numbers a row, not 17), so the scene's depth is unknown; "
-            "give the depth of the st plane and the depth range with --st-depth, --near, --far."
+            "poses_bounds.npy holds no usable near/far depths (15 numbers a row, not 17, or none finite with "
+            "0 < near < far), so the scene's depth is unknown; give the depth of the st plane and the depth range "
+            "with --st-depth, --near, --far."
         )
     raise NeulfError(
         "the model has no usable 3D points in front of the cameras, so the scene's depth is unknown; "

@@ -286,10 +286,10 @@ def test_llff_scene_without_bounds_needs_the_depths_given():
     test_scene_loading): the slab says which depths to give instead of failing on an index."""
     rig = synthetic_rig(model="PINHOLE")
     llff = Scene(Path("llff"), rig.views, np.zeros((0, 3)), "llff")
-    with pytest.raises(NeulfError, match=r"no near/far depths.*--st-depth, --near, --far"):
+    with pytest.raises(NeulfError, match=r"no usable near/far depths.*--st-depth, --near, --far"):
         fit_slab(llff, llff.views)
     empty = Scene(Path("llff"), rig.views, np.zeros((0, 3)), "llff", depth_bounds=np.zeros((len(rig.views), 0)))
-    with pytest.raises(NeulfError, match="no near/far depths"):
+    with pytest.raises(NeulfError, match="no usable near/far depths"):
         fit_slab(empty, empty.views)
     assert fit_slab(llff, llff.views, st_depth=4.0, near=2.0, far=7.0).z_st == 4.0
 

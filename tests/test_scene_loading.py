@@ -4,6 +4,7 @@ images; decoding odd photo formats; held-out splits."""
 from __future__ import annotations
 
 import os
+import re
 import shutil
 from pathlib import Path
 
@@ -16,6 +17,7 @@ from conftest import look_at_rotation, scene_or_skip, write_colmap_model
 from neulf_core.errors import NeulfError
 from neulf_core.images import image_size, load_rgb, load_rgb_sizes, resolve_image_paths
 from neulf_core.scene import Scene, View, find_model_dir, load_scene, scaled_size, split_views
+from neulf_core.slab import fit_slab
 
 
 def model_views(model_dir: Path) -> dict[str, pycolmap.Image]:
@@ -531,14 +533,43 @@ def test_llff_poses_are_read_in_colmap_convention(tmp_path):
     (lambda a: a.__setitem__((3, 3), np.nan), r"row 3 .*rotation or centre that is not finite"),
     (lambda a: a.__setitem__((0, 8), np.inf), r"row 0 .*rotation or centre that is not finite"),
     (lambda a: a.__setitem__((1, 0), 3.0), r"row 1 .*not a rotation"),
-    (lambda a: a.__setitem__((2, 16), np.nan), r"row 2 .*near and far depths 2 and nan"),
-    (lambda a: a.__setitem__((2, 15), 6.0), r"row 2 .*near and far depths 6 and 5"),
-], ids=["nan height", "zero focal", "nan centre", "inf rotation", "not a rotation", "nan far", "near past far"])
+], ids=["nan height", "zero focal", "nan centre", "inf rotation", "not a rotation"])
 def test_damaged_llff_rows_are_named(tmp_path, change, message):
     folder = llff_scene(tmp_path)
     damage_llff(folder, change)
     with pytest.raises(NeulfError, match=message):
         load_scene(folder)
+
+
+@pytest.mark.parametrize("change, said", [
+    (lambda a: a.__setitem__((2, 16), np.nan), r"row 2 .*near and far depths 2 and nan"),
+    (lambda a: a.__setitem__((2, 15), 6.0), r"row 2 .*near and far depths 6 and 5"),
+    (lambda a: a.__setitem__((2, 15), -1.0), r"row 2 .*near and far depths -1 and 5"),
+], ids=["nan far", "near past far", "negative near"])
+def test_one_llff_row_of_unusable_bounds_is_left_out(tmp_path, change, said):
+    """A row whose near/far are unusable no longer refuses the whole file (the poses are
+    fine): the depth range comes from the other rows, and the scene's notes say which row."""
+    folder = llff_scene(tmp_path)
+    data = np.load(folder / "poses_bounds.npy")
+    data[1, 15:17] = [1.5, 7.0]  # the widest range, in a usable row
+    np.save(folder / "poses_bounds.npy", data)
+    damage_llff(folder, change)
+    scene = load_scene(folder)
+    assert len(scene.views) == 4 and np.isnan(scene.depth_bounds[2]).all()
+    assert any(re.search(said, note) and "other rows" in note for note in scene.notes), scene.notes
+    slab = fit_slab(scene, scene.views)
+    assert (slab.z_near, slab.z_far) == pytest.approx((0.9 * 1.5, 1.1 * 7.0))  # (the slab's 10 % margins)
+
+
+def test_llff_bounds_unusable_in_every_row_need_the_depths_given(tmp_path):
+    folder = llff_scene(tmp_path)
+    damage_llff(folder, lambda a: a.__setitem__((slice(None), 15), -1.0))
+    scene = load_scene(folder)
+    assert scene.depth_bounds is None and any("--near" in note for note in scene.notes)
+    with pytest.raises(NeulfError, match="no usable near/far depths"):
+        fit_slab(scene, scene.views)
+    slab = fit_slab(scene, scene.views, st_depth=3.0, near=2.0, far=5.0)  # as the message says
+    assert (slab.z_near, slab.z_far) == pytest.approx((0.9 * 2.0, 1.1 * 5.0))
 
 
 @pytest.mark.parametrize("array", [np.zeros((4, 16)), np.zeros(17), np.zeros((0, 17)), np.array([["a"] * 17] * 4)],
