@@ -117,11 +117,13 @@ CASES = [
         f"{REL}::test_output_that_is_a_file_is_said_before_rendering",
         *_ids(f"{REL}::test_video_needs_a_video_file_name", "spiral", "a_folder"),
         f"{REL}::test_a_full_disk_is_one_line"]),
-    Case("Options that are not numbers: NaN, inf, zero or negative where they must be positive, an absurd count", [
+    Case("Options that are not numbers: NaN, inf, zero or negative where they must be positive, an absurd count, "
+         "a training scale above 1", [
         *_ids(f"{REL}::test_numbers_that_are_not_numbers", "train --scale nan", "train --minutes nan",
               "train --checkpoint-seconds -5", "train --holdout-every -1", "train --depth-layers 100000",
-              "render --scale inf", "render --aperture nan", "render --aperture inf", "video --frames -1",
-              "video --fps 0")]),
+              "train --scale 2", "render --scale inf", "render --aperture nan", "render --aperture inf",
+              "video --frames -1", "video --fps 0"),
+        f"{REL}::test_train_refuses_a_scale_above_one"]),
     Case("A camera file that is a folder, names two cameras alike, or whose K or size is not a pinhole's", [
         *_ids(f"{REL}::test_camera_json_problems", "a folder", "two cameras of one name", "K's last row not 0 0 1",
               "a width of 32.5", "a width of true"),
@@ -132,10 +134,18 @@ CASES = [
         "tests/test_reconstruct.py::test_failed_run_leaves_existing_scene_untouched",
         "tests/test_reconstruct.py::test_failed_run_into_new_folder_leaves_nothing",
         "tests/test_reconstruct.py::test_failed_run_with_webp_leaves_no_photos"]),
+    Case("Reconstruct killed outright (SIGKILL), or run twice into one folder at once: the next run clears what the "
+         "killed one left; the second is refused", [
+        "tests/test_reconstruct.py::test_a_run_killed_outright_leaves_nothing_after_the_next",
+        "tests/test_reconstruct.py::test_a_run_into_a_folder_another_run_reconstructs_is_refused",
+        "tests/test_reconstruct.py::test_unclaimed_work_folders_are_removed_only_when_old"]),
     Case("A damaged LLFF poses_bounds.npy, a COLMAP model with non-finite values, photos of another size than the "
          "others", [
         *_ids(f"{LOADING}::test_damaged_llff_rows_are_named", "nan height", "zero focal", "nan centre",
-              "inf rotation", "not a rotation", "nan far", "near past far"),
+              "inf rotation", "not a rotation"),
+        *_ids(f"{LOADING}::test_one_llff_row_of_unusable_bounds_is_left_out", "nan far", "near past far",
+              "negative near"),
+        f"{LOADING}::test_llff_bounds_unusable_in_every_row_need_the_depths_given",
         *_ids(f"{LOADING}::test_llff_arrays_of_another_shape_are_refused", "16 columns", "one dimension", "no rows",
               "text"),
         *_ids(f"{LOADING}::test_colmap_models_with_non_finite_poses_or_intrinsics_are_refused", "pose", "nan focal",
