@@ -336,6 +336,11 @@ def _select_views(scene, light_field, names: list[str]):
 
 def _focus_options(args):
     """(focus_distance, aperture, focus_pixel) from the render options, checked."""
+    if args.focal_length is not None and args.f_stop is None:
+        raise NeulfError("--focal-length is read only with --f-stop N (the aperture as an f-number); "
+                         "give both, or the lens radius with --aperture.")
+    if args.focus_distance is not None and args.focus_pixel:
+        raise NeulfError("give either --focus-distance D or --focus-pixel X,Y (the depth under that pixel), not both.")
     if args.f_stop is not None:
         if args.aperture:
             raise NeulfError("give either --aperture or --f-stop, not both.")
@@ -356,7 +361,23 @@ def _focus_options(args):
         raise NeulfError("--aperture needs --focus-distance D or --focus-pixel X,Y.")
     if args.aperture == 0 and (args.focus_distance is not None or pixel is not None):
         print("warning: a focus without --aperture or --f-stop renders a pinhole: everything is sharp.", file=sys.stderr)
+        return None, 0.0, None  # (the pinhole render, as without the focus)
+    if args.aperture > 0 and "pixel_samples" in getattr(args, "given", ()):
+        print("warning: --pixel-samples is not used while refocusing: the lens samples already spread over each "
+              "pixel.", file=sys.stderr)
     return args.focus_distance, args.aperture, pixel
+
+
+def _scaled_camera(cam: dict, scale: float | None) -> dict:
+    """A camera of the camera file at --scale: its size rounded to whole pixels, K's rows
+    scaled by the ratio each side actually changed (pixel centres at +0.5, as COLMAP rescales)."""
+    if scale is None or scale == 1:
+        return cam
+    width, height = max(1, round(cam["width"] * scale)), max(1, round(cam["height"] * scale))
+    K = np.array(cam["K"], dtype=np.float64)
+    K[0] *= width / cam["width"]
+    K[1] *= height / cam["height"]
+    return {**cam, "K": K, "width": width, "height": height}
 
 
 def _render_pinhole(light_field, cam: dict, args, focus_options):
@@ -365,8 +386,10 @@ def _render_pinhole(light_field, cam: dict, args, focus_options):
         raise NeulfError(f"--focus-pixel {pixel[0]:g},{pixel[1]:g} is outside {cam['name']}'s {cam['width']} x "
                          f"{cam['height']} image (X from the left, Y from the top, in pixels).")
     if pixel is not None:
-        focus = light_field.depth_at(cam["K"], cam["R"], cam["t"], *pixel)
-        print(f"{cam['name']}: focus at pixel {pixel} -> depth {focus:.4g}", file=sys.stderr)
+        # (depth_at takes image coordinates, x = 10.5 the centre of column 10: pixel X's centre, as
+        # the depth map's depth[Y, X] and the message's "pixel" mean)
+        focus = light_field.depth_at(cam["K"], cam["R"], cam["t"], pixel[0] + 0.5, pixel[1] + 0.5)
+        print(f"{cam['name']}: focus at pixel ({pixel[0]:g}, {pixel[1]:g}) -> depth {focus:.6g}", file=sys.stderr)
     return light_field.render(cam["K"], cam["width"], cam["height"], cam["R"], cam["t"], depth=args.depth,
                               focus_distance=focus, aperture=aperture, pixel_samples=args.pixel_samples)
 
@@ -396,6 +419,7 @@ def cmd_render(args) -> int:
     if args.cameras:
         blind = []
         for cam in _load_cameras_json(args.cameras):
+            cam = _scaled_camera(cam, args.scale)
             rendering = _render_pinhole(light_field, cam, args, focus_options)
             if not rendering.valid.any():  # a picture of the background colour only: say so, render the rest
                 blind.append(cam["name"])
@@ -627,10 +651,12 @@ def build_parser() -> argparse.ArgumentParser:
                    help="also write <stem>.exr for compositing: R, G, B scene-linear float, A (0 where a pixel's ray "
                         "misses the light slab) and, with --depth, Z (depth along the optical axis, scene units; 1e10 "
                         "where none, as Cycles)")
-    p.add_argument("--scale", type=POSITIVE, help="image scale (default: the trained scale)")
+    p.add_argument("--scale", type=POSITIVE, help="image scale (with --views, default: the trained scale; with "
+                   "--cameras, of each camera's width, height and K, default 1)")
     p.add_argument("--focus-distance", type=POSITIVE, help="refocus: focal depth along the optical axis (scene units)")
     p.add_argument("--aperture", type=NON_NEGATIVE, default=0.0, help="refocus: lens radius in scene units (0: pinhole)")
-    p.add_argument("--focus-pixel", help="refocus: X,Y pixel whose depth becomes the focus distance")
+    p.add_argument("--focus-pixel", help="refocus: X,Y pixel (column, row from the top-left, from 0) whose depth "
+                   "becomes the focus distance")
     p.add_argument("--f-stop", type=POSITIVE, help="refocus: aperture as an f-number (with --focal-length) instead of --aperture")
     p.add_argument("--focal-length", type=POSITIVE, help="refocus: the lens's focal length in scene units, for --f-stop")
     p.add_argument("--device")

@@ -128,6 +128,15 @@ CASES = [
         *_ids(f"{REL}::test_camera_json_problems", "a folder", "two cameras of one name", "K's last row not 0 0 1",
               "a width of 32.5", "a width of true"),
         f"{REL}::test_focus_pixel_outside_the_image"]),
+    Case("Render options that were dropped without a word: --scale with --cameras, a focus without an aperture, "
+         "a focus distance and a focus pixel together, a focal length without an f-stop, pixel samples while "
+         "refocusing; --focus-pixel read between pixels", [
+        f"{REL}::test_render_cameras_at_a_scale",
+        f"{REL}::test_a_focus_without_an_aperture_renders_the_plain_pinhole",
+        *_ids(f"{REL}::test_refocus_options_in_conflict", "a focus distance and a focus pixel",
+              "a focal length without an f-stop"),
+        f"{REL}::test_pixel_samples_while_refocusing_is_said",
+        f"{REL}::test_focus_pixel_focuses_at_the_depth_map_s_pixel"]),
     Case("Reconstruct into a scene folder that holds a model: a failed run leaves it as it was, a same-named photo "
          "is never overwritten", [
         "tests/test_reconstruct.py::test_photo_of_same_name_never_overwritten",

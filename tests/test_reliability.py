@@ -787,6 +787,79 @@ def test_focus_pixel_outside_the_image(model, tmp_path, capfd, record_property):
                   "--focus-pixel", "9999,10"], capfd, record_property, "outside novel's 32 x 24 image")
 
 
+def test_focus_pixel_focuses_at_the_depth_map_s_pixel(model, tmp_path, capfd):
+    """--focus-pixel X,Y takes the depth the depth map holds at [Y, X] (the pixel's centre);
+    it took the corner between four pixels, a depth no surface has at a depth edge."""
+    cams = camera_json(tmp_path / "c.json", [pinhole("novel", [0.05, 0, 0], [0.6, 0.3, 3])])  # (turned: depth varies)
+    assert run_cli(["render", model, "--cameras", cams, "--out", tmp_path / "pin", "--depth"], capfd)[0] == 0
+    depth = np.load(tmp_path / "pin" / "novel_depth.npy")
+    for x, y in ((5, 7), (20, 3), (31, 23)):
+        code, _, err = run_cli(["render", model, "--cameras", cams, "--out", tmp_path / "lens", "--aperture", "0.01",
+                                "--focus-pixel", f"{x},{y}"], capfd)
+        said = float(re.search(r"-> depth ([0-9.e+-]+)", err).group(1))
+        assert code == 0 and said == pytest.approx(float(depth[y, x]), rel=2e-5), (x, y, err)
+
+
+def test_a_focus_without_an_aperture_renders_the_plain_pinhole(model, tiny_scene, tmp_path, capfd):
+    """Aperture 0 with --focus-pixel rendered the view's undistorted pinhole, unlike the same
+    render without it or with --focus-distance; now all three are the same image."""
+    from pycolmap import Camera, Reconstruction
+
+    scene = copy_scene(tiny_scene, tmp_path / "scene")  # its camera given radial distortion, which the
+    reconstruction = Reconstruction(scene / "sparse" / "0")  # undistorted pinhole leaves out
+    camera = next(iter(reconstruction.cameras.values()))
+    focal, cx, cy = camera.params[0], camera.params[2], camera.params[3]
+    reconstruction.cameras[camera.camera_id] = Camera(camera_id=camera.camera_id, model="SIMPLE_RADIAL", width=camera.width,
+                                                      height=camera.height, params=[focal, cx, cy, 0.2])
+    reconstruction.write(scene / "sparse" / "0")
+    views = ["render", model, "--scene", scene, "--views", "held-out"]
+    assert run_cli([*views, "--out", tmp_path / "plain"], capfd)[0] == 0
+    code, _, err = run_cli([*views, "--out", tmp_path / "focus", "--focus-pixel", "3,4"], capfd)
+    assert code == 0 and "renders a pinhole" in err
+    for image in (tmp_path / "plain").glob("*.png"):
+        assert image.read_bytes() == (tmp_path / "focus" / image.name).read_bytes()
+
+
+def test_render_cameras_at_a_scale(model, tmp_path, capfd):
+    """--scale with --cameras was ignored without a word; it scales each camera's image and K,
+    so the half-size image is the full one averaged down."""
+    from PIL import Image
+
+    cams = camera_json(tmp_path / "c.json", [pinhole("novel", [0.05, 0, 0], [0, 0, 3], width=64, height=48)])
+    for scale, folder in ((1, "full"), (0.5, "half")):
+        assert run_cli(["render", model, "--cameras", cams, "--out", tmp_path / folder, "--scale", scale,
+                        "--pixel-samples", 1], capfd)[0] == 0
+    full = np.asarray(Image.open(tmp_path / "full" / "novel.png"), np.float64)
+    half = np.asarray(Image.open(tmp_path / "half" / "novel.png"), np.float64)
+    assert half.shape == (24, 32, 3)
+    averaged = full.reshape(24, 2, 32, 2, 3).mean(axis=(1, 3))
+    assert np.abs(half - averaged).mean() < np.abs(half - np.roll(averaged, 1, axis=1)).mean()
+
+
+REFOCUS_OPTIONS_IN_CONFLICT = {
+    # options: what the line names (before: one of them dropped without a word)
+    "a focus distance and a focus pixel": (["--aperture", "0.05", "--focus-distance", "3", "--focus-pixel", "3,4"],
+                                           "not both"),
+    "a focal length without an f-stop": (["--aperture", "0.05", "--focus-distance", "3", "--focal-length", "0.05"],
+                                         "only with --f-stop"),
+}
+
+
+@pytest.mark.parametrize("case", list(REFOCUS_OPTIONS_IN_CONFLICT))
+def test_refocus_options_in_conflict(case, model, tmp_path, capfd, record_property):
+    options, expected = REFOCUS_OPTIONS_IN_CONFLICT[case]
+    cams = camera_json(tmp_path / "c.json", [pinhole("novel", [0, 0, 0], [0, 0, 3])])
+    expect_error(["render", model, "--cameras", cams, "--out", tmp_path / "out", *options], capfd, record_property,
+                 expected)
+
+
+def test_pixel_samples_while_refocusing_is_said(model, tmp_path, capfd):
+    cams = camera_json(tmp_path / "c.json", [pinhole("novel", [0, 0, 0], [0, 0, 3])])
+    code, _, err = run_cli(["render", model, "--cameras", cams, "--out", tmp_path / "out", "--aperture", "0.05",
+                            "--focus-distance", "3", "--pixel-samples", "16"], capfd)
+    assert code == 0 and "--pixel-samples is not used while refocusing" in err
+
+
 def test_resume_says_which_asked_options_the_model_keeps(model, tiny_scene, tmp_path, capfd, record_property):
     """--resume continues the model as it was trained; options asked for that differ from its
     own are said (they were dropped without a word), and the run goes on."""
