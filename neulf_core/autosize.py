@@ -26,7 +26,7 @@ from .metrics import psnr
 from .render import LightField
 from .scene import Scene, load_scene, scaled_size, split_views
 from .slab import fit_slab
-from .train import TrainConfig, TrainResult, train
+from .train import TrainConfig, TrainResult, check_config, train
 from .progress import emit as _emit
 from .rules import (LOSSES_DECISION_STEP, announce_default_losses, default_back_surface, default_coarse_to_fine,
                     default_consistency, default_depth_detail_reads, default_geometry_tv, default_max_passes,
@@ -112,8 +112,7 @@ def train_auto(scene: Scene | str | Path, model_dir: str | Path, config: TrainCo
                tolerance_db: float = TOLERANCE_DB) -> TrainResult:
     """`train()` for the auto preset: size search on validation views, then the final run."""
     model_dir = Path(model_dir).expanduser()
-    if not config.steps and not config.minutes:
-        raise NeulfError("give a training budget: --steps N or --minutes M.")
+    check_config(config)
     if resume and checkpoint_path(model_dir).is_file():  # the size was chosen before: continue it
         record = load_checkpoint(model_dir).get("autosize")
         result = train(scene, model_dir, config, images_dir=images_dir, resume=True, progress=progress, should_stop=should_stop)

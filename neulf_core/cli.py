@@ -199,12 +199,11 @@ KEPT_ON_RESUME = {"preset": "preset", "holdout_every": "holdout_every", "exclude
 
 def _say_what_resume_keeps(args) -> None:
     """--resume continues the model as it was trained: an option asked for that differs from
-    the model's own is said (not silently dropped), as is a folder with nothing to resume."""
+    the model's own is said (not silently dropped)."""
     from .checkpoint import checkpoint_path
 
     if not checkpoint_path(Path(args.out)).is_file():
-        print(f"note: {args.out} holds no model to resume yet: training a new one.", file=sys.stderr)
-        return
+        return  # (training says there is nothing to resume)
     try:
         saved = json.loads((Path(args.out) / "model.json").read_text()).get("train_config", {})
     except (OSError, ValueError):

@@ -253,8 +253,7 @@ def train(scene: Scene | str | Path, model_dir: str | Path, config: TrainConfig,
           progress: Callable[[dict], None] | None = None, should_stop: Callable[[], bool] | None = None) -> TrainResult:
     """Train (or with `resume`, continue) the light field of `scene` into `model_dir`."""
     model_dir = Path(model_dir).expanduser()
-    if not config.steps and not config.minutes:
-        raise NeulfError("give a training budget: --steps N or --minutes M.")
+    check_config(config)
     from .members import train_members  # (it trains the members, each as train_two_starts does)
     from .starts import train_two_starts  # (it runs _train, once or as two starts)
 
@@ -263,6 +262,8 @@ def train(scene: Scene | str | Path, model_dir: str | Path, config: TrainConfig,
 
     with training_lock(model_dir), kept_while_training():  # (members and starts read and sweep the photos once)
         remove_stale_temporaries(model_dir)
+        if resume and not checkpoint_path(model_dir).is_file():
+            _emit(progress, event="warning", message=f"{model_dir} holds no model to resume yet: training a new one.")
         scene = scene if isinstance(scene, Scene) else load_scene(scene, images_dir)
         config = rules.with_default_scale(scene, config, model_dir, resume, progress)
         return train_members(train_one, scene, model_dir, config, images_dir, resume, progress, should_stop)
@@ -273,16 +274,58 @@ def _train(scene, model_dir: Path, config: TrainConfig, images_dir, resume: bool
     """One training run into `model_dir`; `record`: entries for the model's metadata (how its
     start was chosen)."""
     run = TrainingRun(scene, model_dir, config, images_dir, resume, progress, record)
-    run.train_until_done(should_stop)
+    try:
+        run.train_until_done(should_stop)
+    except KeyboardInterrupt:  # a Python caller's Ctrl-C (the CLI and Blender stop through should_stop):
+        run.status = "cancelled"  # saved as a cancel is, so resuming loses nothing, then passed on
+        run.finish()
+        raise
     return run.finish()
+
+
+def check_config(config: TrainConfig) -> None:
+    """Refuse, in one line naming the option (TrainConfig field and CLI flag), values the run
+    could not use: a negative budget trained forever, a NaN one "finished" untrained, a negative
+    batch failed deep in torch.  The CLI's parser refuses most of them first."""
+    if not isinstance(config, TrainConfig):
+        raise NeulfError(f"config must be a TrainConfig (neulf_core.train.TrainConfig), not {type(config).__name__}.")
+    if not config.steps and not config.minutes:
+        raise NeulfError("give a training budget: --steps N or --minutes M (TrainConfig(steps=...) or minutes=...).")
+    _check_number(config.steps, "steps", "--steps", whole=True, lowest=1)
+    _check_number(config.minutes, "minutes", "--minutes", above_zero=True)
+    if config.scale is not None and not (_is_number(config.scale) and 0 < config.scale <= 1):
+        raise NeulfError(f"--scale {config.scale} is out of range: give a value above 0 and at most 1 (1: the photos' "
+                         "own size; above it, training would enlarge the photos, which adds no detail and costs "
+                         "scale² more time and memory).")
+    _check_number(config.batch_size, "batch_size", "--batch-size", whole=True, lowest=1)
+    _check_number(config.holdout_every, "holdout_every", "--holdout-every", whole=True, lowest=0)
+    _check_number(config.seed, "seed", "--seed", whole=True, lowest=0)
+    _check_number(config.checkpoint_seconds, "checkpoint_seconds", "--checkpoint-seconds", above_zero=True)
+    _check_number(config.validate_seconds, "validate_seconds", "--validate-seconds", above_zero=True)
+    _check_number(config.max_passes, "max_passes", "--max-passes", lowest=0)
+    _check_number(config.pixel_jitter, "pixel_jitter", "--pixel-jitter", lowest=0)
+
+
+def _is_number(value) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+
+
+def _check_number(value, field_name: str, flag: str, *, whole: bool = False, lowest: float = 0,
+                  above_zero: bool = False) -> None:
+    """None passes (the default's rule); anything else must be a finite number (whole where
+    `whole`) of at least `lowest`, or above 0 where `above_zero`."""
+    if value is None:
+        return
+    fits = _is_number(value) and (not whole or float(value).is_integer()) and (
+        value > 0 if above_zero else value >= lowest)
+    if not fits:
+        wanted = "above 0" if above_zero else f"at least {lowest:g}"
+        raise NeulfError(f"{flag} (TrainConfig.{field_name}) must be a {'whole' if whole else 'finite'} number "
+                         f"{wanted}, not {value!r}.")
 
 
 def _resumed_checkpoint(model_dir: Path, config: TrainConfig, resume: bool) -> dict | None:
     """The checkpoint a resumed run continues (None for a new one); refuses to overwrite a model."""
-    if config.scale is not None and not 0 < config.scale <= 1:
-        raise NeulfError(f"--scale {config.scale:g} is out of range: give a value above 0 and at most 1 (1: the photos' "
-                         "own size; above it, training would enlarge the photos, which adds no detail and costs "
-                         "scale² more time and memory).")
     existing = checkpoint_path(model_dir).is_file()
     if existing and not resume:
         raise NeulfError(f"{model_dir} already holds a trained model; pass --resume to continue it, or choose another --out.")

@@ -781,6 +781,67 @@ def test_train_refuses_a_scale_above_one(tiny_scene, tmp_path):
     assert not (tmp_path / "model").exists()
 
 
+TRAIN_CONFIGS_REFUSED = {
+    # TrainConfig values from Python (the CLI's parser refuses them first): what each did before
+    "steps=-5": dict(steps=-5),  # trained forever
+    "minutes=-1": dict(minutes=-1.0),  # trained forever
+    "minutes=nan": dict(minutes=float("nan")),  # "finished" at step 0, an untrained model saved
+    "steps=2.5": dict(steps=2.5),
+    "batch_size=-1": dict(steps=2, batch_size=-1),  # torch's "negative dimension", after the photos were read
+    "holdout_every=-1": dict(steps=2, holdout_every=-1),  # held out nothing, without a word
+}
+
+
+@pytest.mark.parametrize("case", list(TRAIN_CONFIGS_REFUSED))
+def test_train_config_values_the_run_cannot_use(case, tiny_scene, tmp_path):
+    from neulf_core.errors import NeulfError
+    from neulf_core.train import TrainConfig, train
+
+    with pytest.raises(NeulfError, match=r"\(TrainConfig\.\w+\) must be|training budget"):
+        train(tiny_scene, tmp_path / "model", TrainConfig(**TRAIN_CONFIGS_REFUSED[case]))
+    assert not (tmp_path / "model").exists()
+
+
+def test_train_config_must_be_one(tiny_scene, tmp_path):
+    from neulf_core.errors import NeulfError
+    from neulf_core.train import train
+
+    with pytest.raises(NeulfError, match="must be a TrainConfig"):
+        train(tiny_scene, tmp_path / "model", None)
+
+
+def test_ctrl_c_in_a_python_train_call_saves_and_resumes(tiny_scene, tmp_path):
+    """From Python, Ctrl-C (KeyboardInterrupt) left nothing when it came before the first
+    periodic checkpoint, and lost the steps since the last one after it: the run is now saved
+    as a cancel is, the interrupt passed on, and resuming continues from that step."""
+    from neulf_core.checkpoint import load_checkpoint
+    from neulf_core.train import TrainConfig, train
+
+    config = TrainConfig(steps=12, batch_size=256, validate_seconds=1e9, checkpoint_seconds=1e9)
+    interrupted = []
+
+    def ctrl_c_at_step_5(event):
+        if event.get("event") == "step" and event["step"] >= 5 and not interrupted:
+            interrupted.append(event["step"])
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        train(tiny_scene, tmp_path / "model", config, progress=ctrl_c_at_step_5)
+    saved = load_checkpoint(tmp_path / "model")["progress"]
+    assert saved["status"] == "cancelled" and saved["step"] == interrupted[0]
+    result = train(tiny_scene, tmp_path / "model", config, resume=True)
+    assert result.status == "finished" and result.step == 12
+
+
+def test_resume_with_nothing_to_resume_is_said(tiny_scene, tmp_path):
+    from neulf_core.train import TrainConfig, train
+
+    events = []
+    train(tiny_scene, tmp_path / "model", TrainConfig(steps=2, batch_size=256, validate_seconds=1e9), resume=True,
+          progress=events.append)
+    assert any(e.get("event") == "warning" and "no model to resume yet" in e["message"] for e in events)
+
+
 def test_focus_pixel_outside_the_image(model, tmp_path, capfd, record_property):
     cams = camera_json(tmp_path / "c.json", [pinhole("novel", [0, 0, 0], [0, 0, 3])])
     expect_error(["render", model, "--cameras", cams, "--out", tmp_path / "out", "--aperture", "0.05",
@@ -874,8 +935,8 @@ def test_resume_says_which_asked_options_the_model_keeps(model, tiny_scene, tmp_
     assert "--batch-size" not in warning  # (asked as the model has it: nothing to say)
     meta = json.loads((resumed / METADATA_NAME).read_text())
     assert meta["train_config"]["preset"] == "fast" and meta["progress"]["step"] == 4
-    code, _, err = run_cli(["train", tiny_scene, "--out", tmp_path / "new", "--resume", *QUICK_TRAIN], capfd)
-    assert code == 0 and "holds no model to resume yet: training a new one" in err, err
+    code, out, err = run_cli(["train", tiny_scene, "--out", tmp_path / "new", "--resume", *QUICK_TRAIN], capfd)
+    assert code == 0 and (out + err).count("holds no model to resume yet: training a new one") == 1, out + err
 
 
 def test_eval_takes_all_and_held_out(model, tiny_scene, tmp_path, capfd):
