@@ -11,15 +11,25 @@ from .errors import NeulfError
 # (render.PRECISIONS) and the fast field's float32 geometry branch under it.
 HALF_DEVICES = ("cuda", "cpu")
 
+# The device types the renderer and training run on (pick_device refuses others).
+SUPPORTED_DEVICES = ("cpu", "cuda", "mps")
+
 
 def pick_device(name: str | None = None) -> torch.device:
     if name:
         try:
             device = torch.device(name)
-        except RuntimeError:
+        except (RuntimeError, TypeError, ValueError):
             raise NeulfError(f"unknown device '{name}'; use cpu, cuda, cuda:N or mps.") from None
+        # torch knows more device types (xpu, meta, hpu, ...) than this project renders and
+        # trains on; they fail later inside torch with its own words, or give no pixels (meta).
+        if device.type not in SUPPORTED_DEVICES:
+            raise NeulfError(f"device '{name}' is not supported; use cpu, cuda, cuda:N or mps.")
         if device.type == "cuda" and not torch.cuda.is_available():
             raise NeulfError("CUDA was asked for but this torch build sees no CUDA GPU; use --device cpu.")
+        if device.type == "cuda" and device.index is not None and device.index >= torch.cuda.device_count():
+            raise NeulfError(f"device '{name}': this machine has {torch.cuda.device_count()} CUDA GPU(s), numbered "
+                             "from 0; use cuda, cuda:0 or --device cpu.")
         if device.type == "mps" and not torch.backends.mps.is_available():
             raise NeulfError("MPS was asked for but is not available on this machine; use --device cpu.")
         return device

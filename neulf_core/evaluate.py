@@ -26,11 +26,7 @@ def evaluate_model(model_dir, scene_dir, *, images_dir=None, out_dir=None, views
     light_field = LightField.load(model_dir, device, precision="full")  # scores are float32's
     scene = load_scene(scene_dir, images_dir)
     light_field.check_scene(scene)
-    names = views if views not in (None, [], ["held-out"]) else light_field.meta["scene"]["held_out"]
-    if names == ["all"]:  # (the training views too: how well the model fits its photos)
-        names = [view.name for view in scene.views]
-    if not names:
-        raise NeulfError("the model was trained without held-out views (--holdout-every 0); name views with --views.")
+    names = _view_names(views, light_field.meta["scene"]["held_out"], scene)
     out = Path(out_dir) if out_dir else Path(model_dir) / "eval"
     scale = light_field.trained_scale
     mean_colour = np.asarray(light_field.meta["scene"]["mean_colour"], dtype=np.float32)
@@ -73,3 +69,24 @@ def evaluate_model(model_dir, scene_dir, *, images_dir=None, out_dir=None, views
         writer.writerows(rows)
     report["written"] = str(out / "eval.json")
     return report
+
+
+def _view_names(views, held_out: list[str], scene) -> list[str]:
+    """The views to score: `views` names them, as a list or as one name in a string (not
+    spelt out letter by letter); None, empty or "held-out" means the model's held-out views,
+    "all" every view of the scene (the training views too: how well the model fits its photos)."""
+    if isinstance(views, Path):
+        views = str(views)
+    if isinstance(views, str):
+        views = [views] if views.strip() else None
+    try:
+        names = [str(name) for name in views] if views is not None else []
+    except TypeError:
+        raise NeulfError(f"views={views!r}: give a view name, a list of view names, 'all' or 'held-out'.") from None
+    if names in ([], ["held-out"]):
+        names = list(held_out)
+    elif names == ["all"]:
+        names = [view.name for view in scene.views]
+    if not names:
+        raise NeulfError("the model was trained without held-out views (--holdout-every 0); name views with --views.")
+    return names

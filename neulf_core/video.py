@@ -2,12 +2,17 @@
 
 from __future__ import annotations
 
+import math
+from fractions import Fraction
 from pathlib import Path
 from typing import Iterable
 
 import numpy as np
 
 from .errors import NeulfError
+
+# The containers write_video puts H.264 in, by file suffix (what the CLI's --out takes).
+VIDEO_SUFFIXES = (".mp4", ".mov", ".mkv", ".m4v")
 
 # Anchor colours of a perceptually ordered map (dark blue -> cyan -> yellow -> dark red).
 _DEPTH_COLOURS = np.array([[48, 18, 59], [70, 134, 251], [27, 229, 181], [164, 252, 60], [251, 185, 56], [228, 70, 10], [122, 4, 3]], float)
@@ -30,33 +35,89 @@ def depth_to_colour(depth: np.ndarray) -> np.ndarray:
     return colour.astype(np.uint8)
 
 
-def write_video(frames: Iterable[np.ndarray], path: str | Path, fps: int = 30) -> int:
-    """Encode (H, W, 3) frames (uint8 or float [0, 1]) to `path`; returns the frame count."""
+def write_video(frames: Iterable[np.ndarray], path: str | Path, fps: float = 30) -> int:
+    """Encode frames to `path` (.mp4, .mov, .mkv or .m4v); returns the frame count.
+
+    Frames are (H, W, 3) RGB, (H, W) grey or (H, W, 4) RGBA (alpha dropped), uint8 or float
+    [0, 1], all the size of the first; `fps` may be fractional (29.97)."""
     import av  # imported here: only video writing needs it
 
-    path = Path(path)
+    path = _video_path(path)
+    rate = _frame_rate(fps)
     path.parent.mkdir(parents=True, exist_ok=True)
-    count = 0
-    container = av.open(str(path), mode="w")
+    count, muxed = 0, False
+    container = av.open(str(path), mode="w")  # (the file is only created by the first packet)
     try:
         stream = None
         for frame in frames:
-            if frame.dtype != np.uint8:
-                frame = np.clip(np.round(frame * 255), 0, 255).astype(np.uint8)
+            frame = _rgb_uint8(frame, count)
             if stream is None:
-                stream = container.add_stream("libx264", rate=fps)
+                size = frame.shape[:2]
+                stream = container.add_stream("libx264", rate=rate)
                 # H.264 with yuv420p needs even sizes; pad by repeating the last row/column.
-                stream.height, stream.width = frame.shape[0] + frame.shape[0] % 2, frame.shape[1] + frame.shape[1] % 2
+                stream.height, stream.width = size[0] + size[0] % 2, size[1] + size[1] % 2
                 stream.pix_fmt = "yuv420p"
                 stream.options = {"crf": "18"}
-            frame = np.pad(frame, ((0, stream.height - frame.shape[0]), (0, stream.width - frame.shape[1]), (0, 0)), mode="edge")
+            elif frame.shape[:2] != size:
+                # Padding or cropping it to fit would put a wrong frame in the video, silently.
+                raise NeulfError(f"video frame {count} is {frame.shape[1]}x{frame.shape[0]} but the first frame is "
+                                 f"{size[1]}x{size[0]}: every frame of a video must be the same size.")
+            frame = np.pad(frame, ((0, stream.height - size[0]), (0, stream.width - size[1]), (0, 0)), mode="edge")
             for packet in stream.encode(av.VideoFrame.from_ndarray(np.ascontiguousarray(frame), format="rgb24")):
                 container.mux(packet)
+                muxed = True
             count += 1
         if stream is None:
             raise NeulfError("no frames to write to the video.")
         for packet in stream.encode():
             container.mux(packet)
-    finally:
+    except Exception:
         container.close()
+        # What was written is a cut-short video under the finished one's name: leave none.  (A
+        # Ctrl-C, not caught here, keeps the frames so far: the user chose to stop there.)
+        if muxed:
+            path.unlink(missing_ok=True)
+        raise
+    finally:
+        container.close()  # (again after an error: closing twice is harmless)
     return count
+
+
+def _video_path(path: str | Path) -> Path:
+    """`path` checked before anything is rendered: PyAV picks the container from the suffix,
+    and one that cannot hold H.264 (.png, .gif, none) fails only at the first frame."""
+    path = Path(path)
+    if path.is_dir() or path.suffix.lower() not in VIDEO_SUFFIXES:
+        raise NeulfError(f"cannot write a video to {path}: give a file name ending in {', '.join(VIDEO_SUFFIXES)} (H.264).")
+    return path
+
+
+def _frame_rate(fps) -> Fraction:
+    """`fps` as the exact fraction PyAV wants (it takes no float): 29.97 -> 2997/100, and
+    30000/1001 (NTSC) back to itself; a rate that rounds to zero is refused with the rest."""
+    try:
+        value = float(fps)
+    except (TypeError, ValueError):
+        value = math.nan
+    rate = Fraction(value).limit_denominator(1001) if math.isfinite(value) else Fraction(0)
+    if rate <= 0:
+        raise NeulfError(f"video frame rate {fps!r}: give a positive number of frames per second (e.g. 30 or 29.97).")
+    return rate
+
+
+def _rgb_uint8(frame, index: int) -> np.ndarray:
+    """Frame `index` as (H, W, 3) uint8: grey repeated into RGB, alpha dropped (a video has
+    none), floats taken as [0, 1] with NaN black."""
+    frame = np.asarray(frame)
+    if frame.ndim == 2:
+        frame = frame[..., None]
+    if frame.ndim != 3 or frame.shape[2] not in (1, 3, 4) or 0 in frame.shape[:2] or not (
+            np.issubdtype(frame.dtype, np.number) or frame.dtype == bool):
+        raise NeulfError(f"video frame {index} is a {frame.dtype} array of shape {frame.shape}: give (H, W, 3) "
+                         "RGB frames, uint8 or float in [0, 1] ((H, W) grey and (H, W, 4) RGBA are taken too).")
+    if frame.shape[2] == 1:
+        frame = np.repeat(frame, 3, axis=2)
+    frame = frame[..., :3]
+    if frame.dtype != np.uint8:
+        frame = np.clip(np.round(np.nan_to_num(frame.astype(np.float64), nan=0.0) * 255), 0, 255).astype(np.uint8)
+    return frame
