@@ -55,7 +55,7 @@ TRAIN_SCALE = _number(float, 0, above=True, highest=1)
 MAX_DEPTH_LAYERS = 64  # (8 is the default's; each layer is a plane of the geometry: thousands exhaust memory)
 
 
-VIDEO_SUFFIXES = (".mp4", ".mov", ".mkv", ".m4v")
+from .video import VIDEO_SUFFIXES  # noqa: E402  (numpy and errors only: no torch at start-up)
 
 
 def _output_folder(path) -> Path:
@@ -277,21 +277,21 @@ def _load_cameras_json(path: Path) -> list[dict]:
     cameras = data if isinstance(data, list) else data.get("cameras", data.get("views")) if isinstance(data, dict) else None
     if not isinstance(cameras, list) or not cameras:
         raise NeulfError(f"{path} should hold a list of cameras (or {{\"cameras\": [...]}}); see README 'Camera JSON'.")
+    from .render import camera_arrays
+
     parsed = []
     for i, cam in enumerate(cameras):
         try:
-            K = np.asarray(cam["K"], dtype=np.float64).reshape(3, 3)
+            K = np.asarray(cam["K"], dtype=np.float64).reshape(3, 3)  # (a flat list of 9 reads too)
             R = np.asarray(cam["R"], dtype=np.float64).reshape(3, 3)
             t = np.asarray(cam["t"], dtype=np.float64).reshape(3)
             width, height = _pixel_count(cam["width"]), _pixel_count(cam["height"])
         except (KeyError, TypeError, ValueError) as exc:
             raise NeulfError(f"camera {i} in {path} needs K (3x3), R (3x3), t (3), width and height: {exc!r} is wrong.") from None
-        if not np.allclose(R @ R.T, np.eye(3), atol=1e-4) or np.linalg.det(R) < 0:
-            raise NeulfError(f"camera {i} in {path}: R is not a rotation matrix.")
-        if not (np.isfinite(K).all() and np.isfinite(t).all() and K[0, 0] > 0 and K[1, 1] > 0):
-            raise NeulfError(f"camera {i} in {path}: K needs positive focal lengths K[0][0], K[1][1], and K and t finite values.")
-        if not np.allclose(K[2], [0.0, 0.0, 1.0]):
-            raise NeulfError(f"camera {i} in {path}: K's last row must be [0, 0, 1] (a pinhole's), not {K[2].tolist()}.")
+        try:
+            K, R, t = camera_arrays(K, R, t)  # (the checks render makes, said before any camera renders)
+        except NeulfError as exc:
+            raise NeulfError(f"camera {i} in {path}: {exc}") from None
         name = Path(str(cam.get("name", f"camera_{i:03d}"))).stem
         if any(other["name"] == name for other in parsed):  # (the second image would overwrite the first)
             raise NeulfError(f"two cameras in {path} are named '{name}': give each its own name (its image's file name).")

@@ -78,10 +78,11 @@ def half_precision(precision: str, device: torch.device) -> bool:
     return precision == "half" or (precision == "auto" and device.type == "cuda")
 
 
-def in_chunks(total: int, size: int, run) -> None:
+def in_chunks(total: int, size: int, run) -> int:
     """Call `run(start, stop)` over [0, total) in pieces of `size`; stop early when it returns
     False.  A piece the device has no memory for is tried again in halves (down to one), and
-    the smaller size is kept for the rest: peak memory follows what the device has free."""
+    the smaller size is kept for the rest: peak memory follows what the device has free.
+    Returns where it stopped (`total` when it ran to the end)."""
     start = 0
     while start < total:
         stop = min(total, start + size)
@@ -95,16 +96,41 @@ def in_chunks(total: int, size: int, run) -> None:
                 torch.cuda.empty_cache()  # give the failed piece's blocks back before the smaller try
             continue
         if carry_on is False:
-            return
+            return stop
         start = stop
+    return total
 
 
 @dataclass
 class Rendering:
     rgb: np.ndarray                 # (H, W, 3) float32 in [0, 1]
     depth: np.ndarray | None        # (H, W) float32, along the optical axis; nan where not representable
-    valid: np.ndarray               # (H, W) bool: the ray crosses the slab forwards
+    valid: np.ndarray               # (H, W) bool: the ray crosses the slab forwards, its surface ahead of the camera
     warnings: list[str] = field(default_factory=list)
+    complete: bool = True           # False where `on_chunk` stopped it: the rows below hold no picture
+
+
+def camera_arrays(K, R, t) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """K (3x3 with positive focal lengths), R (a 3x3 rotation, world to camera) and t (3
+    numbers: shape (3,), (3, 1) or (1, 3)) as float64 arrays; what does not fit is refused in
+    one line, where it failed deep in torch or rendered a wrong picture without a word."""
+    try:
+        K, R, t = (np.asarray(a, dtype=np.float64) for a in (K, R, t))
+    except (TypeError, ValueError):
+        raise NeulfError("K, R and t must be arrays of numbers (K and R 3x3, t 3 numbers).") from None
+    if K.shape != (3, 3) or R.shape != (3, 3) or t.size != 3 or t.ndim > 2:
+        raise NeulfError(f"K and R must be 3x3 and t 3 numbers, not shapes {K.shape}, {R.shape} and {t.shape}.")
+    t = t.reshape(3)
+    if not (np.isfinite(K).all() and np.isfinite(R).all() and np.isfinite(t).all()):
+        raise NeulfError("the camera's K, R or t holds NaN or infinity.")
+    if not (K[0, 0] > 0 and K[1, 1] > 0):
+        raise NeulfError(f"K needs positive focal lengths K[0][0], K[1][1], not {K[0, 0]:g} and {K[1, 1]:g}.")
+    if not np.allclose(K[2], [0.0, 0.0, 1.0]):
+        raise NeulfError(f"K's last row must be [0, 0, 1] (a pinhole's), not {K[2].tolist()}.")
+    if not np.allclose(R @ R.T, np.eye(3), atol=1e-4) or np.linalg.det(R) < 0:
+        raise NeulfError("R is not a rotation (its rows must be unit length, at right angles and right-handed): give "
+                         "the world-to-camera rotation, without scale.")
+    return K, R, t
 
 
 class LightField:
@@ -202,11 +228,14 @@ class LightField:
         stays the pinhole ray's.  `pixel_samples` (PIXEL_SAMPLES): each pixel's colour the mean
         over that many points of its central `pixel_footprint` square (pixel_offsets); depth
         stays the centre ray's (a refocused render's lens samples already spread over the
-        pixel's light, so it takes them alone)."""
+        pixel's light, so it takes them alone).  A pixel whose surface lies behind the camera (a
+        camera inside the scene's depth range) is not valid: the background colour, depth NaN.
+        `on_chunk(rows_done, height)` is called after each band of rows; where it returns False
+        the render stops there, and the Rendering says so (`complete` False, a warning)."""
         width, height = int(width), int(height)
         if width <= 0 or height <= 0:
             raise NeulfError(f"cannot render a {width}x{height} image: width and height must be at least 1 pixel.")
-        K, R, t = (np.asarray(a, dtype=np.float64) for a in (K, R, t))
+        K, R, t = camera_arrays(K, R, t)
         lens = self._lens_plan(K, focus_distance, aperture, max_samples)
         offsets = pixel_offsets(pixel_samples, pixel_footprint)  # checked even where the lens takes over
         if lens is not None:
@@ -214,39 +243,60 @@ class LightField:
         spread = len(offsets) > 1
         rows_per_chunk = max(1, (chunk or self.default_chunk()) // width)
         forward = torch.as_tensor(R[2], device=self.device, dtype=self.geometry_dtype)
-        rgb_out = np.empty((height, width, 3), np.float32)
-        depth_out = np.empty((height, width), np.float32) if depth else None
-        valid_out = np.empty((height, width), bool)
+        # The field's surfaces lie between the slab's near and far depths: only a camera past the
+        # near one can have some behind it, so only there is depth needed to find them.
+        inside_scene = self._camera_slab_z(R, t) > self.slab.z_near
+        need_depth = depth or inside_scene
+        rgb_out = np.zeros((height, width, 3), np.float32)  # (rows a stopped render never reached stay empty)
+        depth_out = np.full((height, width), np.nan, np.float32) if depth else None
+        valid_out = np.zeros((height, width), bool)
         outside = np.zeros(height, np.int64)  # per row: a band retried after running out of memory counts once
 
         def render_rows(top: int, bottom: int):
             rows = slice(top, bottom)
             origin, directions = pinhole_rays(K, R, t, width, height, self.device, self.geometry_dtype, rows)
-            rgb, slab_depth, valid, uvst = self.query(origin, directions, depth, want_colour=not spread)
+            rgb, slab_depth, valid, uvst = self.query(origin, directions, need_depth, want_colour=not spread)
+            axis = self._axis_depth(origin, directions, slab_depth, forward) if need_depth else None
+            if inside_scene:
+                valid = valid & (axis > 0)  # the surface this ray's line meets lies behind the camera
             if lens is not None:
                 rgb = self._refocused_colour(origin, directions, R, focus_distance, aperture, lens)
             elif spread:
                 rgb = self._mean_colour(pinhole_rays(shifted_K(K, offset), R, t, width, height, self.device,
                                                      self.geometry_dtype, rows) for offset in offsets)
+            if inside_scene:
+                rgb = torch.where(valid[:, None], rgb, self.background)
             band = bottom - top
             rgb_out[rows] = rgb.reshape(band, width, 3).cpu().numpy()
             valid_out[rows] = valid.reshape(band, width).cpu().numpy()
             outside[rows] = (uvst.abs() > 1 + EXTRAPOLATION_MARGIN).any(dim=1).logical_and(valid).reshape(band, width).sum(1).cpu().numpy()
             if depth:
-                axis = self._axis_depth(origin, directions, slab_depth, forward)
                 axis = torch.where(valid, axis, torch.full_like(axis, math.nan))
                 depth_out[rows] = axis.reshape(band, width).float().cpu().numpy()
             return on_chunk(bottom, height) if on_chunk is not None else None
 
-        in_chunks(height, rows_per_chunk, render_rows)
-        return Rendering(rgb_out, depth_out, valid_out, self._camera_warnings(R, t, valid_out, int(outside.sum())))
+        rows_done = in_chunks(height, rows_per_chunk, render_rows)
+        warnings = self._camera_warnings(R, t, valid_out[:rows_done], int(outside.sum()))
+        if rows_done < height:
+            warnings.append(f"rendering stopped after {rows_done} of {height} rows (on_chunk returned False): the rows "
+                            "below hold no picture")
+        return Rendering(rgb_out, depth_out, valid_out, warnings, complete=rows_done == height)
+
+    def _camera_slab_z(self, R, t) -> float:
+        """The camera centre's depth along the slab axis (the uv plane at the rig)."""
+        return float(self.slab.to_slab((-R.T @ t)[None])[0, 2])
 
     def _lens_plan(self, K, focus_distance, aperture: float, max_samples: int):
         """Lens sample points for a refocused render, or None for a pinhole one."""
-        if not aperture or aperture <= 0:
+        if not math.isfinite(aperture) or aperture < 0:
+            raise NeulfError(f"the aperture (lens radius) must be a finite number of at least 0, not {aperture}.")
+        if not isinstance(max_samples, int) or max_samples < 1:
+            raise NeulfError(f"max_samples (lens samples at most) must be a whole number of at least 1, not {max_samples!r}.")
+        if aperture == 0:
             return None
         if focus_distance is None or not focus_distance > 0:
-            raise NeulfError("refocusing needs a positive focus distance (or a focus pixel) together with the aperture.")
+            raise NeulfError("refocusing needs a positive focus distance together with the aperture (the CLI: "
+                             "--focus-distance D or --focus-pixel X,Y).")
         blur = max_blur_radius_px(float(K[0, 0]), aperture, focus_distance, self.slab.z_near, self.slab.z_far)
         count = sample_count(blur, max_samples)
         return None if count == 1 else lens_samples(count)
@@ -268,16 +318,17 @@ class LightField:
         pixels: x = 10.5 is the centre of column 10) -- what auto-refocus focuses on."""
         value = float(self.render(single_pixel_K(K, x, y), 1, 1, R, t, depth=True).depth[0, 0])
         if not np.isfinite(value) or value <= 0:
-            raise NeulfError(f"the light field has no depth at pixel ({x:g}, {y:g}): the ray misses the light slab.")
+            raise NeulfError(f"the light field has no depth at pixel ({x:g}, {y:g}): the ray misses the light slab, or what it "
+                             "meets lies behind the camera.")
         return value
 
     def _camera_warnings(self, R, t, valid: np.ndarray, outside: int) -> list[str]:
         notes = []
-        centre = -R.T @ t
-        z = float(self.slab.to_slab(centre[None])[0, 2])
+        z = self._camera_slab_z(R, t)
         if z > self.slab.z_near:
             notes.append(f"the camera is {z - self.slab.z_near:.3g} units inside the scene's depth range (past the nearest "
-                         "content): rays may start behind objects the light field has seen from the front")
+                         "content): rays may start behind objects the light field has seen from the front, and "
+                         "pixels whose surface lies behind the camera show the background colour")
         elif z > self.slab.z_uv + 0.5 * (self.slab.z_st - self.slab.z_uv):
             notes.append("the camera is far in front of the uv plane (closer to the st plane than to the capture)")
         invisible = int((~valid).sum())
@@ -293,7 +344,9 @@ class LightField:
     def render_view(self, view: View, scale: float | None = None, *, depth: bool = True, chunk: int | None = None,
                     pixel_samples: int = 1, pixel_footprint: float = PIXEL_FOOTPRINT) -> Rendering:
         """Render a registered view through its own camera model (distortion included), so
-        the result lines up pixel for pixel with its photo (`pixel_samples` as in `render`)."""
+        the result lines up pixel for pixel with its photo (`pixel_samples` as in `render`).
+        The view must be of the scene the model was trained on: `check_scene(scene)` says
+        where it is not (the CLI and evaluate_model call it)."""
         scale = self.trained_scale if scale is None else scale
         chunk = chunk or self.default_chunk()
         camera: pycolmap.Camera = view.scaled_camera(scale)
@@ -328,7 +381,8 @@ class LightField:
         if depth_map is not None:
             depth_map = depth_map.reshape(height, width)
             depth_map[~valid] = np.nan
-        return Rendering(rgb_out.reshape(height, width, 3), depth_map, valid)
+        return Rendering(rgb_out.reshape(height, width, 3), depth_map, valid,
+                         self._camera_warnings(view.R, view.t, valid, 0))
 
 
 class MemberMean(torch.nn.Module):

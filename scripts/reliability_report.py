@@ -160,6 +160,21 @@ CASES = [
         *_ids(f"{LOADING}::test_colmap_models_with_non_finite_poses_or_intrinsics_are_refused", "pose", "nan focal",
               "negative focal"),
         "tests/test_classic.py::test_photos_of_different_sizes_are_swept_together"]),
+    Case("The Python API given what it cannot use: a negative or NaN budget, a camera whose K, R or t is not a "
+         "pinhole's (shapes, NaN, a scaled R), a NaN or negative aperture; a render stopped by its callback; a "
+         "camera past the captured surface; Ctrl-C in a train() call", [
+        *_ids(f"{REL}::test_train_config_values_the_run_cannot_use", "steps=-5", "minutes=-1", "minutes=nan",
+              "steps=2.5", "batch_size=-1", "holdout_every=-1"),
+        f"{REL}::test_train_config_must_be_one",
+        *_ids(f"{REL}::test_render_refuses_cameras_it_cannot_use", "t of 4 numbers", "K flat", "[R|t] as R",
+              "R scaled", "R mirrored", "t NaN", "K zero", "K of text"),
+        f"{REL}::test_render_takes_t_as_a_column_or_a_row",
+        *_ids(f"{REL}::test_refocus_values_it_cannot_use", "aperture nan", "aperture negative", "no lens samples"),
+        f"{REL}::test_a_render_stopped_by_on_chunk_says_so",
+        f"{REL}::test_a_camera_past_the_scene_sees_no_surface_behind_it",
+        f"{REL}::test_render_view_gives_the_camera_s_warnings",
+        f"{REL}::test_ctrl_c_in_a_python_train_call_saves_and_resumes",
+        f"{REL}::test_resume_with_nothing_to_resume_is_said"]),
     Case("--resume with options other than the model's: said, the model kept", [
         f"{REL}::test_resume_says_which_asked_options_the_model_keeps"]),
     Case("No network access unless the user asks for the dependency install, with the declared permission", [

@@ -842,6 +842,107 @@ def test_resume_with_nothing_to_resume_is_said(tiny_scene, tmp_path):
     assert any(e.get("event") == "warning" and "no model to resume yet" in e["message"] for e in events)
 
 
+# ----------------------------------------------------------------------------- the Python render API
+
+
+def novel_camera(centre=(0.05, 0.0, 0.0), target=(0.0, 0.0, 3.0), width=32, height=24):
+    cam = pinhole("novel", centre, target, width, height)
+    return np.array(cam["K"]), width, height, np.array(cam["R"]), np.array(cam["t"])
+
+
+def test_a_render_stopped_by_on_chunk_says_so(model):
+    """on_chunk returning False stopped the render and handed back uninitialised memory as the
+    picture (garbage colours, garbage `valid`, bogus warnings)."""
+    from neulf_core.render import LightField
+
+    K, width, height, R, t = novel_camera()
+    rendering = LightField.load(model, "cpu").render(K, width, height, R, t, chunk=width * 8,
+                                                     on_chunk=lambda done, total: done < 8)
+    assert not rendering.complete and any("stopped after 8 of 24 rows" in w for w in rendering.warnings)
+    assert rendering.valid[:8].all() and not rendering.valid[8:].any()
+    assert (rendering.rgb[8:] == 0).all() and np.isnan(rendering.depth[8:]).all()
+    assert np.isfinite(rendering.rgb).all() and not any("look away" in w for w in rendering.warnings)
+
+
+def test_a_camera_past_the_scene_sees_no_surface_behind_it(model):
+    """A camera moved past the captured surface (the tiny scene's plane lies at z = 3): every
+    pixel was "valid" with a negative depth; a surface behind the camera is not in view."""
+    from neulf_core.render import LightField
+
+    light_field = LightField.load(model, "cpu")
+    K, width, height, R, t = novel_camera(centre=(0.0, 0.0, 6.0), target=(0.0, 0.0, 9.0))
+    rendering = light_field.render(K, width, height, R, t)
+    assert not rendering.valid.any() and np.isnan(rendering.depth).all()
+    assert any("inside the scene's depth range" in w for w in rendering.warnings)
+    assert np.allclose(rendering.rgb, light_field.background.cpu().numpy())
+    no_depth = light_field.render(K, width, height, R, t, depth=False, pixel_samples=4)  # (found without depth asked)
+    assert not no_depth.valid.any()
+    K, width, height, R, t = novel_camera()  # at the rig: as before
+    assert light_field.render(K, width, height, R, t).valid.all()
+
+
+CAMERAS_REFUSED = {
+    # what is wrong: (K, R, t) -> text of the one line (before: a torch error, or a wrong picture)
+    "t of 4 numbers": (lambda K, R, t: (K, R, np.append(t, 1.0)), "t 3 numbers"),
+    "K flat": (lambda K, R, t: (K.ravel(), R, t), "must be 3x3"),
+    "[R|t] as R": (lambda K, R, t: (K, np.column_stack([R, t]), t), "must be 3x3"),
+    "R scaled": (lambda K, R, t: (K, 2 * R, t), "not a rotation"),
+    "R mirrored": (lambda K, R, t: (K, -R, t), "not a rotation"),
+    "t NaN": (lambda K, R, t: (K, R, np.array([np.nan, 0, 0])), "NaN or infinity"),
+    "K zero": (lambda K, R, t: (np.zeros((3, 3)), R, t), "positive focal lengths"),
+    "K of text": (lambda K, R, t: ([["a"] * 3] * 3, R, t), "arrays of numbers"),
+}
+
+
+@pytest.mark.parametrize("case", list(CAMERAS_REFUSED))
+def test_render_refuses_cameras_it_cannot_use(case, model):
+    from neulf_core.errors import NeulfError
+    from neulf_core.render import LightField
+
+    K, width, height, R, t = novel_camera()
+    change, expected = CAMERAS_REFUSED[case]
+    K, R, t = change(K, R, t)
+    with pytest.raises(NeulfError, match=re.escape(expected)):
+        LightField.load(model, "cpu").render(K, width, height, R, t)
+
+
+def test_render_takes_t_as_a_column_or_a_row(model):
+    from neulf_core.render import LightField
+
+    light_field = LightField.load(model, "cpu")
+    K, width, height, R, t = novel_camera()
+    flat = light_field.render(K, width, height, R, t).rgb
+    for shaped in (t.reshape(3, 1), t.reshape(1, 3), t.tolist()):
+        assert np.array_equal(light_field.render(K, width, height, R, shaped).rgb, flat)
+
+
+@pytest.mark.parametrize("options, expected", [
+    (dict(aperture=float("nan"), focus_distance=3.0), "finite number of at least 0"),  # int(NaN) deep inside
+    (dict(aperture=-1.0, focus_distance=3.0), "finite number of at least 0"),  # the pinhole, without a word
+    (dict(aperture=0.05, focus_distance=3.0, max_samples=0), "max_samples"),  # one sample, the aperture ignored
+], ids=["aperture nan", "aperture negative", "no lens samples"])
+def test_refocus_values_it_cannot_use(options, expected, model):
+    from neulf_core.errors import NeulfError
+    from neulf_core.render import LightField
+
+    K, width, height, R, t = novel_camera()
+    with pytest.raises(NeulfError, match=expected):
+        LightField.load(model, "cpu").render(K, width, height, R, t, **options)
+
+
+def test_render_view_gives_the_camera_s_warnings(model, tiny_scene):
+    """render_view's warnings were always empty; a view moved into the scene now gets them."""
+    from dataclasses import replace as replaced
+
+    from neulf_core.render import LightField
+    from neulf_core.scene import load_scene
+
+    light_field, view = LightField.load(model, "cpu"), load_scene(tiny_scene).views[0]
+    assert light_field.render_view(view, 0.25).warnings == []
+    inside = replaced(view, t=view.t - view.R @ np.array([0.0, 0.0, 2.8]))  # the camera 2.8 forward, near the plane
+    assert any("inside the scene's depth range" in w for w in light_field.render_view(inside, 0.25).warnings)
+
+
 def test_focus_pixel_outside_the_image(model, tmp_path, capfd, record_property):
     cams = camera_json(tmp_path / "c.json", [pinhole("novel", [0, 0, 0], [0, 0, 3])])
     expect_error(["render", model, "--cameras", cams, "--out", tmp_path / "out", "--aperture", "0.05",
