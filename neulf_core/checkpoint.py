@@ -184,6 +184,10 @@ def _read(path: Path, model_dir: Path, map_location) -> dict:
         if holder is not None:  # (its first checkpoint is still to come)
             raise NeulfError(f"{model_dir} is being trained (process {holder['pid']}) and has no checkpoint yet: wait "
                              "for its first one (every 60 s by default), then render it.")
+        if any((Path(model_dir) / name).exists() for name in ("sparse", "images", "poses_bounds.npy")):
+            raise NeulfError(f"{model_dir} is a scene folder (photos and camera poses), not a model: give the model "
+                             f"folder training wrote (train's --out), or train one with: python -m neulf_core train "
+                             f"{model_dir} --out MODEL_DIR")
         raise NeulfError(f"{model_dir} holds no trained model ({CHECKPOINT_NAME} missing); train one with: python -m neulf_core train SCENE --out {model_dir}")
     damaged = _damaged_member(path)
     try:

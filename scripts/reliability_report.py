@@ -50,6 +50,7 @@ def _ids(prefix: str, *params: str) -> list[str]:
 CASES = [
     Case("A folder with no model", [
         *_ids(f"{REL}::test_broken_scene_folder", "no model"),
+        f"{REL}::test_a_scene_folder_given_as_the_model_is_said",
         *_ids(f"{CKPT}::test_cli_errors_are_one_line", "folder without a model"),
         f"{LOADING}::test_scene_folder_errors"]),
     Case("A truncated or corrupted `.bin`", [

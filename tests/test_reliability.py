@@ -943,6 +943,14 @@ def test_render_view_gives_the_camera_s_warnings(model, tiny_scene):
     assert any("inside the scene's depth range" in w for w in light_field.render_view(inside, 0.25).warnings)
 
 
+def test_a_scene_folder_given_as_the_model_is_said(tiny_scene, tmp_path, capfd, record_property):
+    """It proposed training into the scene folder itself."""
+    cams = camera_json(tmp_path / "c.json", [pinhole("novel", [0, 0, 0], [0, 0, 3])])
+    line = expect_error(["render", tiny_scene, "--cameras", cams, "--out", tmp_path / "out"], capfd, record_property,
+                        "is a scene folder (photos and camera poses), not a model")
+    assert f"--out {tiny_scene}" not in line
+
+
 def test_focus_pixel_outside_the_image(model, tmp_path, capfd, record_property):
     cams = camera_json(tmp_path / "c.json", [pinhole("novel", [0, 0, 0], [0, 0, 3])])
     expect_error(["render", model, "--cameras", cams, "--out", tmp_path / "out", "--aperture", "0.05",
