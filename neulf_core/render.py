@@ -110,6 +110,18 @@ class Rendering:
     complete: bool = True           # False where `on_chunk` stopped it: the rows below hold no picture
 
 
+def image_size(width, height) -> tuple[int, int]:
+    """(width, height) as whole numbers of at least 1 pixel; 80.7 was taken as 80 without a word."""
+    try:
+        whole = all(not isinstance(v, bool) and float(v).is_integer() for v in (width, height))
+    except (TypeError, ValueError):
+        whole = False
+    if not whole or int(width) < 1 or int(height) < 1:
+        raise NeulfError(f"cannot render a {width!r}x{height!r} image: width and height must be whole numbers of at "
+                         "least 1 pixel.")
+    return int(width), int(height)
+
+
 def camera_arrays(K, R, t) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """K (3x3 with positive focal lengths), R (a 3x3 rotation, world to camera) and t (3
     numbers: shape (3,), (3, 1) or (1, 3)) as float64 arrays; what does not fit is refused in
@@ -232,9 +244,7 @@ class LightField:
         camera inside the scene's depth range) is not valid: the background colour, depth NaN.
         `on_chunk(rows_done, height)` is called after each band of rows; where it returns False
         the render stops there, and the Rendering says so (`complete` False, a warning)."""
-        width, height = int(width), int(height)
-        if width <= 0 or height <= 0:
-            raise NeulfError(f"cannot render a {width}x{height} image: width and height must be at least 1 pixel.")
+        width, height = image_size(width, height)
         K, R, t = camera_arrays(K, R, t)
         lens = self._lens_plan(K, focus_distance, aperture, max_samples)
         offsets = pixel_offsets(pixel_samples, pixel_footprint)  # checked even where the lens takes over
@@ -247,9 +257,13 @@ class LightField:
         # near one can have some behind it, so only there is depth needed to find them.
         inside_scene = self._camera_slab_z(R, t) > self.slab.z_near
         need_depth = depth or inside_scene
-        rgb_out = np.zeros((height, width, 3), np.float32)  # (rows a stopped render never reached stay empty)
-        depth_out = np.full((height, width), np.nan, np.float32) if depth else None
-        valid_out = np.zeros((height, width), bool)
+        try:
+            rgb_out = np.zeros((height, width, 3), np.float32)  # (rows a stopped render never reached stay empty)
+            depth_out = np.full((height, width), np.nan, np.float32) if depth else None
+            valid_out = np.zeros((height, width), bool)
+        except MemoryError:
+            raise NeulfError(f"a {width} x {height} image does not fit in memory ({width * height * 17 / 1e9:.3g} GB "
+                             "for its colour, depth and mask): render a smaller one.") from None
         outside = np.zeros(height, np.int64)  # per row: a band retried after running out of memory counts once
 
         def render_rows(top: int, bottom: int):

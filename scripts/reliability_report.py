@@ -170,6 +170,8 @@ CASES = [
         *_ids(f"{REL}::test_render_refuses_cameras_it_cannot_use", "t of 4 numbers", "K flat", "[R|t] as R",
               "R scaled", "R mirrored", "t NaN", "K zero", "K of text"),
         f"{REL}::test_render_takes_t_as_a_column_or_a_row",
+        *_ids(f"{REL}::test_render_refuses_image_sizes_it_cannot_make", "80.7 wide", "True high", "zero wide",
+              "too large"),
         *_ids(f"{REL}::test_refocus_values_it_cannot_use", "aperture nan", "aperture negative", "no lens samples"),
         f"{REL}::test_a_render_stopped_by_on_chunk_says_so",
         f"{REL}::test_a_camera_past_the_scene_sees_no_surface_behind_it",

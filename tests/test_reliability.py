@@ -906,6 +906,21 @@ def test_render_refuses_cameras_it_cannot_use(case, model):
         LightField.load(model, "cpu").render(K, width, height, R, t)
 
 
+@pytest.mark.parametrize("size, expected", [
+    ((80.7, 24), "whole numbers"),  # rendered 80 wide without a word
+    (("80", True), "whole numbers"),
+    ((0, 24), "at least 1 pixel"),
+    ((400_000, 400_000), "does not fit in memory"),  # numpy's MemoryError, 2.7 TB
+], ids=["80.7 wide", "True high", "zero wide", "too large"])
+def test_render_refuses_image_sizes_it_cannot_make(size, expected, model):
+    from neulf_core.errors import NeulfError
+    from neulf_core.render import LightField
+
+    K, _, _, R, t = novel_camera()
+    with pytest.raises(NeulfError, match=expected):
+        LightField.load(model, "cpu").render(K, *size, R, t)
+
+
 def test_render_takes_t_as_a_column_or_a_row(model):
     from neulf_core.render import LightField
 
