@@ -26,7 +26,7 @@ from .metrics import psnr
 from .render import LightField
 from .scene import Scene, load_scene, scaled_size, split_views
 from .slab import fit_slab
-from .train import TrainConfig, TrainResult, check_config, train
+from .train import TrainConfig, TrainResult, check_config, say_nothing_to_resume, train
 from .progress import emit as _emit
 from .rules import (LOSSES_DECISION_STEP, announce_default_losses, default_back_surface, default_coarse_to_fine,
                     default_consistency, default_depth_detail_reads, default_geometry_tv, default_max_passes,
@@ -117,6 +117,8 @@ def train_auto(scene: Scene | str | Path, model_dir: str | Path, config: TrainCo
         record = load_checkpoint(model_dir).get("autosize")
         result = train(scene, model_dir, config, images_dir=images_dir, resume=True, progress=progress, should_stop=should_stop)
         return _record(model_dir, record, result)
+    if resume:  # (and nothing to resume: the search starts)
+        say_nothing_to_resume(model_dir, progress)
     started = time.monotonic()  # a minutes budget is the whole run's: the photos' loading and the rules' probe too
     if not isinstance(scene, Scene):
         scene = load_scene(scene, images_dir)

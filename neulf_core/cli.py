@@ -352,10 +352,11 @@ def _focus_options(args):
     pixel = None
     if args.focus_pixel:
         try:
-            pixel = tuple(float(v) for v in args.focus_pixel.split(","))
-            assert len(pixel) == 2 and np.isfinite(pixel).all()
+            pixel = tuple(int(v) for v in args.focus_pixel.split(","))
+            assert len(pixel) == 2
         except (ValueError, AssertionError):
-            raise NeulfError(f"--focus-pixel wants X,Y in pixels (top-left origin), not '{args.focus_pixel}'.") from None
+            raise NeulfError(f"--focus-pixel wants X,Y: a pixel's column and row, whole numbers from the top-left, "
+                             f"not '{args.focus_pixel}'.") from None
     if args.aperture > 0 and args.focus_distance is None and pixel is None:
         raise NeulfError("--aperture needs --focus-distance D or --focus-pixel X,Y.")
     if args.aperture == 0 and (args.focus_distance is not None or pixel is not None):
@@ -393,6 +394,14 @@ def _render_pinhole(light_field, cam: dict, args, focus_options):
                               focus_distance=focus, aperture=aperture, pixel_samples=args.pixel_samples)
 
 
+def _past_the_scene(names: list[str], rendered: int, out: Path) -> str:
+    """The message for cameras standing past everything they look at."""
+    shown = ", ".join(names[:3]) + (" ..." if len(names) > 3 else "")
+    return (f"{len(names)} camera(s) ({shown}) stand inside the captured scene, past what they look at: everything the "
+            f"capture saw along their pixels lies behind them. Move them back toward the capture positions; the other "
+            f"{rendered} image(s) are in {out}.")
+
+
 def _looking_away(names: list[str], light_field, rendered: int, out: Path) -> str:
     """The message for cameras none of whose rays cross the light slab."""
     axis = ", ".join(f"{v:.2f}" for v in light_field.slab.rotation[2])
@@ -416,15 +425,17 @@ def cmd_render(args) -> int:
     out = _output_folder(args.out)
     count, started = 0, time.perf_counter()
     if args.cameras:
-        blind = []
+        blind, inside = [], []
         for cam in _load_cameras_json(args.cameras):
             cam = _scaled_camera(cam, args.scale)
             rendering = _render_pinhole(light_field, cam, args, focus_options)
             if not rendering.valid.any():  # a picture of the background colour only: say so, render the rest
-                blind.append(cam["name"])
+                (inside if light_field.camera_inside_scene(cam["R"], cam["t"]) else blind).append(cam["name"])
                 continue
             _save_rendering(out, cam["name"], rendering, args.depth, args.exr)
             count += 1
+        if inside:
+            raise NeulfError(_past_the_scene(inside, count, out))
         if blind:
             raise NeulfError(_looking_away(blind, light_field, count, out))
     else:

@@ -42,8 +42,22 @@ def _process_alive(pid: int) -> bool:
     return True
 
 
+def _process_started_at(pid: int) -> float | None:
+    """When process `pid` started (seconds since the epoch), where the system says (Linux's
+    /proc); None elsewhere."""
+    try:
+        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+        boot = next(float(line.split()[1]) for line in Path("/proc/stat").read_text().splitlines()
+                    if line.startswith("btime "))
+        return boot + int(fields[19]) / os.sysconf("SC_CLK_TCK")  # (field 22: start time, in clock ticks)
+    except (OSError, ValueError, IndexError, StopIteration, AttributeError):
+        return None
+
+
 def _holder(path: Path) -> dict | None:
-    """The lock's owner, or None when the lock is stale (its process is gone) or unreadable."""
+    """The lock's owner, or None when the lock is stale (its process is gone, or its number
+    now belongs to a process started after the lock was written: a container restarted, its
+    new process given the same number) or unreadable."""
     try:
         owner = json.loads(path.read_text())
         pid, host = int(owner["pid"]), str(owner["host"])
@@ -51,7 +65,12 @@ def _holder(path: Path) -> dict | None:
         return None
     if host != platform.node():
         return owner  # cannot check a process on another machine: assume it runs
-    return owner if _process_alive(pid) else None
+    if not _process_alive(pid):
+        return None
+    started, claimed = _process_started_at(pid), owner.get("started")
+    if started is not None and isinstance(claimed, (int, float)) and started > claimed + 2:  # (2 s: clock ticks)
+        return None
+    return owner
 
 
 def training_holder(model_dir: Path) -> dict | None:
@@ -79,8 +98,6 @@ def _try_create(path: Path) -> bool:
     return True
 
 
-# A claim file still empty or half-written this young is a claim being made, not a dead one.
-CLAIM_BEING_WRITTEN_SECONDS = 60
 
 
 def claim(path: Path) -> None:
@@ -90,16 +107,17 @@ def claim(path: Path) -> None:
         raise FileExistsError(path)
 
 
-def claim_holder(path: Path) -> dict | None:
+def claim_holder(path: Path, unreadable_for_seconds: float) -> dict | None:
     """The process whose claim `path` is, while it runs; None where there is no claim or its
-    process is gone.  A claim unreadable for its first minute counts as held (being written)."""
+    process is gone.  A claim that cannot be read (being written, or a passing read error on a
+    network folder) counts as held until it is `unreadable_for_seconds` old."""
     path = Path(path)
     try:
         age = time.time() - path.stat().st_mtime
     except OSError:
         return None
     owner = _holder(path)
-    if owner is None and age < CLAIM_BEING_WRITTEN_SECONDS and not _readable(path):
+    if owner is None and age < unreadable_for_seconds and not _readable(path):
         return {"pid": "?", "host": platform.node(), "started": None}
     return owner
 

@@ -29,7 +29,6 @@ from __future__ import annotations
 import contextlib
 import filecmp
 import os
-import platform
 import shutil
 import tempfile
 import time
@@ -48,7 +47,8 @@ MIN_PHOTOS = 3
 WORK_PREFIX = ".reconstruct-"
 WORK_OWNER = "owner.json"  # the process reconstructing in a work folder (lock.claim)
 # A work folder without a readable owner record is taken for a run's first instant (or a kill
-# in it) until it is this old; older ones (a kill, or an earlier version's run) are removed.
+# in it, or a passing read error) until it is this old; older ones (a kill, or an earlier
+# version's run) are removed.
 UNCLAIMED_WORK_SECONDS = 3600
 # Exhaustive matching compares every pair: best for small captures, quadratic cost beyond.
 EXHAUSTIVE_MATCHING_MAX_PHOTOS = 100
@@ -101,7 +101,7 @@ def reconstruct(
     # COLMAP's RANSAC and mapper are randomised: a fixed seed makes reruns reproducible.
     pycolmap.set_random_seed(seed)
     photos = _drop_converted_duplicates(find_photos(Path(images_dir)))
-    out_dir = Path(out_dir)
+    out_dir = Path(out_dir).absolute()
     created_out_dir = not out_dir.exists()
     work = None
     try:
@@ -174,9 +174,9 @@ def _other_runs(out_dir: Path, own: Path | None = None) -> list[tuple[Path, dict
     folders of runs that are gone are deleted on the way."""
     running = []
     for folder in sorted(out_dir.glob(WORK_PREFIX + "*")):
-        if folder == own or not folder.is_dir():
+        if (own is not None and folder.name == own.name) or not folder.is_dir():  # (mkdtemp's path is absolute)
             continue
-        owner = claim_holder(folder / WORK_OWNER)
+        owner = claim_holder(folder / WORK_OWNER, UNCLAIMED_WORK_SECONDS)
         if owner is not None:
             running.append((folder, owner))
         elif (folder / WORK_OWNER).is_file() or _age_seconds(folder) > UNCLAIMED_WORK_SECONDS:
@@ -194,7 +194,7 @@ def _age_seconds(folder: Path) -> float:
 def _refuse_another_run(out_dir: Path, others: list[tuple[Path, dict]]) -> None:
     if others:
         folder, owner = others[0]
-        gone = f" (if that process is gone, delete {folder})" if owner["host"] != platform.node() else ""
+        gone = f" (if that process is gone, delete {folder})"
         raise NeulfError(
             f"{out_dir} is being reconstructed by process {owner['pid']} on {owner['host']}; wait for it to finish "
             f"or stop it, or reconstruct into another folder{gone}."

@@ -8,6 +8,7 @@ model's device.  Depth is the distance along the camera's optical axis in scene 
 from __future__ import annotations
 
 import math
+import numbers
 
 from contextlib import nullcontext
 from dataclasses import dataclass, field
@@ -241,7 +242,8 @@ class LightField:
         over that many points of its central `pixel_footprint` square (pixel_offsets); depth
         stays the centre ray's (a refocused render's lens samples already spread over the
         pixel's light, so it takes them alone).  A pixel whose surface lies behind the camera (a
-        camera inside the scene's depth range) is not valid: the background colour, depth NaN.
+        camera inside the scene's depth range) is not valid: the background colour, depth NaN
+        (its centre ray decides: the other rays of a refocused or multi-point pixel are not tested).
         `on_chunk(rows_done, height)` is called after each band of rows; where it returns False
         the render stops there, and the Rendering says so (`complete` False, a warning)."""
         width, height = image_size(width, height)
@@ -255,7 +257,7 @@ class LightField:
         forward = torch.as_tensor(R[2], device=self.device, dtype=self.geometry_dtype)
         # The field's surfaces lie between the slab's near and far depths: only a camera past the
         # near one can have some behind it, so only there is depth needed to find them.
-        inside_scene = self._camera_slab_z(R, t) > self.slab.z_near
+        inside_scene = self.camera_inside_scene(R, t)
         need_depth = depth or inside_scene
         try:
             rgb_out = np.zeros((height, width, 3), np.float32)  # (rows a stopped render never reached stay empty)
@@ -265,6 +267,7 @@ class LightField:
             raise NeulfError(f"a {width} x {height} image does not fit in memory ({width * height * 17 / 1e9:.3g} GB "
                              "for its colour, depth and mask): render a smaller one.") from None
         outside = np.zeros(height, np.int64)  # per row: a band retried after running out of memory counts once
+        behind = np.zeros(height, np.int64)  # per row: pixels whose surface lies behind the camera
 
         def render_rows(top: int, bottom: int):
             rows = slice(top, bottom)
@@ -272,7 +275,9 @@ class LightField:
             rgb, slab_depth, valid, uvst = self.query(origin, directions, need_depth, want_colour=not spread)
             axis = self._axis_depth(origin, directions, slab_depth, forward) if need_depth else None
             if inside_scene:
-                valid = valid & (axis > 0)  # the surface this ray's line meets lies behind the camera
+                ahead = axis > 0  # (else the surface this ray's line meets lies behind the camera)
+                behind[rows] = (valid & ~ahead).reshape(bottom - top, width).sum(1).cpu().numpy()
+                valid = valid & ahead
             if lens is not None:
                 rgb = self._refocused_colour(origin, directions, R, focus_distance, aperture, lens)
             elif spread:
@@ -290,7 +295,7 @@ class LightField:
             return on_chunk(bottom, height) if on_chunk is not None else None
 
         rows_done = in_chunks(height, rows_per_chunk, render_rows)
-        warnings = self._camera_warnings(R, t, valid_out[:rows_done], int(outside.sum()))
+        warnings = self._camera_warnings(R, t, valid_out[:rows_done], int(outside.sum()), int(behind.sum()))
         if rows_done < height:
             warnings.append(f"rendering stopped after {rows_done} of {height} rows (on_chunk returned False): the rows "
                             "below hold no picture")
@@ -300,11 +305,17 @@ class LightField:
         """The camera centre's depth along the slab axis (the uv plane at the rig)."""
         return float(self.slab.to_slab((-R.T @ t)[None])[0, 2])
 
+    def camera_inside_scene(self, R, t) -> bool:
+        """Whether a camera (world-to-camera R, t) stands past the scene's nearest content, where
+        some of what its pixels' lines meet can lie behind it."""
+        return self._camera_slab_z(np.asarray(R, np.float64), np.asarray(t, np.float64).reshape(3)) > self.slab.z_near
+
     def _lens_plan(self, K, focus_distance, aperture: float, max_samples: int):
         """Lens sample points for a refocused render, or None for a pinhole one."""
-        if not math.isfinite(aperture) or aperture < 0:
-            raise NeulfError(f"the aperture (lens radius) must be a finite number of at least 0, not {aperture}.")
-        if not isinstance(max_samples, int) or max_samples < 1:
+        aperture = 0.0 if aperture is None else aperture
+        if not isinstance(aperture, numbers.Real) or not math.isfinite(aperture) or aperture < 0:
+            raise NeulfError(f"the aperture (lens radius) must be a finite number of at least 0, not {aperture!r}.")
+        if not isinstance(max_samples, numbers.Integral) or isinstance(max_samples, bool) or max_samples < 1:
             raise NeulfError(f"max_samples (lens samples at most) must be a whole number of at least 1, not {max_samples!r}.")
         if aperture == 0:
             return None
@@ -336,16 +347,18 @@ class LightField:
                              "meets lies behind the camera.")
         return value
 
-    def _camera_warnings(self, R, t, valid: np.ndarray, outside: int) -> list[str]:
+    def _camera_warnings(self, R, t, valid: np.ndarray, outside: int, behind: int = 0) -> list[str]:
         notes = []
         z = self._camera_slab_z(R, t)
         if z > self.slab.z_near:
             notes.append(f"the camera is {z - self.slab.z_near:.3g} units inside the scene's depth range (past the nearest "
-                         "content): rays may start behind objects the light field has seen from the front, and "
-                         "pixels whose surface lies behind the camera show the background colour")
+                         "content): rays may start behind objects the light field has seen from the front")
         elif z > self.slab.z_uv + 0.5 * (self.slab.z_st - self.slab.z_uv):
             notes.append("the camera is far in front of the uv plane (closer to the st plane than to the capture)")
-        invisible = int((~valid).sum())
+        if behind:
+            notes.append(f"{behind / valid.size:.1%} of the pixels meet what the capture saw behind the camera and show "
+                         "the background colour: move the camera back toward the capture positions")
+        invisible = int((~valid).sum()) - behind
         if invisible:
             notes.append(f"{invisible / valid.size:.1%} of the pixels look away from the light slab (facing away or "
                          "too oblique) and show the background colour")
@@ -380,15 +393,25 @@ class LightField:
                 moved = view_rays(camera, view.R, view.t, pixels[start:stop] + offset)[1]
                 yield origin_t, torch.as_tensor(moved, device=self.device, dtype=self.geometry_dtype)
 
+        inside_scene = self.camera_inside_scene(view.R, view.t)  # (a view moved into the scene: as render does)
+        need_depth = depth or inside_scene
+        behind = [0]
+
         def render_rays(start: int, stop: int):
             d = torch.as_tensor(directions[start:stop], device=self.device, dtype=self.geometry_dtype)
-            rgb, slab_depth, ok, _ = self.query(origin_t, d, depth, want_colour=not spread)
+            rgb, slab_depth, ok, _ = self.query(origin_t, d, need_depth, want_colour=not spread)
+            axis = self._axis_depth(origin_t, d, slab_depth, forward) if need_depth else None
+            if inside_scene:
+                behind[0] += int((ok & (axis <= 0)).sum())
+                ok = ok & (axis > 0)
             if spread:
                 rgb = self._mean_colour(moved_rays(start, stop))
+            if inside_scene:
+                rgb = torch.where(ok[:, None], rgb, self.background)
             rgb_out[start:stop] = rgb.cpu().numpy()
             valid[start:stop] = ok.cpu().numpy()
             if depth:
-                depth_map[start:stop] = self._axis_depth(origin_t, d, slab_depth, forward).float().cpu().numpy()
+                depth_map[start:stop] = axis.float().cpu().numpy()
 
         in_chunks(len(directions), chunk, render_rays)
         valid = valid.reshape(height, width)
@@ -396,7 +419,7 @@ class LightField:
             depth_map = depth_map.reshape(height, width)
             depth_map[~valid] = np.nan
         return Rendering(rgb_out.reshape(height, width, 3), depth_map, valid,
-                         self._camera_warnings(view.R, view.t, valid, 0))
+                         self._camera_warnings(view.R, view.t, valid, 0, behind[0]))
 
 
 class MemberMean(torch.nn.Module):

@@ -448,12 +448,14 @@ def _read_poses_bounds(path: Path) -> tuple[np.ndarray, np.ndarray | None, list[
     if bounds is not None:
         with np.errstate(invalid="ignore"):  # (NaN compares False: not usable)
             usable = np.isfinite(bounds).all(axis=1) & (bounds[:, 0] > 0) & (bounds[:, 0] < bounds[:, 1])
-        for row in np.flatnonzero(~usable):
-            near, far = bounds[row]
-            notes.append(f"{path.name} row {row} (photo {row + 1} in sorted order) gives near and far depths {near:g} and "
-                         f"{far:g}, which are not finite with 0 < near < far: "
+        unusable = np.flatnonzero(~usable)
+        if len(unusable):
+            shown = ", ".join(f"row {row} ({bounds[row, 0]:g}, {bounds[row, 1]:g})" for row in unusable[:5])
+            notes.append(f"{path.name} gives near and far depths that are not finite with 0 < near < far in "
+                         f"{len(unusable)} of its {len(bounds)} rows ({shown}{' ...' if len(unusable) > 5 else ''}; "
+                         "rows count from 0, in sorted photo order): "
                          + ("the scene's depth range is read from the other rows." if usable.any() else
-                            "no row gives usable ones, so give the depths with --st-depth, --near and --far."))
+                            "the scene's depth range must be given (--st-depth, --near, --far)."))
         bounds = np.where(usable[:, None], bounds, np.nan) if usable.any() else None
     return poses, bounds, notes
 

@@ -9,7 +9,11 @@ the camera poses (the pose check, the far-off restart) is `pose_check.py`.
 
 from __future__ import annotations
 
+import contextlib
 import math
+import numbers
+import signal
+import threading
 import time
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
@@ -260,13 +264,45 @@ def train(scene: Scene | str | Path, model_dir: str | Path, config: TrainConfig,
     def train_one(scene, folder, config, images_dir, resume, progress, should_stop):
         return train_two_starts(_train, scene, folder, config, images_dir, resume, progress, should_stop)
 
-    with training_lock(model_dir), kept_while_training():  # (members and starts read and sweep the photos once)
+    with training_lock(model_dir), kept_while_training(), ctrl_c_stops(should_stop) as (stop, ctrl_c):
         remove_stale_temporaries(model_dir)
         if resume and not checkpoint_path(model_dir).is_file():
-            _emit(progress, event="warning", message=f"{model_dir} holds no model to resume yet: training a new one.")
+            say_nothing_to_resume(model_dir, progress)
         scene = scene if isinstance(scene, Scene) else load_scene(scene, images_dir)
         config = rules.with_default_scale(scene, config, model_dir, resume, progress)
-        return train_members(train_one, scene, model_dir, config, images_dir, resume, progress, should_stop)
+        result = train_members(train_one, scene, model_dir, config, images_dir, resume, progress, stop)
+    if ctrl_c():
+        raise KeyboardInterrupt  # (saved: the caller's Ctrl-C passed on)
+    return result
+
+
+def say_nothing_to_resume(model_dir: Path, progress) -> None:
+    _emit(progress, event="warning", message=f"{model_dir} holds no model to resume yet: training a new one.")
+
+
+@contextlib.contextmanager
+def ctrl_c_stops(should_stop):
+    """(stop, ctrl_c): where Python's own Ctrl-C handler is in place (a script's main thread), a
+    first Ctrl-C asks the run to stop between two steps, as `should_stop` does, so the saved
+    run resumes to the weights of one never stopped (a KeyboardInterrupt could land halfway
+    through a step); a second one interrupts at once.  `ctrl_c()` says whether one came.
+    Elsewhere (the CLI and Blender have their own handlers; other threads) nothing changes."""
+    if (threading.current_thread() is not threading.main_thread()
+            or signal.getsignal(signal.SIGINT) is not signal.default_int_handler):
+        yield should_stop, lambda: False
+        return
+    asked = []
+
+    def on_ctrl_c(signum, frame):
+        if asked:
+            raise KeyboardInterrupt
+        asked.append(True)
+
+    previous = signal.signal(signal.SIGINT, on_ctrl_c)
+    try:
+        yield (lambda: bool(asked) or (should_stop is not None and bool(should_stop()))), lambda: bool(asked)
+    finally:
+        signal.signal(signal.SIGINT, previous)
 
 
 def _train(scene, model_dir: Path, config: TrainConfig, images_dir, resume: bool, progress, should_stop,
@@ -307,7 +343,9 @@ def check_config(config: TrainConfig) -> None:
 
 
 def _is_number(value) -> bool:
-    return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+    """A finite real number, numpy's included (a sweep's np.int64 steps), not True/False."""
+    return (isinstance(value, numbers.Real) and not isinstance(value, (bool, np.bool_))
+            and math.isfinite(float(value)))
 
 
 def _check_number(value, field_name: str, flag: str, *, whole: bool = False, lowest: float = 0,
@@ -321,7 +359,7 @@ def _check_number(value, field_name: str, flag: str, *, whole: bool = False, low
     if not fits:
         wanted = "above 0" if above_zero else f"at least {lowest:g}"
         raise NeulfError(f"{flag} (TrainConfig.{field_name}) must be a {'whole' if whole else 'finite'} number "
-                         f"{wanted}, not {value!r}.")
+                         f"{wanted}, not {value!r} ({type(value).__name__}).")
 
 
 def _resumed_checkpoint(model_dir: Path, config: TrainConfig, resume: bool) -> dict | None:

@@ -146,8 +146,9 @@ class Service:
         rendering = field.render(K1, 1, 1, np.asarray(R), np.asarray(t), depth=True)
         value = float(rendering.depth[0, 0])
         if not np.isfinite(value) or value <= 0:
-            raise NeulfError("the light field has no depth at that point (the ray misses the light slab); "
-                             "click on the captured scene itself.")
+            raise NeulfError("the light field has no depth at that point (the ray misses the light slab, or what it "
+                             "meets lies behind the camera); click on the captured scene itself, from a camera in "
+                             "front of it.")
         return {"depth": value, "rgb": rendering.rgb[0, 0].tolist(), "warnings": list(rendering.warnings)}
 
     def spiral(self, model_dir: str, frames: int = 60) -> dict:

@@ -137,7 +137,8 @@ CASES = [
         *_ids(f"{REL}::test_refocus_options_in_conflict", "a focus distance and a focus pixel",
               "a focal length without an f-stop"),
         f"{REL}::test_pixel_samples_while_refocusing_is_said",
-        f"{REL}::test_focus_pixel_focuses_at_the_depth_map_s_pixel"]),
+        f"{REL}::test_focus_pixel_focuses_at_the_depth_map_s_pixel",
+        f"{REL}::test_focus_pixel_takes_whole_pixels"]),
     Case("Reconstruct into a scene folder that holds a model: a failed run leaves it as it was, a same-named photo "
          "is never overwritten", [
         "tests/test_reconstruct.py::test_photo_of_same_name_never_overwritten",
@@ -148,7 +149,9 @@ CASES = [
          "killed one left; the second is refused", [
         "tests/test_reconstruct.py::test_a_run_killed_outright_leaves_nothing_after_the_next",
         "tests/test_reconstruct.py::test_a_run_into_a_folder_another_run_reconstructs_is_refused",
-        "tests/test_reconstruct.py::test_unclaimed_work_folders_are_removed_only_when_old"]),
+        "tests/test_reconstruct.py::test_unclaimed_work_folders_are_removed_only_when_old",
+        "tests/test_reconstruct.py::test_a_relative_scene_folder",
+        f"{REL}::test_a_lock_whose_process_number_was_given_again_is_stale"]),
     Case("A damaged LLFF poses_bounds.npy, a COLMAP model with non-finite values, photos of another size than the "
          "others", [
         *_ids(f"{LOADING}::test_damaged_llff_rows_are_named", "nan height", "zero focal", "nan centre",
@@ -177,6 +180,9 @@ CASES = [
         f"{REL}::test_a_camera_past_the_scene_sees_no_surface_behind_it",
         f"{REL}::test_render_view_gives_the_camera_s_warnings",
         f"{REL}::test_ctrl_c_in_a_python_train_call_saves_and_resumes",
+        f"{REL}::test_ctrl_c_stops_a_python_train_call_between_steps",
+        f"{REL}::test_numpy_numbers_in_a_train_config",
+        f"{REL}::test_render_cameras_past_the_scene_are_said",
         f"{REL}::test_resume_with_nothing_to_resume_is_said"]),
     Case("--resume with options other than the model's: said, the model kept", [
         f"{REL}::test_resume_says_which_asked_options_the_model_keeps"]),

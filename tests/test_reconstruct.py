@@ -513,6 +513,7 @@ def test_a_run_into_a_folder_another_run_reconstructs_is_refused(capture, tmp_pa
     refused, naming the first's process, and leaves the first's work alone."""
     import subprocess
     import sys
+    import time
 
     scene = tmp_path / "scene"
     other = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"])
@@ -520,7 +521,7 @@ def test_a_run_into_a_folder_another_run_reconstructs_is_refused(capture, tmp_pa
         busy = scene / (reconstruct_module.WORK_PREFIX + "other")
         busy.mkdir(parents=True)
         (busy / reconstruct_module.WORK_OWNER).write_text(
-            f'{{"pid": {other.pid}, "host": "{__import__("platform").node()}", "started": 0}}')
+            f'{{"pid": {other.pid}, "host": "{__import__("platform").node()}", "started": {time.time()}}}')
         with pytest.raises(NeulfError, match=f"being reconstructed by process {other.pid}"):
             reconstruct(capture[0], scene)
         assert work_folders(scene) == [busy] and not (scene / "images").exists()
@@ -545,3 +546,18 @@ def test_unclaimed_work_folders_are_removed_only_when_old(capture, tmp_path):
     reconstruct(capture[0], scene)
 
     assert work_folders(scene) == [young]
+
+
+def test_a_relative_scene_folder(capture, tmp_path, monkeypatch):
+    """From Python 3.12 tempfile.mkdtemp returns an absolute path where the folder given is
+    relative, and the run took its own work folder for another run's and refused itself."""
+    import os
+    import tempfile
+
+    absolute_mkdtemp = tempfile.mkdtemp
+    monkeypatch.setattr(reconstruct_module.tempfile, "mkdtemp",
+                        lambda *args, **kwargs: os.path.abspath(absolute_mkdtemp(*args, **kwargs)))
+    monkeypatch.chdir(tmp_path)
+    model_dir = reconstruct(capture[0], Path("relative_scene"))
+    assert pycolmap.Reconstruction(model_dir).num_reg_images() == len(capture[1])
+    assert work_folders(tmp_path / "relative_scene") == []

@@ -680,6 +680,23 @@ def test_a_second_training_of_the_same_model_folder_is_refused(tiny_scene, tmp_p
     assert not (tmp_path / "held").exists()  # nothing was written: no empty folder left behind
 
 
+def test_a_lock_whose_process_number_was_given_again_is_stale(tmp_path):
+    """A container restarted after a kill gives its new process the old one's number (often
+    1): the lock then named a live process, itself, and refused every training for good. A
+    process started after the lock was written is not its writer."""
+    from neulf_core.lock import LOCK_NAME, _process_started_at, training_holder
+
+    this_started = _process_started_at(os.getpid())
+    if this_started is None:
+        pytest.skip("no /proc: process start times cannot be read here")
+    (tmp_path / LOCK_NAME).write_text(json.dumps({"pid": os.getpid(), "host": platform.node(),
+                                                  "started": this_started - 100}))
+    assert training_holder(tmp_path) is None
+    (tmp_path / LOCK_NAME).write_text(json.dumps({"pid": os.getpid(), "host": platform.node(),
+                                                  "started": this_started + 1}))
+    assert training_holder(tmp_path)["pid"] == os.getpid()  # written by this very process: held
+
+
 # ----------------------------------------------------------------------------- outputs and numbers
 
 
@@ -833,6 +850,42 @@ def test_ctrl_c_in_a_python_train_call_saves_and_resumes(tiny_scene, tmp_path):
     assert result.status == "finished" and result.step == 12
 
 
+def test_ctrl_c_stops_a_python_train_call_between_steps(tiny_scene, tmp_path):
+    """A real Ctrl-C (SIGINT to this process, Python's own handler in place) stops the run
+    between two steps and is then passed on, so the saved run resumes to the very weights of a
+    run never stopped (a KeyboardInterrupt could land halfway through a step)."""
+    from conftest import assert_same_weights
+    from neulf_core.train import TrainConfig, train
+
+    if signal.getsignal(signal.SIGINT) is not signal.default_int_handler:
+        pytest.skip("Python's own Ctrl-C handler is not in place here")
+    config = TrainConfig(steps=12, batch_size=256, validate_seconds=1e9, checkpoint_seconds=1e9)
+    train(tiny_scene, tmp_path / "whole", config)
+    sent = []
+
+    def ctrl_c_at_step_5(event):
+        if event.get("event") == "step" and event["step"] >= 5 and not sent:
+            sent.append(event["step"])
+            os.kill(os.getpid(), signal.SIGINT)
+
+    with pytest.raises(KeyboardInterrupt):
+        train(tiny_scene, tmp_path / "stopped", config, progress=ctrl_c_at_step_5)
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # (put back)
+    saved = load_checkpoint(tmp_path / "stopped")["progress"]
+    assert saved["status"] == "cancelled" and sent[0] <= saved["step"] < 12
+    train(tiny_scene, tmp_path / "stopped", config, resume=True)
+    assert_same_weights(tmp_path / "whole", tmp_path / "stopped")
+
+
+def test_numpy_numbers_in_a_train_config(tiny_scene, tmp_path):
+    """A sweep's numbers are often numpy's: np.int64 steps were refused as "not 100"."""
+    from neulf_core.train import TrainConfig, train
+
+    result = train(tiny_scene, tmp_path / "model", TrainConfig(steps=np.int64(2), batch_size=np.int32(256),
+                                                               scale=np.float32(0.5), validate_seconds=1e9))
+    assert result.step == 2
+
+
 def test_resume_with_nothing_to_resume_is_said(tiny_scene, tmp_path):
     from neulf_core.train import TrainConfig, train
 
@@ -874,6 +927,8 @@ def test_a_camera_past_the_scene_sees_no_surface_behind_it(model):
     rendering = light_field.render(K, width, height, R, t)
     assert not rendering.valid.any() and np.isnan(rendering.depth).all()
     assert any("inside the scene's depth range" in w for w in rendering.warnings)
+    assert any("100.0% of the pixels meet what the capture saw behind the camera" in w for w in rendering.warnings)
+    assert not any("look away" in w for w in rendering.warnings)  # (they do not: every ray crosses the slab)
     assert np.allclose(rendering.rgb, light_field.background.cpu().numpy())
     no_depth = light_field.render(K, width, height, R, t, depth=False, pixel_samples=4)  # (found without depth asked)
     assert not no_depth.valid.any()
@@ -956,6 +1011,17 @@ def test_render_view_gives_the_camera_s_warnings(model, tiny_scene):
     assert light_field.render_view(view, 0.25).warnings == []
     inside = replaced(view, t=view.t - view.R @ np.array([0.0, 0.0, 2.8]))  # the camera 2.8 forward, near the plane
     assert any("inside the scene's depth range" in w for w in light_field.render_view(inside, 0.25).warnings)
+    past = replaced(view, t=view.t - view.R @ np.array([0.0, 0.0, 6.0]))  # past the plane: as render, nothing ahead
+    rendering = light_field.render_view(past, 0.25)
+    assert not rendering.valid.any() and np.isnan(rendering.depth).all()
+
+
+def test_render_cameras_past_the_scene_are_said(model, tmp_path, capfd, record_property):
+    """A camera past what it looks at was called one that looks away, told to turn round."""
+    cams = camera_json(tmp_path / "c.json", [pinhole("past", [0, 0, 6], [0, 0, 9])])
+    line = expect_error(["render", model, "--cameras", cams, "--out", tmp_path / "out"], capfd, record_property,
+                        "stand inside the captured scene, past what they look at")
+    assert "look away" not in line
 
 
 def test_a_scene_folder_given_as_the_model_is_said(tiny_scene, tmp_path, capfd, record_property):
@@ -964,6 +1030,13 @@ def test_a_scene_folder_given_as_the_model_is_said(tiny_scene, tmp_path, capfd, 
     line = expect_error(["render", tiny_scene, "--cameras", cams, "--out", tmp_path / "out"], capfd, record_property,
                         "is a scene folder (photos and camera poses), not a model")
     assert f"--out {tiny_scene}" not in line
+
+
+def test_focus_pixel_takes_whole_pixels(model, tmp_path, capfd, record_property):
+    """31.7 passed the image's bounds check and then aimed past its last column."""
+    cams = camera_json(tmp_path / "c.json", [pinhole("novel", [0, 0, 0], [0, 0, 3])])
+    expect_error(["render", model, "--cameras", cams, "--out", tmp_path / "out", "--aperture", "0.05",
+                  "--focus-pixel", "31.7,10"], capfd, record_property, "whole numbers")
 
 
 def test_focus_pixel_outside_the_image(model, tmp_path, capfd, record_property):
