@@ -42,6 +42,11 @@ def _process_alive(pid: int) -> bool:
     return True
 
 
+# A process counts as started after a lock only by more than this: the boot time /proc gives is
+# whole seconds, and a wall clock set back a little must not free a live training's lock.
+PID_REUSE_MARGIN_SECONDS = 60
+
+
 def _process_started_at(pid: int) -> float | None:
     """When process `pid` started (seconds since the epoch), where the system says (Linux's
     /proc); None elsewhere."""
@@ -68,7 +73,7 @@ def _holder(path: Path) -> dict | None:
     if not _process_alive(pid):
         return None
     started, claimed = _process_started_at(pid), owner.get("started")
-    if started is not None and isinstance(claimed, (int, float)) and started > claimed + 2:  # (2 s: clock ticks)
+    if started is not None and isinstance(claimed, (int, float)) and started > claimed + PID_REUSE_MARGIN_SECONDS:
         return None
     return owner
 
