@@ -1,7 +1,9 @@
 """Blender data for a capture: one collection, a root empty, one camera per photo, the two
 slab planes and the sparse points; and the reverse, a Blender camera as a pinhole in the
 model's COLMAP frame.  Objects are found again by their `neulf_role` / `neulf_view`
-custom properties, so importing twice updates instead of duplicating."""
+custom properties, so importing twice updates instead of duplicating; a capture camera also
+keeps the name the import gave it (`neulf_object`), since a copy of it (Shift+D) carries the
+same properties and is the artist's camera, not the photo's."""
 
 from __future__ import annotations
 
@@ -15,6 +17,8 @@ from . import convert
 from ..neulf_core.errors import NeulfError
 
 ROLE = "neulf_role"
+OBJECT_NAME = "neulf_object"
+CLIP_START_DEFAULT = 0.1  # a new camera's, Blender 4.2 and 5.0
 
 
 def _matrix(array) -> Matrix:
@@ -35,7 +39,12 @@ def find_capture(scene):
 
 
 def _ensure_collection(scene, name: str, fingerprint: str):
-    collection = next((c for c in bpy.data.collections if c.get("neulf_fingerprint") == fingerprint), None)
+    """The capture's collection in this scene (found by the scene's fingerprint), or a new one:
+    another scene importing the same capture gets objects of its own, so turning one scene's
+    root does not turn the other's."""
+    own = find_capture(scene)[0]
+    collection = own if own is not None and own.get("neulf_fingerprint") == fingerprint else next(
+        (c for c in scene.collection.children_recursive if c.get("neulf_fingerprint") == fingerprint), None)
     if collection is None:
         collection = bpy.data.collections.new(name)
         collection["neulf_fingerprint"] = fingerprint
@@ -45,13 +54,30 @@ def _ensure_collection(scene, name: str, fingerprint: str):
     return collection
 
 
+def is_capture_camera(obj) -> bool:
+    """One of the capture's own cameras (its pose is its photo's): not a copy an artist made of
+    one, which carries the same properties under another name."""
+    if obj is None or obj.get(ROLE) != "camera":
+        return False
+    given = obj.get(OBJECT_NAME)
+    if given is None:  # (imported before the name was kept: the import named cameras after their photos)
+        return obj.name == Path(str(obj.get("neulf_view", ""))).stem
+    return given == obj.name
+
+
 def _members(collection) -> dict:
-    found = {}
+    found, cameras = {}, {}
     for obj in collection.objects:
         if obj.get(ROLE) == "camera":
-            found[("camera", obj.get("neulf_view"))] = obj
+            cameras.setdefault(obj.get("neulf_view"), []).append(obj)
         elif obj.get(ROLE):
             found[(obj[ROLE], None)] = obj
+    for view, claiming in cameras.items():
+        own = [obj for obj in claiming if is_capture_camera(obj)]
+        if not own and len(claiming) == 1 and OBJECT_NAME not in claiming[0]:
+            own = claiming  # (an older import's camera, renamed: the only one there is)
+        if own:
+            found[("camera", view)] = own[0]
     return found
 
 
@@ -108,6 +134,7 @@ def build_capture(context, description: dict, *, import_points: bool = True):
     members = _members(collection)
 
     root = members.get(("root", None))
+    first_import = root is None
     if root is None:
         root = bpy.data.objects.new(f"NeuLF Root {root_path.name}", None)
         root.empty_display_type = "ARROWS"
@@ -131,6 +158,7 @@ def build_capture(context, description: dict, *, import_points: bool = True):
             collection.objects.link(obj)
             obj[ROLE] = "camera"
             obj["neulf_view"] = name
+        obj[OBJECT_NAME] = obj.name
         K = np.asarray(view["K"], dtype=np.float64)
         fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
         settings = convert.blender_camera_from_K(fx, fy, cx, cy, view["width"], view["height"])
@@ -163,13 +191,16 @@ def build_capture(context, description: dict, *, import_points: bool = True):
     props.capture_collection, props.root = collection, root
     props.collection_name = props.root_name = ""
     props.fingerprint = description["fingerprint"]
-    # The middle camera of the rig becomes the active one; the scene renders at its photo size.
-    middle = views[int(np.argmin(np.linalg.norm(centres - centres.mean(0), axis=1)))]["name"]
-    active = _members(collection)[("camera", middle)]
-    scene.camera = active
-    apply_capture_camera(scene, active)
-    # Network outputs are sRGB: a Standard view transform shows them as the photos look.
-    scene.view_settings.view_transform = "Standard"
+    if first_import or scene.camera is None:  # (a re-import leaves the artist's camera, size and colours)
+        # The middle camera of the rig becomes the active one; the scene renders at its photo size.
+        middle = views[int(np.argmin(np.linalg.norm(centres - centres.mean(0), axis=1)))]["name"]
+        active = _members(collection)[("camera", middle)]
+        scene.camera = active
+        apply_capture_camera(scene, active)
+    if first_import:
+        # Network outputs are sRGB: a Standard view transform shows them as the photos look.
+        scene.view_settings.view_transform = "Standard"
+        scene.view_settings.look = "None"
     return collection, root
 
 
@@ -213,12 +244,41 @@ def lens_request(camera_obj, scale: float) -> dict:
     if not dof.use_dof or dof.aperture_fstop <= 0:
         return {}
     distance = dof.focus_distance
-    if dof.focus_object is not None:  # Blender focuses on the object's origin, along the view axis
+    if dof.focus_object is not None:
+        # As Blender (BKE_camera_object_dof_distance): the object's origin, or its bone's where a
+        # bone is named, along the view axis, in front of the camera or behind it.
         forward = -np.array(camera_obj.matrix_world.to_3x3().col[2])
-        offset = np.array(dof.focus_object.matrix_world.translation - camera_obj.matrix_world.translation)
-        distance = float(offset @ forward / np.linalg.norm(forward))
+        offset = np.array(focus_point(dof) - camera_obj.matrix_world.translation)
+        distance = abs(float(offset @ forward / np.linalg.norm(forward)))
     radius = camera_obj.data.lens * 1e-3 / (2.0 * dof.aperture_fstop)
-    return {"focus_distance": max(distance, 1e-6) / scale, "aperture": radius / scale}
+    return {"focus_distance": max(distance, 1e-5) / scale, "aperture": radius / scale}
+
+
+def focus_point(dof):
+    """The world point a camera's focus object puts the focus on: its bone's head (posed)
+    where `focus_subtarget` names one of an armature's bones, else its origin."""
+    target = dof.focus_object
+    bone = getattr(dof, "focus_subtarget", "")
+    pose = target.pose if target.type == "ARMATURE" else None
+    if bone and pose is not None and bone in pose.bones:
+        return target.matrix_world @ pose.bones[bone].head
+    return target.matrix_world.translation
+
+
+def settings_not_followed(scene, camera_obj) -> list[str]:
+    """One line for each camera or render setting an artist may have set that the light field
+    does not render (it would otherwise be dropped without a word): a shaped aperture, clipping,
+    motion blur."""
+    notes = []
+    if camera_obj is not None and camera_obj.type == "CAMERA":
+        cam = camera_obj.data
+        if cam.dof.use_dof and (cam.dof.aperture_blades >= 3 or abs(cam.dof.aperture_ratio - 1.0) > 1e-6):
+            notes.append("the aperture's blades and ratio are not rendered: NeuLF's lens is round")
+        if cam.clip_start > CLIP_START_DEFAULT + 1e-6:  # (clip end: the startup camera's 100 would warn everywhere)
+            notes.append(f"{camera_obj.name}'s clip start is not rendered: the light field shows what is nearer too")
+    if scene.render.use_motion_blur:
+        notes.append("motion blur is not rendered by NeuLF")
+    return notes
 
 
 def matrix_for_pose(root_matrix, R, t) -> Matrix:

@@ -40,6 +40,8 @@ class NeulfRenderEngine(bpy.types.RenderEngine):
         mismatch = compositing.out_of_step(original)
         if mismatch:
             self.report({"WARNING"}, mismatch)
+        for note in capture.settings_not_followed(scene, scene.camera):
+            self.report({"WARNING"}, note)
 
     def _render_view(self, depsgraph, original, view: str) -> bool:
         """Render one view (a stereo eye by name, or "" without multiview) of this call's view
@@ -187,6 +189,10 @@ def _viewport_view(scene, depsgraph, region, view) -> tuple[dict, tuple]:
     model = model_dir(scene)  # (raises with what to do when there is none)
     _collection, root = capture.find_capture(scene)
     root_matrix = root.evaluated_get(depsgraph).matrix_world if root is not None else Matrix.Identity(4)
+    if (view.view_perspective == "CAMERA" and scene.camera is not None and scene.camera.type == "CAMERA"
+            and scene.camera.data.type != "PERSP"):  # (the view's own message would say to look through a camera)
+        raise NeulfError(f"camera {scene.camera.name} is {scene.camera.data.type.lower()}; NeuLF renders perspective "
+                         "cameras only.")
     request = viewport.view_request(view.view_matrix, view.window_matrix, region.width, region.height, root_matrix)
     scale = request.pop("scale")
     if view.view_perspective == "CAMERA" and scene.camera is not None and scene.camera.type == "CAMERA":

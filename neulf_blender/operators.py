@@ -178,7 +178,7 @@ class NEULF_OT_import_colmap(_Reporting, bpy.types.Operator):
         return {"RUNNING_MODAL"}
 
     def run(self, context):
-        if not self.directory:
+        if not self.directory.strip():
             raise NeulfError("choose the scene folder (the one holding sparse/0 and images/, or poses_bounds.npy).")
         description = import_scene(context, abspath(self.directory), abspath(self.images_dir), self.import_points)
         notes = "; ".join(description.get("notes", []))
@@ -243,6 +243,8 @@ def attach_model(context, path: str) -> dict:
     """Store the model folder (relative to the .blend) and show its slab."""
     refuse_linked(context.scene, "load its model")
     props = context.scene.neulf
+    if not path.strip():
+        raise NeulfError("choose the model folder (the one training wrote, holding model.json).")
     meta = read_model_json(path)
     if not meta:
         if (Path(path) / "model.json").is_file():
@@ -453,7 +455,7 @@ def spiral_camera(scene, camera):
     """The camera to keyframe: the active one, unless it is one of the capture's (its pose is its
     photo's), then a camera of the spiral's own with that camera's lens, parented to the root
     like the capture's, made the scene camera."""
-    if camera.get(capture.ROLE) != "camera":
+    if not capture.is_capture_camera(camera):
         return camera
     spiral = next((obj for obj in scene.objects if obj.get(capture.ROLE) == "spiral"), None)
     if spiral is None:
@@ -542,6 +544,64 @@ def configure_video(scene, filepath: str) -> None:
     scene.render.filepath = filepath
 
 
+# What Render Video changes for its render and puts back after: the artist's engine and output
+# (a next Ctrl+F12 would otherwise write an MP4 where an image sequence was set up).
+VIDEO_RENDER_SETTINGS = (("render", ("engine", "filepath")),
+                         ("render.image_settings", ("media_type", "file_format", "color_mode", "color_depth",
+                                                    "quality", "compression", "exr_codec")),
+                         ("render.ffmpeg", ("format", "codec")))
+
+
+def _settings_owner(scene, path: str):
+    owner = scene
+    for part in path.split("."):
+        owner = getattr(owner, part)
+    return owner
+
+
+def saved_render_settings(scene) -> list:
+    return [(path, name, getattr(_settings_owner(scene, path), name)) for path, names in VIDEO_RENDER_SETTINGS
+            for name in names if hasattr(_settings_owner(scene, path), name)]
+
+
+def restore_render_settings(scene, saved: list) -> None:
+    for path, name, value in saved:
+        try:
+            setattr(_settings_owner(scene, path), name, value)
+        except (TypeError, ValueError, AttributeError):  # (a value the restored format does not offer)
+            pass
+
+
+def restore_after_render(scene, saved: list) -> None:
+    """Put the settings back once an interactive render (which runs on after the operator) ends."""
+    def restore(*_args):
+        for handlers in (bpy.app.handlers.render_complete, bpy.app.handlers.render_cancel):
+            if restore in handlers:
+                handlers.remove(restore)
+        target = bpy.data.scenes.get(scene_name)
+        if target is not None:
+            restore_render_settings(target, saved)
+
+    scene_name = scene.name
+    bpy.app.handlers.render_complete.append(restore)
+    bpy.app.handlers.render_cancel.append(restore)
+
+
+def video_path(filepath: str) -> str:
+    """The video file a path names: a folder (an existing one, or a path ending in a slash) gets
+    neulf.mp4 inside it; a name without .mp4 gets it."""
+    given = filepath or "//neulf.mp4"
+    path = abspath(given)
+    if not os.path.isabs(path):  # ('//' in a file never saved: no folder to be relative to)
+        raise NeulfError(f"'{given}' is relative to the .blend, which is not saved yet: save it first, or choose the "
+                         "video's folder.")
+    if given.endswith(("/", "\\")) or os.path.isdir(path):
+        path = os.path.join(path, "neulf.mp4")
+    if not path.lower().endswith(".mp4"):
+        path += ".mp4"
+    return path
+
+
 class NEULF_OT_render_video(_Reporting, bpy.types.Operator):
     """Render the frame range through the light field into a video (MP4, H.264)"""
 
@@ -560,23 +620,28 @@ class NEULF_OT_render_video(_Reporting, bpy.types.Operator):
         model_dir(scene)  # a clear error before the render starts
         if scene.camera is None:
             raise NeulfError("the scene has no active camera.")
-        path = abspath(self.filepath or "//neulf.mp4")
-        if not os.path.isabs(path):  # ('//' in a file never saved: no folder to be relative to)
-            raise NeulfError(f"'{self.filepath or '//neulf.mp4'}' is relative to the .blend, which is not saved yet: "
-                             "save it first, or choose the video's folder.")
-        if not path.lower().endswith(".mp4"):
-            path += ".mp4"
+        capture.camera_request(scene, scene.camera)  # (an orthographic or panoramic camera: said before the render)
+        path = video_path(self.filepath)
         Path(path).parent.mkdir(parents=True, exist_ok=True)
+        saved = saved_render_settings(scene)
         scene.render.engine = "NEULF"
         configure_video(scene, path)
-        if bpy.app.background:
-            bpy.ops.render.render(animation=True, scene=scene.name)
-            written = Path(scene.render.frame_path(frame=scene.frame_start))  # (the name Blender gives the video)
-            if not written.is_file():
-                raise NeulfError(f"Blender wrote no video at {written}: see the console for why.")
-            self.report({"INFO"}, f"wrote {written}")
-        else:
+        if not bpy.app.background:
+            restore_after_render(scene, saved)
             bpy.ops.render.render("INVOKE_DEFAULT", animation=True, scene=scene.name)
+            return {"FINISHED"}
+        try:
+            written = Path(scene.render.frame_path(frame=scene.frame_start))  # (the name Blender gives the video)
+            try:
+                bpy.ops.render.render(animation=True, scene=scene.name)
+            except RuntimeError as exc:  # (the engine's error for a frame, say a camera switched to by a marker)
+                written.unlink(missing_ok=True)  # (a video cut short)
+                raise NeulfError(str(exc).removeprefix("Error: ").strip()) from None
+        finally:
+            restore_render_settings(scene, saved)
+        if not written.is_file():
+            raise NeulfError(f"Blender wrote no video at {written}: see the console for why.")
+        self.report({"INFO"}, f"wrote {written}")
         return {"FINISHED"}
 
 

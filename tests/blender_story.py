@@ -34,7 +34,7 @@ GRID = [(x, y) for y in (-0.3, 0.0, 0.3) for x in (-0.3, 0.0, 0.3)]
 
 STEPS = ["install", "import", "cameras_match_pycolmap", "slab_planes", "reimport_no_duplicates", "train_blocking",
          "train_options", "train_timer_resume", "train_cancel", "train_cancel_resume", "members", "render_camera", "pixel_samples",
-         "render_worker_process", "focus_at", "pick_focus_frame", "pick_focus_click", "root_scale", "engine_f12", "composite_cg", "viewport_preview", "spiral_video", "save_reload",
+         "render_worker_process", "focus_at", "pick_focus_frame", "pick_focus_click", "root_scale", "engine_f12", "composite_cg", "viewport_preview", "spiral_video", "artist_settings", "save_reload",
          "blend_moved", "linked_scene", "quit_while_training", "open_other_while_training", "reconstruct_photos", "user_errors", "dependencies_status",
          "install_dependencies"]
 
@@ -1285,6 +1285,87 @@ def run_story(setup: dict) -> None:  # noqa: C901 - one story, told in order
         assert count == 3, count
         ctx["video"] = str(written)
         return f"{written.name}: {count} frames through '{spiral.name}' (the capture camera untouched); {kept}"
+
+    @story.step("artist_settings", "spiral_video")
+    def _():
+        """What an artist sets up stays theirs (from a headless audit): a copy of a capture
+        camera, the scene camera, size and colours through a re-import; the render settings
+        through Render Video; a focus bone, a focus object behind the camera."""
+        from mathutils import Vector
+
+        scene, render = bpy.context.scene, bpy.context.scene.render
+        original_camera = bpy.data.objects["view_04"]
+        shot = original_camera.copy()  # as Shift+D: the copy carries the capture's properties
+        shot.data = original_camera.data.copy()
+        shot.name = "MyShot"
+        original_camera.users_collection[0].objects.link(shot)
+        shot.location.x += 0.5
+        bpy.context.view_layer.update()
+        moved = shot.matrix_world.copy()
+        kept = (scene.camera, render.resolution_x, render.resolution_y)
+        scene.camera, render.resolution_x, render.resolution_y = shot, 96, 64
+        scene.view_settings.view_transform = "AgX"
+        props = scene.neulf
+        assert bpy.ops.neulf.import_colmap(directory=bpy.path.abspath(props.scene_dir)) == {"FINISHED"}
+        assert np.allclose(np.array(shot.matrix_world), np.array(moved)), "the copy was snapped back onto the photo"
+        assert scene.camera == shot and (render.resolution_x, render.resolution_y) == (96, 64)
+        assert scene.view_settings.view_transform == "AgX"
+        assert not mod("capture").is_capture_camera(shot) and mod("capture").is_capture_camera(original_camera)
+        assert bpy.ops.neulf.spiral_path(frames=2) == {"FINISHED"} and scene.camera == shot  # keyframes the copy
+        # Render Video puts the artist's engine and output back, and refuses an orthographic camera.
+        render.engine, render.filepath = "CYCLES", str(work / "renders" / "sh010_####")
+        render.image_settings.file_format = "OPEN_EXR"
+        folder = work / "videos"
+        folder.mkdir(exist_ok=True)
+        assert bpy.ops.neulf.render_video(filepath=str(folder) + "/") == {"FINISHED"}
+        assert (folder / "neulf.mp4").is_file() or any(folder.glob("neulf*.mp4")), list(folder.iterdir())
+        assert (render.engine, render.image_settings.file_format) == ("CYCLES", "OPEN_EXR"), render.engine
+        assert render.filepath == str(work / "renders" / "sh010_####"), render.filepath
+        shot.data.type = "ORTHO"
+        ortho = error_of(lambda: bpy.ops.neulf.render_video(filepath=str(work / "ortho.mp4")))
+        assert "ortho" in ortho and "Traceback" not in ortho and not (work / "ortho.mp4").exists(), ortho
+        shot.data.type = "PERSP"
+        # The focus: a bone of an armature, and an object behind the camera (Blender's distances).
+        lens_request = mod("capture").lens_request
+        shot.data.dof.use_dof, shot.data.dof.aperture_fstop = True, 2.8
+        armature = bpy.data.objects.new("Rig", bpy.data.armatures.new("Rig"))
+        scene.collection.objects.link(armature)
+        bpy.context.view_layer.objects.active = armature
+        forward = -np.array(shot.matrix_world.to_3x3().col[2])
+        bpy.ops.object.mode_set(mode="EDIT")
+        bone = armature.data.edit_bones.new("focus")  # its head 3 further along the view than the rig's origin
+        bone.head = Vector(forward * 3.0)
+        bone.tail = bone.head + Vector((0.0, 0.0, 0.1))
+        bpy.ops.object.mode_set(mode="OBJECT")
+        armature.location = shot.matrix_world.translation + Vector(forward * 2.0)  # the origin 2 ahead
+        bpy.context.view_layer.update()
+        shot.data.dof.focus_object = armature
+        by_origin = lens_request(shot, 1.0)["focus_distance"]
+        if hasattr(shot.data.dof, "focus_subtarget"):
+            bone_head = armature.matrix_world @ armature.pose.bones["focus"].head
+            shot.data.dof.focus_subtarget = "focus"
+            expected = float(np.array(bone_head - shot.matrix_world.translation) @ forward)
+            by_bone = lens_request(shot, 1.0)["focus_distance"]
+            assert abs(by_bone - abs(expected)) < 1e-4 and abs(by_bone - by_origin) > 0.1, (by_bone, expected, by_origin)
+            shot.data.dof.focus_subtarget = ""
+        armature.location = shot.matrix_world.translation - Vector(forward * 2.0)  # behind the camera
+        bpy.context.view_layer.update()
+        behind = lens_request(shot, 1.0)["focus_distance"]
+        assert abs(by_origin - 2.0) < 1e-4 and abs(behind - 2.0) < 1e-4, (by_origin, behind)
+        bpy.data.objects.remove(armature)
+        bpy.data.objects.remove(shot)
+        scene.camera, render.resolution_x, render.resolution_y = kept
+        scene.view_settings.view_transform = "Standard"
+        # The same capture imported into a second scene: a root of its own (turning one turned both).
+        variant = bpy.data.scenes.new("Variant")
+        with bpy.context.temp_override(scene=variant):
+            assert bpy.ops.neulf.import_colmap(directory=bpy.path.abspath(props.scene_dir)) == {"FINISHED"}
+        assert variant.neulf.root is not None and variant.neulf.root != props.root, variant.neulf.root
+        assert variant.neulf.capture_collection != props.capture_collection
+        bpy.data.scenes.remove(variant)
+        return (f"re-import kept MyShot, the scene camera, 96x64 and AgX; the video went into videos/ and "
+                f"CYCLES/OPEN_EXR came back; ortho: {ortho.strip()}; focus {by_origin:.3f} by the origin, "
+                f"{behind:.3f} behind")
 
     @story.step("save_reload", "render_camera")
     def _():
