@@ -48,7 +48,8 @@ class NeulfSceneSettings(bpy.types.PropertyGroup):
     images_dir: StringProperty(name="Images", subtype="DIR_PATH", options=PATH_OPTIONS,
                                description="Images folder when it is not SCENE/images (optional)")
     model_dir: StringProperty(name="Model", subtype="DIR_PATH", options=PATH_OPTIONS,
-                              description="Trained NeuLF model folder (stored relative to the .blend)")
+                              description="Trained NeuLF model folder (stored relative to the .blend); empty: "
+                                          "Train makes neulf_model in the scene folder")
     capture_collection: PointerProperty(type=bpy.types.Collection, name="Capture Collection",
                                         description="Collection of the imported capture")
     root: PointerProperty(type=bpy.types.Object, name="Root",
