@@ -9,11 +9,8 @@ the camera poses (the pose check, the far-off restart) is `pose_check.py`.
 
 from __future__ import annotations
 
-import contextlib
 import math
 import numbers
-import signal
-import threading
 import time
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
@@ -32,6 +29,7 @@ from .device import describe_device, keep_freed_cpu_memory, pick_device
 from .errors import NeulfError
 from .fields import build_field, count_parameters, make_config
 from .fields.disparity import slab_geometry, texture_size_for
+from .interrupt import ctrl_c_stops
 from .lock import training_lock
 from .memo import kept_while_training
 from .members import RATE_DECISION_STEP as MEMBERS_RATE_DECISION_STEP, RATE_FROM_STEP as MEMBERS_RATE_FROM_STEP, \
@@ -53,7 +51,6 @@ MULTIVIEW_WEIGHT, DEPTH_WEIGHT = 0.5, 0.1
 # with the field's learning rate; they move from the first step (poses.py says in which part
 # first).
 POSE_LR = 3e-4
-
 
 
 # Rays per step that get the multi-view losses: 512 of the 8192 (a step costs ~1.4 times one
@@ -152,8 +149,6 @@ def _angular_resolution(n_views: int) -> int:
     """Angular cells per axis: about the number of cameras along one axis of the rig, plus
     margin; more cells than that are never observed (docs/BENCHMARKS.md)."""
     return int(min(16, max(4, round(2 * math.sqrt(n_views)))))
-
-
 
 
 def _build_field(preset_name: str, overrides: dict, train_views, slab: Slab, scale: float, appearance: bool = False,
@@ -278,31 +273,6 @@ def train(scene: Scene | str | Path, model_dir: str | Path, config: TrainConfig,
 
 def say_nothing_to_resume(model_dir: Path, progress) -> None:
     _emit(progress, event="warning", message=f"{model_dir} holds no model to resume yet: training a new one.")
-
-
-@contextlib.contextmanager
-def ctrl_c_stops(should_stop):
-    """(stop, ctrl_c): where Python's own Ctrl-C handler is in place (a script's main thread), a
-    first Ctrl-C asks the run to stop between two steps, as `should_stop` does, so the saved
-    run resumes to the weights of one never stopped (a KeyboardInterrupt could land halfway
-    through a step); a second one interrupts at once.  `ctrl_c()` says whether one came.
-    Elsewhere (the CLI and Blender have their own handlers; other threads) nothing changes."""
-    if (threading.current_thread() is not threading.main_thread()
-            or signal.getsignal(signal.SIGINT) is not signal.default_int_handler):
-        yield should_stop, lambda: False
-        return
-    asked = []
-
-    def on_ctrl_c(signum, frame):
-        if asked:
-            raise KeyboardInterrupt
-        asked.append(True)
-
-    previous = signal.signal(signal.SIGINT, on_ctrl_c)
-    try:
-        yield (lambda: bool(asked) or (should_stop is not None and bool(should_stop()))), lambda: bool(asked)
-    finally:
-        signal.signal(signal.SIGINT, previous)
 
 
 def _train(scene, model_dir: Path, config: TrainConfig, images_dir, resume: bool, progress, should_stop,
