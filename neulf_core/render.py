@@ -11,7 +11,7 @@ import math
 import numbers
 
 from contextlib import nullcontext
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -159,8 +159,14 @@ class LightField:
         self.device = device
         # Ray geometry in float32, as the training rays are (dataset.py): against float64 the
         # colours of CanClip's and fern's held-out views differ by at most 9e-5 and depth by
-        # 2e-5 relative, and a frame renders 5-20 % faster on a CPU (docs/BENCHMARKS.md).
+        # 2e-5 relative, and a frame renders 5-20 % faster on a CPU (docs/BENCHMARKS.md).  Rays
+        # are made in the slab's frame moved to the slab's origin (`local_slab`), the camera moved
+        # with it in float64 (`_local_t`): a COLMAP model can sit 1e5-1e7 units from its world's
+        # origin (a georeferenced or merged one), where float32 world coordinates are coarser
+        # than the camera rig (1e7 off: 19.7 dB where the model scores 28.9; the training rays
+        # are made relative to the origin in float64 too, dataset.view_uvst).
         self.geometry_dtype = torch.float32
+        self.local_slab = replace(slab, origin=np.zeros(3))
         self.background = torch.tensor(meta.get("scene", {}).get("mean_colour", [0, 0, 0]), dtype=torch.float32, device=device)
         self.half = half_precision(precision, device)
 
@@ -210,8 +216,9 @@ class LightField:
     @torch.inference_mode()
     def query(self, origins: torch.Tensor, directions: torch.Tensor, want_depth: bool = True, want_colour: bool = True):
         """Colour (N, 3), camera-independent depth along the slab axis (N,), valid (N,),
-        (u, v, s, t); with neither colour nor depth wanted, no field query (colour None)."""
-        uvst, valid = self.slab.rays_to_uvst(origins, directions)
+        (u, v, s, t) of rays whose `origins` are relative to the slab's origin (`_local_t`);
+        with neither colour nor depth wanted, no field query (colour None)."""
+        uvst, valid = self.local_slab.rays_to_uvst(origins, directions)
         if not (want_colour or want_depth):
             return None, None, valid, uvst
         with torch.autocast(self.device.type, dtype=torch.float16) if self.half else nullcontext():
@@ -220,12 +227,16 @@ class LightField:
         slab_depth = self.slab.depth_from_unit(depth_unit[:, 0].to(self.geometry_dtype)) if want_depth else None
         return rgb, slab_depth, valid, uvst
 
+    def _local_t(self, R: np.ndarray, t: np.ndarray) -> np.ndarray:
+        """A camera's t (world to camera) for a world moved to the slab's origin, in float64."""
+        return np.asarray(t, np.float64) + np.asarray(R, np.float64) @ self.slab.origin
+
     def _axis_depth(self, origin: torch.Tensor, directions: torch.Tensor, slab_depth: torch.Tensor, forward: torch.Tensor):
-        """Slab-axis depth of the surface point -> distance along the camera's optical axis."""
+        """Slab-axis depth of the surface point -> distance along the camera's optical axis
+        (`origin` relative to the slab's origin)."""
         dtype = self.geometry_dtype
         rotation = torch.as_tensor(self.slab.rotation, device=directions.device, dtype=dtype)
-        slab_origin = torch.as_tensor(self.slab.origin, device=directions.device, dtype=dtype)
-        o_z = (origin.to(dtype) - slab_origin) @ rotation[2]
+        o_z = origin.to(dtype) @ rotation[2]
         d_z = directions.to(dtype) @ rotation[2]
         ray_length = (slab_depth.to(dtype) - o_z) / d_z
         return ray_length * (directions.to(dtype) @ forward.to(dtype))
@@ -255,6 +266,7 @@ class LightField:
         spread = len(offsets) > 1
         rows_per_chunk = max(1, (chunk or self.default_chunk()) // width)
         forward = torch.as_tensor(R[2], device=self.device, dtype=self.geometry_dtype)
+        t_local = self._local_t(R, t)
         # The field's surfaces lie between the slab's near and far depths: only a camera past the
         # near one can have some behind it, so only there is depth needed to find them.
         inside_scene = self.camera_inside_scene(R, t)
@@ -271,7 +283,7 @@ class LightField:
 
         def render_rows(top: int, bottom: int):
             rows = slice(top, bottom)
-            origin, directions = pinhole_rays(K, R, t, width, height, self.device, self.geometry_dtype, rows)
+            origin, directions = pinhole_rays(K, R, t_local, width, height, self.device, self.geometry_dtype, rows)
             rgb, slab_depth, valid, uvst = self.query(origin, directions, need_depth, want_colour=not spread)
             axis = self._axis_depth(origin, directions, slab_depth, forward) if need_depth else None
             if inside_scene:
@@ -281,7 +293,7 @@ class LightField:
             if lens is not None:
                 rgb = self._refocused_colour(origin, directions, R, focus_distance, aperture, lens)
             elif spread:
-                rgb = self._mean_colour(pinhole_rays(shifted_K(K, offset), R, t, width, height, self.device,
+                rgb = self._mean_colour(pinhole_rays(shifted_K(K, offset), R, t_local, width, height, self.device,
                                                      self.geometry_dtype, rows) for offset in offsets)
             if inside_scene:
                 rgb = torch.where(valid[:, None], rgb, self.background)
@@ -379,7 +391,8 @@ class LightField:
         camera: pycolmap.Camera = view.scaled_camera(scale)
         width, height = int(camera.width), int(camera.height)
         pixels = pixel_centres(width, height)
-        origin, directions = view_rays(camera, view.R, view.t, pixels)
+        t_local = self._local_t(view.R, view.t)
+        origin, directions = view_rays(camera, view.R, t_local, pixels)
         origin_t = torch.as_tensor(origin, device=self.device, dtype=self.geometry_dtype)
         forward = torch.as_tensor(view.R[2], device=self.device, dtype=self.geometry_dtype)
         rgb_out = np.empty((len(directions), 3), np.float32)
@@ -390,7 +403,7 @@ class LightField:
 
         def moved_rays(start: int, stop: int):
             for offset in offsets:
-                moved = view_rays(camera, view.R, view.t, pixels[start:stop] + offset)[1]
+                moved = view_rays(camera, view.R, t_local, pixels[start:stop] + offset)[1]
                 yield origin_t, torch.as_tensor(moved, device=self.device, dtype=self.geometry_dtype)
 
         inside_scene = self.camera_inside_scene(view.R, view.t)  # (a view moved into the scene: as render does)

@@ -306,8 +306,8 @@ def check_config(config: TrainConfig) -> None:
     _check_number(config.batch_size, "batch_size", "--batch-size", whole=True, lowest=1)
     _check_number(config.holdout_every, "holdout_every", "--holdout-every", whole=True, lowest=0)
     _check_number(config.seed, "seed", "--seed", whole=True, lowest=0)
-    _check_number(config.checkpoint_seconds, "checkpoint_seconds", "--checkpoint-seconds", above_zero=True)
-    _check_number(config.validate_seconds, "validate_seconds", "--validate-seconds", above_zero=True)
+    _check_number(config.checkpoint_seconds, "checkpoint_seconds", "--checkpoint-seconds", lowest=0)  # (0: every step)
+    _check_number(config.validate_seconds, "validate_seconds", "--validate-seconds", lowest=0)
     _check_number(config.max_passes, "max_passes", "--max-passes", lowest=0)
     _check_number(config.pixel_jitter, "pixel_jitter", "--pixel-jitter", lowest=0)
 
