@@ -103,8 +103,6 @@ def _try_create(path: Path) -> bool:
     return True
 
 
-
-
 def claim(path: Path) -> None:
     """Record this process at `path` (a new file), as a training lock does: for work folders
     another run must not remove while this one uses them (reconstruct's)."""
