@@ -103,16 +103,11 @@ class ClassicLightField:
         # COLMAP model can sit 1e5-1e7 units from its origin, where float32 world coordinates are
         # coarser than the rig (the sweep's targets at 1e7 off: a mean error of 0.15 of the depth
         # range; render.LightField does the same).
-        self.origin = np.asarray(slab.origin, dtype=np.float64)
         self.R = torch.as_tensor(np.stack([v.R for v in views]), device=self.device, dtype=torch.float32)
-        self.t = torch.as_tensor(np.stack([self._local_t(v.R, v.t) for v in views]), device=self.device,
+        self.t = torch.as_tensor(np.stack([self.slab.origin_relative_t(v.R, v.t) for v in views]), device=self.device,
                                  dtype=torch.float32)
-        self.centres = torch.as_tensor(np.stack([v.center - self.origin for v in views]), device=self.device,
+        self.centres = torch.as_tensor(np.stack([v.center - slab.origin for v in views]), device=self.device,
                                        dtype=torch.float32)
-
-    def _local_t(self, R, t) -> np.ndarray:
-        """A camera's t (world to camera) for the world moved to the slab's origin."""
-        return np.asarray(t, np.float64) + np.asarray(R, np.float64) @ self.origin
 
     def _nearest(self, centre: torch.Tensor, k: int, exclude: int | None = None):
         distance = (self.centres - centre).norm(dim=1)
@@ -155,13 +150,13 @@ class ClassicLightField:
 
     def render(self, K, width: int, height: int, R, t, **options) -> np.ndarray:
         """(H, W, 3) float image of a pinhole camera (world-to-camera R, t)."""
-        origin, directions = pinhole_rays(K, R, self._local_t(R, t), width, height, self.device, torch.float32)
+        origin, directions = pinhole_rays(K, R, self.slab.origin_relative_t(R, t), width, height, self.device, torch.float32)
         return self.render_rays(origin, directions, width, height, **options)
 
     def render_view(self, view: View, scale: float, **options) -> np.ndarray:
         """A registered view through its own camera model, aligned with its photo."""
         camera = view.scaled_camera(scale)
-        origin, directions = view_rays(camera, view.R, self._local_t(view.R, view.t))
+        origin, directions = view_rays(camera, view.R, self.slab.origin_relative_t(view.R, view.t))
         as_t = lambda a: torch.as_tensor(a, device=self.device, dtype=torch.float32)  # noqa: E731
         return self.render_rays(as_t(origin), as_t(directions), int(camera.width), int(camera.height), **options)
 
@@ -170,7 +165,7 @@ class ClassicLightField:
                     mode: str = "sweep", depths: int = 32, k: int = 4, window: int = 5, exclude: int | None = None,
                     with_depth: bool = False):
         """The (H, W, 3) image; with_depth: also the sweep's per-pixel depth (SweepDepth).  `origin`
-        is relative to the slab's origin (`_local_t`)."""
+        is relative to the slab's origin (`Slab.origin_relative_t`)."""
         available = len(self.centres) - (exclude is not None)
         index, weights = self._nearest(origin, min(k, available), exclude)
         rotation = torch.as_tensor(self.slab.rotation, device=self.device, dtype=torch.float32)

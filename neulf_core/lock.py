@@ -63,17 +63,26 @@ def _holder(path: Path) -> dict | None:
     """The lock's owner, or None when the lock is stale (its process is gone, or its number
     now belongs to a process started after the lock was written: a container restarted, its
     new process given the same number) or unreadable."""
-    try:
-        owner = json.loads(path.read_text())
-        pid, host = int(owner["pid"]), str(owner["host"])
-    except (OSError, ValueError, KeyError, TypeError):
+    owner = _read_owner(path)
+    if owner is None:
         return None
+    pid, host = int(owner["pid"]), str(owner["host"])
     if host != platform.node():
         return owner  # cannot check a process on another machine: assume it runs
     if not _process_alive(pid):
         return None
     started, claimed = _process_started_at(pid), owner.get("started")
     if started is not None and isinstance(claimed, (int, float)) and started > claimed + PID_REUSE_MARGIN_SECONDS:
+        return None
+    return owner
+
+
+def _read_owner(path: Path) -> dict | None:
+    """A lock's or claim's record ({"pid", "host", "started"}), or None where it cannot be read."""
+    try:
+        owner = json.loads(path.read_text())
+        int(owner["pid"]), str(owner["host"])
+    except (OSError, ValueError, KeyError, TypeError):
         return None
     return owner
 
@@ -120,18 +129,9 @@ def claim_holder(path: Path, unreadable_for_seconds: float) -> dict | None:
     except OSError:
         return None
     owner = _holder(path)
-    if owner is None and age < unreadable_for_seconds and not _readable(path):
+    if owner is None and age < unreadable_for_seconds and _read_owner(path) is None:
         return {"pid": "?", "host": platform.node(), "started": None}
     return owner
-
-
-def _readable(path: Path) -> bool:
-    try:
-        owner = json.loads(path.read_text())
-        int(owner["pid"]), str(owner["host"])
-    except (OSError, ValueError, KeyError, TypeError):
-        return False
-    return True
 
 
 @contextlib.contextmanager

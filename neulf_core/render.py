@@ -161,7 +161,7 @@ class LightField:
         # colours of CanClip's and fern's held-out views differ by at most 9e-5 and depth by
         # 2e-5 relative, and a frame renders 5-20 % faster on a CPU (docs/BENCHMARKS.md).  Rays
         # are made in the slab's frame moved to the slab's origin (`local_slab`), the camera moved
-        # with it in float64 (`_local_t`): a COLMAP model can sit 1e5-1e7 units from its world's
+        # with it in float64 (`Slab.origin_relative_t`): a COLMAP model can sit 1e5-1e7 units from its world's
         # origin (a georeferenced or merged one), where float32 world coordinates are coarser
         # than the camera rig (1e7 off: 19.7 dB where the model scores 28.9; the training rays
         # are made relative to the origin in float64 too, dataset.view_uvst).
@@ -216,7 +216,7 @@ class LightField:
     @torch.inference_mode()
     def query(self, origins: torch.Tensor, directions: torch.Tensor, want_depth: bool = True, want_colour: bool = True):
         """Colour (N, 3), camera-independent depth along the slab axis (N,), valid (N,),
-        (u, v, s, t) of rays whose `origins` are relative to the slab's origin (`_local_t`);
+        (u, v, s, t) of rays whose `origins` are relative to the slab's origin (`Slab.origin_relative_t`);
         with neither colour nor depth wanted, no field query (colour None)."""
         uvst, valid = self.local_slab.rays_to_uvst(origins, directions)
         if not (want_colour or want_depth):
@@ -226,10 +226,6 @@ class LightField:
         rgb = torch.where(valid[:, None], rgb.float(), self.background)
         slab_depth = self.slab.depth_from_unit(depth_unit[:, 0].to(self.geometry_dtype)) if want_depth else None
         return rgb, slab_depth, valid, uvst
-
-    def _local_t(self, R: np.ndarray, t: np.ndarray) -> np.ndarray:
-        """A camera's t (world to camera) for a world moved to the slab's origin, in float64."""
-        return np.asarray(t, np.float64) + np.asarray(R, np.float64) @ self.slab.origin
 
     def _axis_depth(self, origin: torch.Tensor, directions: torch.Tensor, slab_depth: torch.Tensor, forward: torch.Tensor):
         """Slab-axis depth of the surface point -> distance along the camera's optical axis
@@ -266,7 +262,7 @@ class LightField:
         spread = len(offsets) > 1
         rows_per_chunk = max(1, (chunk or self.default_chunk()) // width)
         forward = torch.as_tensor(R[2], device=self.device, dtype=self.geometry_dtype)
-        t_local = self._local_t(R, t)
+        t_local = self.slab.origin_relative_t(R, t)
         # The field's surfaces lie between the slab's near and far depths: only a camera past the
         # near one can have some behind it, so only there is depth needed to find them.
         inside_scene = self.camera_inside_scene(R, t)
@@ -391,7 +387,7 @@ class LightField:
         camera: pycolmap.Camera = view.scaled_camera(scale)
         width, height = int(camera.width), int(camera.height)
         pixels = pixel_centres(width, height)
-        t_local = self._local_t(view.R, view.t)
+        t_local = self.slab.origin_relative_t(view.R, view.t)
         origin, directions = view_rays(camera, view.R, t_local, pixels)
         origin_t = torch.as_tensor(origin, device=self.device, dtype=self.geometry_dtype)
         forward = torch.as_tensor(view.R[2], device=self.device, dtype=self.geometry_dtype)

@@ -69,6 +69,12 @@ class Slab:
     def to_world(self, points: np.ndarray) -> np.ndarray:
         return np.asarray(points, dtype=np.float64) @ self.rotation + self.origin
 
+    def origin_relative_t(self, R, t) -> np.ndarray:
+        """A camera's t (world to camera) for the world moved to the slab's origin, in float64:
+        rays made from it stay exact in float32 however far the model sits from its world's
+        origin (render.LightField, classic.ClassicLightField)."""
+        return np.asarray(t, np.float64).reshape(3) + np.asarray(R, np.float64) @ self.origin
+
     def plane_corners(self, plane: str) -> np.ndarray:
         """(4, 3) world corners of the uv or st plane's extent (the training rays' range)."""
         a, z = (0, self.z_uv) if plane == "uv" else (2, self.z_st)

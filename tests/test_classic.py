@@ -50,7 +50,7 @@ def test_the_sweep_projects_each_plane_where_the_cameras_see_it(tiny_scene):
 
     scene, classic = _classic(tiny_scene)
     view = scene.views[4]
-    origin, directions = (torch.as_tensor(a, dtype=torch.float32) for a in view_rays(view.camera, view.R, classic._local_t(view.R, view.t)))  # (rays relative to the slab origin)
+    origin, directions = (torch.as_tensor(a, dtype=torch.float32) for a in view_rays(view.camera, view.R, classic.slab.origin_relative_t(view.R, view.t)))  # (rays relative to the slab origin)
     index = torch.tensor([0, 3, 7])
     photos = classic.images[index].float() / 255
     base, step = classic._projection(index, origin, directions)

@@ -411,7 +411,7 @@ def test_render_depth_of_a_constant_slab_depth_for_a_tilted_camera():
     # _axis_depth directly, in float64 (renders use float32 ray geometry, like training), on rays made
     # relative to the slab origin as render makes them.
     light_field.geometry_dtype = torch.float64
-    origin, directions = pinhole_rays(K, R, light_field._local_t(R, t), width, height, dtype=torch.float64)  # (slab-relative)
+    origin, directions = pinhole_rays(K, R, light_field.slab.origin_relative_t(R, t), width, height, dtype=torch.float64)  # (slab-relative)
     axis = light_field._axis_depth(origin, directions, torch.full((width * height,), slab_depth, dtype=torch.float64),
                                    torch.as_tensor(R[2]))
     np.testing.assert_allclose(axis.numpy(), expected.ravel(), rtol=1e-10)
