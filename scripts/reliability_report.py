@@ -184,11 +184,13 @@ CASES = [
         f"{REL}::test_numpy_numbers_in_a_train_config",
         f"{REL}::test_render_cameras_past_the_scene_are_said",
         f"{REL}::test_resume_with_nothing_to_resume_is_said"]),
-    Case("A reconstruction far from its world's origin (georeferenced, 1e7 units off): renders and sweeps as near it", [
+    Case("A reconstruction far from its world's origin (georeferenced, 1e7 units off): renders, sweeps and trains "
+         "(rays, camera neighbours, pose corrections) as near it", [
         *_ids("tests/test_far_origin.py::test_a_camera_far_from_the_origin_renders_as_near_it", "pinhole",
               "pixel samples", "refocus"),
         "tests/test_far_origin.py::test_a_registered_view_far_from_the_origin_renders_as_near_it",
-        "tests/test_far_origin.py::test_the_plane_sweep_far_from_the_origin_sweeps_as_near_it"]),
+        "tests/test_far_origin.py::test_the_plane_sweep_far_from_the_origin_sweeps_as_near_it",
+        "tests/test_far_origin.py::test_training_rays_and_camera_centres_far_from_the_origin_are_as_near_it"]),
     Case("Blender: an artist's own settings kept (a copy of a capture camera, the scene camera, size and colours "
          "through a re-import, the output through Render Video, a second scene's capture), an orthographic camera "
          "refused before a video, DOF on a bone or an object behind the camera as Blender focuses", [

@@ -72,3 +72,33 @@ def test_the_plane_sweep_far_from_the_origin_sweeps_as_near_it(tiny_scene):
     far_image, far_depth = far.render_view(moved(view), 1.0, exclude=4, with_depth=True)
     assert np.abs(image - far_image).max() < 2e-3
     np.testing.assert_allclose(far_depth.unit.numpy(), depth.unit.numpy(), atol=1e-3)
+
+
+def test_training_rays_and_camera_centres_far_from_the_origin_are_as_near_it(tiny_scene):
+    """The training side: the rays' (u, v, s, t), the multi-view losses' camera neighbours and
+    the pose corrections' camera centres are all made in the slab's frame in float64 before
+    they become float32, so the capture moved 1e7 away trains on the same numbers."""
+    from neulf_core.consistency import camera_neighbours
+    from neulf_core.dataset import view_uvst
+    from neulf_core.poses import PoseRefinement
+
+    scene = load_scene(tiny_scene)
+    train_views, _ = split_views(scene, holdout_every=8)
+    slab = fit_slab(scene, train_views)
+    far_slab = replace(slab, origin=slab.origin + FAR)
+    far_views = [moved(v) for v in train_views]
+    near_uvst, near_valid = view_uvst(train_views[1], slab, 0.5)
+    far_uvst, far_valid = view_uvst(far_views[1], far_slab, 0.5)
+    assert bool((near_valid == far_valid).all())
+    assert float((near_uvst - far_uvst).abs().max()) < 1e-5
+    centres = np.array([v.center for v in train_views])
+    far_centres = np.array([v.center for v in far_views])
+    np.testing.assert_allclose(far_centres - centres, np.broadcast_to(FAR, centres.shape), rtol=0, atol=1e-6)
+    near_neighbours, far_neighbours = camera_neighbours(centres, slab), camera_neighbours(far_centres, far_slab)
+    # (the rig is a grid: cameras at equal distances may swap places in the order, so compare the
+    # chosen neighbours' distances, which are what the weights follow)
+    gap = lambda n: (n.centres[n.index] - n.centres[:, None]).norm(dim=-1)
+    assert float((gap(near_neighbours) - gap(far_neighbours)).abs().max()) < 1e-6
+    assert float((near_neighbours.weights - far_neighbours.weights).abs().max()) < 1e-6
+    assert float((near_neighbours.centres - far_neighbours.centres).abs().max()) < 1e-6
+    assert float((PoseRefinement(slab, centres).centres - PoseRefinement(far_slab, far_centres).centres).abs().max()) < 1e-6
