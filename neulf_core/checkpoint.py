@@ -142,6 +142,15 @@ def render_path(model_dir: Path) -> Path:
     return full
 
 
+def saved_scene_record(model_dir) -> dict | None:
+    """model.json's record of the scene a model trained on (its photos' folder and sizes), or
+    None where there is no readable model.json (a new folder, or one a user tidied)."""
+    try:
+        return json.loads((Path(model_dir).expanduser() / METADATA_NAME).read_text()).get("scene")
+    except (OSError, ValueError, AttributeError):
+        return None
+
+
 def load_checkpoint(model_dir: Path, map_location="cpu") -> dict:
     """The full checkpoint (for resuming)."""
     payload = _read(checkpoint_path(model_dir), model_dir, map_location)

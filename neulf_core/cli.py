@@ -322,17 +322,6 @@ def _save_rendering(out: Path, stem: str, rendering, want_depth: bool, exr: bool
         print(f"warning ({stem}): {note}", file=sys.stderr)
 
 
-def _select_views(scene, light_field, names: list[str]):
-    if names == ["held-out"]:
-        held = light_field.meta["scene"]["held_out"]
-        if not held:
-            raise NeulfError("the model was trained without held-out views; name the views to render.")
-        return [scene.view(n) for n in held]
-    if names == ["all"]:
-        return list(scene.views)
-    return [scene.view(n) for n in names]
-
-
 def _focus_options(args):
     """(focus_distance, aperture, focus_pixel) from the render options, checked."""
     if args.focal_length is not None and args.f_stop is None:
@@ -394,6 +383,18 @@ def _render_pinhole(light_field, cam: dict, args, focus_options):
                               focus_distance=focus, aperture=aperture, pixel_samples=args.pixel_samples)
 
 
+def _view_focus(light_field, view, scale: float, pixel) -> float:
+    """The depth under --focus-pixel X,Y of a registered view: its depth map's depth[Y, X], through
+    the view's own camera model, as `render --views --depth` writes it."""
+    width, height = view.scaled_camera(scale).width, view.scaled_camera(scale).height
+    if not (0 <= pixel[0] < width and 0 <= pixel[1] < height):
+        raise NeulfError(f"--focus-pixel {pixel[0]:g},{pixel[1]:g} is outside {view.stem}'s {width} x {height} image "
+                         "(X from the left, Y from the top, in pixels).")
+    focus = light_field.view_depth_at(view, scale, pixel[0] + 0.5, pixel[1] + 0.5)
+    print(f"{view.stem}: focus at pixel ({pixel[0]:g}, {pixel[1]:g}) -> depth {focus:.6g}", file=sys.stderr)
+    return focus
+
+
 def _past_the_scene(names: list[str], rendered: int, out: Path) -> str:
     """The message for cameras standing past everything they look at."""
     shown = ", ".join(names[:3]) + (" ..." if len(names) > 3 else "")
@@ -413,14 +414,13 @@ def _looking_away(names: list[str], light_field, rendered: int, out: Path) -> st
 
 def cmd_render(args) -> int:
     from .render import LightField
-    from .scene import load_scene
+    from .scene import images_dir_as_trained, load_scene, other_photos_note, scale_as_trained, select_views
 
     if (args.scene is None) == (args.cameras is None):
         raise NeulfError("render needs either --scene SCENE_DIR --views NAME,... or --cameras CAMERAS.json.")
     if args.cameras and args.views:
         raise NeulfError("--views names views of --scene; --cameras renders every camera of its file: give one of them.")
     focus_options = _focus_options(args)
-    refocus = focus_options[1] > 0 or focus_options[2] is not None
     light_field = LightField.load(args.model_dir, args.device, args.precision)
     out = _output_folder(args.out)
     count, started = 0, time.perf_counter()
@@ -442,17 +442,21 @@ def cmd_render(args) -> int:
         names = _names(args.views)
         if not names:
             raise NeulfError("--views needs view names (comma-separated), 'held-out' or 'all'.")
-        scene = load_scene(args.scene, args.images)
+        saved = light_field.meta["scene"]
+        scene = load_scene(args.scene, images_dir_as_trained(args.scene, args.images, saved))
         light_field.check_scene(scene)
-        scale = light_field.trained_scale if args.scale is None else args.scale
-        for view in _select_views(scene, light_field, names):
-            if refocus:  # through the view's undistorted pinhole: the lens model is a pinhole's
-                camera = view.scaled_camera(scale)
-                cam = {"name": view.stem, "K": camera.calibration_matrix(), "width": camera.width,
-                       "height": camera.height, "R": view.R, "t": view.t}
-                rendering = _render_pinhole(light_field, cam, args, focus_options)
-            else:
-                rendering = light_field.render_view(view, scale, depth=args.depth, pixel_samples=args.pixel_samples)
+        views = select_views(scene, names, saved["held_out"])
+        note = other_photos_note(views, saved) if args.scale is None else None
+        if note:
+            print(f"warning: {note}", file=sys.stderr)
+        for view in views:
+            # (the trained pixel size, whichever of a scene's images folders is read; --scale: of the photos read)
+            scale = scale_as_trained(view, saved, light_field.trained_scale) if args.scale is None else args.scale
+            focus, aperture, pixel = focus_options
+            if pixel is not None:
+                focus = _view_focus(light_field, view, scale, pixel)
+            rendering = light_field.render_view(view, scale, depth=args.depth, pixel_samples=args.pixel_samples,
+                                                focus_distance=focus, aperture=aperture)
             _save_rendering(out, view.stem, rendering, args.depth, args.exr)
             count += 1
     print(f"rendered {count} image(s) into {out} in {time.perf_counter() - started:.1f} s")
@@ -479,6 +483,8 @@ def cmd_eval(args) -> int:
         turns = ", ".join(f"{row['view']} {row['pose_fit_degrees']:.3f} deg" for row in report["views"])
         print(f"PSNR with each view's pose fitted to its photo: {report['mean_psnr_pose_fitted']:.3f} (turned: {turns})")
     print(f"(mean-colour image: {report['mean_colour_psnr']:.2f} dB; written {report['written']})")
+    for note in report["warnings"]:
+        print(f"warning: {note}", file=sys.stderr)
     if not perceptual:
         print("(LPIPS: not reported until its weights are fetched once: python -m neulf_core fetch-lpips)")
     return 0
@@ -696,7 +702,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("model_dir")
     p.add_argument("--out", required=True, help="video file (.mp4)")
     p.add_argument("--frames", type=POSITIVE_INT, default=60)
-    p.add_argument("--fps", type=POSITIVE_INT, default=30)
+    p.add_argument("--fps", type=POSITIVE, default=30, help="frames per second (29.97 and other fractional rates too)")
     p.add_argument("--device")
     _precision_argument(p)
     _pixel_samples_argument(p)

@@ -15,7 +15,8 @@ from .lpips import load_lpips, lpips_distance
 from .metrics import psnr, ssim
 from .render import DEFAULT_PIXEL_SAMPLES, LightField
 from .poses import fit_view_pose
-from .scene import camera_spacing, load_scene
+from .scene import (camera_spacing, images_dir_as_trained, load_scene, other_photos_note, scale_as_trained,
+                    select_views)
 
 
 def evaluate_model(model_dir, scene_dir, *, images_dir=None, out_dir=None, views=None, device=None,
@@ -24,20 +25,24 @@ def evaluate_model(model_dir, scene_dir, *, images_dir=None, out_dir=None, views
     `render` writes); with `fit_poses` also after fitting each view's pose to its photo
     (poses.fit_view_pose), the fairer score where the reconstruction's poses carry error."""
     light_field = LightField.load(model_dir, device, precision="full")  # scores are float32's
-    scene = load_scene(scene_dir, images_dir)
+    saved = light_field.meta["scene"]
+    scene = load_scene(scene_dir, images_dir_as_trained(scene_dir, images_dir, saved))
     light_field.check_scene(scene)
-    names = _view_names(views, light_field.meta["scene"]["held_out"], scene)
+    names = _view_names(views, saved["held_out"], scene)
     out = Path(out_dir) if out_dir else Path(model_dir) / "eval"
-    scale = light_field.trained_scale
+    note = other_photos_note([scene.view(name) for name in names], saved)
+    notes = [note] if note else []
     mean_colour = np.asarray(light_field.meta["scene"]["mean_colour"], dtype=np.float32)
     rows, baseline = [], []
     perceptual = load_lpips()  # None until the user fetched its weights (python -m neulf_core fetch-lpips)
     for name in names:
         view = scene.view(name)
+        scale = scale_as_trained(view, saved, light_field.trained_scale)  # (photos of another folder: note)
         photo = view.load_image(scale)
         started = time.perf_counter()
         rendering = light_field.render_view(view, scale, depth=False, pixel_samples=pixel_samples)
         seconds = time.perf_counter() - started
+        notes += [f"{view.name}: {warning}" for warning in rendering.warnings]  # (rays past the capture: a low score)
         target = photo.astype(np.float32) / 255.0
         rows.append({"view": view.name, "psnr": psnr(rendering.rgb, target), "ssim": ssim(rendering.rgb, target),
                      "render_seconds": seconds, "width": photo.shape[1], "height": photo.shape[0]})
@@ -53,7 +58,8 @@ def evaluate_model(model_dir, scene_dir, *, images_dir=None, out_dir=None, views
         if save_images:
             save_rgb(out / f"{view.stem}.png", rendering.rgb)
     report = {
-        "model": str(model_dir), "scene": str(scene_dir), "scale": scale, "views": rows,
+        "model": str(model_dir), "scene": str(scene_dir), "scale": light_field.trained_scale, "views": rows,
+        "images": str(scene.images_dir) if scene.images_dir else None, "warnings": notes,
         "mean_psnr": float(np.mean([r["psnr"] for r in rows])), "mean_ssim": float(np.mean([r["ssim"] for r in rows])),
         "mean_colour_psnr": float(np.mean(baseline)), "device": str(light_field.device), "pixel_samples": pixel_samples,
     }
@@ -73,8 +79,9 @@ def evaluate_model(model_dir, scene_dir, *, images_dir=None, out_dir=None, views
 
 def _view_names(views, held_out: list[str], scene) -> list[str]:
     """The views to score: `views` names them, as a list or as one name in a string (not
-    spelt out letter by letter); None, empty or "held-out" means the model's held-out views,
-    "all" every view of the scene (the training views too: how well the model fits its photos)."""
+    spelt out letter by letter); None or empty means the model's held-out views; "held-out"
+    and "all" (every view of the scene, the training views too: how well the model fits its
+    photos) may stand among names.  Each view is scored once."""
     if isinstance(views, Path):
         views = str(views)
     if isinstance(views, str):
@@ -83,10 +90,4 @@ def _view_names(views, held_out: list[str], scene) -> list[str]:
         names = [str(name) for name in views] if views is not None else []
     except TypeError:
         raise NeulfError(f"views={views!r}: give a view name, a list of view names, 'all' or 'held-out'.") from None
-    if names in ([], ["held-out"]):
-        names = list(held_out)
-    elif names == ["all"]:
-        names = [view.name for view in scene.views]
-    if not names:
-        raise NeulfError("the model was trained without held-out views (--holdout-every 0); name views with --views.")
-    return names
+    return [view.name for view in select_views(scene, names or ["held-out"], held_out)]

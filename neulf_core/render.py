@@ -23,7 +23,7 @@ from .device import HALF_DEVICES, keep_freed_cpu_memory, pick_device
 from .errors import NeulfError
 from .fields import build_field, make_config
 from .members import finished_members, member_dir
-from .rays import pinhole_rays, pixel_centres, shifted_K, single_pixel_K, view_rays
+from .rays import pinhole_K, pinhole_rays, pixel_centres, shifted_K, single_pixel_K, view_rays
 from .refocus import MAX_SAMPLES, lens_rays, lens_samples, max_blur_radius_px, sample_count
 from .scene import View
 from .slab import Slab
@@ -377,11 +377,16 @@ class LightField:
         return notes
 
     def render_view(self, view: View, scale: float | None = None, *, depth: bool = True, chunk: int | None = None,
-                    pixel_samples: int = 1, pixel_footprint: float = PIXEL_FOOTPRINT) -> Rendering:
+                    pixel_samples: int = 1, pixel_footprint: float = PIXEL_FOOTPRINT,
+                    focus_distance: float | None = None, aperture: float = 0.0,
+                    max_samples: int = MAX_SAMPLES) -> Rendering:
         """Render a registered view through its own camera model (distortion included), so
         the result lines up pixel for pixel with its photo (`pixel_samples` as in `render`).
-        The view must be of the scene the model was trained on: `check_scene(scene)` says
-        where it is not (the CLI and evaluate_model call it)."""
+        With `aperture` and `focus_distance` it is refocused as `render` refocuses, each lens
+        sample's rays through the same distorted pixels (a refocus through the view's pinhole
+        part had moved CanClip's corners 10 pixels).  The view must be of the scene the model
+        was trained on: `check_scene(scene)` says where it is not (the CLI and evaluate_model
+        call it)."""
         scale = self.trained_scale if scale is None else scale
         chunk = chunk or self.default_chunk()
         camera: pycolmap.Camera = view.scaled_camera(scale)
@@ -394,7 +399,10 @@ class LightField:
         rgb_out = np.empty((len(directions), 3), np.float32)
         valid = np.empty(len(directions), bool)
         depth_map = np.empty(len(directions), np.float32) if depth else None
+        lens = self._lens_plan(pinhole_K(camera), focus_distance, aperture, max_samples)
         offsets = pixel_offsets(pixel_samples, pixel_footprint)
+        if lens is not None:  # (the lens samples spread over each pixel's light: as render)
+            offsets = pixel_offsets(1)
         spread = len(offsets) > 1
 
         def moved_rays(start: int, stop: int):
@@ -404,16 +412,19 @@ class LightField:
 
         inside_scene = self.camera_inside_scene(view.R, view.t)  # (a view moved into the scene: as render does)
         need_depth = depth or inside_scene
-        behind = [0]
+        behind, outside = [0], [0]
 
         def render_rays(start: int, stop: int):
             d = torch.as_tensor(directions[start:stop], device=self.device, dtype=self.geometry_dtype)
-            rgb, slab_depth, ok, _ = self.query(origin_t, d, need_depth, want_colour=not spread)
+            rgb, slab_depth, ok, uvst = self.query(origin_t, d, need_depth, want_colour=not spread and lens is None)
             axis = self._axis_depth(origin_t, d, slab_depth, forward) if need_depth else None
             if inside_scene:
                 behind[0] += int((ok & (axis <= 0)).sum())
                 ok = ok & (axis > 0)
-            if spread:
+            outside[0] += int(((uvst.abs() > 1 + EXTRAPOLATION_MARGIN).any(dim=1) & ok).sum())
+            if lens is not None:
+                rgb = self._refocused_colour(origin_t, d, view.R, focus_distance, aperture, lens)
+            elif spread:
                 rgb = self._mean_colour(moved_rays(start, stop))
             if inside_scene:
                 rgb = torch.where(ok[:, None], rgb, self.background)
@@ -428,7 +439,22 @@ class LightField:
             depth_map = depth_map.reshape(height, width)
             depth_map[~valid] = np.nan
         return Rendering(rgb_out.reshape(height, width, 3), depth_map, valid,
-                         self._camera_warnings(view.R, view.t, valid, 0, behind[0]))
+                         self._camera_warnings(view.R, view.t, valid, outside[0], behind[0]))
+
+    def view_depth_at(self, view: View, scale: float | None, x: float, y: float) -> float:
+        """Depth along the optical axis under image point (x, y) of a registered view, through its
+        own camera model (x = 10.5 the centre of column 10): the depth map render_view gives."""
+        camera = view.scaled_camera(self.trained_scale if scale is None else scale)
+        origin, direction = view_rays(camera, view.R, self.slab.origin_relative_t(view.R, view.t), np.array([[x, y]]))
+        origin_t = torch.as_tensor(origin, device=self.device, dtype=self.geometry_dtype)
+        d = torch.as_tensor(direction, device=self.device, dtype=self.geometry_dtype)
+        _, slab_depth, ok, _ = self.query(origin_t, d, want_depth=True, want_colour=False)
+        forward = torch.as_tensor(view.R[2], device=self.device, dtype=self.geometry_dtype)
+        value = float(self._axis_depth(origin_t, d, slab_depth, forward)[0])
+        if not bool(ok[0]) or not np.isfinite(value) or value <= 0:
+            raise NeulfError(f"the light field has no depth at pixel ({x:g}, {y:g}) of {view.name}: the ray misses the "
+                             "light slab, or what it meets lies behind the camera.")
+        return value
 
 
 class MemberMean(torch.nn.Module):

@@ -12,7 +12,7 @@ from __future__ import annotations
 import copy
 import hashlib
 import struct
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -82,6 +82,18 @@ class Scene:
     kind: str                               # "colmap" or "llff"
     depth_bounds: np.ndarray | None = None  # (V, 2) near/far per view (LLFF only)
     notes: list[str] = field(default_factory=list)  # what loading had to adapt, for the user
+    images_dir: Path | None = None          # the folder the photos were read from
+
+    def images_record(self) -> str | None:
+        """The photos' folder as a model records it: relative to the scene folder where it lies
+        inside it (LLFF's images_8/ and images_16/ hold the same views at other sizes), so the
+        scene folder can move."""
+        if self.images_dir is None:
+            return None
+        try:
+            return Path(self.images_dir).absolute().relative_to(Path(self.root).absolute()).as_posix()
+        except ValueError:
+            return str(Path(self.images_dir).absolute())
 
     def view(self, name: str) -> View:
         for view in self.views:
@@ -159,6 +171,69 @@ def find_images_dir(scene_dir: Path) -> Path | None:
     return min(scaled)[1] if scaled else None
 
 
+def select_views(scene: Scene, names: list[str], held_out: list[str]) -> list[View]:
+    """The views `names` asks for, each once, in the order first named: a view's name or stem,
+    "held-out" (the model's held-out views) or "all" (every view), mixed as the user likes."""
+    chosen: dict[str, View] = {}
+    for name in names:
+        if name == "held-out":
+            if not held_out:
+                raise NeulfError("the model was trained without held-out views (--holdout-every 0); name views "
+                                 "with --views.")
+            views = [scene.view(n) for n in held_out]
+        elif name == "all":
+            views = list(scene.views)
+        else:
+            views = [scene.view(name)]
+        for view in views:
+            chosen.setdefault(view.name, view)
+    return list(chosen.values())
+
+
+def images_dir_as_trained(scene_dir: str | Path, images_dir: str | Path | None, saved_scene: dict | None):
+    """The photos to read a trained model's scene with: the folder asked for; else the one its
+    training read (model.json's scene.images), where that is there; else the scene's default.
+    (Without this, a model trained on LLFF's images_16/ was scored and resumed on images_8/,
+    four times its pixels, without a word.)"""
+    if images_dir is not None:
+        return images_dir
+    recorded = (saved_scene or {}).get("images")
+    if recorded:
+        path = Path(recorded) if Path(recorded).is_absolute() else Path(scene_dir).expanduser() / recorded
+        if path.is_dir():
+            return path
+    return None
+
+
+def trained_photo_size(view: View, saved_scene: dict | None) -> tuple[int, int] | None:
+    """The size of `view`'s photo when the model trained, where the model recorded it and the
+    photo read now has another size (another images folder); else None."""
+    trained = ((saved_scene or {}).get("photo_sizes") or {}).get(view.name)
+    if not trained or tuple(trained) == view.size:
+        return None
+    return int(trained[0]), int(trained[1])
+
+
+def scale_as_trained(view: View, saved_scene: dict | None, scale: float) -> float:
+    """The scale that gives `view`'s photo read now the pixel size the model trained it at (its
+    recorded photo size times `scale`): the same pictures whichever images folder is read."""
+    trained = trained_photo_size(view, saved_scene)
+    return scale if trained is None else scale * trained[0] / view.size[0]
+
+
+def other_photos_note(views: list[View], saved_scene: dict | None) -> str | None:
+    """One line for photos of another size than the model trained on, or None."""
+    differ = [(v, trained_photo_size(v, saved_scene)) for v in views]
+    differ = [(v, size) for v, size in differ if size is not None]
+    if not differ:
+        return None
+    view, size = differ[0]
+    return (f"{len(differ)} of the photos read are of another size than the model trained on ({view.name}: "
+            f"{view.size[0]}x{view.size[1]}, trained on {size[0]}x{size[1]}; the model read "
+            f"{(saved_scene or {}).get('images') or 'another folder'}): rendered and scored at the size it trained at; "
+            "give --images with the folder it trained on for its own photos.")
+
+
 def load_scene(scene_dir: str | Path, images_dir: str | Path | None = None) -> Scene:
     """Read a scene folder: a COLMAP model (sparse/0 or sparse/) or an LLFF poses_bounds.npy."""
     scene_dir = Path(scene_dir).expanduser()
@@ -175,9 +250,9 @@ def load_scene(scene_dir: str | Path, images_dir: str | Path | None = None) -> S
 
     model_dir = find_model_dir(scene_dir)
     if model_dir is not None:
-        return _load_colmap(scene_dir, model_dir, images_dir)
+        return replace(_load_colmap(scene_dir, model_dir, images_dir), images_dir=images_dir)
     if (scene_dir / "poses_bounds.npy").is_file():
-        return _load_llff(scene_dir, images_dir)
+        return replace(_load_llff(scene_dir, images_dir), images_dir=images_dir)
     if find_model_dir(scene_dir.parent) is not None and scene_dir.name == "sparse":
         raise NeulfError(f"{scene_dir} is the COLMAP model's folder: give the scene folder above it, "
                          f"{scene_dir.parent} (the one holding sparse/ and images/).")

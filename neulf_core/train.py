@@ -12,6 +12,7 @@ from __future__ import annotations
 import math
 import numbers
 import time
+from collections import Counter
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Callable
@@ -22,7 +23,7 @@ import torch
 from . import __version__
 from .appearance import ViewAppearance, appearance_by_default, exposure_difference, photo_exposures
 from .checkpoint import (TRAINING_STATE_KEY, checkpoint_path, load_checkpoint, remove_stale_temporaries,
-                         save_checkpoint)
+                         save_checkpoint, saved_scene_record)
 from .consistency import SlabGeometry, camera_neighbours, multiview_losses
 from .dataset import RaySet, kept_rayset, mean_colour
 from .device import describe_device, keep_freed_cpu_memory, pick_device
@@ -31,7 +32,7 @@ from .fields import build_field, count_parameters, make_config
 from .fields.disparity import slab_geometry, texture_size_for
 from .interrupt import ctrl_c_stops
 from .lock import training_lock
-from .memo import kept_while_training
+from .memo import kept, kept_while_training
 from .members import RATE_DECISION_STEP as MEMBERS_RATE_DECISION_STEP, RATE_FROM_STEP as MEMBERS_RATE_FROM_STEP, \
     member_budget, member_split, members_by_rule, passes_for_members, share_spent, share_words
 from . import pose_check, rules
@@ -39,8 +40,8 @@ from . import poses as poses_module
 from .poses import DEPTH_LIKE_GAUGE, PoseRefinement
 from .progress import emit as _emit
 from .presets import APPEARANCE_ADAM_BETA2, APPEARANCE_GEOMETRY, DEFAULT_PRESET, get_preset
-from .scene import Scene, load_scene, scaled_size, split_views
-from .slab import Slab, fit_slab
+from .scene import Scene, images_dir_as_trained, load_scene, scaled_size, split_views, trained_photo_size
+from .slab import Slab, fit_slab, wide_views
 from .teacher import strong_pull, sweep_depth_targets, sweep_photo_scale, teacher_fade, teacher_loss, teacher_weight
 from .point_depth import point_depth_loss, point_depth_targets
 
@@ -263,6 +264,8 @@ def train(scene: Scene | str | Path, model_dir: str | Path, config: TrainConfig,
         remove_stale_temporaries(model_dir)
         if resume and not checkpoint_path(model_dir).is_file():
             say_nothing_to_resume(model_dir, progress)
+        if resume and not isinstance(scene, Scene):  # the photos it trained on (LLFF: images_N/)
+            images_dir = images_dir_as_trained(scene, images_dir, saved_scene_record(model_dir))
         scene = scene if isinstance(scene, Scene) else load_scene(scene, images_dir)
         config = rules.with_default_scale(scene, config, model_dir, resume, progress)
         result = train_members(train_one, scene, model_dir, config, images_dir, resume, progress, stop)
@@ -397,6 +400,8 @@ class TrainingRun:
         _emit(progress, event="start", scene=str(scene.root), views=len(scene.views), train_views=len(self.train_views),
               held_out=[v.name for v in self.held_views], device=describe_device(self.device), preset=config.preset,
               notes=scene.notes)
+        if not resumed:
+            _say_wide_views(self.slab, self.train_views, config.scale, progress)
         masks, sweep_photos = self._load_rays(config, resumed)
         config = self._decide_appearance(config)
         self._make_field(config, resumed)
@@ -540,6 +545,8 @@ class TrainingRun:
                 "root": str(scene.root), "kind": scene.kind, "fingerprint": scene.fingerprint(),
                 "views": [v.name for v in scene.views], "train": [v.name for v in self.train_views],
                 "held_out": [v.name for v in self.held_views], "scale": config.scale,
+                # the photos read (folder and sizes): eval, render and resume read the same ones
+                "images": scene.images_record(), "photo_sizes": {v.name: list(v.size) for v in scene.views},
                 "mean_colour": mean_colour(self.train_rays).tolist(),
             },
             "train_config": asdict(config),
@@ -962,10 +969,36 @@ def _objective(field_module, uvst, target, view_index, appearance, consistency, 
 
 
 def _rig(views, scale: float) -> dict:
-    """Camera centres and a representative pinhole (the first view's) for camera paths."""
-    camera = views[0].scaled_camera(scale)
+    """Camera centres and a representative pinhole for camera paths (path_camera_view)."""
+    camera = path_camera_view(views).scaled_camera(scale)
     return {"centres": [v.center.tolist() for v in views], "K": camera.calibration_matrix().tolist(),
             "width": int(camera.width), "height": int(camera.height)}
+
+
+def _say_wide_views(slab: Slab, views, scale: float, progress) -> None:
+    """Warn of training photos that see far wider than the others (slab.wide_views), once a
+    training call (the auto preset's candidates and a model's members ask again)."""
+    wide = wide_views(slab, views, scale)
+    if not wide:
+        return
+    shown = ", ".join(f"{name} ({ratio:.1f}x)" for name, ratio in wide[:3]) + (" ..." if len(wide) > 3 else "")
+    message = (f"{len(wide)} photo(s) see more than twice as wide as the median photo on the light slab: {shown} (a "
+               "wider lens or a fisheye). The light field spans what every photo sees, so the others get a smaller "
+               "share of its detail (one 94-degree photo among 56-degree ones cost the held-out views 4 dB). Where their "
+               "detail matters less, hold them out of training: --exclude names every view held out, so list them "
+               "with the views you score on.")
+    kept("wide views warning", ",".join(name for name, _ in wide),
+         lambda: _emit(progress, event="warning", views=[name for name, _ in wide], message=message))
+
+
+def path_camera_view(views):
+    """The training view whose pinhole a camera path (video, Blender's spiral) takes: of the
+    photos' most common size (portrait or landscape included), the one of median focal length.
+    (The first view's had made a portrait video of a landscape capture with one portrait photo
+    first, and a fisheye's focal length a 94° pinhole.)"""
+    size, _ = Counter(view.size for view in views).most_common(1)[0]
+    alike = sorted((view for view in views if view.size == size), key=lambda view: float(view.camera.focal_length_x))
+    return alike[(len(alike) - 1) // 2]
 
 
 def _config_for_resume(payload: dict, config: TrainConfig, scene: Scene) -> TrainConfig:
@@ -977,6 +1010,14 @@ def _config_for_resume(payload: dict, config: TrainConfig, scene: Scene) -> Trai
             f"the checkpoint was trained on another scene ({saved['root']}, {len(saved['views'])} views); "
             "resume it with that scene, or train a new model into another --out folder."
         )
+    other = [(v, trained_photo_size(v, saved)) for v in scene.views if trained_photo_size(v, saved)]
+    if other:
+        view, (width, height) = other[0]
+        raise NeulfError(
+            f"the model trained on photos of another size ({view.name}: {width}x{height}, read now at "
+            f"{view.size[0]}x{view.size[1]}{' from ' + str(scene.images_dir) if scene.images_dir else ''}); resume it "
+            f"with --images naming the folder it trained on ({saved.get('images') or 'see model.json'}), or train a new "
+            "model into another --out folder.")
     previous = TrainConfig(**{k: v for k, v in payload["train_config"].items() if k in TrainConfig.__dataclass_fields__})
     if "point_depth" not in payload["train_config"]:
         previous.point_depth = False  # trained before the SfM points' pull: resumes as it began

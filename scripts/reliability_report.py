@@ -197,6 +197,20 @@ CASES = [
         f"{STORY}[artist_settings]"]),
     Case("--resume with options other than the model's: said, the model kept", [
         f"{REL}::test_resume_says_which_asked_options_the_model_keeps"]),
+    Case("A model trained on another images folder than the scene's default (LLFF's images_N): eval, render and "
+         "--resume read its own photos, or say so; views named twice, or among held-out, scored once", [
+        f"{REL}::test_eval_render_and_resume_read_the_photos_the_model_trained_on",
+        f"{REL}::test_eval_scores_each_view_once_and_takes_held_out_among_names"]),
+    Case("Captures of mixed cameras: a distorted view refocused through its own lens, a photo far wider than the "
+         "others said, a view that sees past the capture said by render and eval, a camera path's camera, "
+         "fractional frame rates", [
+        "tests/test_refocus.py::test_a_refocused_registered_view_keeps_its_own_lens_distortion",
+        "tests/test_refocus.py::test_a_registered_view_s_depth_pick_reads_its_own_depth_map",
+        "tests/test_mixed_cameras.py::test_a_photo_that_sees_far_wider_than_the_others_is_said",
+        "tests/test_mixed_cameras.py::test_a_registered_view_that_sees_past_the_capture_is_said",
+        "tests/test_mixed_cameras.py::test_eval_reports_each_view_s_warnings",
+        "tests/test_mixed_cameras.py::test_a_camera_path_takes_the_most_common_photo_size_and_the_median_focal_length",
+        "tests/test_mixed_cameras.py::test_a_video_takes_a_fractional_frame_rate"]),
     Case("No network access unless the user asks for the dependency install, with the declared permission", [
         f"{REL}::test_no_network_unless_the_user_installs", f"{STORY}[install_dependencies]"]),
 ]

@@ -32,7 +32,7 @@ import pytest
 import torch
 from PIL import Image
 
-from conftest import look_at_rotation, tiny_camera, tiny_poses, write_colmap_model
+from conftest import TINY_HEIGHT, TINY_WIDTH, look_at_rotation, tiny_camera, tiny_poses, write_colmap_model
 from neulf_core.checkpoint import CHECKPOINT_NAME, METADATA_NAME, load_checkpoint
 from neulf_core.cli import main
 
@@ -1164,3 +1164,61 @@ def test_render_of_a_model_before_its_first_checkpoint(tmp_path, capfd, record_p
     finally:
         sleeper.kill()
         sleeper.wait()
+
+
+@pytest.fixture(scope="module")
+def half_size_model(tiny_scene, tmp_path_factory):
+    """The tiny scene with a second folder of its photos at half size (as LLFF's images_2/), and
+    a model trained on that folder."""
+    root = tmp_path_factory.mktemp("images_n")
+    scene = shutil.copytree(tiny_scene, root / "scene")
+    (scene / "images_2").mkdir()
+    for photo in sorted((scene / "images").iterdir()):
+        image = Image.open(photo)
+        image.resize((image.width // 2, image.height // 2), Image.BOX).save(scene / "images_2" / photo.name)
+    model = root / "model"
+    assert main(["train", str(scene), "--images", str(scene / "images_2"), "--scale", "1", "--out", str(model),
+                 *QUICK_TRAIN]) == 0
+    return scene, model
+
+
+def test_eval_render_and_resume_read_the_photos_the_model_trained_on(half_size_model, tmp_path, capfd, record_property):
+    """A model trained on a scene's images_2/ is scored, rendered and resumed on those photos
+    without --images (it had taken images/, four times the pixels, without a word); given the
+    other folder, eval and render score and render at the size it trained at and say so, and
+    resume refuses in one line."""
+    scene, model = half_size_model
+    trained = json.loads((model / METADATA_NAME).read_text())["scene"]
+    assert trained["images"] == "images_2" and trained["photo_sizes"]["view_00.png"] == [TINY_WIDTH // 2, TINY_HEIGHT // 2]
+    code, out, err = run_cli(["eval", model, "--scene", scene, "--out", tmp_path / "own", "--pixel-samples", "1"], capfd)
+    report = json.loads((tmp_path / "own" / "eval.json").read_text())
+    assert code == 0 and "warning" not in err and report["images"].endswith("images_2"), err
+    assert {(row["width"], row["height"]) for row in report["views"]} == {(TINY_WIDTH // 2, TINY_HEIGHT // 2)}
+    code, out, err = run_cli(["eval", model, "--scene", scene, "--images", scene / "images", "--out", tmp_path / "other",
+                              "--pixel-samples", "1"], capfd)
+    other = json.loads((tmp_path / "other" / "eval.json").read_text())
+    assert code == 0 and "of another size than the model trained on" in err and other["warnings"], err
+    record_property("message", err.strip())
+    assert {(row["width"], row["height"]) for row in other["views"]} == {(TINY_WIDTH // 2, TINY_HEIGHT // 2)}
+    assert abs(other["mean_psnr"] - report["mean_psnr"]) < 1.0  # (the same pictures, from photos box-resized again)
+    code, out, err = run_cli(["render", model, "--scene", scene, "--images", scene / "images", "--views", "held-out",
+                              "--out", tmp_path / "renders", "--pixel-samples", "1"], capfd)
+    assert code == 0 and "of another size" in err, err
+    assert Image.open(tmp_path / "renders" / "view_00.png").size == (TINY_WIDTH // 2, TINY_HEIGHT // 2)
+    resumed = shutil.copytree(model, tmp_path / "resumed")
+    code, out, err = run_cli(["train", scene, "--out", resumed, "--resume", "--images", scene / "images",
+                              "--steps", "4", "--batch-size", "256", "--validate-seconds", "1e9"], capfd)
+    assert code == 2 and err.count("\n") == 1 and "trained on photos of another size" in err and "--images" in err, err
+    assert json.loads((resumed / METADATA_NAME).read_text())["progress"]["step"] == 2  # untouched
+    code, out, err = run_cli(["train", scene, "--out", resumed, "--resume", "--steps", "4", "--batch-size", "256",
+                              "--validate-seconds", "1e9"], capfd)
+    meta = json.loads((resumed / METADATA_NAME).read_text())
+    assert code == 0 and meta["progress"]["step"] == 4 and meta["scene"]["photo_sizes"] == trained["photo_sizes"], err
+
+
+def test_eval_scores_each_view_once_and_takes_held_out_among_names(model, tiny_scene, tmp_path, capfd):
+    code, out, err = run_cli(["eval", model, "--scene", tiny_scene, "--views", "view_03,held-out,view_03.png,view_00",
+                              "--out", tmp_path / "e", "--pixel-samples", "1"], capfd)
+    assert code == 0, err
+    assert [row["view"] for row in json.loads((tmp_path / "e" / "eval.json").read_text())["views"]] == \
+        ["view_03.png", "view_00.png", "view_08.png"]
