@@ -21,12 +21,14 @@ import numpy as np
 from .checkpoint import METADATA_NAME, MODEL_NAME, checkpoint_path, load_checkpoint, save_checkpoint
 from .errors import NeulfError
 from .fields.disparity import texture_size_for
+from .lock import being_trained_message, training_holder
 from .memo import kept_while_training
 from .metrics import psnr
 from .render import LightField
 from .scene import Scene, load_scene, scaled_size, split_views
 from .slab import fit_slab
-from .train import TrainConfig, TrainResult, check_config, say_nothing_to_resume, train
+from .train import (TrainConfig, TrainResult, check_config, refuse_a_model_without_its_checkpoint,
+                    say_nothing_to_resume, train)
 from .progress import emit as _emit
 from .rules import (LOSSES_DECISION_STEP, announce_default_losses, default_back_surface, default_coarse_to_fine,
                     default_consistency, default_depth_detail_reads, default_geometry_tv, default_max_passes,
@@ -117,6 +119,7 @@ def train_auto(scene: Scene | str | Path, model_dir: str | Path, config: TrainCo
         record = load_checkpoint(model_dir).get("autosize")
         result = train(scene, model_dir, config, images_dir=images_dir, resume=True, progress=progress, should_stop=should_stop)
         return _record(model_dir, record, result)
+    _refuse_before_the_search(model_dir, resume)
     if resume:  # (and nothing to resume: the search starts)
         say_nothing_to_resume(model_dir, progress)
     started = time.monotonic()  # a minutes budget is the whole run's: the photos' loading and the rules' probe too
@@ -127,6 +130,17 @@ def train_auto(scene: Scene | str | Path, model_dir: str | Path, config: TrainCo
     with kept_while_training():
         return _search_and_train(scene, model_dir, replace(config, preset=PRESET), progress, should_stop, factors,
                                  tolerance_db, started)
+
+
+def _refuse_before_the_search(model_dir: Path, resume: bool) -> None:
+    """What the final training would refuse, said before the search spends its share of the
+    budget (40 %: four minutes of a ten-minute run had gone before the refusal)."""
+    holder = training_holder(model_dir)
+    if holder is not None:
+        raise NeulfError(being_trained_message(model_dir, holder, "wait for it to finish or stop it, then resume"))
+    refuse_a_model_without_its_checkpoint(model_dir, resume)
+    if not resume and checkpoint_path(model_dir).is_file():
+        raise NeulfError(f"{model_dir} already holds a trained model; pass --resume to continue it, or choose another --out.")
 
 
 def _search_and_train(scene: Scene, model_dir: Path, config: TrainConfig, progress, should_stop, factors,

@@ -6,10 +6,12 @@ Every user-caused error ends in one line on stderr and exit status 2, never a tr
 from __future__ import annotations
 
 import argparse
+import contextlib
 import errno
 import functools
 import json
 import os
+import shlex
 import signal
 import sys
 import time
@@ -76,7 +78,9 @@ def _output_folder(path) -> Path:
 def _video_file(path) -> Path:
     """The video file `--out` names, its folder checked as `_output_folder` checks one."""
     out = Path(path)
-    if out.is_dir() or out.suffix.lower() not in VIDEO_SUFFIXES:
+    if out.is_dir():
+        raise NeulfError(f"--out {out} is a folder: give a video file's name (inside it, say {out / 'spiral.mp4'}).")
+    if out.suffix.lower() not in VIDEO_SUFFIXES:
         raise NeulfError(f"--out {out}: give a video file name ending in {', '.join(VIDEO_SUFFIXES)} (H.264).")
     _output_folder(out.parent)
     return out
@@ -86,9 +90,10 @@ def _os_error_line(exc: OSError) -> str:
     """One line for a file the command could not read or write (the disk full, a folder made
     read-only meanwhile, ...), instead of a traceback."""
     where = f" {exc.filename}" if exc.filename else ""
-    if exc.errno == errno.ENOSPC:
-        return (f"the disk is full (writing{where}): free some space and run the command again; a training keeps "
-                "its last checkpoint, which --resume continues.")
+    if exc.errno in (errno.ENOSPC, errno.EFBIG):
+        what = "the disk is full" if exc.errno == errno.ENOSPC else "the file is larger than this disk takes (FAT32: 4 GB)"
+        return (f"{what} (writing{where}): free some space or write elsewhere, and run the command again; a training "
+                "keeps its last saved checkpoint, if it had saved one, which --resume continues.")
     return f"cannot read or write{where}: {exc.strerror or exc}. Check the path and its permissions."
 
 
@@ -161,8 +166,11 @@ def cmd_train(args) -> int:
     def on_reader_gone():
         stop["reader_gone"] = True
 
-    # SIGBREAK: what Ctrl+Break (and the Blender worker's Cancel) sends on Windows.
-    signals = [signal.SIGINT, signal.SIGTERM] + ([signal.SIGBREAK] if hasattr(signal, "SIGBREAK") else [])
+    # SIGBREAK: what Ctrl+Break (and the Blender worker's Cancel) sends on Windows; SIGHUP: the
+    # terminal closed or the ssh session dropped (it had ended the run unsaved: up to a checkpoint
+    # interval lost).
+    signals = [signal.SIGINT, signal.SIGTERM] + [getattr(signal, name) for name in ("SIGBREAK", "SIGHUP")
+                                                 if hasattr(signal, name)]
     previous = {s: signal.signal(s, on_signal) for s in signals}
     try:
         run = train_auto if args.preset == AUTO_PRESET else train  # auto: a size search, then train()
@@ -178,18 +186,31 @@ def cmd_train(args) -> int:
         from .checkpoint import checkpoint_path
 
         if not checkpoint_path(Path(args.out)).is_file():  # cancelled before a model existed (auto's size search)
-            print("cancelled before the first checkpoint; nothing was saved. Start again with the same command.",
-                  file=sys.stderr)
+            message = "cancelled before the first checkpoint; nothing was saved. Start again with the same command."
         else:
-            print(f"cancelled at step {result.step}; checkpoint saved. Continue with: python -m neulf_core train "
-                  f"{args.scene_dir} --out {args.out} --resume --minutes/--steps ...", file=sys.stderr)
+            message = (f"cancelled at step {result.step}{_of_member(Path(args.out))}; checkpoint saved. Continue with: "
+                       f"python -m neulf_core train {shlex.quote(str(args.scene_dir))} --out "
+                       f"{shlex.quote(str(args.out))} --resume --minutes/--steps ...")
+        with contextlib.suppress(OSError):  # (after SIGHUP no terminal may be left to say it to)
+            print(message, file=sys.stderr)
         return 128 + int(stop["signal"] or signal.SIGINT)
     return 0
 
 
+def _of_member(model_dir: Path) -> str:
+    """' of member 2 of 2' where the model trains members (a run's step is its member's own: 'at
+    step 0' had followed a first member's 200 steps), else ''."""
+    try:
+        state = json.loads((model_dir / "members.json").read_text())
+        count, finished = int(state["count"]), len(state.get("finished", []))
+    except (OSError, ValueError, KeyError, TypeError):
+        return ""
+    return f" of member {min(finished + 1, count)} of {count}" if count > 1 else ""
+
+
 # The options a model keeps from its first training (train._config_for_resume), by their
 # TrainConfig field, and how the command line gives them.
-# (Not the seed and the batch: a kept second start and members of half the batch save their own.)
+# (The seed, the batch and the members' split: _run_choices_kept.)
 KEPT_ON_RESUME = {"preset": "preset", "holdout_every": "holdout_every", "exclude": "exclude",
                   "scale": "scale", "st_depth": "st_depth", "near": "near", "far": "far",
                   "sweep_teacher": "teacher", "point_depth": "point_depth", "consistency": "consistency",
@@ -213,12 +234,41 @@ def _say_what_resume_keeps(args) -> None:
         asked["exclude"] = _names(asked["exclude"])
     differ = [f"--{dest.replace('_', '-')} (the model's: {saved.get(field)!r})" for dest, field in KEPT_ON_RESUME.items()
               if dest in asked and field in saved and asked[dest] != saved[field]]
+    differ += _run_choices_kept(args, Path(args.out), saved)
     layers = (saved.get("field_overrides") or {}).get("geometry_layers")
     if "depth_layers" in getattr(args, "given", ()) and args.depth_layers != layers:
         differ.append(f"--depth-layers (the model's: {'the rule' if layers is None else layers})")
     if differ:
         print(f"warning: --resume continues the model as it was trained, so these options keep the model's own "
               f"values: {', '.join(differ)}; to train with them, give --out a new folder.", file=sys.stderr)
+
+
+def _run_choices_kept(args, out: Path, saved: dict) -> list[str]:
+    """--seed, --members-split and --batch-size asked on --resume where the model's differ (they had
+    been dropped without a word).  A model's seed is its run's (members.json, or starts.json where
+    a second start was kept, whose folder trained with the second seed), its split members.json's."""
+    from .presets import get_preset
+
+    def read(name: str) -> dict:
+        try:
+            return json.loads((out / name).read_text())
+        except (OSError, ValueError):
+            return {}
+
+    given = getattr(args, "given", ())
+    members, starts = read("members.json"), read("starts.json")
+    differ = []
+    seed = members.get("seed", starts.get("seed", saved.get("seed")))
+    if "seed" in given and seed is not None and args.seed != seed:
+        differ.append(f"--seed (the model's: {seed})")
+    if "members_split" in given and members.get("split") and args.members_split != members["split"]:
+        differ.append(f"--members-split (the model's: {members['split']!r})")
+    batch = saved.get("batch_size")
+    if batch is None and saved.get("preset"):  # (members of half the batch keep the whole one here)
+        batch = get_preset(saved["preset"]).batch_size
+    if "batch_size" in given and batch is not None and args.batch_size != batch and not (members and saved.get("batch_size")):
+        differ.append(f"--batch-size (the model's: {batch})")
+    return differ
 
 
 def _given_options(argv: list[str]) -> set[str]:
@@ -414,7 +464,8 @@ def _looking_away(names: list[str], light_field, rendered: int, out: Path) -> st
 
 def cmd_render(args) -> int:
     from .render import LightField
-    from .scene import images_dir_as_trained, load_scene, other_photos_note, scale_as_trained, select_views
+    from .scene import (changed_cameras_note, images_dir_as_trained, load_scene, other_photos_note,
+                        scale_as_trained, select_views)
 
     if (args.scene is None) == (args.cameras is None):
         raise NeulfError("render needs either --scene SCENE_DIR --views NAME,... or --cameras CAMERAS.json.")
@@ -446,9 +497,9 @@ def cmd_render(args) -> int:
         scene = load_scene(args.scene, images_dir_as_trained(args.scene, args.images, saved))
         light_field.check_scene(scene)
         views = select_views(scene, names, saved["held_out"])
-        note = other_photos_note(views, saved) if args.scale is None else None
-        if note:
-            print(f"warning: {note}", file=sys.stderr)
+        for note in (other_photos_note(views, saved) if args.scale is None else None, changed_cameras_note(views, saved)):
+            if note:
+                print(f"warning: {note}", file=sys.stderr)
         for view in views:
             # (the trained pixel size, whichever of a scene's images folders is read; --scale: of the photos read)
             scale = scale_as_trained(view, saved, light_field.trained_scale) if args.scale is None else args.scale

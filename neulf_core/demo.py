@@ -61,9 +61,12 @@ def run_demo(out: Path, minutes: float = 3.0, keep: bool = False) -> dict:
         raise NeulfError("training failed; see the message above.")
     _say("4/5 rendering and scoring the held-out views")
     report = evaluate_model(model_dir, scene_dir, out_dir=out / "held_out")
-    cli_main(["render", str(model_dir), "--scene", str(scene_dir), "--views", "held-out", "--out", str(out / "held_out"), "--depth"])
+    if cli_main(["render", str(model_dir), "--scene", str(scene_dir), "--views", "held-out", "--out", str(out / "held_out"),
+                 "--depth"]) != 0:
+        raise NeulfError("rendering the held-out views failed; see the message above.")
     _say("5/5 rendering a spiral camera path to video")
-    cli_main(["video", str(model_dir), "--out", str(out / "spiral.mp4"), "--frames", "60"])
+    if cli_main(["video", str(model_dir), "--out", str(out / "spiral.mp4"), "--frames", "60"]) != 0:
+        raise NeulfError("rendering the video failed; see the message above.")
     for row in report["views"]:
         print(f"held-out {row['view']}: PSNR {row['psnr']:.2f} dB, SSIM {row['ssim']:.3f}")
     print(f"mean held-out PSNR {report['mean_psnr']:.2f} dB (a flat mean-colour image scores {report['mean_colour_psnr']:.2f} dB)")

@@ -15,8 +15,8 @@ from .lpips import load_lpips, lpips_distance
 from .metrics import psnr, ssim
 from .render import DEFAULT_PIXEL_SAMPLES, LightField
 from .poses import fit_view_pose
-from .scene import (camera_spacing, images_dir_as_trained, load_scene, other_photos_note, scale_as_trained,
-                    select_views)
+from .scene import (camera_spacing, changed_cameras_note, images_dir_as_trained, load_scene, other_photos_note,
+                    scale_as_trained, select_views)
 
 
 def evaluate_model(model_dir, scene_dir, *, images_dir=None, out_dir=None, views=None, device=None,
@@ -30,8 +30,8 @@ def evaluate_model(model_dir, scene_dir, *, images_dir=None, out_dir=None, views
     light_field.check_scene(scene)
     names = _view_names(views, saved["held_out"], scene)
     out = Path(out_dir) if out_dir else Path(model_dir) / "eval"
-    note = other_photos_note([scene.view(name) for name in names], saved)
-    notes = [note] if note else []
+    chosen = [scene.view(name) for name in names]
+    notes = [note for note in (other_photos_note(chosen, saved), changed_cameras_note(chosen, saved)) if note]
     mean_colour = np.asarray(light_field.meta["scene"]["mean_colour"], dtype=np.float32)
     rows, baseline = [], []
     perceptual = load_lpips()  # None until the user fetched its weights (python -m neulf_core fetch-lpips)

@@ -391,6 +391,9 @@ def train_members(train_one: Callable, scene, model_dir: Path, config, images_di
     from .device import pick_device
 
     model_dir = Path(model_dir)
+    if not checkpoint_path(model_dir).is_file():  # a new model: what an older one's members left is not its own
+        (model_dir / STATE_NAME).unlink(missing_ok=True)
+        shutil.rmtree(model_dir / MEMBERS_DIR, ignore_errors=True)
     rule = _members_rule(model_dir) if resume else {}
     if rule:  # (of two starts the kept one's verdict, which members.json may not say yet: _state_as_decided)
         _state_as_decided(model_dir, config.seed, rule)

@@ -234,6 +234,51 @@ def other_photos_note(views: list[View], saved_scene: dict | None) -> str | None
             "give --images with the folder it trained on for its own photos.")
 
 
+def camera_record(view: View) -> list:
+    """What a model records of a view's camera beyond its centre (which the fingerprint holds):
+    the model, K and distortion relative to the image size (the same for any images_N folder),
+    and the rotation."""
+    camera, (width, height) = view.camera, view.size
+    params = np.asarray(camera.params, dtype=np.float64)
+    fx, fy = (params[i] for i in camera.focal_length_idxs()) if len(camera.focal_length_idxs()) == 2 else \
+        (params[camera.focal_length_idxs()[0]],) * 2
+    cx, cy = (params[i] for i in camera.principal_point_idxs())
+    extra = [float(params[i]) for i in camera.extra_params_idxs()]
+    return [camera.model.name, fx / width, fy / height, cx / width, cy / height, *extra,
+            *np.asarray(view.R, dtype=np.float64).ravel().tolist()]
+
+
+def changed_cameras(views: list[View], saved_scene: dict | None) -> list[str]:
+    """Names of `views` whose camera (camera_record) differs from the one the model trained with:
+    a focal length or a turn edited in the model with the centres kept, which the fingerprint
+    does not see.  K's entries are compared to 0.5 % (a one-focal camera scaled to a file of a
+    slightly other aspect ratio moves them by about 0.1 %), distortion and rotation to 1e-4.
+    Models that recorded none: nothing to compare."""
+    recorded = (saved_scene or {}).get("cameras") or {}
+    changed = []
+    for view in views:
+        before, now = recorded.get(view.name), camera_record(view)
+        if before is None:
+            continue
+        if before[0] != now[0] or len(before) != len(now):
+            changed.append(view.name)
+            continue
+        before, now = np.asarray(before[1:], float), np.asarray(now[1:], float)
+        if (np.abs(now[:4] - before[:4]) / np.maximum(np.abs(before[:4]), 1e-3)).max() > 5e-3 or np.abs(now[4:] - before[4:]).max(initial=0) > 1e-4:
+            changed.append(view.name)
+    return changed
+
+
+def changed_cameras_note(views: list[View], saved_scene: dict | None) -> str | None:
+    changed = changed_cameras(views, saved_scene)
+    if not changed:
+        return None
+    shown = ", ".join(changed[:3]) + (" ..." if len(changed) > 3 else "")
+    return (f"{len(changed)} view(s) ({shown}) have another camera (focal length, principal point, distortion or "
+            "rotation) than when the model trained: they are rendered as the scene says now, through a light field "
+            "learnt with the old cameras; train a new model for the new ones.")
+
+
 def load_scene(scene_dir: str | Path, images_dir: str | Path | None = None) -> Scene:
     """Read a scene folder: a COLMAP model (sparse/0 or sparse/) or an LLFF poses_bounds.npy."""
     scene_dir = Path(scene_dir).expanduser()

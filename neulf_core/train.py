@@ -22,8 +22,8 @@ import torch
 
 from . import __version__
 from .appearance import ViewAppearance, appearance_by_default, exposure_difference, photo_exposures
-from .checkpoint import (TRAINING_STATE_KEY, checkpoint_path, load_checkpoint, remove_stale_temporaries,
-                         save_checkpoint, saved_scene_record)
+from .checkpoint import (CHECKPOINT_NAME, MODEL_NAME, TRAINING_STATE_KEY, checkpoint_path, load_checkpoint,
+                         remove_stale_temporaries, save_checkpoint, saved_scene_record)
 from .consistency import SlabGeometry, camera_neighbours, multiview_losses
 from .dataset import RaySet, kept_rayset, mean_colour
 from .device import describe_device, keep_freed_cpu_memory, pick_device
@@ -40,7 +40,8 @@ from . import poses as poses_module
 from .poses import DEPTH_LIKE_GAUGE, PoseRefinement
 from .progress import emit as _emit
 from .presets import APPEARANCE_ADAM_BETA2, APPEARANCE_GEOMETRY, DEFAULT_PRESET, get_preset
-from .scene import Scene, images_dir_as_trained, load_scene, scaled_size, split_views, trained_photo_size
+from .scene import (Scene, camera_record, changed_cameras, images_dir_as_trained, load_scene, scaled_size,
+                    split_views, trained_photo_size)
 from .slab import Slab, fit_slab, wide_views
 from .teacher import strong_pull, sweep_depth_targets, sweep_photo_scale, teacher_fade, teacher_loss, teacher_weight
 from .point_depth import point_depth_loss, point_depth_targets
@@ -262,6 +263,7 @@ def train(scene: Scene | str | Path, model_dir: str | Path, config: TrainConfig,
 
     with training_lock(model_dir), kept_while_training(), ctrl_c_stops(should_stop) as (stop, ctrl_c):
         remove_stale_temporaries(model_dir)
+        refuse_a_model_without_its_checkpoint(model_dir, resume)
         if resume and not checkpoint_path(model_dir).is_file():
             say_nothing_to_resume(model_dir, progress)
         if resume and not isinstance(scene, Scene):  # the photos it trained on (LLFF: images_N/)
@@ -335,8 +337,22 @@ def _check_number(value, field_name: str, flag: str, *, whole: bool = False, low
                          f"{wanted}, not {value!r} ({type(value).__name__}).")
 
 
+def refuse_a_model_without_its_checkpoint(model_dir: Path, resume: bool) -> None:
+    """A folder with model.pt but no checkpoint.pt holds a trained model whose training state was
+    deleted (model.pt is all rendering needs): it can be neither resumed nor trained over.  (A
+    new training had replaced it without a word, keeping its old second member beside the new
+    first one.)"""
+    model_dir = Path(model_dir)
+    if checkpoint_path(model_dir).is_file() or not (model_dir / MODEL_NAME).is_file():
+        return
+    raise NeulfError(f"{model_dir} holds a trained model ({MODEL_NAME}) without its {CHECKPOINT_NAME}, which "
+                     f"{'resuming needs' if resume else 'a new training would replace'}: train into another --out "
+                     f"folder, or delete {MODEL_NAME} there to start again.")
+
+
 def _resumed_checkpoint(model_dir: Path, config: TrainConfig, resume: bool) -> dict | None:
     """The checkpoint a resumed run continues (None for a new one); refuses to overwrite a model."""
+    refuse_a_model_without_its_checkpoint(model_dir, resume)
     existing = checkpoint_path(model_dir).is_file()
     if existing and not resume:
         raise NeulfError(f"{model_dir} already holds a trained model; pass --resume to continue it, or choose another --out.")
@@ -547,6 +563,7 @@ class TrainingRun:
                 "held_out": [v.name for v in self.held_views], "scale": config.scale,
                 # the photos read (folder and sizes): eval, render and resume read the same ones
                 "images": scene.images_record(), "photo_sizes": {v.name: list(v.size) for v in scene.views},
+                "cameras": {v.name: camera_record(v) for v in scene.views},  # (checked on resume and render)
                 "mean_colour": mean_colour(self.train_rays).tolist(),
             },
             "train_config": asdict(config),
@@ -1018,6 +1035,12 @@ def _config_for_resume(payload: dict, config: TrainConfig, scene: Scene) -> Trai
             f"{view.size[0]}x{view.size[1]}{' from ' + str(scene.images_dir) if scene.images_dir else ''}); resume it "
             f"with --images naming the folder it trained on ({saved.get('images') or 'see model.json'}), or train a new "
             "model into another --out folder.")
+    changed = changed_cameras(scene.views, saved)
+    if changed:
+        raise NeulfError(
+            f"{len(changed)} view(s) ({', '.join(changed[:3])}{' ...' if len(changed) > 3 else ''}) have another camera "
+            "(focal length, principal point, distortion or rotation) than the model trained with: resume it with the "
+            "scene it trained on, or train a new model into another --out folder.")
     previous = TrainConfig(**{k: v for k, v in payload["train_config"].items() if k in TrainConfig.__dataclass_fields__})
     if "point_depth" not in payload["train_config"]:
         previous.point_depth = False  # trained before the SfM points' pull: resumes as it began

@@ -201,6 +201,18 @@ CASES = [
          "--resume read its own photos, or say so; views named twice, or among held-out, scored once", [
         f"{REL}::test_eval_render_and_resume_read_the_photos_the_model_trained_on",
         f"{REL}::test_eval_scores_each_view_once_and_takes_held_out_among_names"]),
+    Case("The training lifecycle: a model whose checkpoint.pt was deleted (model.pt kept) neither trained over nor "
+         "resumed, an older model's members not taken by a new one, the auto preset refusing before its search, a "
+         "closed terminal (SIGHUP) saving, a seed, batch or split asked on --resume said, a camera edited with its "
+         "centre kept said, a failed write naming its file, the demo failing where its video fails", [
+        f"{REL}::test_a_model_without_its_checkpoint_is_neither_trained_over_nor_resumed",
+        f"{REL}::test_a_new_model_does_not_take_an_older_one_s_members",
+        f"{REL}::test_the_auto_preset_refuses_a_trained_folder_before_its_search",
+        f"{REL}::test_a_closed_terminal_saves_the_training",
+        f"{REL}::test_resume_says_a_seed_a_split_or_a_batch_the_model_keeps",
+        f"{REL}::test_a_camera_edited_with_its_centre_kept_is_said",
+        f"{REL}::test_a_failed_write_names_its_file",
+        f"{REL}::test_the_demo_fails_where_its_video_fails"]),
     Case("Captures of mixed cameras: a distorted view refocused through its own lens, a photo far wider than the "
          "others said, a view that sees past the capture said by render and eval, a camera path's camera, "
          "fractional frame rates", [

@@ -62,8 +62,9 @@ def test_eval_reports_each_view_s_warnings(model, tiny_scene, tmp_path, monkeypa
     moved = replace(scene, views=[_widened(v) if v.name == "view_00.png" else v for v in scene.views])
     monkeypatch.setattr(evaluate, "load_scene", lambda *args, **kwargs: moved)
     report = evaluate.evaluate_model(model, tiny_scene, out_dir=tmp_path, pixel_samples=1, save_images=False)
-    assert [w.split(":")[0] for w in report["warnings"]] == ["view_00.png"]
-    assert "leave the region" in report["warnings"][0]
+    assert any("have another camera" in w for w in report["warnings"])  # (the widened lens is not the trained one)
+    views = [w for w in report["warnings"] if w.startswith("view_")]
+    assert [w.split(":")[0] for w in views] == ["view_00.png"] and "leave the region" in views[0], report["warnings"]
     assert json.loads((tmp_path / "eval.json").read_text())["warnings"] == report["warnings"]
 
 

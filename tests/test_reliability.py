@@ -717,7 +717,7 @@ def test_output_that_is_a_file_is_said_before_rendering(model, tiny_scene, tmp_p
 def test_video_needs_a_video_file_name(name, model, tmp_path, capfd, record_property):
     (tmp_path / "a_folder").mkdir()
     expect_error(["video", model, "--out", tmp_path / name, "--frames", 2], capfd, record_property,
-                 "give a video file name ending in .mp4")
+                 "give a video file name ending in .mp4" if name == "spiral" else "is a folder: give a video file's name")
 
 
 def test_a_full_disk_is_one_line():
@@ -1222,3 +1222,134 @@ def test_eval_scores_each_view_once_and_takes_held_out_among_names(model, tiny_s
     assert code == 0, err
     assert [row["view"] for row in json.loads((tmp_path / "e" / "eval.json").read_text())["views"]] == \
         ["view_03.png", "view_00.png", "view_08.png"]
+
+
+# ----------------------------------------------------------------------------- the training lifecycle (audit, 2026-12-01)
+
+
+def test_a_model_without_its_checkpoint_is_neither_trained_over_nor_resumed(tiny_scene, tmp_path, capfd, record_property):
+    """checkpoint.pt deleted to save space, model.pt kept (what rendering needs): a new training
+    had replaced the model without a word, and a resume had said there was nothing to resume,
+    trained a new first member and continued the old second one beside it."""
+    model = tmp_path / "model"
+    assert main([str(a) for a in ["train", tiny_scene, "--out", model, "--steps", "4", "--batch-size", "256",
+                                  "--validate-seconds", "1e9", "--members", "2"]]) == 0
+    (model / CHECKPOINT_NAME).unlink()
+    kept = {path: path.read_bytes() for path in sorted(model.rglob("*")) if path.is_file()}
+    for extra in ([], ["--resume"], ["--resume", "--preset", "auto"], ["--preset", "auto"]):
+        code, out, err = run_cli(["train", tiny_scene, "--out", model, *QUICK_TRAIN, *extra], capfd)
+        assert code == 2 and err.count("\n") == 1 and "without its checkpoint.pt" in err, (extra, err)
+        record_property("message", err.strip())
+    assert {path: path.read_bytes() for path in sorted(model.rglob("*")) if path.is_file()} == kept
+
+
+def test_a_new_model_does_not_take_an_older_one_s_members(tiny_scene, tmp_path):
+    """What a deleted model's members left (members.json, members/2) is not the new model's."""
+    from neulf_core.render import LightField
+
+    model = tmp_path / "model"
+    assert main([str(a) for a in ["train", tiny_scene, "--out", model, "--steps", "4", "--batch-size", "256",
+                                  "--validate-seconds", "1e9", "--members", "2"]]) == 0
+    for name in (CHECKPOINT_NAME, "model.pt", METADATA_NAME):
+        (model / name).unlink()
+    assert main([str(a) for a in ["train", tiny_scene, "--out", model, *QUICK_TRAIN, "--members", "1"]]) == 0
+    assert not (model / "members.json").exists() and not (model / "members").exists()
+    assert LightField.load(model, "cpu").meta.get("members") in (None, [1])
+
+
+def test_the_auto_preset_refuses_a_trained_folder_before_its_search(model, tiny_scene, tmp_path, capfd):
+    taken = shutil.copytree(model, tmp_path / "taken")
+    started = time.perf_counter()
+    code, out, err = run_cli(["train", tiny_scene, "--out", taken, "--preset", "auto", "--steps", "300",
+                              "--batch-size", "256", "--validate-seconds", "1e9"], capfd)
+    assert code == 2 and "already holds a trained model" in err and "candidate" not in out + err, out + err
+    assert time.perf_counter() - started < 10
+
+
+def test_resume_says_a_seed_a_split_or_a_batch_the_model_keeps(model, tiny_scene, tmp_path, capfd):
+    """--seed, --batch-size and --members-split on --resume were dropped without a word."""
+    resumed = shutil.copytree(model, tmp_path / "model")
+    code, _, err = run_cli(["train", tiny_scene, "--out", resumed, "--resume", "--steps", "4", "--batch-size", "512",
+                            "--validate-seconds", "1e9", "--seed", "7"], capfd)
+    warning = next(line for line in err.splitlines() if line.startswith("warning: --resume"))
+    assert code == 0 and "--seed (the model's: 0)" in warning and "--batch-size (the model's: 256)" in warning, err
+    code, _, err = run_cli(["train", tiny_scene, "--out", resumed, "--resume", "--steps", "5", "--batch-size", "256",
+                            "--validate-seconds", "1e9", "--seed", "0"], capfd)
+    assert code == 0 and "warning: --resume" not in err, err
+
+
+def test_a_failed_write_names_its_file(tmp_path, monkeypatch):
+    """A write's OSError (a full disk, a FAT32 file past 4 GB) names no file; the message now does,
+    and no temporary file is left."""
+    import errno as errno_codes
+
+    from neulf_core import files
+    from neulf_core.cli import _os_error_line
+
+    def full(_descriptor):
+        raise OSError(errno_codes.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(files.os, "fsync", full)
+    with pytest.raises(OSError) as caught:
+        files.atomic_write_bytes(tmp_path / "checkpoint.pt", b"x" * 100)
+    line = _os_error_line(caught.value)
+    assert line.startswith("the disk is full (writing ") and str(tmp_path / "checkpoint.pt") in line, line
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_the_demo_fails_where_its_video_fails(tiny_scene, tmp_path, capfd):
+    """The demo ignored its render's and video's exit status and reported a video it had not written."""
+    from neulf_core.demo import run_demo
+    from neulf_core.errors import NeulfError
+
+    out = tmp_path / "demo"
+    (out / "blender_scene" / "images").mkdir(parents=True)  # (--keep: the demo's Blender render is there)
+    shutil.copytree(tiny_scene, out / "scene")
+    (out / "spiral.mp4").mkdir()  # a folder in the way of the video
+    with pytest.raises(NeulfError, match="rendering the video failed"):
+        run_demo(out, minutes=0.02, keep=True)
+    assert "is a folder" in capfd.readouterr().err
+
+
+@pytest.mark.skipif(not hasattr(signal, "SIGHUP"), reason="no SIGHUP on this system")
+def test_a_closed_terminal_saves_the_training(tiny_scene, tmp_path):
+    """SIGHUP (the terminal closed, an ssh session dropped) ended the run unsaved, losing up to a
+    checkpoint interval (60 s by default); it now saves as Ctrl-C does."""
+    model = tmp_path / "model"
+    env = dict(os.environ, PYTHONPATH=str(REPO) + os.pathsep + os.environ.get("PYTHONPATH", ""))
+    process = subprocess.Popen([sys.executable, "-m", "neulf_core", "train", str(tiny_scene), "--out", str(model),
+                                "--steps", "100000", "--batch-size", "64", "--progress", "json"],
+                               cwd=tmp_path, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        for line in process.stdout:
+            if json.loads(line)["event"] == "step":
+                break
+        process.send_signal(signal.SIGHUP)
+        out, err = process.communicate(timeout=120)
+    finally:
+        if process.poll() is None:
+            process.kill()
+    assert process.returncode == 128 + signal.SIGHUP, err
+    saved = load_checkpoint(model)
+    assert saved["progress"]["status"] == "cancelled" and saved["progress"]["step"] >= 1
+
+
+def test_a_camera_edited_with_its_centre_kept_is_said(model, tiny_scene, tmp_path, capfd, record_property):
+    """A focal length changed in the scene's model, the camera centres kept: the scene check
+    (view names and centres) let --resume and render go on without a word."""
+    scene = shutil.copytree(tiny_scene, tmp_path / "scene")
+    camera = tiny_camera()
+    camera.params = [52.0, 52.0, camera.params[2], camera.params[3]]  # (44 before)
+    names = sorted(p.name for p in (scene / "images").iterdir())
+    write_colmap_model(scene / "sparse" / "0", camera, tiny_poses(), names)
+    resumed = shutil.copytree(model, tmp_path / "model")
+    code, out, err = run_cli(["train", scene, "--out", resumed, "--resume", *QUICK_TRAIN[:1], "5", *QUICK_TRAIN[2:]],
+                             capfd)
+    record_property("message", err.strip())
+    assert code == 2 and "have another camera" in err and err.count("\n") == 1, err
+    code, out, err = run_cli(["render", model, "--scene", scene, "--views", "view_03", "--out", tmp_path / "r",
+                              "--pixel-samples", "1"], capfd)
+    assert code == 0 and "have another camera" in err, err
+    code, out, err = run_cli(["render", model, "--scene", tiny_scene, "--views", "view_03", "--out", tmp_path / "r2",
+                              "--pixel-samples", "1"], capfd)
+    assert code == 0 and "another camera" not in err, err
