@@ -558,7 +558,7 @@ class TrainingRun:
             "parameters": count_parameters(self.field_module),
             "slab": self.slab.to_dict(),
             "scene": {
-                "root": str(scene.root), "kind": scene.kind, "fingerprint": scene.fingerprint(),
+                "root": str(Path(scene.root).absolute()), "kind": scene.kind, "fingerprint": scene.fingerprint(),
                 "views": [v.name for v in scene.views], "train": [v.name for v in self.train_views],
                 "held_out": [v.name for v in self.held_views], "scale": config.scale,
                 # the photos read (folder and sizes): eval, render and resume read the same ones

@@ -1353,3 +1353,12 @@ def test_a_camera_edited_with_its_centre_kept_is_said(model, tiny_scene, tmp_pat
     code, out, err = run_cli(["render", model, "--scene", tiny_scene, "--views", "view_03", "--out", tmp_path / "r2",
                               "--pixel-samples", "1"], capfd)
     assert code == 0 and "another camera" not in err, err
+
+
+def test_a_model_records_its_scene_folder_whole(tiny_scene, tmp_path, monkeypatch):
+    """A scene given as a relative path was recorded as typed; Blender's Load Model, which imports
+    that folder, read it from Blender's own working folder."""
+    shutil.copytree(tiny_scene, tmp_path / "scene")
+    monkeypatch.chdir(tmp_path)
+    assert main(["train", "scene", "--out", "model", *QUICK_TRAIN]) == 0
+    assert json.loads((tmp_path / "model" / METADATA_NAME).read_text())["scene"]["root"] == str(tmp_path / "scene")
