@@ -681,8 +681,9 @@ def test_cli_resume(tiny_scene, tmp_path, capfd):
     assert [e["step"] for e in lines if e["event"] in ("step", "validate")][-2:] == [3, 4]
 
 
-def interrupt_training(scene, model: Path, *options: str):
-    """Run `train` in a subprocess, send SIGINT after its first training step: (exit code, stdout, stderr)."""
+def interrupt_training(scene, model: Path, *options: str, signal_number: int = signal.SIGINT):
+    """Run `train` in a subprocess, send `signal_number` (SIGINT) after its first training step:
+    (exit code, stdout, stderr)."""
     env = dict(os.environ, PYTHONPATH=str(REPO) + os.pathsep + os.environ.get("PYTHONPATH", ""))
     process = subprocess.Popen([sys.executable, "-m", "neulf_core", "train", str(scene), "--out", str(model), *options,
                                 "--steps", "100000", "--batch-size", "64", "--progress", "json"],
@@ -691,7 +692,7 @@ def interrupt_training(scene, model: Path, *options: str):
         for line in process.stdout:
             if json.loads(line)["event"] == "step":
                 break
-        process.send_signal(signal.SIGINT)
+        process.send_signal(signal_number)
         out, err = process.communicate(timeout=120)
     finally:
         if process.poll() is None:

@@ -1315,21 +1315,11 @@ def test_the_demo_fails_where_its_video_fails(tiny_scene, tmp_path, capfd):
 def test_a_closed_terminal_saves_the_training(tiny_scene, tmp_path):
     """SIGHUP (the terminal closed, an ssh session dropped) ended the run unsaved, losing up to a
     checkpoint interval (60 s by default); it now saves as Ctrl-C does."""
+    from test_checkpoint_cli import interrupt_training
+
     model = tmp_path / "model"
-    env = dict(os.environ, PYTHONPATH=str(REPO) + os.pathsep + os.environ.get("PYTHONPATH", ""))
-    process = subprocess.Popen([sys.executable, "-m", "neulf_core", "train", str(tiny_scene), "--out", str(model),
-                                "--steps", "100000", "--batch-size", "64", "--progress", "json"],
-                               cwd=tmp_path, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    try:
-        for line in process.stdout:
-            if json.loads(line)["event"] == "step":
-                break
-        process.send_signal(signal.SIGHUP)
-        out, err = process.communicate(timeout=120)
-    finally:
-        if process.poll() is None:
-            process.kill()
-    assert process.returncode == 128 + signal.SIGHUP, err
+    code, _, err = interrupt_training(tiny_scene, model, signal_number=signal.SIGHUP)
+    assert code == 128 + signal.SIGHUP, err
     saved = load_checkpoint(model)
     assert saved["progress"]["status"] == "cancelled" and saved["progress"]["step"] >= 1
 
