@@ -14,10 +14,12 @@ import numpy as np
 from mathutils import Matrix
 
 from . import convert
+from .convert import refuse_uneven_scale
 from ..neulf_core.errors import NeulfError
 
 ROLE = "neulf_role"
 OBJECT_NAME = "neulf_object"
+CAMERAS = "neulf_cameras"  # on the capture's collection: photo name -> its camera object (a pointer)
 CLIP_START_DEFAULT = 0.1  # a new camera's, Blender 4.2 and 5.0
 
 
@@ -56,9 +58,16 @@ def _ensure_collection(scene, name: str, fingerprint: str):
 
 def is_capture_camera(obj) -> bool:
     """One of the capture's own cameras (its pose is its photo's): not a copy an artist made of
-    one, which carries the same properties under another name."""
+    one (Shift+D), which carries the same properties.  The capture's collection points at its
+    own cameras (CAMERAS), so a renamed one stays its photo's; a file imported before the
+    pointers tells them by the name the import gave."""
     if obj is None or obj.get(ROLE) != "camera":
         return False
+    view = obj.get("neulf_view")
+    for collection in obj.users_collection:
+        own = collection.get(CAMERAS)
+        if own is not None and view in own:
+            return own[view] == obj
     given = obj.get(OBJECT_NAME)
     if given is None:  # (imported before the name was kept: the import named cameras after their photos)
         return obj.name == Path(str(obj.get("neulf_view", ""))).stem
@@ -71,7 +80,7 @@ def _members(collection) -> dict:
         if obj.get(ROLE) == "camera":
             cameras.setdefault(obj.get("neulf_view"), []).append(obj)
         elif obj.get(ROLE):
-            found[(obj[ROLE], None)] = obj
+            found.setdefault((obj[ROLE], None), obj)  # (the first: a Shift+D copy comes after its original)
     for view, claiming in cameras.items():
         own = [obj for obj in claiming if is_capture_camera(obj)]
         if not own and len(claiming) == 1 and OBJECT_NAME not in claiming[0]:
@@ -79,6 +88,18 @@ def _members(collection) -> dict:
         if own:
             found[("camera", view)] = own[0]
     return found
+
+
+def _own_root(scene, collection, members):
+    """The capture's root: the scene's pointer where it is this collection's (a Shift+D copy of
+    the root carries the same role; a root deleted with X survives, held by the pointer, and is
+    linked back), else the collection's first root."""
+    own_collection, pointed = find_capture(scene)
+    if pointed is not None and pointed.get(ROLE) == "root" and own_collection == collection:
+        if collection not in pointed.users_collection:
+            collection.objects.link(pointed)
+        return pointed
+    return members.get(("root", None))
 
 
 def _mesh_object(collection, members, role: str, name: str, vertices, faces, root):
@@ -133,8 +154,9 @@ def build_capture(context, description: dict, *, import_points: bool = True):
     collection = _ensure_collection(scene, f"NeuLF {root_path.name}", description["fingerprint"])
     members = _members(collection)
 
-    root = members.get(("root", None))
-    first_import = root is None
+    root = _own_root(scene, collection, members)
+    # (the capture's objects already here: a re-import, which leaves the artist's camera, size and colours)
+    first_import = root is None and not any(role == "camera" for role, _ in members)
     if root is None:
         root = bpy.data.objects.new(f"NeuLF Root {root_path.name}", None)
         root.empty_display_type = "ARROWS"
@@ -159,6 +181,9 @@ def build_capture(context, description: dict, *, import_points: bool = True):
             obj[ROLE] = "camera"
             obj["neulf_view"] = name
         obj[OBJECT_NAME] = obj.name
+        if collection.get(CAMERAS) is None:
+            collection[CAMERAS] = {}
+        collection[CAMERAS][name] = obj
         K = np.asarray(view["K"], dtype=np.float64)
         fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
         settings = convert.blender_camera_from_K(fx, fy, cx, cy, view["width"], view["height"])
@@ -178,6 +203,9 @@ def build_capture(context, description: dict, *, import_points: bool = True):
     for (role, name), obj in list(members.items()):
         if role == "camera" and name not in keep:
             bpy.data.objects.remove(obj)
+    own = collection.get(CAMERAS)
+    for name in [name for name in own.keys() if name not in keep or own[name] is None]:
+        del own[name]
 
     set_slab_planes(collection, root, description["slab"])
     points = np.asarray(description.get("points", np.zeros((0, 3))), dtype=np.float64).reshape(-1, 3)
@@ -192,8 +220,9 @@ def build_capture(context, description: dict, *, import_points: bool = True):
     props.collection_name = props.root_name = ""
     props.fingerprint = description["fingerprint"]
     if first_import or scene.camera is None:  # (a re-import leaves the artist's camera, size and colours)
-        # The middle camera of the rig becomes the active one; the scene renders at its photo size.
-        middle = views[int(np.argmin(np.linalg.norm(centres - centres.mean(0), axis=1)))]["name"]
+        # The middle camera of the rig (of the photos' most common size) becomes the active one;
+        # the scene renders at its photo size.
+        middle = views[convert.first_scene_camera([(v["width"], v["height"]) for v in views], centres)]["name"]
         active = _members(collection)[("camera", middle)]
         scene.camera = active
         apply_capture_camera(scene, active)
@@ -228,6 +257,7 @@ def camera_request(scene, camera_obj, matrix_world=None, root_matrix=None, shift
                                sensor_fit=cam.sensor_fit, shift_x=cam.shift_x if shift_x is None else shift_x,
                                shift_y=cam.shift_y, width=width, height=height,
                                pixel_aspect_x=render.pixel_aspect_x, pixel_aspect_y=render.pixel_aspect_y)
+    refuse_uneven_scale(np.array(root_matrix))
     relative = np.array(root_matrix.inverted()) @ np.array(matrix_world)
     try:
         R, t = convert.pose_from_matrix(relative)
@@ -278,6 +308,13 @@ def settings_not_followed(scene, camera_obj) -> list[str]:
             notes.append(f"{camera_obj.name}'s clip start is not rendered: the light field shows what is nearer too")
     if scene.render.use_motion_blur:
         notes.append("motion blur is not rendered by NeuLF")
+    size = camera_obj.get("neulf_size") if is_capture_camera(camera_obj) else None
+    if size is not None:
+        render = scene.render
+        if int(size[0]) * render.resolution_y != int(size[1]) * render.resolution_x:  # (another aspect ratio)
+            notes.append(f"{camera_obj.name}'s photo is {int(size[0])}x{int(size[1])}; the scene renders "
+                         f"{render.resolution_x}x{render.resolution_y}, another framing: Use Capture Camera renders "
+                         "the photo's")
     return notes
 
 

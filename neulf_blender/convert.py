@@ -13,6 +13,7 @@ import math
 
 import numpy as np
 
+from ..neulf_core.errors import NeulfError
 from ..neulf_core.exr import NO_DEPTH, depth_for_compositing, srgb_to_linear  # noqa: F401 (the extension's)
 
 FLIP = np.diag([1.0, -1.0, -1.0, 1.0])  # COLMAP camera axes <-> Blender camera axes
@@ -145,6 +146,26 @@ def pose_from_matrix(matrix) -> tuple[np.ndarray, np.ndarray]:
         raise ValueError("the camera's matrix is mirrored (negative scale); cameras and the root need positive scale.")
     R = rotation.T
     return R, -R @ C[:3, 3]
+
+
+def first_scene_camera(sizes, centres) -> int:
+    """The photo whose camera a first import makes the scene's: the one nearest the rig's middle
+    among the photos of the most common size (a minority portrait photo had made a landscape
+    capture's scene, and its video, portrait)."""
+    common = max(set(map(tuple, sizes)), key=[tuple(s) for s in sizes].count)
+    centres = np.asarray(centres, dtype=np.float64)
+    distance = np.linalg.norm(centres - centres.mean(0), axis=1)
+    return min((i for i, size in enumerate(sizes) if tuple(size) == common), key=lambda i: distance[i])
+
+
+def refuse_uneven_scale(root_matrix) -> None:
+    """A light field can be moved, turned and scaled as a whole, not stretched: a root scaled
+    unevenly (say (1, 1, 2)) had rendered 18 pixels off Blender's own projection, without a word."""
+    stretch = np.linalg.svd(np.asarray(root_matrix, dtype=np.float64).reshape(4, 4)[:3, :3], compute_uv=False)
+    if stretch[0] > stretch[-1] * (1 + 1e-4):
+        raise NeulfError(f"the capture's root is scaled unevenly (its axes scaled {', '.join(f'{s:.4g}' for s in stretch)}); "
+                         "a light field can only be scaled the same along every axis: give the root one scale for all "
+                         "three (or scale the objects around it instead).")
 
 
 def uniform_scale(matrix) -> float:

@@ -48,6 +48,7 @@ def view_request(view_matrix, window_matrix, width: int, height: int, root_matri
     fx, fy = P[0, 0] * width / 2.0, P[1, 1] * height / 2.0
     cx, cy = width / 2.0 * (1.0 - P[0, 2]), height / 2.0 * (1.0 + P[1, 2])
     root = np.asarray(root_matrix, dtype=np.float64).reshape(4, 4)
+    convert.refuse_uneven_scale(root)
     camera_to_world = np.linalg.inv(np.asarray(view_matrix, dtype=np.float64).reshape(4, 4))
     try:
         R, t = convert.pose_from_matrix(np.linalg.inv(root) @ camera_to_world)

@@ -1009,8 +1009,9 @@ def _say_wide_views(slab: Slab, views, scale: float, progress) -> None:
 
 
 def path_camera_view(views):
-    """The training view whose pinhole a camera path (video, Blender's spiral) takes: of the
-    photos' most common size (portrait or landscape included), the one of median focal length.
+    """The training view whose pinhole a camera path takes (the CLI's video; Blender's spiral takes
+    the scene camera's lens): of the photos' most common size (portrait or landscape included),
+    the one of median focal length.
     (The first view's had made a portrait video of a landscape capture with one portrait photo
     first, and a fisheye's focal length a 94° pinhole.)"""
     size, _ = Counter(view.size for view in views).most_common(1)[0]

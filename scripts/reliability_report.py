@@ -195,6 +195,12 @@ CASES = [
          "through a re-import, the output through Render Video, a second scene's capture), an orthographic camera "
          "refused before a video, DOF on a bone or an object behind the camera as Blender focuses", [
         f"{STORY}[artist_settings]"]),
+    Case("Blender: the capture's own objects stay its own (a renamed capture camera, a Shift+D copy of the root, a "
+         "root deleted and imported again), a root scaled unevenly refused, a capture camera framing otherwise than "
+         "the scene said; the first scene camera of the photos' most common size", [
+        f"{STORY}[capture_identity]",
+        "tests/test_blender_convert.py::test_a_root_scaled_unevenly_is_refused",
+        "tests/test_blender_convert.py::test_the_first_scene_camera_is_of_the_photos_most_common_size"]),
     Case("--resume with options other than the model's: said, the model kept", [
         f"{REL}::test_resume_says_which_asked_options_the_model_keeps"]),
     Case("A model trained on another images folder than the scene's default (LLFF's images_N): eval, render and "

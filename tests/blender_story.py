@@ -34,7 +34,7 @@ GRID = [(x, y) for y in (-0.3, 0.0, 0.3) for x in (-0.3, 0.0, 0.3)]
 
 STEPS = ["install", "import", "cameras_match_pycolmap", "slab_planes", "reimport_no_duplicates", "train_blocking",
          "train_options", "train_timer_resume", "train_cancel", "train_cancel_resume", "members", "render_camera", "pixel_samples",
-         "render_worker_process", "focus_at", "pick_focus_frame", "pick_focus_click", "root_scale", "engine_f12", "composite_cg", "viewport_preview", "spiral_video", "artist_settings", "save_reload",
+         "render_worker_process", "focus_at", "pick_focus_frame", "pick_focus_click", "root_scale", "engine_f12", "composite_cg", "viewport_preview", "spiral_video", "artist_settings", "capture_identity", "save_reload",
          "blend_moved", "linked_scene", "quit_while_training", "open_other_while_training", "reconstruct_photos", "user_errors", "dependencies_status",
          "install_dependencies"]
 
@@ -1366,6 +1366,71 @@ def run_story(setup: dict) -> None:  # noqa: C901 - one story, told in order
         return (f"re-import kept MyShot, the scene camera, 96x64 and AgX; the video went into videos/ and "
                 f"CYCLES/OPEN_EXR came back; ortho: {ortho.strip()}; focus {by_origin:.3f} by the origin, "
                 f"{behind:.3f} behind")
+
+    @story.step("capture_identity", "artist_settings")
+    def _():
+        """The capture's own objects stay its own (a second reader's audit): a renamed capture camera
+        is still its photo's (Spiral keyframes a camera of its own; a re-import makes no second
+        one), a Shift+D copy of the root does not become the root, a root deleted with X comes back
+        without the re-import taking the artist's camera and size, a root scaled unevenly is
+        refused, and a capture camera whose photo frames otherwise than the scene is said."""
+        scene, render, props = bpy.context.scene, bpy.context.scene.render, bpy.context.scene.neulf
+        capture_mod = mod("capture")
+        kept = (scene.camera, render.resolution_x, render.resolution_y)
+        root = props.root
+        photo = bpy.data.objects["view_04"]
+        pose = photo.matrix_world.copy()
+
+        def reimport():
+            assert bpy.ops.neulf.import_colmap(directory=bpy.path.abspath(props.scene_dir)) == {"FINISHED"}
+
+        def claiming(view):
+            return [obj for obj in bpy.data.objects if obj.get("neulf_view") == view and obj.users_scene]
+
+        photo.name = "Hero"  # F2
+        assert capture_mod.is_capture_camera(photo)
+        reimport()
+        assert claiming("view_04.png") == [photo], claiming("view_04.png")
+        scene.camera = photo
+        assert bpy.ops.neulf.spiral_path(frames=2) == {"FINISHED"}
+        assert scene.camera != photo and scene.camera.get(capture_mod.ROLE) == "spiral", scene.camera
+        bpy.context.scene.frame_set(scene.frame_start + 1)
+        assert np.allclose(np.array(photo.matrix_world), np.array(pose)), "the photo's camera was keyframed"
+        photo.name = "view_04"
+        # A Shift+D copy of the root, moved away: the re-import keeps the capture on its own root.
+        copy = root.copy()
+        root.users_collection[0].objects.link(copy)
+        copy.location.x += 3.0
+        reimport()
+        assert props.root == root and photo.parent == root, (props.root, photo.parent)
+        assert np.allclose(np.array(photo.matrix_world), np.array(pose))
+        bpy.data.objects.remove(copy)
+        # The root deleted with X (unlinked; the scene's pointer holds it), the artist's camera set:
+        # the re-import links it back and leaves the camera and size as they are.
+        artist = bpy.data.objects.new("ArtCam", bpy.data.cameras.new("ArtCam"))
+        scene.collection.objects.link(artist)
+        scene.camera, render.resolution_x, render.resolution_y = artist, 96, 64
+        for collection in list(root.users_collection):
+            collection.objects.unlink(root)
+        reimport()
+        assert props.root == root and root.users_collection and photo.parent == root
+        assert scene.camera == artist and (render.resolution_x, render.resolution_y) == (96, 64)
+        assert len([obj for obj in bpy.data.objects if obj.get(capture_mod.ROLE) == "root" and obj.users_scene]) == 1
+        # A capture camera framing otherwise than the scene: said with F12's other notes.
+        scene.camera = photo
+        framing = [n for n in capture_mod.settings_not_followed(scene, photo) if "another framing" in n]
+        assert framing and "Use Capture Camera" in framing[0], capture_mod.settings_not_followed(scene, photo)
+        # A root scaled unevenly cannot be rendered through: refused in one line.
+        scale = root.scale.copy()
+        root.scale = (scale.x, scale.y, 2.0 * scale.z)
+        bpy.context.view_layer.update()
+        uneven = error_of(lambda: bpy.ops.neulf.render_camera())
+        assert "scaled unevenly" in uneven and "Traceback" not in uneven, uneven
+        root.scale = scale
+        bpy.context.view_layer.update()
+        bpy.data.objects.remove(artist)
+        scene.camera, render.resolution_x, render.resolution_y = kept
+        return f"renamed camera kept its photo; root copy and deleted root handled; {uneven.strip()}"
 
     @story.step("save_reload", "render_camera")
     def _():

@@ -399,3 +399,20 @@ def test_worker_route_needs_no_torch_in_blender(ext, tmp_path):
     assert run.returncode == 0, run.stderr[-3000:]
     answer = json.loads(run.stdout.strip().splitlines()[-1])
     assert answer == {"points": [270, 3], "views": 9, "loaded": []}
+
+
+def test_a_root_scaled_unevenly_is_refused(ext):
+    """A light field scales as a whole: a root of scale (1, 1, 2) had rendered 18 pixels off
+    Blender's own projection without a word."""
+    turned = np.eye(4)
+    turned[:3, :3] = 2.5 * np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
+    ext.convert.refuse_uneven_scale(turned)  # (turned and scaled evenly: fine)
+    with pytest.raises(Exception, match="scaled unevenly"):
+        ext.convert.refuse_uneven_scale(np.diag([1.0, 1.0, 2.0, 1.0]))
+
+
+def test_the_first_scene_camera_is_of_the_photos_most_common_size(ext):
+    sizes = [(64, 48), (40, 56), (64, 48), (64, 48)]
+    centres = [[1.0, 0, 0], [0.0, 0, 0], [-1.0, 0, 0], [0.5, 0, 0]]
+    assert ext.convert.first_scene_camera(sizes, centres) == 3  # (the portrait photo stands in the middle)
+    assert ext.convert.first_scene_camera([(64, 48)] * 3, [[1.0, 0, 0], [0.1, 0, 0], [-1.0, 0, 0]]) == 1
