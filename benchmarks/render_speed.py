@@ -17,9 +17,11 @@ the ratios (each repeat renders every variant once, in turn).
 from __future__ import annotations
 
 import argparse
+import csv
 import resource
 import sys
 import time
+from datetime import date
 from pathlib import Path
 
 import numpy as np
@@ -94,6 +96,8 @@ def main() -> None:
                         help="comma-separated points per pixel to time with the current code (render.PIXEL_SAMPLES)")
     parser.add_argument("--blends", help="comma-separated back-surface blends to time (colour, features) for models "
                                          "with a back surface (default: each model's own)")
+    parser.add_argument("--out", type=Path, help="also write the timings to this CSV (one row a variant: the date, "
+                        "machine, size, threads, depth, repeats, median, min and the ratio)")
     parser.add_argument("--default-allocator", action="store_true",
                         help="leave glibc's malloc thresholds as they are (the render path otherwise keeps freed "
                              "buffers, device.keep_freed_cpu_memory); run once with and once without to compare")
@@ -132,10 +136,34 @@ def main() -> None:
     print(f"{width}x{height}, {args.threads} threads, depth {not args.no_depth}, {args.repeats} repeats, "
           f"allocator {'default' if args.default_allocator else 'keeping freed buffers'}, "
           f"page faults {resource.getrusage(resource.RUSAGE_SELF).ru_minflt - faults_before} in all")
+    rows = []
     for label in times:
         ratio = np.median([a / b for a, b in zip(times[label], times[first])])
         print(f"{label}: median {np.median(times[label]) * 1000:.0f} ms/frame, min {min(times[label]) * 1000:.0f}, "
               f"median ratio to '{first}' {ratio:.3f}")
+        rows.append({"date": date.today().isoformat(), "machine": machine(), "variant": label, "width": width,
+                     "height": height, "threads": args.threads, "depth": not args.no_depth, "repeats": args.repeats,
+                     "median_ms": round(float(np.median(times[label])) * 1000, 1),
+                     "min_ms": round(min(times[label]) * 1000, 1), "ratio_to_first": round(float(ratio), 3)})
+    if args.out:  # (the README's render times come from such a file, not from a console)
+        args.out.parent.mkdir(parents=True, exist_ok=True)
+        with open(args.out, "w", newline="") as handle:
+            writer = csv.DictWriter(handle, fieldnames=list(rows[0]))
+            writer.writeheader()
+            writer.writerows(rows)
+        print(f"written {args.out}")
+
+
+def machine() -> str:
+    """The CPU's model name and core count (the timings are this machine's)."""
+    import os
+    import platform
+
+    try:
+        cpu = next(line.split(":", 1)[1].strip() for line in open("/proc/cpuinfo") if line.startswith("model name"))
+    except (OSError, StopIteration):
+        cpu = platform.processor() or platform.machine()
+    return f"{cpu}, {os.cpu_count()} cores, torch {torch.__version__}"
 
 
 if __name__ == "__main__":

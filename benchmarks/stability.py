@@ -1690,8 +1690,29 @@ def pack(args, scenes: dict[str, Path], out: Path) -> str:
     return " ".join(arguments)
 
 
+def missing_captures_would_be_dropped(args) -> bool:
+    """Whether a capture the study's CSV holds runs of is not where --canclip / --hci / --fern say:
+    its rows would vanish from docs/ (the tables are written from the planned jobs), so the study
+    says which and writes nothing; into another --docs folder a part of the study is written."""
+    table = args.docs / "stability.csv"
+    logged = {row["scene"] for row in read_csv_rows(table)} if table.is_file() else set()
+    missing = [(name, path) for name, path in (("canclip", args.canclip), ("hci", args.hci), ("fern", args.fern))
+               if not path.is_dir() and name in logged]
+    if not missing or args.docs.resolve() != DOCS.resolve():
+        for name, path in missing:
+            print(f"skip {name}: {path} not found; its runs are left out of {args.docs}", flush=True)
+        return False
+    shown = ", ".join(f"{name} ({path})" for name, path in missing)
+    print(f"skip: the captures {shown} are not there, and writing docs/ without them would drop their rows of "
+          f"{table}; give --canclip / --hci / --fern DIR, or --docs ANOTHER_FOLDER for a part of the study. Nothing "
+          "was written.", flush=True)
+    return True
+
+
 def main(argv=None) -> None:
     args = parse_args(argv)
+    if not args.pack and missing_captures_would_be_dropped(args):
+        return
     args.cache.mkdir(parents=True, exist_ok=True)
     scenes = {v: render_synthetic(args.cache, v) for v in ("lambertian", "shiny", "fine")}
     scenes["jitter1"] = render_synthetic(args.cache, "lambertian", 1.0)

@@ -633,3 +633,18 @@ def test_a_run_that_started_its_field_again_otherwise_than_the_rule_now_decides_
         stability, tmp_path / "runs.jsonl", {**base, "field_restarted": True, "pose_check_degrees": between},
         {**base, "seed": 1, "field_restarted": False, "far_off_degrees": between},
         stability.older_restart_rule_note, "1 runs started their field again")
+
+
+def test_a_missing_capture_does_not_drop_its_rows_from_docs(stability, tmp_path, capsys):
+    """The study writes docs/ from the runs it planned: with CanClip not where --canclip says (a
+    checkout without ../shared/data) it had rewritten docs/stability.csv with 143 of its 289 rows,
+    exit 0.  It now says which capture is missing and writes nothing; into another --docs folder
+    it writes the part it can."""
+    table = stability.DOCS / "stability.csv"
+    before = table.stat().st_mtime_ns
+    stability.main(["--report-only", "--canclip", str(tmp_path / "none"), "--cache", str(tmp_path / "cache")])
+    said = capsys.readouterr().out
+    assert "skip: the captures canclip" in said and "Nothing was written" in said, said
+    assert table.stat().st_mtime_ns == before and not (tmp_path / "cache").exists()
+    args = stability.parse_args(["--canclip", str(tmp_path / "none"), "--docs", str(tmp_path / "part")])
+    assert stability.missing_captures_would_be_dropped(args) is False
