@@ -33,10 +33,16 @@ def _gaussian_window(size: int = 11, sigma: float = 1.5) -> torch.Tensor:
 
 
 def ssim(prediction, target, window: int = 11, sigma: float = 1.5) -> float:
-    """Mean SSIM of two (H, W, 3) or (H, W) images in [0, 1] (or uint8)."""
+    """Mean SSIM of two (H, W, 3) or (H, W) images in [0, 1] (or uint8).  An image smaller than
+    the window takes the largest odd window that fits (a 250x10 photo had ended eval in a
+    traceback, losing the scores already made), as skimage shrinks its window for such images."""
     x, y = _as_float(prediction), _as_float(target)
     if x.dim() == 2:
         x, y = x[..., None], y[..., None]
+    fits = min(window, x.shape[0], x.shape[1])
+    window = fits if fits % 2 else fits - 1
+    if window < 1:
+        return float("nan")
     x = x.permute(2, 0, 1)[:, None]  # (C, 1, H, W)
     y = y.permute(2, 0, 1)[:, None]
     kernel = _gaussian_window(window, sigma)[None, None]

@@ -133,8 +133,19 @@ def check_scale(scale) -> float:
 
 def camera_spacing(centres: np.ndarray) -> float:
     """The rig's camera spacing: the median distance from a camera to its nearest neighbour
-    (1.0 for a single camera); the unit pose corrections and pose noise are measured in."""
-    return float(np.median(camera_gaps(centres).min(axis=1))) if len(centres) > 1 else 1.0
+    (1.0 for a single camera); the unit pose corrections and pose noise are measured in.
+    Photos taken twice from one place (a burst, a duplicated frame) are not each other's
+    neighbours; all from one place (a tripod panorama): 1.0, as for one camera.  (A spacing of 0
+    had ended training in an SVD traceback.)"""
+    centres = np.asarray(centres, dtype=np.float64)
+    if len(centres) < 2:
+        return 1.0
+    extent = float(np.ptp(centres, axis=0).max())
+    if extent <= 0:
+        return 1.0
+    gaps = camera_gaps(centres)
+    nearest = np.where(gaps > 1e-6 * extent, gaps, np.inf).min(axis=1)  # (a twin at the same place: not counted)
+    return float(np.median(nearest[np.isfinite(nearest)]))
 
 
 def camera_gaps(centres: np.ndarray) -> np.ndarray:

@@ -416,8 +416,15 @@ class TrainingRun:
         _emit(progress, event="start", scene=str(scene.root), views=len(scene.views), train_views=len(self.train_views),
               held_out=[v.name for v in self.held_views], device=describe_device(self.device), preset=config.preset,
               notes=scene.notes)
+        self.no_baseline = not has_baseline(self.train_views, self.slab)
         if not resumed:
             _say_wide_views(self.slab, self.train_views, config.scale, progress)
+            if self.no_baseline:
+                message = ("the training photos were all taken from one place (a tripod panorama, or one photo many "
+                           "times): with no camera movement between them there is no parallax, so the light field "
+                           "learns no depth and renders views only from that place; take the photos from positions "
+                           "a little apart for a light field to fly through")
+                kept("no baseline warning", message, lambda: _emit(progress, event="warning", message=message))
         masks, sweep_photos = self._load_rays(config, resumed)
         config = self._decide_appearance(config)
         self._make_field(config, resumed)
@@ -515,6 +522,8 @@ class TrainingRun:
                                                                      self.device)
         self.poses_found_right = found_right or (resumed or {}).get("pose_check", {}).get("refining") is False
         if config.refine_poses is None and not pose_check.check_possible(config, self.preset, self.step_limit, resumed):
+            config = replace(config, refine_poses=False)
+        if config.refine_poses is None and self.no_baseline:  # (the check would read the missing parallax as pose error)
             config = replace(config, refine_poses=False)
         self.pose_check_pending = config.refine_poses is None
         self.poses = (PoseRefinement(self.slab, np.stack([v.center for v in self.train_views])).to(self.device)
@@ -992,6 +1001,12 @@ def _rig(views, scale: float) -> dict:
             "width": int(camera.width), "height": int(camera.height)}
 
 
+def has_baseline(views, slab: Slab) -> bool:
+    """Whether the training cameras stand apart by more than a millionth of the scene's depth."""
+    centres = slab.to_slab(np.stack([view.center for view in views]))
+    return float(np.ptp(centres, axis=0).max()) > 1e-6 * slab.z_st
+
+
 def _say_wide_views(slab: Slab, views, scale: float, progress) -> None:
     """Warn of training photos that see far wider than the others (slab.wide_views), once a
     training call (the auto preset's candidates and a model's members ask again)."""
@@ -1000,7 +1015,7 @@ def _say_wide_views(slab: Slab, views, scale: float, progress) -> None:
         return
     shown = ", ".join(f"{name} ({ratio:.1f}x)" for name, ratio in wide[:3]) + (" ..." if len(wide) > 3 else "")
     message = (f"{len(wide)} photo(s) see more than twice as wide as the median photo on the light slab: {shown} (a "
-               "wider lens or a fisheye). The light field spans what every photo sees, so the others get a smaller "
+               "wider lens, a fisheye, or a camera turned away from the others). The light field spans what every photo sees, so the others get a smaller "
                "share of its detail (one 94-degree photo among 56-degree ones cost the held-out views 4 dB). Where their "
                "detail matters less, hold them out of training: --exclude names every view held out, so list them "
                "with the views you score on.")

@@ -219,6 +219,13 @@ CASES = [
         f"{REL}::test_a_camera_edited_with_its_centre_kept_is_said",
         f"{REL}::test_a_failed_write_names_its_file",
         f"{REL}::test_the_demo_fails_where_its_video_fails"]),
+    Case("Degenerate captures: stray points near the lens, a flat subject, photos taken twice from one place, a "
+         "tripod panorama, photos smaller than SSIM's window", [
+        "tests/test_degenerate_captures.py::test_stray_points_near_the_lens_do_not_place_the_slab",
+        "tests/test_degenerate_captures.py::test_a_flat_subject_trains",
+        "tests/test_degenerate_captures.py::test_photos_taken_twice_from_one_place_train",
+        "tests/test_degenerate_captures.py::test_a_tripod_panorama_is_said_and_not_pose_checked",
+        "tests/test_degenerate_captures.py::test_ssim_of_photos_smaller_than_its_window"]),
     Case("Captures of mixed cameras: a distorted view refocused through its own lens, a photo far wider than the "
          "others said, a view that sees past the capture said by render and eval, a camera path's camera, "
          "fractional frame rates", [
