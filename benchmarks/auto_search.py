@@ -35,6 +35,7 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 sys.path.insert(0, str(REPO / "benchmarks"))
+from reference_data import present  # noqa: E402
 from seed_scatter import parse_seeds  # noqa: E402
 from side_by_side import SCENES, machine_name  # noqa: E402
 
@@ -170,8 +171,10 @@ def main(argv=None) -> None:
                      "psnr": float(r["psnr"]), "model_bytes": int(r["model_bytes"])} for r in csv.DictReader(handle)]
         print("\n".join(table(rows, TOLERANCE_DB)))
         return
+    # --out holds this run's rows only: a committed one is not rewritten without a missing scene's
+    scenes = present({name: Path(args.data) / name for name in args.scenes.split(",")}, "--data", rewrites=out)
     factors = [float(f) for f in args.factors.split(",")]
-    listed = jobs(args.scenes.split(","), parse_seeds(args.seeds), factors, [int(s) for s in args.curve.split(",")],
+    listed = jobs(scenes, parse_seeds(args.seeds), factors, [int(s) for s in args.curve.split(",")],
                   args.steps)
     listed = [job for job in listed if not (args.no_finals and job[3] == "final")]
     cores = sorted(os.sched_getaffinity(0))[:2]

@@ -36,6 +36,9 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "benchmarks"))
+from reference_data import present  # noqa: E402
+
 DATA = ROOT.parent / "shared" / "data"
 DOCS = ROOT / "docs"
 CACHE = Path(os.environ.get("NEULF_BENCH_CACHE", "/tmp/neulf_depth_bench"))
@@ -88,16 +91,16 @@ def train_model(scene: Path, name: str, consistency: bool, steps: int, scale: fl
 
 
 # ----------------------------------------------------------------------------- measures
-def hci_depth_errors(model_dir: str) -> dict:
+def hci_depth_errors(model_dir: str, data: Path = DATA) -> dict:
     """Disparity of the held-out centre view against the benchmark's ground truth."""
     from neulf_core.render import LightField
     from neulf_core.scene import load_scene
 
     light_field = LightField.load(model_dir, precision="full")
-    scene = load_scene(DATA / "hci_antinous")
+    scene = load_scene(data / "hci_antinous")
     view = scene.view("input_Cam040.png")
     depth = light_field.render_view(view, 1.0, depth=True).depth
-    truth = np.load(DATA / "hci_antinous" / "gt_disparity_Cam040.npy")
+    truth = np.load(data / "hci_antinous" / "gt_disparity_Cam040.npy")
     disparity = HCI_FOCAL_PX * HCI_BASELINE / depth - HCI_SHIFT
     inverse = 1.0 / depth
     ok = np.isfinite(inverse)
@@ -180,27 +183,27 @@ def mode_of(consistency: bool | None, teacher: bool | None) -> str:
     return "teacher" if teacher else ("on" if consistency else "off")
 
 
-def jobs_for(parts: list[str], steps: int, hci_steps: int | None = None) -> list[tuple]:
+def jobs_for(parts: list[str], steps: int, hci_steps: int | None = None, data: Path = DATA) -> list[tuple]:
     scenes = []
     if "hci" in parts:
-        scenes.append((DATA / "hci_antinous", "hci", 1.0))
+        scenes.append((data / "hci_antinous", "hci", 1.0))
     if "synthetic" in parts or "refocus" in parts:
         scenes.append((synthetic_scene("lambertian"), "synthetic", 1.0))
     if "synthetic" in parts:
         scenes.append((synthetic_scene("shiny"), "synthetic_shiny", 1.0))
     if "canclip" in parts:
-        scenes.append((DATA / "canclip", "canclip", 0.5))
+        scenes.append((data / "canclip", "canclip", 0.5))
     return [(path, name, consistency, (hci_steps or steps) if name == "hci" else steps, scale, 0, teacher)
             for path, name, scale in scenes for consistency, teacher in MODES]
 
 
-def measure(row: dict, out_dir: Path, aperture: float) -> dict:
+def measure(row: dict, out_dir: Path, aperture: float, data: Path = DATA) -> dict:
     from neulf_core.video import depth_to_colour
     from neulf_core.images import save_rgb
 
     tag = f"{row['scene']}_{row.get('mode') or mode_of(row['consistency'], row.get('teacher', False))}"
     if row["scene"] == "hci":
-        scores = hci_depth_errors(row["model"])
+        scores = hci_depth_errors(row["model"], data)
         disparity = scores.pop("disparity_map")
         save_rgb(out_dir / f"depth_{tag}.png", depth_to_colour(1.0 / (disparity + HCI_SHIFT)))
         row.update(scores)
@@ -228,14 +231,18 @@ def main(argv=None) -> int:
     parser.add_argument("--jobs", type=int, default=2, help="trainings side by side (one torch thread each)")
     parser.add_argument("--aperture", type=float, default=0.08, help="refocus lens radius (synthetic scene units)")
     parser.add_argument("--csv", default=str(DOCS / "depth.csv"))
+    parser.add_argument("--data", type=Path, default=DATA, help="the folder holding hci_antinous and canclip")
     args = parser.parse_args(argv)
-    parts = args.parts.split(",")
-    jobs = [j for j in jobs_for(parts, args.steps, args.hci_steps) if j[0].exists()]
+    # The parts on a capture need its folder; checked before the synthetic scene is rendered.  The
+    # CSV keeps the rows of the parts left out, so the others still run.
+    needs = {"hci": args.data / "hci_antinous", "canclip": args.data / "canclip"}
+    parts = present({part: needs.get(part) for part in args.parts.split(",")}, "--data")
+    jobs = jobs_for(parts, args.steps, args.hci_steps, args.data)
     with ProcessPoolExecutor(args.jobs) as pool:
         rows = list(pool.map(train_model, *zip(*jobs)))
     out_dir = DOCS / "depth"
     out_dir.mkdir(parents=True, exist_ok=True)
-    rows = [measure({"teacher": False, **row}, out_dir, args.aperture) for row in rows]
+    rows = [measure({"teacher": False, **row}, out_dir, args.aperture, args.data) for row in rows]
     hardware = _hardware()
     table = kept_rows(Path(args.csv), {row["scene"] for row in rows}) + [{**row, "hardware": hardware} for row in rows]
     fields = sorted({k for row in table for k in row if k not in ("model", "hardware")},

@@ -30,6 +30,7 @@ from neulf_core.device import pick_device  # noqa: E402
 from neulf_core.render import LightField  # noqa: E402
 from neulf_core.scene import load_scene, split_views  # noqa: E402
 from neulf_core.train import TrainConfig, train  # noqa: E402
+from reference_data import skip_unless_present  # noqa: E402
 
 TOP = 30
 
@@ -81,6 +82,8 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--out", type=Path, required=True)
     parser.add_argument("--model-out", type=Path, help="where to keep the trained model (default: OUT/model)")
     args = parser.parse_args(argv)
+    skip_unless_present(args.scene)
+    skip_unless_present(args.images, option="--images")
     device = pick_device(args.device)
     args.out.mkdir(parents=True, exist_ok=True)
     model_dir = args.model_out or args.out / "model"

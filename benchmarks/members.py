@@ -206,7 +206,8 @@ def parse_args(argv=None) -> argparse.Namespace:
 
 def plan(args: argparse.Namespace) -> list[tuple[str, object, int]]:
     """(label, job, members) of every model to train: the study's jobs at each budget."""
-    labels = [label for label in args.configurations.split(",") if label]
+    # members.csv keeps the rows of the configurations a run leaves out (a capture not here among them).
+    labels = seed_scatter.labels_present([label for label in args.configurations.split(",") if label], args)
     counts = [int(c) for c in args.member_counts.split(",") if c]
     work = []
     for budget in (int(b) for b in args.budgets.split(",") if b):

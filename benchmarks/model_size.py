@@ -34,6 +34,7 @@ from neulf_core.metrics import psnr  # noqa: E402
 from neulf_core.render import LightField  # noqa: E402
 from neulf_core.scene import load_scene, split_views  # noqa: E402
 from neulf_core.train import TrainConfig, train  # noqa: E402
+from reference_data import skip_unless_present  # noqa: E402
 
 
 def parse_variant(text: str, train_views, scale: float) -> dict:
@@ -91,6 +92,8 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--out", help="CSV to append rows to")
     args = parser.parse_args()
+    skip_unless_present(args.scene)
+    skip_unless_present(args.images, option="--images")
     torch.set_num_threads(args.threads)
     scene = load_scene(args.scene, args.images)
     train_views, held_out = split_views(scene)

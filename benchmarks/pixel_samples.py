@@ -240,7 +240,9 @@ def main(argv=None) -> None:
     if args.report_only:
         rows = read_csv(csv_path)
     else:
-        labels = [label for label in args.configurations.split(",") if label]
+        # The CSV keeps the rows of the configurations a run leaves out (a capture not here among them).
+        labels = seed_scatter.labels_present([label for label in args.configurations.split(",") if label], args,
+                                             others={label: folder for label, (folder, _) in OTHER_SCENES.items()})
         args.two_starts, args.pixel_jitter = "rule", 0.0  # the default, as seed_scatter.plan_for reads it
         jobs = seed_scatter.plan_for([label for label in labels if label not in OTHER_SCENES], args)
         jobs.update(other_scene_jobs([label for label in labels if label in OTHER_SCENES], args))

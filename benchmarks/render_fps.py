@@ -31,6 +31,7 @@ from speed_accuracy import append_rows, hardware  # noqa: E402
 from neulf_core.device import pick_device  # noqa: E402
 from neulf_core.render import LightField  # noqa: E402
 from neulf_core.scene import load_scene, split_views  # noqa: E402
+from reference_data import skip_unless_present  # noqa: E402
 
 DOCS = Path(__file__).resolve().parents[1] / "docs"
 WARM_UP = 3
@@ -79,6 +80,8 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--pixel-samples", default="1", help="comma-separated points a pixel to compare (1, 4, ...)")
     parser.add_argument("--out", help="CSV to append to (default: docs/render_fps.csv)")
     args = parser.parse_args(argv)
+    skip_unless_present(args.scene)
+    skip_unless_present(args.images, option="--images")
     if args.threads:
         torch.set_num_threads(args.threads)
     device = pick_device(args.device)

@@ -198,7 +198,9 @@ def parse_args(argv=None) -> argparse.Namespace:
 
 def main(argv=None) -> None:
     args = parse_args(argv)
-    labels = [label for label in args.configurations.split(",") if label]
+    # Its CSV is written whole: a run without a capture the committed one holds writes nothing.
+    labels = seed_scatter.labels_present([label for label in args.configurations.split(",") if label], args,
+                                         args.docs / "seed_disagreement.csv")
     jobs = seed_scatter.plan_for(labels, args)
     every = [job for runs in jobs.values() for job in runs]
     args.models.mkdir(parents=True, exist_ok=True)

@@ -35,6 +35,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import stability  # noqa: E402  (the study's jobs, runs, log and markdown helpers)
+from reference_data import present  # noqa: E402
 
 DOCS = stability.DOCS
 DEFAULT_CACHE = Path(tempfile.gettempdir()) / "neulf_seed_scatter"
@@ -259,6 +260,17 @@ def parse_args(argv=None) -> argparse.Namespace:
     return parser.parse_args(argv)
 
 
+def labels_present(labels: list[str], args: argparse.Namespace, rewrites: Path | None = None,
+                   others: dict[str, Path] | None = None) -> list[str]:
+    """The labels whose capture is there, checked before any scene is rendered: a CanClip
+    configuration (or one of `others`, label -> a fixed folder) whose folder is missing is skipped
+    with a line, and the script exits 0 where none is left, or where it would rewrite `rewrites`
+    without them."""
+    canclip = [label for label in labels if CONFIGURATIONS.get(label, {}).get("scene") == "canclip"]
+    folders = {label: args.canclip if label in canclip else (others or {}).get(label) for label in labels}
+    return present(folders, {label: "--canclip" for label in canclip}, rewrites)
+
+
 def plan_for(labels: list[str], args: argparse.Namespace) -> dict[str, list]:
     """plan() from the command line's seeds, steps and scenes (the synthetic ones rendered
     into --scenes-cache where missing); exits with a message for an unknown label or a
@@ -359,7 +371,10 @@ def report_comparison(args: argparse.Namespace, labels: list[str]) -> None:
 
 def main(argv=None) -> None:
     args = parse_args(argv)
-    labels = [label for label in args.configurations.split(",") if label]
+    # The CSV and the page keep the rows of the configurations a run leaves out; the one-start
+    # comparison's CSV is written whole.
+    labels = labels_present([label for label in args.configurations.split(",") if label], args,
+                            args.docs / comparison_outputs(args.steps)[0] if args.against_one_start else None)
     if args.against_one_start:
         return report_comparison(args, labels)
     jobs = plan_for(labels, args)

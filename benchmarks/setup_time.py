@@ -31,6 +31,7 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO / "benchmarks"))
 
+from reference_data import skip_unless_present  # noqa: E402
 from speed_accuracy import append_rows, machine  # noqa: E402
 
 COLUMNS = ["date", "machine", "torch_threads", "scene", "scale", "run", "args", "checkout", "repeat", "seconds"]
@@ -65,8 +66,7 @@ def main(argv=None) -> None:
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--out", type=Path, default=REPO / "docs" / "setup_time.csv")
     args = parser.parse_args(argv)
-    if not args.scene.is_dir():
-        sys.exit(f"error: no scene at {args.scene}; pass --scene")
+    skip_unless_present(args.scene)
     runs = [labelled(r) for r in (args.run or ["members=--steps 50 --members 2"])]
     checkouts = [(label, Path(folder).resolve()) for label, folder in map(labelled, args.checkout or [f"this={REPO}"])]
     scene = args.scene.resolve()

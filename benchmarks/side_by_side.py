@@ -38,6 +38,7 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))  # neulf_core from this checkout, installed or not
 sys.path.insert(0, str(REPO / "benchmarks"))
+from reference_data import present  # noqa: E402
 from seed_scatter import parse_seeds as seed_list  # noqa: E402  ("0-7", "0,1" or a mix)
 DOCS = REPO / "docs"
 # The scenes (folders under --data): the scale each trains at and its photo folder (None: the
@@ -163,8 +164,10 @@ def main(argv: list[str] | None = None, description: str = __doc__, baseline: st
     unknown = [name for name in args.scenes.split(",") if name not in SCENES]
     if unknown:
         raise SystemExit(f"unknown scene(s) {', '.join(unknown)}; choose from {', '.join(SCENES)}")
+    # --out holds this run's rows only: a committed one is not rewritten without a missing scene's
+    scenes = present({name: Path(args.data) / name for name in args.scenes.split(",")}, "--data", rewrites=args.out)
     budget = {"steps": args.steps} if args.steps else {"minutes": args.minutes}
-    pairs = [(name, seed) for name in args.scenes.split(",") for seed in seed_list(args.seeds)]
+    pairs = [(name, seed) for name in scenes for seed in seed_list(args.seeds)]
     rows = []
     machine = machine_name(args.device)
     with ThreadPoolExecutor(max(1, args.jobs)) as pool:

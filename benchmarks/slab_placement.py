@@ -1,6 +1,6 @@
 """Where to put the light slab's planes: held-out PSNR for several placements, same budget.
 
-    python benchmarks/slab_placement.py [--steps 600] [--scenes canclip,statue,fern]
+    python benchmarks/slab_placement.py [--steps 600] [--scenes canclip,statue,fern] [--data ../shared/data]
 
 Trains the default field for a fixed number of steps per placement on each scene (every
 8th view held out) and writes docs/slab_placement.csv and a markdown table on stdout.
@@ -23,15 +23,17 @@ import numpy as np
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from neulf_core.evaluate import evaluate_model  # noqa: E402
 from neulf_core.scene import load_scene, split_views  # noqa: E402
 from neulf_core.slab import scene_depths, slab_frame  # noqa: E402
 from neulf_core.train import TrainConfig, train  # noqa: E402
+from reference_data import present  # noqa: E402
 
 SHARED = Path(__file__).resolve().parents[2] / "shared" / "data"
-SCENES = {"canclip": (SHARED / "canclip", None, 0.5), "statue": (SHARED / "statue", None, 0.5),
-          "fern": (SHARED / "fern", SHARED / "fern" / "images_8", 1.0)}
+# name -> (its photo folder inside the scene folder, None: the model's own; training scale)
+SCENES = {"canclip": (None, 0.5), "statue": (None, 0.5), "fern": ("images_8", 1.0)}
 
 
 def placements(scene, views):
@@ -53,14 +55,16 @@ def main() -> None:
     parser.add_argument("--scenes", default="canclip,statue,fern")
     parser.add_argument("--out", default=str(Path(__file__).resolve().parents[1] / "docs" / "slab_placement.csv"))
     parser.add_argument("--threads", type=int, default=1, help="torch threads (1 lets two runs share 2 cores fairly)")
+    parser.add_argument("--data", type=Path, default=SHARED, help="the folder holding the scenes")
     args = parser.parse_args()
+    # --out holds this run's rows only: a committed one is not rewritten without a missing scene's
+    scenes = present({name: args.data / name for name in args.scenes.split(",")}, "--data", rewrites=args.out)
     torch.set_num_threads(args.threads)
     rows = []
-    for name in args.scenes.split(","):
-        path, images, scale = SCENES[name]
-        if not path.exists():
-            print(f"skip {name}: {path} missing")
-            continue
+    for name in scenes:
+        images, scale = SCENES[name]
+        path = args.data / name
+        images = path / images if images else None
         scene = load_scene(path, images)
         train_views, _ = split_views(scene)
         for label, st in placements(scene, train_views).items():

@@ -38,6 +38,7 @@ import numpy as np
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from neulf_core.checkpoint import MODEL_NAME  # noqa: E402
 from neulf_core.classic import ClassicLightField  # noqa: E402
@@ -49,6 +50,7 @@ from neulf_core.render import LightField  # noqa: E402
 from neulf_core.scene import load_scene, split_views  # noqa: E402
 from neulf_core.slab import fit_slab  # noqa: E402
 from neulf_core.train import TrainConfig, train  # noqa: E402
+from reference_data import skip_unless_present  # noqa: E402
 
 DOCS = Path(__file__).resolve().parents[1] / "docs"
 
@@ -197,6 +199,8 @@ def main() -> None:
     parser.add_argument("--retrain", default="", help="comma-separated methods to run again even when cached")
     parser.add_argument("--keep-models", help="keep each trained model in DIR/<name>/<method> (default: thrown away)")
     args = parser.parse_args()
+    skip_unless_present(args.scene)
+    skip_unless_present(args.images, option="--images")
     if args.threads:
         torch.set_num_threads(args.threads)
     device = pick_device(args.device)

@@ -35,6 +35,7 @@ from neulf_core.dataset import view_uvst  # noqa: E402
 from neulf_core.scene import load_scene, split_views  # noqa: E402
 from neulf_core.slab import fit_slab  # noqa: E402
 from neulf_core.teacher import compute_sweep_depth_targets  # noqa: E402
+from reference_data import skip_unless_present  # noqa: E402
 from speed_accuracy import append_rows, hardware  # noqa: E402
 
 COLUMNS = ["date", "machine", "label", "scene", "scale", "train_views", "repeat", "seconds", "checksum"]
@@ -49,8 +50,7 @@ def main(argv=None) -> None:
     parser.add_argument("--label", default="")
     parser.add_argument("--out", type=Path, default=REPO / "docs" / "sweep_time.csv")
     args = parser.parse_args(argv)
-    if not args.scene.is_dir():
-        sys.exit(f"error: no scene at {args.scene}; pass --scene")
+    skip_unless_present(args.scene)
     torch.set_num_threads(args.threads)
     scene = load_scene(args.scene)
     train_views, _ = split_views(scene)

@@ -36,6 +36,7 @@ sys.path.insert(0, str(REPO / "benchmarks"))
 from neulf_core.metrics import psnr  # noqa: E402
 from neulf_core.render import LightField  # noqa: E402
 from neulf_core.scene import load_scene  # noqa: E402
+from reference_data import skip_unless_present  # noqa: E402
 from seed_scatter import parse_seeds  # noqa: E402
 from speed_accuracy import append_rows, machine  # noqa: E402
 
@@ -77,8 +78,7 @@ def main(argv=None) -> None:
     parser.add_argument("--no-pin", action="store_true", help="do not pin the runs to cores (no taskset)")
     parser.add_argument("--out", type=Path, default=REPO / "docs" / "train_scale.csv")
     args = parser.parse_args(argv)
-    if not args.scene.is_dir():
-        sys.exit(f"error: no scene at {args.scene}; pass --scene")
+    skip_unless_present(args.scene)
     scales = [float(s) for s in args.scales.split(",")]
     eval_scales = [float(s) for s in args.eval_scales.split(",")]
     jobs = [(scale, seed) for scale in scales for seed in parse_seeds(args.seeds)]

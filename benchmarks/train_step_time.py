@@ -28,6 +28,7 @@ import torch
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO / "benchmarks"))
 
+from reference_data import skip_unless_present  # noqa: E402
 from speed_accuracy import hardware  # noqa: E402
 
 VARIANTS = ("fused", "loop")
@@ -68,8 +69,7 @@ def main(argv=None) -> None:
     parser.add_argument("--out", type=Path, default=REPO / "docs" / "train_step_time.csv")
     parser.add_argument("--append", action="store_true", help="add the rows to --out instead of replacing it")
     args = parser.parse_args(argv)
-    if not args.scene.is_dir():
-        sys.exit(f"error: no scene at {args.scene}; pass --scene")
+    skip_unless_present(args.scene)
     rows = []
     with tempfile.TemporaryDirectory() as folder:
         for repeat in range(args.repeats):
