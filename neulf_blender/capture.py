@@ -81,9 +81,10 @@ def _members(collection) -> dict:
             cameras.setdefault(obj.get("neulf_view"), []).append(obj)
         elif obj.get(ROLE):
             found.setdefault((obj[ROLE], None), obj)  # (the first: a Shift+D copy comes after its original)
+    pointers = collection.get(CAMERAS)
     for view, claiming in cameras.items():
         own = [obj for obj in claiming if is_capture_camera(obj)]
-        if not own and len(claiming) == 1 and OBJECT_NAME not in claiming[0]:
+        if not own and len(claiming) == 1 and (OBJECT_NAME not in claiming[0] or pointers is None or view not in pointers):
             own = claiming  # (an older import's camera, renamed: the only one there is)
         if own:
             found[("camera", view)] = own[0]

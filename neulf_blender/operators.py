@@ -157,6 +157,7 @@ def import_scene(context, scene_dir: str, images_dir: str = "", import_points: b
                                          model_dir=existing_model or None)
     capture.build_capture(context, description, import_points=import_points)
     props.scene_dir = store_path(scene_dir)
+    images_dir = images_dir or description.get("images_dir_from_model") or ""  # (the photos the model trained on)
     props.images_dir = store_path(images_dir) if images_dir else ""
     return description
 

@@ -202,10 +202,13 @@ def _of_member(model_dir: Path) -> str:
     step 0' had followed a first member's 200 steps), else ''."""
     try:
         state = json.loads((model_dir / "members.json").read_text())
-        count, finished = int(state["count"]), len(state.get("finished", []))
+        count, finished = int(state["count"]), {int(m) for m in state.get("finished", [])}
+        first_done = json.loads((model_dir / "model.json").read_text())["progress"]["status"] == "finished"
     except (OSError, ValueError, KeyError, TypeError):
         return ""
-    return f" of member {min(finished + 1, count)} of {count}" if count > 1 else ""
+    # (members.json lists the members after the first that finished; the first's own progress says its)
+    member = next((m for m in range(2, count + 1) if m not in finished), count) if first_done else 1
+    return f" of member {member} of {count}" if count > 1 else ""
 
 
 # The options a model keeps from its first training (train._config_for_resume), by their
@@ -264,9 +267,11 @@ def _run_choices_kept(args, out: Path, saved: dict) -> list[str]:
     if "members_split" in given and members.get("split") and args.members_split != members["split"]:
         differ.append(f"--members-split (the model's: {members['split']!r})")
     batch = saved.get("batch_size")
-    if batch is None and saved.get("preset"):  # (members of half the batch keep the whole one here)
+    if batch is None and saved.get("preset"):
         batch = get_preset(saved["preset"]).batch_size
-    if "batch_size" in given and batch is not None and args.batch_size != batch and not (members and saved.get("batch_size")):
+    if members and saved.get("batch_size") and members.get("split") == "batch":
+        batch = int(saved["batch_size"]) * int(members.get("count", 1))  # (each member keeps its share: the whole)
+    if "batch_size" in given and batch is not None and args.batch_size != batch:
         differ.append(f"--batch-size (the model's: {batch})")
     return differ
 

@@ -241,7 +241,7 @@ def other_photos_note(views: list[View], saved_scene: dict | None) -> str | None
     view, size = differ[0]
     return (f"{len(differ)} of the photos read are of another size than the model trained on ({view.name}: "
             f"{view.size[0]}x{view.size[1]}, trained on {size[0]}x{size[1]}; the model read "
-            f"{(saved_scene or {}).get('images') or 'another folder'}): rendered and scored at the size it trained at; "
+            f"{(saved_scene or {}).get('images') or 'another folder'}): rendered (and scored) at the size it trained at; "
             "give --images with the folder it trained on for its own photos.")
 
 

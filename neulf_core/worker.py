@@ -60,10 +60,14 @@ class Service:
 
         The slab is the trained model's when `model_dir` holds one, else fitted like training
         would (every `holdout_every`-th view held out)."""
+        from .checkpoint import saved_scene_record
         from .rays import pinhole_K
-        from .scene import load_scene, split_views
+        from .scene import images_dir_as_trained, load_scene, split_views
         from .slab import fit_slab
 
+        # (the photos the model trained on, where the scene has several folders or they lie elsewhere)
+        asked = images_dir
+        images_dir = images_dir_as_trained(scene_dir, images_dir, saved_scene_record(model_dir) if model_dir else None)
         scene = load_scene(scene_dir, images_dir)
         views = []
         for view in scene.views:
@@ -85,7 +89,9 @@ class Service:
         if slab is None:
             train_views, _ = split_views(scene, holdout_every)
             slab = fit_slab(scene, train_views).to_dict()
-        return {"root": str(scene.root), "kind": scene.kind, "fingerprint": scene.fingerprint(), "views": views,
+        return {"root": str(scene.root),
+                "images_dir_from_model": str(images_dir) if asked is None and images_dir is not None else None,
+                "kind": scene.kind, "fingerprint": scene.fingerprint(), "views": views,
                 "points": np.asarray(scene.points, dtype=np.float32), "slab": slab, "slab_source": slab_source,
                 "notes": notes}
 

@@ -1352,3 +1352,28 @@ def test_a_model_records_its_scene_folder_whole(tiny_scene, tmp_path, monkeypatc
     monkeypatch.chdir(tmp_path)
     assert main(["train", "scene", "--out", "model", *QUICK_TRAIN]) == 0
     assert json.loads((tmp_path / "model" / METADATA_NAME).read_text())["scene"]["root"] == str(tmp_path / "scene")
+
+
+def test_the_cancel_line_names_the_member_that_was_training(tmp_path):
+    """members.json lists the members after the first that finished; the first's own progress
+    says its.  Cancelled in member 2 it had said 'of member 1 of 2'."""
+    from neulf_core.cli import _of_member
+
+    (tmp_path / "members.json").write_text(json.dumps({"count": 2, "seed": 0, "split": "batch", "finished": []}))
+    (tmp_path / METADATA_NAME).write_text(json.dumps({"progress": {"status": "finished", "step": 200}}))
+    assert _of_member(tmp_path) == " of member 2 of 2"
+    (tmp_path / METADATA_NAME).write_text(json.dumps({"progress": {"status": "cancelled", "step": 90}}))
+    assert _of_member(tmp_path) == " of member 1 of 2"
+    assert _of_member(tmp_path / "none") == ""
+
+
+def test_blender_import_with_a_model_reads_its_photos(half_size_model):
+    """Load Model imports the scene a model trained on: through the photos it trained on (its
+    images_2/ here), not the scene's default folder, whose cameras are of another size."""
+    from neulf_core.worker import Service
+
+    scene, model = half_size_model
+    description = Service().describe_scene(str(scene), model_dir=str(model))
+    assert description["images_dir_from_model"].endswith("images_2")
+    assert {(v["width"], v["height"]) for v in description["views"]} == {(TINY_WIDTH // 2, TINY_HEIGHT // 2)}
+    assert Service().describe_scene(str(scene))["images_dir_from_model"] is None
