@@ -206,7 +206,8 @@ CASES = [
     Case("A model trained on another images folder than the scene's default (LLFF's images_N): eval, render and "
          "--resume read its own photos, or say so; views named twice, or among held-out, scored once", [
         f"{REL}::test_eval_render_and_resume_read_the_photos_the_model_trained_on",
-        f"{REL}::test_eval_scores_each_view_once_and_takes_held_out_among_names"]),
+        f"{REL}::test_eval_scores_each_view_once_and_takes_held_out_among_names",
+        f"{REL}::test_blender_import_with_a_model_reads_its_photos"]),
     Case("The training lifecycle: a model whose checkpoint.pt was deleted (model.pt kept) neither trained over nor "
          "resumed, an older model's members not taken by a new one, the auto preset refusing before its search, a "
          "closed terminal (SIGHUP) saving, a seed, batch or split asked on --resume said, a camera edited with its "
@@ -218,10 +219,13 @@ CASES = [
         f"{REL}::test_resume_says_a_seed_a_split_or_a_batch_the_model_keeps",
         f"{REL}::test_a_camera_edited_with_its_centre_kept_is_said",
         f"{REL}::test_a_failed_write_names_its_file",
-        f"{REL}::test_the_demo_fails_where_its_video_fails"]),
+        f"{REL}::test_the_demo_fails_where_its_video_fails",
+        f"{REL}::test_the_cancel_line_names_the_member_that_was_training",
+        f"{REL}::test_a_model_records_its_scene_folder_whole"]),
     Case("Degenerate captures: stray points near the lens, a flat subject, photos taken twice from one place, a "
          "tripod panorama, photos smaller than SSIM's window", [
         "tests/test_degenerate_captures.py::test_stray_points_near_the_lens_do_not_place_the_slab",
+        "tests/test_degenerate_captures.py::test_real_content_near_the_lens_is_not_taken_for_strays",
         "tests/test_degenerate_captures.py::test_a_flat_subject_trains",
         "tests/test_degenerate_captures.py::test_photos_taken_twice_from_one_place_train",
         "tests/test_degenerate_captures.py::test_a_tripod_panorama_is_said_and_not_pose_checked",
