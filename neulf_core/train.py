@@ -21,7 +21,8 @@ import numpy as np
 import torch
 
 from . import __version__
-from .appearance import ViewAppearance, appearance_by_default, exposure_difference, photo_exposures
+from .appearance import (ViewAppearance, appearance_by_default, blank_photos, exposure_difference,
+                         photo_exposures)
 from .checkpoint import (CHECKPOINT_NAME, MODEL_NAME, TRAINING_STATE_KEY, checkpoint_path, load_checkpoint,
                          remove_stale_temporaries, save_checkpoint, saved_scene_record)
 from .consistency import SlabGeometry, camera_neighbours, multiview_losses
@@ -480,6 +481,8 @@ class TrainingRun:
         """Per-photo colour transforms by the default's rule: where neighbouring photos'
         exposures differ."""
         self.exposures = photo_exposures(self.train_rays.rgb, self.train_rays.view_index, len(self.train_views))
+        _say_blank_photos(self.train_views, blank_photos(self.train_rays.rgb, self.train_rays.view_index,
+                                                         len(self.train_views)), self.progress)
         self.exposure_stops = exposure_difference(self.exposures, np.stack([v.center for v in self.train_views]))
         self.exposures_differ = appearance_by_default(self.exposure_stops)
         if config.appearance is None:
@@ -1005,6 +1008,18 @@ def has_baseline(views, slab: Slab) -> bool:
     """Whether the training cameras stand apart by more than a millionth of the scene's depth."""
     centres = slab.to_slab(np.stack([view.center for view in views]))
     return float(np.ptp(centres, axis=0).max()) > 1e-6 * slab.z_st
+
+
+def _say_blank_photos(views, blank: list[int], progress) -> None:
+    """Name the training photos that are one flat colour, once a training call."""
+    if not blank:
+        return
+    names = [views[i].name for i in blank]
+    shown = ", ".join(names[:3]) + (" ..." if len(names) > 3 else "")
+    message = (f"{len(names)} training photo(s) are almost one flat colour ({shown}: a lens cap, a blank frame?): the "
+               "light field learns what they show from where they stand, which spoils the views near them; hold them "
+               "out of training with --exclude (which names every view held out)")
+    kept("blank photos warning", ",".join(names), lambda: _emit(progress, event="warning", views=names, message=message))
 
 
 def _say_wide_views(slab: Slab, views, scale: float, progress) -> None:

@@ -223,9 +223,10 @@ CASES = [
         f"{REL}::test_the_cancel_line_names_the_member_that_was_training",
         f"{REL}::test_a_model_records_its_scene_folder_whole"]),
     Case("Degenerate captures: stray points near the lens, a flat subject, photos taken twice from one place, a "
-         "tripod panorama, photos smaller than SSIM's window", [
+         "tripod panorama, photos smaller than SSIM's window, blank photos (a lens cap)", [
         "tests/test_degenerate_captures.py::test_stray_points_near_the_lens_do_not_place_the_slab",
         "tests/test_degenerate_captures.py::test_real_content_near_the_lens_is_not_taken_for_strays",
+        "tests/test_degenerate_captures.py::test_blank_photos_are_named",
         "tests/test_degenerate_captures.py::test_a_flat_subject_trains",
         "tests/test_degenerate_captures.py::test_photos_taken_twice_from_one_place_train",
         "tests/test_degenerate_captures.py::test_a_tripod_panorama_is_said_and_not_pose_checked",
