@@ -469,8 +469,8 @@ def _looking_away(names: list[str], light_field, rendered: int, out: Path) -> st
 
 def cmd_render(args) -> int:
     from .render import LightField
-    from .scene import (changed_cameras_note, images_dir_as_trained, load_scene, other_photos_note,
-                        scale_as_trained, select_views)
+    from .scene import load_scene, select_views
+    from .trained_scene import changed_cameras_note, images_dir_as_trained, other_photos_note, scale_as_trained
 
     if (args.scene is None) == (args.cameras is None):
         raise NeulfError("render needs either --scene SCENE_DIR --views NAME,... or --cameras CAMERAS.json.")

@@ -15,8 +15,8 @@ from .lpips import load_lpips, lpips_distance
 from .metrics import psnr, ssim
 from .render import DEFAULT_PIXEL_SAMPLES, LightField
 from .poses import fit_view_pose
-from .scene import (camera_spacing, changed_cameras_note, images_dir_as_trained, load_scene, other_photos_note,
-                    scale_as_trained, select_views)
+from .scene import camera_spacing, load_scene, select_views
+from .trained_scene import changed_cameras_note, images_dir_as_trained, other_photos_note, scale_as_trained
 
 
 def evaluate_model(model_dir, scene_dir, *, images_dir=None, out_dir=None, views=None, device=None,

@@ -41,9 +41,9 @@ from . import poses as poses_module
 from .poses import DEPTH_LIKE_GAUGE, PoseRefinement
 from .progress import emit as _emit
 from .presets import APPEARANCE_ADAM_BETA2, APPEARANCE_GEOMETRY, DEFAULT_PRESET, get_preset
-from .scene import (Scene, camera_record, changed_cameras, images_dir_as_trained, load_scene, scaled_size,
-                    split_views, trained_photo_size)
+from .scene import Scene, load_scene, scaled_size, split_views
 from .slab import Slab, fit_slab, wide_views
+from .trained_scene import camera_record, changed_cameras, images_dir_as_trained, trained_photo_size
 from .teacher import strong_pull, sweep_depth_targets, sweep_photo_scale, teacher_fade, teacher_loss, teacher_weight
 from .point_depth import point_depth_loss, point_depth_targets
 

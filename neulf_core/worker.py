@@ -62,8 +62,9 @@ class Service:
         would (every `holdout_every`-th view held out)."""
         from .checkpoint import saved_scene_record
         from .rays import pinhole_K
-        from .scene import images_dir_as_trained, load_scene, split_views
+        from .scene import load_scene, split_views
         from .slab import fit_slab
+        from .trained_scene import images_dir_as_trained
 
         # (the photos the model trained on, where the scene has several folders or they lie elsewhere)
         asked = images_dir
