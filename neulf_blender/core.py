@@ -23,8 +23,8 @@ def in_process_service():
     global _in_process
     if _in_process is None:
         try:
-            importlib.import_module("torch")
-            importlib.import_module("pycolmap")
+            for module in ("torch", "pycolmap", "PIL", "av"):  # (what the core imports as it trains and renders)
+                importlib.import_module(module)
             from ..neulf_core.worker import Service
         except Exception:  # ImportError, or a broken torch install raising anything
             _in_process = False

@@ -60,8 +60,8 @@ def explain_failure(stderr_lines) -> str:
     for line in reversed(lines):
         if "No module named" in line:
             module = line.split("No module named", 1)[1].strip(" '\"")
-            return (f"the NeuLF Python has no '{module}': set a Python with torch and pycolmap in the NeuLF "
-                    "preferences, or click Install dependencies there.")
+            return (f"the NeuLF Python has no '{module}': set a Python with torch, pycolmap, Pillow and av (PyAV) in "
+                    "the NeuLF preferences, or click Install dependencies there.")
     return lines[-1] if lines else "the process ended without a message."
 
 

@@ -70,7 +70,7 @@ class NeulfPreferences(bpy.types.AddonPreferences):
 
     python_path: StringProperty(
         name="Python with torch", subtype="FILE_PATH", update=_on_python_change,
-        description="A Python interpreter that has torch and pycolmap (e.g. a conda env). "
+        description="A Python interpreter that has torch, pycolmap, Pillow and av (e.g. a conda env). "
                     "Empty: Blender's Python with the packages installed below")
     device: EnumProperty(name="Device", update=_on_change, items=[
         ("AUTO", "Automatic", "CUDA, then Apple MPS, then CPU"), ("CUDA", "CUDA", "NVIDIA GPU"),
@@ -118,7 +118,7 @@ def _describe(job, where: str) -> str:
 
 
 class NEULF_OT_check_dependencies(bpy.types.Operator):
-    """Check that the NeuLF Python imports torch and pycolmap, and which device it will use"""
+    """Check that the NeuLF Python imports torch, pycolmap, Pillow and av, and which device it will use"""
 
     bl_idname = "neulf.check_dependencies"
     bl_label = "Check"
@@ -161,7 +161,7 @@ class NEULF_OT_install_dependencies(bpy.types.Operator):
     def execute(self, context):
         if not bpy.app.online_access:
             self.report({"ERROR"}, "Online access is disabled (Preferences > System > Network); "
-                                   "enable it to install torch and pycolmap, or choose a Python that has them.")
+                                   "enable it to install torch, pycolmap, Pillow and av, or choose a Python that has them.")
             return {"CANCELLED"}
         prefs = get_prefs(context)
         target = deps_dir(create=True)
@@ -184,7 +184,7 @@ class NEULF_OT_install_dependencies(bpy.types.Operator):
                 self.report({"ERROR"}, f"install failed: {job.state['error']}")
                 return {"CANCELLED"}
         else:
-            self.report({"INFO"}, f"installing torch and pycolmap into {target} (several minutes)")
+            self.report({"INFO"}, f"installing torch, pycolmap, Pillow and av into {target} (several minutes)")
         return {"FINISHED"}
 
 

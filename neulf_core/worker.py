@@ -41,6 +41,10 @@ class Service:
 
     # ------------------------------------------------------------------ environment
     def info(self) -> dict:
+        # Everything training and rendering import (Check had passed a Python without Pillow,
+        # and training then failed): a missing one fails here, named (jobs.explain_failure).
+        import av  # noqa: F401  (the video)
+        import PIL  # noqa: F401
         import pycolmap
         import torch
 

@@ -208,3 +208,15 @@ def test_device_cuda_index_past_the_gpus_is_refused(monkeypatch):
 @pytest.mark.parametrize("name", [None, ""])
 def test_device_not_named_is_picked(name):
     assert pick_device(name).type in ("cpu", "cuda", "mps")
+
+
+def test_the_worker_s_check_needs_every_module_training_imports(monkeypatch):
+    """Blender's Check ran Service.info, which imported only torch and pycolmap: a Python without
+    Pillow passed, and training then failed.  It now fails the check, naming the module."""
+    import sys
+
+    from neulf_core.worker import Service
+
+    monkeypatch.setitem(sys.modules, "PIL", None)  # (an import of it raises ImportError)
+    with pytest.raises(ImportError, match="PIL"):
+        Service().info()

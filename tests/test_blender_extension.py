@@ -148,6 +148,18 @@ def check_zip_contents(extension_zip: Path) -> None:
     for excluded in ("tests/", "neulf_synth/", "benchmarks/", "scripts/", ".venv/", ".ci/", "docs/"):
         assert not any(n.startswith(excluded) for n in names), excluded
     assert not any(n.endswith((".sh", ".pyc")) or n == "pyproject.toml" for n in names)
+    # Blender's tool packs whatever lies in the folder apart from its exclude list: a demo's output
+    # or a file dropped into neulf_core/ went into the zip (275 KB -> 7.3 MB).  Only the
+    # repository's own files may.
+    files = {n for n in names if not n.endswith("/")}
+    assert files <= {"blender_manifest.toml", "__init__.py", "README.md"} | {
+        n for n in files if n.startswith(("neulf_core/", "neulf_blender/"))}, sorted(files)
+    tracked = subprocess.run(["git", "ls-files", "neulf_core", "neulf_blender"], cwd=REPO, capture_output=True,
+                             text=True)
+    if tracked.returncode == 0 and tracked.stdout.strip():  # (a checkout without git: no list to hold it to)
+        strays = sorted(n for n in files if n.startswith(("neulf_core/", "neulf_blender/"))
+                        and n not in set(tracked.stdout.split()))
+        assert not strays, f"files the repository does not hold went into the zip: {strays}"
 
 
 @pytest.fixture(scope="module")

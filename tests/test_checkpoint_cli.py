@@ -15,7 +15,8 @@ import numpy as np
 import pytest
 import torch
 from PIL import Image
-from skimage.metrics import peak_signal_noise_ratio, structural_similarity
+skimage_metrics = pytest.importorskip("skimage.metrics", reason="scikit-image (the dev extra) is not installed")
+peak_signal_noise_ratio, structural_similarity = skimage_metrics.peak_signal_noise_ratio, skimage_metrics.structural_similarity
 
 from conftest import assert_same_weights
 from neulf_core.checkpoint import CHECKPOINT_NAME, METADATA_NAME, load_checkpoint

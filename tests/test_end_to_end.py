@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-pytest.importorskip("bpy")
+pytest.importorskip("bpy", exc_type=ImportError, reason="bpy cannot load: see scripts/setup_env.sh for its system libraries")
 
 from neulf_core.cli import main as cli_main  # noqa: E402
 from neulf_core.metrics import eroded, laplacian_variance  # noqa: E402

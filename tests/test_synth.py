@@ -16,7 +16,7 @@ import sys
 import numpy as np
 import pytest
 
-bpy = pytest.importorskip("bpy")
+bpy = pytest.importorskip("bpy", exc_type=ImportError, reason="bpy cannot load: see scripts/setup_env.sh for its system libraries")
 pycolmap = pytest.importorskip("pycolmap")
 from PIL import Image  # noqa: E402
 
