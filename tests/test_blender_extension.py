@@ -152,7 +152,7 @@ def check_zip_contents(extension_zip: Path) -> None:
     # or a file dropped into neulf_core/ went into the zip (275 KB -> 7.3 MB).  Only the
     # repository's own files may.
     files = {n for n in names if not n.endswith("/")}
-    assert files <= {"blender_manifest.toml", "__init__.py", "README.md"} | {
+    assert files <= {"blender_manifest.toml", "__init__.py", "README.md", "LICENSE"} | {
         n for n in files if n.startswith(("neulf_core/", "neulf_blender/"))}, sorted(files)
     tracked = subprocess.run(["git", "ls-files", "neulf_core", "neulf_blender"], cwd=REPO, capture_output=True,
                              text=True)
