@@ -4,9 +4,8 @@ distance or focus object, f-stop) is rendered by synthetic-aperture refocus in n
 The viewport's Rendered shading shows the light field from the viewport's camera
 (viewport.py renders it in a thread; this draws it)."""
 
-import os
+import traceback
 import weakref
-from pathlib import Path
 
 import bpy
 from mathutils import Matrix
@@ -35,7 +34,18 @@ class NeulfRenderEngine(bpy.types.RenderEngine):
         scene = depsgraph.scene_eval
         original = scene.original  # (by name, a linked scene would find a local one of its name)
         for view in _views(scene.render):  # (each eye of a stereo render, or the one view)
-            if not self._render_view(depsgraph, original, view):
+            try:
+                if not self._render_view(depsgraph, original, view):
+                    return
+            # Any other error ends the render with an ERROR report, which stops an animation (it had
+            # left a black frame in the video and reported success); the traceback goes to the
+            # console for a bug report, the status bar gets one line.
+            except MemoryError:
+                self.report({"ERROR"}, "out of memory rendering this frame; render a smaller image.")
+                return
+            except Exception as exc:  # noqa: BLE001
+                traceback.print_exc()
+                self.report({"ERROR"}, f"NeuLF render failed ({type(exc).__name__}: {exc}); the console has the details.")
                 return
         mismatch = compositing.out_of_step(original)
         if mismatch:
@@ -198,10 +208,9 @@ def _viewport_view(scene, depsgraph, region, view) -> tuple[dict, tuple]:
     if view.view_perspective == "CAMERA" and scene.camera is not None and scene.camera.type == "CAMERA":
         # Through the camera: its depth of field too, so a picked focus shows as it renders.
         request.update(capture.lens_request(scene.camera.evaluated_get(depsgraph), scale))
-    try:
-        stamp = os.stat(Path(model) / "checkpoint.pt").st_mtime
-    except OSError:
-        stamp = 0.0
+    from ..neulf_core.worker import model_stamp  # (numpy only at import: safe in Blender's Python)
+
+    stamp = model_stamp(model)  # (every member's files: a second member trained on refreshes it too)
     key = viewport.view_key(request, model, stamp)
     return {**request, "model_dir": model}, key
 

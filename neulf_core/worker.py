@@ -123,8 +123,7 @@ class Service:
         from .render import LightField
 
         path = checkpoint_path(Path(model_dir))
-        stamp = path.stat().st_mtime_ns if path.is_file() else None
-        key = (str(path.resolve()), stamp, self.device)
+        key = (str(path.resolve()), model_stamp(model_dir), self.device)
         if self._cached is None or self._cached[0] != key:
             self._cached = None  # free the previous model first
             self._cached = (key, LightField.load(model_dir, self.device))
@@ -174,6 +173,24 @@ class Service:
         poses = spiral_path(Slab.from_dict(info["slab"]), np.asarray(rig["centres"]), frames=int(frames))
         return {"R": [p[0].tolist() for p in poses], "t": [p[1].tolist() for p in poses], "K": rig["K"],
                 "width": rig["width"], "height": rig["height"]}
+
+
+def model_stamp(model_dir) -> tuple:
+    """The modification times of every file a render of the model reads (audit fix): the first
+    member's checkpoint.pt and model.pt, members.json, and each member's files, so a member
+    trained on (its checkpoint replaced) loads again."""
+    folder = Path(model_dir).expanduser()
+    if folder.is_file():
+        return (folder.stat().st_mtime_ns,)
+    names = [folder / "checkpoint.pt", folder / "model.pt", folder / "members.json"]
+    names += sorted(folder.glob("members/*/checkpoint.pt")) + sorted(folder.glob("members/*/model.pt"))
+    stamps = []
+    for name in names:
+        try:
+            stamps.append((str(name), name.stat().st_mtime_ns))
+        except OSError:
+            stamps.append((str(name), None))
+    return tuple(stamps)
 
 
 def _has_model(model_dir: str) -> bool:
