@@ -241,6 +241,10 @@ CASES = [
         "tests/test_mixed_cameras.py::test_eval_reports_each_view_s_warnings",
         "tests/test_mixed_cameras.py::test_a_camera_path_takes_the_most_common_photo_size_and_the_median_focal_length",
         "tests/test_mixed_cameras.py::test_a_video_takes_a_fractional_frame_rate"]),
+    Case("Blender's worker: a model whose second member trained on is loaded again (it rendered stale); Check "
+         "needs every module training imports (a Python without Pillow passed)", [
+        "tests/test_api_inputs.py::test_the_worker_reloads_a_model_whose_second_member_trained_on",
+        "tests/test_api_inputs.py::test_the_worker_s_check_needs_every_module_training_imports"]),
     Case("No network access unless the user asks for the dependency install, with the declared permission", [
         f"{REL}::test_no_network_unless_the_user_installs", f"{STORY}[install_dependencies]"]),
 ]
