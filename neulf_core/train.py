@@ -1030,8 +1030,8 @@ def _say_wide_views(slab: Slab, views, scale: float, progress) -> None:
         return
     shown = ", ".join(f"{name} ({ratio:.1f}x)" for name, ratio in wide[:3]) + (" ..." if len(wide) > 3 else "")
     message = (f"{len(wide)} photo(s) see more than twice as wide as the median photo on the light slab: {shown} (a "
-               "wider lens, a fisheye, or a camera turned away from the others). The light field spans what every photo sees, so the others get a smaller "
-               "share of its detail (one 94-degree photo among 56-degree ones cost the held-out views 4 dB). Where their "
+               "wider lens, a fisheye, or a camera turned away from the others). The light field spans what every "
+               "photo sees, so the others get a smaller share of its detail (one 94-degree photo among 56-degree ones cost the held-out views 4 dB). Where their "
                "detail matters less, hold them out of training: --exclude names every view held out, so list them "
                "with the views you score on.")
     kept("wide views warning", ",".join(name for name, _ in wide),
