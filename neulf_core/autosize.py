@@ -27,8 +27,7 @@ from .metrics import psnr
 from .render import LightField
 from .scene import Scene, load_scene, scaled_size, split_views
 from .slab import fit_slab
-from .train import (TrainConfig, TrainResult, check_config, refuse_a_model_without_its_checkpoint,
-                    say_nothing_to_resume, train)
+from .train import TrainConfig, TrainResult, check_config, refuse_to_overwrite, say_nothing_to_resume, train
 from .progress import emit as _emit
 from .rules import (LOSSES_DECISION_STEP, announce_default_losses, default_back_surface, default_coarse_to_fine,
                     default_consistency, default_depth_detail_reads, default_geometry_tv, default_max_passes,
@@ -138,9 +137,7 @@ def _refuse_before_the_search(model_dir: Path, resume: bool) -> None:
     holder = training_holder(model_dir)
     if holder is not None:
         raise NeulfError(being_trained_message(model_dir, holder, "wait for it to finish or stop it, then resume"))
-    refuse_a_model_without_its_checkpoint(model_dir, resume)
-    if not resume and checkpoint_path(model_dir).is_file():
-        raise NeulfError(f"{model_dir} already holds a trained model; pass --resume to continue it, or choose another --out.")
+    refuse_to_overwrite(model_dir, resume)
 
 
 def _search_and_train(scene: Scene, model_dir: Path, config: TrainConfig, progress, should_stop, factors,

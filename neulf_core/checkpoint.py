@@ -142,13 +142,18 @@ def render_path(model_dir: Path) -> Path:
     return full
 
 
-def saved_scene_record(model_dir) -> dict | None:
-    """model.json's record of the scene a model trained on (its photos' folder and sizes), or
-    None where there is no readable model.json (a new folder, or one a user tidied)."""
+def read_metadata(model_dir) -> dict:
+    """model.json as a dict, or {} where there is none readable (a new folder, one a user tidied)."""
     try:
-        return json.loads((Path(model_dir).expanduser() / METADATA_NAME).read_text()).get("scene")
-    except (OSError, ValueError, AttributeError):
-        return None
+        metadata = json.loads((Path(model_dir).expanduser() / METADATA_NAME).read_text())
+    except (OSError, ValueError):
+        return {}
+    return metadata if isinstance(metadata, dict) else {}
+
+
+def saved_scene_record(model_dir) -> dict | None:
+    """model.json's record of the scene a model trained on (its photos' folder and sizes), or None."""
+    return read_metadata(model_dir).get("scene")
 
 
 def load_checkpoint(model_dir: Path, map_location="cpu") -> dict:

@@ -200,12 +200,14 @@ def cmd_train(args) -> int:
 def _of_member(model_dir: Path) -> str:
     """' of member 2 of 2' where the model trains members (a run's step is its member's own: 'at
     step 0' had followed a first member's 200 steps), else ''."""
+    from .checkpoint import read_metadata
+
     try:
         state = json.loads((model_dir / "members.json").read_text())
         count, finished = int(state["count"]), {int(m) for m in state.get("finished", [])}
-        first_done = json.loads((model_dir / "model.json").read_text())["progress"]["status"] == "finished"
     except (OSError, ValueError, KeyError, TypeError):
         return ""
+    first_done = read_metadata(model_dir).get("progress", {}).get("status") == "finished"
     # (members.json lists the members after the first that finished; the first's own progress says its)
     member = next((m for m in range(2, count + 1) if m not in finished), count) if first_done else 1
     return f" of member {member} of {count}" if count > 1 else ""

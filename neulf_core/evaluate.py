@@ -35,8 +35,7 @@ def evaluate_model(model_dir, scene_dir, *, images_dir=None, out_dir=None, views
     mean_colour = np.asarray(light_field.meta["scene"]["mean_colour"], dtype=np.float32)
     rows, baseline = [], []
     perceptual = load_lpips()  # None until the user fetched its weights (python -m neulf_core fetch-lpips)
-    for name in names:
-        view = scene.view(name)
+    for view in chosen:
         scale = scale_as_trained(view, saved, light_field.trained_scale)  # (photos of another folder: note)
         photo = view.load_image(scale)
         started = time.perf_counter()

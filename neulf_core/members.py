@@ -420,8 +420,6 @@ def train_members(train_one: Callable, scene, model_dir: Path, config, images_di
         count, first_done = state["count"], True
     split = member_split(config, model_dir if state is not None else None, device_type)
     if state is None:
-        if not checkpoint_path(model_dir).is_file():  # members left by a model deleted since
-            shutil.rmtree(model_dir / MEMBERS_DIR, ignore_errors=True)
         state = _start_state(model_dir, count, config.seed, split)
     for member in range(2 if first_done else 1, count + 1):
         folder = member_dir(model_dir, member)

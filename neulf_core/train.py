@@ -351,13 +351,18 @@ def refuse_a_model_without_its_checkpoint(model_dir: Path, resume: bool) -> None
                      f"folder, or delete {MODEL_NAME} there to start again.")
 
 
+def refuse_to_overwrite(model_dir: Path, resume: bool) -> None:
+    """A new training (no `resume`) into a folder that holds a model is refused, as is either into
+    one holding only its render file."""
+    refuse_a_model_without_its_checkpoint(model_dir, resume)
+    if not resume and checkpoint_path(model_dir).is_file():
+        raise NeulfError(f"{model_dir} already holds a trained model; pass --resume to continue it, or choose another --out.")
+
+
 def _resumed_checkpoint(model_dir: Path, config: TrainConfig, resume: bool) -> dict | None:
     """The checkpoint a resumed run continues (None for a new one); refuses to overwrite a model."""
-    refuse_a_model_without_its_checkpoint(model_dir, resume)
-    existing = checkpoint_path(model_dir).is_file()
-    if existing and not resume:
-        raise NeulfError(f"{model_dir} already holds a trained model; pass --resume to continue it, or choose another --out.")
-    return load_checkpoint(model_dir) if (resume and existing) else None
+    refuse_to_overwrite(model_dir, resume)
+    return load_checkpoint(model_dir) if resume and checkpoint_path(model_dir).is_file() else None
 
 
 class NonFiniteGuard:

@@ -176,9 +176,10 @@ class Service:
 
 
 def model_stamp(model_dir) -> tuple:
-    """The modification times of every file a render of the model reads (audit fix): the first
-    member's checkpoint.pt and model.pt, members.json, and each member's files, so a member
-    trained on (its checkpoint replaced) loads again."""
+    """The modification times of every file a render of the model reads: the first member's
+    checkpoint.pt and model.pt, members.json, and each member's files, so a member trained on
+    (its checkpoint replaced) loads again (keyed on the first's checkpoint alone, a second
+    member trained on had rendered stale until Blender restarted)."""
     folder = Path(model_dir).expanduser()
     if folder.is_file():
         return (folder.stat().st_mtime_ns,)
