@@ -10,6 +10,7 @@ import shutil
 import tempfile
 from pathlib import Path
 
+from ..neulf_core.errors import as_user_error
 from .jobs import WorkerClient, core_environment
 
 _in_process = None        # Service, False (unavailable), or None (not tried)
@@ -59,7 +60,13 @@ class Core:
                         if should_stop is not None and should_stop():
                             raise InterruptedError("cancelled")
                     args["on_progress"] = report
-            return getattr(service, op)(**args)
+            try:
+                return getattr(service, op)(**args)
+            except (ImportError, MemoryError, RuntimeError) as exc:  # (said as the worker says them)
+                user_error = as_user_error(exc)
+                if user_error is None:
+                    raise
+                raise user_error from None
         return self._client().call(op, on_progress=on_progress, should_stop=should_stop, **args)
 
     def _client(self) -> WorkerClient:

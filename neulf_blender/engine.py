@@ -11,7 +11,7 @@ import bpy
 from mathutils import Matrix
 
 from . import capture, compositing, convert, viewport
-from ..neulf_core.errors import NeulfError
+from ..neulf_core.errors import OUT_OF_MEMORY, NeulfError, is_out_of_memory
 
 _RENDERERS = weakref.WeakSet()  # the viewports' PreviewRenderers, for the redraw timer
 REDRAW_INTERVAL = 0.1
@@ -40,10 +40,10 @@ class NeulfRenderEngine(bpy.types.RenderEngine):
             # Any other error ends the render with an ERROR report, which stops an animation (it had
             # left a black frame in the video and reported success); the traceback goes to the
             # console for a bug report, the status bar gets one line.
-            except MemoryError:
-                self.report({"ERROR"}, "out of memory rendering this frame; render a smaller image.")
-                return
             except Exception as exc:  # noqa: BLE001
+                if is_out_of_memory(exc):
+                    self.report({"ERROR"}, OUT_OF_MEMORY)
+                    return
                 traceback.print_exc()
                 self.report({"ERROR"}, f"NeuLF render failed ({type(exc).__name__}: {exc}); the console has the details.")
                 return

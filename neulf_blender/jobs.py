@@ -16,7 +16,7 @@ import time
 from collections import deque
 from pathlib import Path
 
-from ..neulf_core.errors import NeulfError
+from ..neulf_core.errors import NeulfError, missing_module_message
 
 ADDON_ROOT = Path(__file__).resolve().parent.parent  # the folder holding neulf_core/
 
@@ -59,10 +59,21 @@ def explain_failure(stderr_lines) -> str:
             return line[len("error:"):].strip()
     for line in reversed(lines):
         if "No module named" in line:
-            module = line.split("No module named", 1)[1].strip(" '\"")
-            return (f"the NeuLF Python has no '{module}': set a Python with torch, pycolmap, Pillow and av (PyAV) in "
-                    "the NeuLF preferences, or click Install dependencies there.")
+            return missing_module_message(line.split("No module named", 1)[1].strip(" '\""))
     return lines[-1] if lines else "the process ended without a message."
+
+
+def ending_text(stderr_lines, returncode: int | None) -> str:
+    """explain_failure, or where a process left no message and a signal ended it, which one:
+    SIGKILL is what the system's out-of-memory killer sends."""
+    if returncode is None or returncode >= 0 or any(line.strip() for line in stderr_lines):
+        return explain_failure(stderr_lines)
+    try:
+        name = signal.Signals(-returncode).name
+    except ValueError:
+        name = f"signal {-returncode}"
+    why = ", as the system does when memory runs out" if -returncode == getattr(signal, "SIGKILL", 9) else ""
+    return f"the process was killed ({name}{why})."
 
 
 class ProcessJob:
@@ -140,7 +151,7 @@ class ProcessJob:
         elif self._cancelled:
             self.state.update(status="cancelled")
         else:
-            self.state.update(status="failed", error=explain_failure(self._stderr))
+            self.state.update(status="failed", error=ending_text(self._stderr, code))
 
 
 class TrainJob(ProcessJob):
@@ -282,6 +293,44 @@ class CommandJob(ProcessJob):
             self.state["message"] = line.strip()[:200]
 
 
+class ThreadCall:
+    """`work(on_progress, should_stop)` run on a thread of its own: what a modal operator polls
+    (`running`, `fraction`) and cancels, so Blender stays usable while it runs.  It ends with
+    `result`, or `error` (one line), or `cancelled`."""
+
+    def __init__(self, work):
+        self.fraction, self.result, self.error, self.cancelled = 0.0, None, None, False
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, args=(work,), daemon=True)
+        self._thread.start()
+
+    @property
+    def running(self) -> bool:
+        return self._thread.is_alive()
+
+    def cancel(self) -> None:
+        self._stop.set()
+
+    def wait(self, timeout: float | None = None) -> None:
+        self._thread.join(timeout)
+
+    def _progress(self, fraction: float) -> None:
+        self.fraction = fraction
+
+    def _run(self, work) -> None:
+        try:
+            self.result = work(on_progress=self._progress, should_stop=self._stop.is_set)
+        except InterruptedError:
+            self.cancelled = True
+        except NeulfError as exc:
+            self.error = str(exc)
+        except Exception as exc:  # noqa: BLE001  (a bug: the console gets the traceback, the user one line)
+            import traceback
+
+            traceback.print_exc()
+            self.error = f"NeuLF failed ({type(exc).__name__}: {exc}); the console has the details."
+
+
 # ----------------------------------------------------------------------------- render worker
 
 
@@ -366,7 +415,7 @@ class WorkerClient:
             except subprocess.TimeoutExpired:
                 pass
         time.sleep(0.05)  # let the stderr reader catch the last lines
-        detail = explain_failure(self._stderr)
+        detail = ending_text(self._stderr, None if self.process is None else self.process.poll())
         self.process = None
         raise NeulfError(f"the NeuLF worker stopped: {detail}")
 

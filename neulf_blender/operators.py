@@ -150,9 +150,11 @@ class _Reporting:
 # ----------------------------------------------------------------------------- import
 
 
-def import_scene(context, scene_dir: str, images_dir: str = "", import_points: bool = True) -> dict:
+def import_scene(context, scene_dir: str, images_dir: str = "", import_points: bool = True,
+                 model_path: str = "") -> dict:
+    """`model_path`: the model the capture is for, where it is not (yet) the scene's."""
     props = context.scene.neulf
-    existing_model = abspath(props.model_dir)
+    existing_model = model_path or abspath(props.model_dir)
     description = get_core(context).call("describe_scene", scene_dir=scene_dir, images_dir=images_dir or None,
                                          model_dir=existing_model or None)
     capture.build_capture(context, description, import_points=import_points)
@@ -240,10 +242,9 @@ class NEULF_OT_reconstruct(_Reporting, bpy.types.Operator):
 # ----------------------------------------------------------------------------- model
 
 
-def attach_model(context, path: str) -> dict:
-    """Store the model folder (relative to the .blend) and show its slab."""
+def readable_model(context, path: str) -> dict:
+    """model.json of the model folder `path`, which the scene can take; else a NeulfError."""
     refuse_linked(context.scene, "load its model")
-    props = context.scene.neulf
     if not path.strip():
         raise NeulfError("choose the model folder (the one training wrote, holding model.json).")
     meta = read_model_json(path)
@@ -252,6 +253,13 @@ def attach_model(context, path: str) -> dict:
             raise NeulfError(f"{path}/model.json cannot be read (damaged or not a NeuLF model's): copy the model "
                              "folder again from where it came, or train a new model into another folder.")
         raise NeulfError(f"{path} holds no NeuLF model (model.json missing).")
+    return meta
+
+
+def attach_model(context, path: str) -> dict:
+    """Store the model folder (relative to the .blend) and show its slab."""
+    meta = readable_model(context, path)
+    props = context.scene.neulf
     props.model_dir = store_path(path)
     progress = meta.get("progress", {})
     if progress.get("val_psnr") is not None:
@@ -280,14 +288,14 @@ class NEULF_OT_load_model(_Reporting, bpy.types.Operator):
 
     def run(self, context):
         path = abspath(self.directory)
-        meta = attach_model(context, path)
-        scene_meta = meta.get("scene", {})
+        scene_meta = readable_model(context, path).get("scene", {})
         fingerprint = scene_meta.get("fingerprint")
         if context.scene.neulf.fingerprint and fingerprint not in (None, context.scene.neulf.fingerprint):
             self.report({"WARNING"}, "the model was trained on another reconstruction than the imported cameras; "
                                      "its renders will not line up with them.")
         elif not context.scene.neulf.scene_dir and scene_meta.get("root") and Path(scene_meta["root"]).is_dir():
-            import_scene(context, scene_meta["root"])
+            import_scene(context, scene_meta["root"], model_path=path)  # (first: a failed import leaves the scene as it was)
+        attach_model(context, path)
         self.report({"INFO"}, f"model loaded: {path}")
         return {"FINISHED"}
 
@@ -351,6 +359,9 @@ def scenes_of_model(path: str) -> list:
 def _show_training_result(scene, state: dict, out: str) -> None:
     """A finished (cancelled, failed) training's status and model, in a scene of that model."""
     status = job_status_text(state) if state["status"] != "failed" else f"failed: {state['error']}"
+    if state["status"] == "failed" and (Path(out) / "checkpoint.pt").is_file():
+        # (where the last checkpoint left it: what Train continues from, e.g. after the process was killed)
+        status = f"{status.rstrip('.')}; the model as last saved: {progress_text(read_model_json(out).get('progress', {}))}"
     scene.neulf.last_status = status
     if state.get("val_psnr") is not None:
         scene.neulf.last_psnr = float(state["val_psnr"])
@@ -417,15 +428,29 @@ class NEULF_OT_cancel_train(bpy.types.Operator):
 # ----------------------------------------------------------------------------- rendering
 
 
-def render_active_camera(context, *, depth=True):
+def active_camera_render(context, *, depth=True):
+    """The active camera's render, read from Blender on its own thread: `(render, request)`,
+    where `render(on_progress=None, should_stop=None)` touches no Blender data, so it may run
+    on another thread, and returns the result with its depth in Blender units."""
     scene = context.scene
     request = capture.camera_request(scene, scene.camera)
     scale = request.pop("scale")
-    result = get_core(context).call("render", model_dir=model_dir(scene), depth=depth, chunk=scene.neulf.chunk,
-                                    pixel_samples=int(scene.neulf.pixel_samples), **request, **capture.lens_request(scene.camera, scale))
-    if result.get("depth") is not None:
-        result["depth"] = result["depth"] * scale  # model units -> Blender units
-    return result, request
+    core = get_core(context)
+    args = dict(model_dir=model_dir(scene), depth=depth, chunk=scene.neulf.chunk,
+                pixel_samples=int(scene.neulf.pixel_samples), **request, **capture.lens_request(scene.camera, scale))
+
+    def render(on_progress=None, should_stop=None) -> dict:
+        result = core.call("render", on_progress=on_progress, should_stop=should_stop, **args)
+        if result.get("depth") is not None:
+            result["depth"] = result["depth"] * scale  # model units -> Blender units
+        return result
+
+    return render, request
+
+
+def render_active_camera(context, *, depth=True):
+    render, request = active_camera_render(context, depth=depth)
+    return render(), request
 
 
 class NEULF_OT_render_camera(_Reporting, bpy.types.Operator):
@@ -434,8 +459,47 @@ class NEULF_OT_render_camera(_Reporting, bpy.types.Operator):
     bl_idname = "neulf.render_camera"
     bl_label = "Render Camera (NeuLF)"
 
-    def run(self, context):
+    def run(self, context):  # (blocking: scripts and background mode)
         result, request = render_active_camera(context)
+        return self._show(result, request)
+
+    def invoke(self, context, event):
+        """In the UI: rendered on a thread, with progress in the status bar and Esc to cancel (a
+        large image takes minutes, which blocking would freeze Blender for)."""
+        if bpy.app.background:
+            return self.execute(context)
+        try:
+            render, self._request = active_camera_render(context)
+        except NeulfError as exc:
+            self.report({"ERROR"}, str(exc))
+            return {"CANCELLED"}
+        self._call = jobs.ThreadCall(render)
+        self._timer = context.window_manager.event_timer_add(0.2, window=context.window)
+        context.window_manager.modal_handler_add(self)
+        return {"RUNNING_MODAL"}
+
+    def modal(self, context, event):
+        if event.type == "ESC" and event.value == "PRESS":
+            self._call.cancel()
+            return {"RUNNING_MODAL"}
+        if event.type != "TIMER":
+            return {"PASS_THROUGH"}
+        if self._call.running:
+            context.workspace.status_text_set(
+                f"NeuLF: rendering {self._request['width']}x{self._request['height']}, {self._call.fraction:.0%} "
+                "(Esc cancels)")
+            return {"PASS_THROUGH"}
+        context.window_manager.event_timer_remove(self._timer)
+        context.workspace.status_text_set(None)
+        if self._call.cancelled:
+            self.report({"INFO"}, "Render Camera cancelled")
+            return {"CANCELLED"}
+        if self._call.error is not None:
+            self.report({"ERROR"}, self._call.error)
+            return {"CANCELLED"}
+        return self._show(self._call.result, self._request)
+
+    def _show(self, result: dict, request: dict):
         capture.show_image(RENDER_IMAGE, result["rgb"])  # byte image: sRGB, stored as computed
         depth = np.nan_to_num(result["depth"], nan=0.0)
         capture.show_image(DEPTH_IMAGE, np.repeat(depth[..., None], 3, axis=2), float_buffer=True, non_color=True)
@@ -573,19 +637,32 @@ def restore_render_settings(scene, saved: list) -> None:
             pass
 
 
-def restore_after_render(scene, saved: list) -> None:
-    """Put the settings back once an interactive render (which runs on after the operator) ends."""
+def restore_after_render(scene, saved: list, video: Path | None = None) -> None:
+    """Put the settings back once an interactive render (which runs on after the operator) ends.
+    A render that ends early (cancelled, or a frame failed) removes its `video`, which stops
+    where the render did and would otherwise pass for the whole camera path -- as the blocking
+    path does."""
     def restore(*_args):
         for handlers in (bpy.app.handlers.render_complete, bpy.app.handlers.render_cancel):
-            if restore in handlers:
-                handlers.remove(restore)
+            for handler in (restore, cut_short):
+                if handler in handlers:
+                    handlers.remove(handler)
         target = bpy.data.scenes.get(scene_name)
         if target is not None:
             restore_render_settings(target, saved)
 
+    def cut_short(*_args):
+        restore()
+        if video is not None and video.is_file():
+            video.unlink()
+            target = bpy.data.scenes.get(scene_name)
+            if target is not None:
+                target.neulf.last_status = (f"Render Video stopped before the last frame; the partial video was removed "
+                                            f"({video.name})")
+
     scene_name = scene.name
     bpy.app.handlers.render_complete.append(restore)
-    bpy.app.handlers.render_cancel.append(restore)
+    bpy.app.handlers.render_cancel.append(cut_short)
 
 
 def video_path(filepath: str) -> str:
@@ -627,12 +704,12 @@ class NEULF_OT_render_video(_Reporting, bpy.types.Operator):
         saved = saved_render_settings(scene)
         scene.render.engine = "NEULF"
         configure_video(scene, path)
+        written = Path(scene.render.frame_path(frame=scene.frame_start))  # (the name Blender gives the video)
         if not bpy.app.background:
-            restore_after_render(scene, saved)
+            restore_after_render(scene, saved, written)
             bpy.ops.render.render("INVOKE_DEFAULT", animation=True, scene=scene.name)
             return {"FINISHED"}
         try:
-            written = Path(scene.render.frame_path(frame=scene.frame_start))  # (the name Blender gives the video)
             try:
                 bpy.ops.render.render(animation=True, scene=scene.name)
             except RuntimeError as exc:  # (the engine's error for a frame, say a camera switched to by a marker)

@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import NeulfError
+from .errors import OUT_OF_MEMORY, NeulfError, is_out_of_memory
 
 EXIT_USAGE = 2
 
@@ -789,8 +789,10 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)
         return 130
-    except MemoryError:
-        print("error: out of memory; train at a smaller --scale or render smaller images.", file=sys.stderr)
+    except (MemoryError, RuntimeError) as exc:  # (torch says a CPU or MPS allocator failed with a RuntimeError)
+        if not is_out_of_memory(exc):
+            raise
+        print(f"error: {OUT_OF_MEMORY}", file=sys.stderr)
         return 1
     except OSError as exc:
         from .progress import end_line

@@ -20,7 +20,7 @@ import torch
 
 from .checkpoint import load_for_render
 from .device import HALF_DEVICES, keep_freed_cpu_memory, pick_device
-from .errors import NeulfError
+from .errors import NeulfError, is_out_of_memory
 from .fields import build_field, make_config
 from .members import finished_members, member_dir
 from .rays import pinhole_K, pinhole_rays, pixel_centres, shifted_K, single_pixel_K, view_rays
@@ -38,8 +38,6 @@ from .slab import Slab
 # for is retried in halves (`in_chunks`), so small GPUs render too.
 DEFAULT_CHUNK = 1 << 15
 ACCELERATOR_CHUNK = 1 << 20
-# What torch raises when a device runs out of memory (older torch: only the CUDA class).
-OUT_OF_MEMORY = getattr(torch, "OutOfMemoryError", torch.cuda.OutOfMemoryError)
 # Rays whose (u, v, s, t) lie this far outside the trained range are extrapolation.
 EXTRAPOLATION_MARGIN = 0.1
 # Field evaluation precision.  "half" runs the field's matrix products in float16 under
@@ -89,8 +87,8 @@ def in_chunks(total: int, size: int, run) -> int:
         stop = min(total, start + size)
         try:
             carry_on = run(start, stop)
-        except OUT_OF_MEMORY:
-            if size == 1:
+        except Exception as exc:  # noqa: BLE001
+            if not is_out_of_memory(exc) or size == 1:
                 raise
             size = max(1, size // 2)
             if torch.cuda.is_available():

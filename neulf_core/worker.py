@@ -27,7 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import NeulfError
+from .errors import NeulfError, as_user_error
 
 PROTOCOL_VERSION = 1
 
@@ -243,11 +243,12 @@ def serve(stdin, stdout, scratch: Path, device: str | None = None) -> None:
             send({"id": request_id, "ok": True, "result": _encode(result, scratch)})
         except NeulfError as exc:
             send({"id": request_id, "ok": False, "error": str(exc), "kind": "NeulfError"})
-        except MemoryError:
-            send({"id": request_id, "ok": False, "kind": "MemoryError",
-                  "error": "out of memory in the NeuLF worker; render a smaller image or lower the chunk size."})
-        except Exception as exc:  # programming errors: one line back, the traceback on stderr
-            traceback.print_exc(file=sys.stderr)
+        except Exception as exc:  # noqa: BLE001
+            user_error = as_user_error(exc)  # (out of memory, a missing package: what to do, in words)
+            if user_error is not None:
+                send({"id": request_id, "ok": False, "error": str(user_error), "kind": "NeulfError"})
+                continue
+            traceback.print_exc(file=sys.stderr)  # programming errors: one line back, the traceback on stderr
             send({"id": request_id, "ok": False, "error": f"{type(exc).__name__}: {exc}", "kind": type(exc).__name__})
 
 

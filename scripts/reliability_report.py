@@ -94,7 +94,7 @@ CASES = [
         *_ids(f"{REL}::test_damaged_checkpoint", "another version"), f"{CKPT}::test_other_version_format_and_damage"]),
     Case("Training killed with SIGKILL part-way: resuming loses at most one checkpoint interval", [
         f"{REL}::test_sigkill_during_training_loses_at_most_one_checkpoint_interval",
-        f"{CKPT}::test_cli_sigint_cancels_and_saves"]),
+        f"{CKPT}::test_cli_sigint_cancels_and_saves", f"{STORY}[train_killed]"]),
     Case("Cancel in Blender during training, then Train again", [
         f"{STORY}[train_cancel]", f"{STORY}[train_cancel_resume]",
         f"{CKPT}::test_cancel_then_resume_equals_straight_training",
@@ -105,7 +105,10 @@ CASES = [
         f"{STORY}[quit_while_training]", f"{REL}::test_reader_of_progress_goes_away",
         f"{REL}::test_a_second_training_of_the_same_model_folder_is_refused"]),
     Case("A render much larger than memory allows: chunking keeps peak memory bounded", [
-        f"{REL}::test_large_render_has_bounded_peak_memory"]),
+        f"{REL}::test_large_render_has_bounded_peak_memory",
+        "tests/test_render_chunks.py::test_in_chunks_halves_on_the_cpu_allocators_refusal_only",
+        f"{REL}::test_running_out_of_memory_anywhere_is_one_line",
+        "tests/test_blender_convert.py::test_worker_says_what_to_do_about_memory_and_missing_packages"]),
     Case("The .blend saved and reopened elsewhere: model paths are relative and resolve", [
         f"{STORY}[save_reload]", f"{STORY}[blend_moved]"]),
     Case("Another .blend opened while training: the training's end writes nothing into it", [
@@ -245,6 +248,15 @@ CASES = [
          "needs every module training imports (a Python without Pillow passed)", [
         "tests/test_api_inputs.py::test_the_worker_reloads_a_model_whose_second_member_trained_on",
         "tests/test_api_inputs.py::test_the_worker_s_check_needs_every_module_training_imports"]),
+    Case("Blender's worker and render: a video whose frame fails (in the UI too) leaves no video that passes for "
+         "the whole path; a bug in a frame ends the render in one line; a missing package, packages of another "
+         "Python version, a Python older than 3.10 and a killed process are named; Load Model whose capture "
+         "import fails leaves the scene as it was; Render Camera runs on a thread that can be cancelled", [
+        f"{STORY}[video_cut_short]", f"{STORY}[user_errors]",
+        "tests/test_blender_convert.py::test_explain_failure",
+        "tests/test_blender_convert.py::test_an_older_python_is_told_before_any_import_fails",
+        "tests/test_blender_convert.py::test_a_killed_process_is_said_to_be_killed",
+        "tests/test_blender_convert.py::test_thread_call_ends_with_result_error_or_cancel"]),
     Case("No network access unless the user asks for the dependency install, with the declared permission", [
         f"{REL}::test_no_network_unless_the_user_installs", f"{STORY}[install_dependencies]"]),
 ]

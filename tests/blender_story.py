@@ -33,8 +33,8 @@ PLANE_NORMAL = np.array([0.25, -0.15, -1.0]) / np.linalg.norm([0.25, -0.15, -1.0
 GRID = [(x, y) for y in (-0.3, 0.0, 0.3) for x in (-0.3, 0.0, 0.3)]
 
 STEPS = ["install", "import", "cameras_match_pycolmap", "slab_planes", "reimport_no_duplicates", "train_blocking",
-         "train_options", "train_timer_resume", "train_cancel", "train_cancel_resume", "members", "render_camera", "pixel_samples",
-         "render_worker_process", "focus_at", "pick_focus_frame", "pick_focus_click", "root_scale", "engine_f12", "composite_cg", "viewport_preview", "spiral_video", "artist_settings", "capture_identity", "save_reload",
+         "train_options", "train_timer_resume", "train_cancel", "train_cancel_resume", "train_killed", "members", "render_camera", "pixel_samples",
+         "render_worker_process", "focus_at", "pick_focus_frame", "pick_focus_click", "root_scale", "engine_f12", "composite_cg", "viewport_preview", "spiral_video", "video_cut_short", "artist_settings", "capture_identity", "save_reload",
          "blend_moved", "linked_scene", "quit_while_training", "open_other_while_training", "reconstruct_photos", "user_errors", "dependencies_status",
          "install_dependencies"]
 
@@ -375,6 +375,36 @@ def run_story(setup: dict) -> None:  # noqa: C901 - one story, told in order
         finally:
             props.model_dir = saved
         return f"Cancel: panel '{shown}'; Train again: {report.strip().splitlines()[-1]}"
+
+    @story.step("train_killed", "train_cancel_resume")
+    def _():
+        """A training the system kills (SIGKILL, as its out-of-memory killer does): the panel says
+        it was killed and where Train continues from, not 'ended without a message'."""
+        import signal
+
+        killed_model = work / "model_killed"
+        shutil.copytree(work / "model_cancel", killed_model)
+        saved_step = json.loads((killed_model / "model.json").read_text())["progress"]["step"]
+        props = bpy.context.scene.neulf
+        saved = props.model_dir
+        props.model_dir = str(killed_model)
+        try:
+            job, resumed = mod("operators").start_training(bpy.context, minutes=5)
+            assert resumed
+            deadline = time.monotonic() + 120
+            while job.state.get("step", 0) <= saved_step and time.monotonic() < deadline:  # (training, not starting)
+                mod("tasks").poll_all()
+                time.sleep(0.05)
+            job.process.send_signal(signal.SIGKILL)
+            while mod("tasks").poll_all():
+                time.sleep(0.05)
+            status = props.last_status
+        finally:
+            props.model_dir = saved
+        assert job.state["status"] == "failed", job.state
+        assert status == ("failed: the process was killed (SIGKILL, as the system does when memory runs out); the model "
+                          f"as last saved: finished at step {saved_step}"), status
+        return status
 
     @story.step("render_camera", "train_blocking")
     def _():
@@ -1286,6 +1316,64 @@ def run_story(setup: dict) -> None:  # noqa: C901 - one story, told in order
         ctx["video"] = str(written)
         return f"{written.name}: {count} frames through '{spiral.name}' (the capture camera untouched); {kept}"
 
+    @story.step("video_cut_short", "spiral_video")
+    def _():
+        """A frame of Render Video that fails (a marker switches to an orthographic camera at frame
+        2): neither the UI's render (which runs on after the operator; handlers clean up after
+        it) nor a script's leaves a video that would pass for the whole path, and the artist's
+        render settings come back."""
+        ops = mod("operators")
+        scene = bpy.context.scene
+        scene.frame_set(scene.frame_start)
+        spiral = scene.camera
+        ortho = bpy.data.objects.new("StoryOrtho", bpy.data.cameras.new("StoryOrtho"))
+        ortho.data.type = "ORTHO"
+        scene.collection.objects.link(ortho)
+        ortho.matrix_world = spiral.matrix_world
+        markers = [scene.timeline_markers.new("story_spiral", frame=scene.frame_start),
+                   scene.timeline_markers.new("story_ortho", frame=scene.frame_start + 1)]
+        markers[0].camera, markers[1].camera = spiral, ortho
+        engine, status = scene.render.engine, scene.neulf.last_status
+        try:
+            # The UI's branch of Render Video, line by line: its render is Blender's job, which
+            # the operator has returned before.
+            saved = ops.saved_render_settings(scene)
+            scene.render.engine = "NEULF"
+            ops.configure_video(scene, str(work / "cut_ui.mp4"))
+            written = Path(scene.render.frame_path(frame=scene.frame_start))
+            ops.restore_after_render(scene, saved, written)
+            try:
+                bpy.ops.render.render("INVOKE_DEFAULT", animation=True, scene=scene.name)
+            except RuntimeError:
+                pass
+            assert not written.exists() and scene.render.engine == engine, (written, scene.render.engine)
+            removed = scene.neulf.last_status
+            assert "partial video was removed" in removed, removed
+            # A script's (blocking) Render Video.
+            failed = error_of(lambda: bpy.ops.neulf.render_video(filepath=str(work / "cut_script.mp4")))
+            assert "ortho" in failed and not list(work.glob("cut_script*")), failed
+            # Not a user's error but a bug in a frame (here: the core raising ZeroDivisionError) ends
+            # the render as one line too; it had written a black frame into the video and reported success.
+            preferences, get_core = mod("preferences"), mod("preferences").get_core
+
+            class Broken:
+                def call(self, *args, **kwargs):
+                    return 1 / 0
+
+            markers[1].camera = spiral
+            preferences.get_core = lambda context=None: Broken()
+            try:
+                bug = error_of(lambda: bpy.ops.neulf.render_video(filepath=str(work / "cut_bug.mp4")))
+            finally:
+                preferences.get_core = get_core
+            assert "NeuLF render failed (ZeroDivisionError" in bug and not list(work.glob("cut_bug*")), bug
+        finally:
+            for marker in markers:
+                scene.timeline_markers.remove(marker)
+            bpy.data.objects.remove(ortho)
+            scene.camera, scene.neulf.last_status = spiral, status
+        return f"UI: {removed}; script: {failed.strip()}; a bug: {bug.strip()}"
+
     @story.step("artist_settings", "spiral_video")
     def _():
         """What an artist sets up stays theirs (from a headless audit): a copy of a capture
@@ -1688,6 +1776,21 @@ def run_story(setup: dict) -> None:  # noqa: C901 - one story, told in order
         (damaged / "model.json").write_text('{"preset": "fa')
         messages.append(error_of(lambda: bpy.ops.neulf.load_model(directory=str(damaged))))
         assert "cannot be read" in messages[-1], messages[-1]
+        # A model whose capture folder is no capture (moved, emptied): in an empty scene Load Model
+        # imports the capture first, and its failure leaves the scene without the model.
+        elsewhere, not_a_capture = work / "model_of_no_capture", work / "not_a_capture"
+        elsewhere.mkdir(exist_ok=True)
+        not_a_capture.mkdir(exist_ok=True)
+        (elsewhere / "model.json").write_text(json.dumps({"scene": {"root": str(not_a_capture)},
+                                                          "progress": {"status": "finished", "step": 5}}))
+        empty = bpy.data.scenes.new("StoryEmpty")
+        try:
+            with bpy.context.temp_override(scene=empty):
+                messages.append(error_of(lambda: bpy.ops.neulf.load_model(directory=str(elsewhere))))
+            assert (empty.neulf.model_dir, empty.neulf.last_status) == ("", ""), (empty.neulf.model_dir,
+                                                                                  empty.neulf.last_status)
+        finally:
+            bpy.data.scenes.remove(empty)
         p, chosen = prefs(), prefs().python_path  # a "Python" that is not one: Train must not say it finished
         p.python_path = shutil.which("true") or "/bin/true"
         try:

@@ -14,6 +14,7 @@ import math
 import os
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -138,6 +139,93 @@ def test_worker_protocol_errors_are_one_line(tmp_path):
     assert not answers[0]["ok"] and "no operation 'nope'" in answers[0]["error"]
     assert not answers[1]["ok"] and answers[1]["kind"] == "NeulfError" and "does not exist" in answers[1]["error"]
     assert answers[2]["ok"]
+
+
+def test_worker_says_what_to_do_about_memory_and_missing_packages(tmp_path, monkeypatch):
+    """Out of memory (torch's CPU allocator raises a plain RuntimeError) and a package the
+    worker's Python lacks (or built for another Python) reach Blender as what to do, like the
+    CLI's and Check's lines; a programming error still names itself."""
+    from neulf_core import worker
+    from neulf_core.errors import OTHER_PYTHONS_PACKAGES, OUT_OF_MEMORY
+
+    failures = iter([RuntimeError("[enforce fail at alloc_cpu.cpp:127] DefaultCPUAllocator: can't allocate memory"),
+                     ModuleNotFoundError("No module named 'torch'", name="torch"),
+                     ImportError("numpy failed", name="numpy.core._multiarray_umath"),
+                     RuntimeError("mat1 and mat2 shapes cannot be multiplied")])
+
+    def failing(self, **_args):
+        raise next(failures)
+
+    monkeypatch.setattr(worker.Service, "model_info", failing)
+    requests = "".join(json.dumps({"id": i, "op": "model_info", "args": {"model_dir": "m"}}) + "\n" for i in range(4))
+    out = io.StringIO()
+    worker.serve(io.StringIO(requests), out, tmp_path)
+    errors = [json.loads(line)["error"] for line in out.getvalue().splitlines()]
+    assert errors[0] == OUT_OF_MEMORY
+    assert errors[1].startswith("the NeuLF Python has no 'torch'") and "Install dependencies" in errors[1]
+    assert errors[2] == OTHER_PYTHONS_PACKAGES
+    assert errors[3] == "RuntimeError: mat1 and mat2 shapes cannot be multiplied"
+
+
+def test_an_older_python_is_told_before_any_import_fails():
+    """neulf_core says which Python it needs before reading a module whose syntax an older
+    one cannot parse (a Python chosen in Blender's preferences, or on the command line)."""
+    code = "import sys; sys.version_info = (3, 9, 18, 'final', 0); import neulf_core"
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                          cwd=Path(__file__).resolve().parents[1])
+    assert done.returncode == 1
+    assert done.stderr.strip() == ("error: neulf_core needs Python 3.10 or newer; this is Python 3.9 (in Blender: choose "
+                                   "another Python in the NeuLF preferences).")
+
+
+def test_a_killed_process_is_said_to_be_killed(ext):
+    """A process ended by a signal without a word (the out-of-memory killer sends SIGKILL) is
+    named as such, not 'ended without a message'."""
+    if os.name == "nt":
+        pytest.skip("POSIX signals")
+    job = ext.jobs.CommandJob([sys.executable, "-c", "import os, signal; os.kill(os.getpid(), signal.SIGKILL)"])
+    state = job.wait(timeout=60)
+    assert state["status"] == "failed"
+    assert state["error"] == "the process was killed (SIGKILL, as the system does when memory runs out)."
+    assert ext.jobs.ending_text(["Traceback", "error: disk full"], -9) == "disk full"  # (its own words first)
+    assert ext.jobs.ending_text([], 1) == "the process ended without a message."
+
+
+def test_thread_call_ends_with_result_error_or_cancel(ext):
+    """Render Camera in the UI runs on a thread (Blender stays usable; Esc cancels): the
+    thread's three endings, and its progress."""
+    NeulfError = ext.jobs.NeulfError  # (the extension's own: its neulf_core is imported as the extension's)
+
+    def counting(on_progress, should_stop):
+        for i in range(1000):
+            on_progress(i / 1000)
+            if should_stop():
+                raise InterruptedError("cancelled")
+            time.sleep(0.005)
+        return "done"
+
+    finished = ext.jobs.ThreadCall(lambda on_progress, should_stop: "image")
+    finished.wait(10)
+    assert (finished.result, finished.error, finished.cancelled, finished.running) == ("image", None, False, False)
+
+    def refusing(on_progress, should_stop):
+        raise NeulfError("the camera is behind the light field.")
+
+    refused = ext.jobs.ThreadCall(refusing)
+    refused.wait(10)
+    assert (refused.result, refused.error, refused.cancelled) == (None, "the camera is behind the light field.", False)
+
+    cancelled = ext.jobs.ThreadCall(counting)
+    while cancelled.fraction == 0.0:
+        time.sleep(0.01)
+    cancelled.cancel()
+    cancelled.wait(10)
+    assert cancelled.cancelled and cancelled.result is None and cancelled.error is None and not cancelled.running
+    assert 0.0 < cancelled.fraction < 1.0
+
+    broken = ext.jobs.ThreadCall(lambda on_progress, should_stop: 1 / 0)
+    broken.wait(10)
+    assert broken.error == "NeuLF failed (ZeroDivisionError: division by zero); the console has the details."
 
 
 def test_worker_process_describes_a_scene(ext, tmp_path):
@@ -335,6 +423,10 @@ def test_explain_failure(ext):
     assert ext.jobs.explain_failure(["x", "error: the scene is bad."]) == "the scene is bad."
     assert "no 'torch'" in ext.jobs.explain_failure(["ModuleNotFoundError: No module named 'torch'"])
     assert ext.jobs.explain_failure([]) == "the process ended without a message."
+    # Packages installed for another Python version (say, a deps folder left by Blender 5.0's 3.11, read by 3.13).
+    from neulf_core.errors import OTHER_PYTHONS_PACKAGES
+    assert ext.jobs.explain_failure(["ModuleNotFoundError: No module named 'numpy.core._multiarray_umath'"]) == \
+        OTHER_PYTHONS_PACKAGES
 
 
 def test_camera_view_border(ext):

@@ -976,6 +976,27 @@ def test_render_refuses_image_sizes_it_cannot_make(size, expected, model):
         LightField.load(model, "cpu").render(K, *size, R, t)
 
 
+def test_running_out_of_memory_anywhere_is_one_line(monkeypatch, capsys):
+    """torch's CPU allocator runs out with a RuntimeError, not a MemoryError: the CLI says
+    what to do about it either way, and lets any other RuntimeError (a bug) show itself."""
+    import neulf_core.cli as cli
+    from neulf_core.errors import OUT_OF_MEMORY
+
+    refusal = "[enforce fail at alloc_cpu.cpp:127] err == 0. DefaultCPUAllocator: can't allocate memory"
+    for raised in (RuntimeError(refusal), MemoryError()):
+        def running_out(args, raised=raised):
+            raise raised
+        monkeypatch.setattr(cli, "cmd_eval", running_out)
+        assert cli.main(["eval", "model", "--scene", "scene"]) == 1
+        assert capsys.readouterr().err == f"error: {OUT_OF_MEMORY}\n"
+
+    def broken(args):
+        raise RuntimeError("mat1 and mat2 shapes cannot be multiplied")
+    monkeypatch.setattr(cli, "cmd_eval", broken)
+    with pytest.raises(RuntimeError, match="shapes"):
+        cli.main(["eval", "model", "--scene", "scene"])
+
+
 def test_render_takes_t_as_a_column_or_a_row(model):
     from neulf_core.render import LightField
 

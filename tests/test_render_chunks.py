@@ -1,16 +1,24 @@
 """Rendering in chunks (render.in_chunks): a GPU renders a frame in large chunks, and a chunk the
 device has no memory for is tried again in halves.  CPU-only here: the device's refusal is
 played by a field that raises torch's out-of-memory error for chunks above a size, which is
-what CUDA raises; the frame must come out the same as one rendered in small chunks."""
+what CUDA raises; the frame must come out the same as one rendered in small chunks.  A CPU's
+allocator says it with a RuntimeError of its own, which is halved on too."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
+import torch
 
-from neulf_core.render import OUT_OF_MEMORY, LightField, in_chunks
+from neulf_core.render import LightField, in_chunks
 from neulf_core.scene import load_scene
 from neulf_core.train import TrainConfig, train
+
+# What torch raises when a device runs out of memory (older torch: only the CUDA class).
+OUT_OF_MEMORY = getattr(torch, "OutOfMemoryError", torch.cuda.OutOfMemoryError)
+# torch's CPU allocator (the words of c10's alloc_cpu.cpp), and an unrelated RuntimeError.
+CPU_REFUSAL = ("[enforce fail at alloc_cpu.cpp:127] err == 0. DefaultCPUAllocator: can't allocate memory: you tried "
+               "to allocate 268416000 bytes. Error code 12 (Cannot allocate memory)")
 
 
 def test_in_chunks_covers_everything_once_and_halves_on_out_of_memory():
@@ -25,6 +33,24 @@ def test_in_chunks_covers_everything_once_and_halves_on_out_of_memory():
     in_chunks(20, 16, run)
     assert seen == list(range(20))
     assert sizes[:3] == [16, 8, 4] and max(sizes[3:]) == 2  # the smaller size is kept from then on
+
+
+def test_in_chunks_halves_on_the_cpu_allocators_refusal_only():
+    sizes = []
+
+    def run(start, stop):
+        sizes.append(stop - start)
+        if stop - start > 4:
+            raise RuntimeError(CPU_REFUSAL)
+
+    in_chunks(16, 16, run)
+    assert sizes == [16, 8, 4, 4, 4, 4]
+
+    def broken(start, stop):
+        raise RuntimeError("mat1 and mat2 shapes cannot be multiplied")
+
+    with pytest.raises(RuntimeError, match="shapes"):  # (a bug is not retried in halves)
+        in_chunks(16, 16, broken)
 
 
 def test_in_chunks_stops_when_asked_and_gives_up_at_one():
