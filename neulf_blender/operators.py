@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import json
 import os
 from pathlib import Path
 
@@ -17,8 +16,11 @@ from .properties import CHOICE_OPTION
 from ..neulf_core.errors import NeulfError
 from ..neulf_core.lock import being_trained_message, training_holder
 from ..neulf_core.members import budget_done
+from ..neulf_core.model_files import METADATA_NAME, can_resume, has_render_model, read_metadata
+from ..neulf_core.presets import get_preset
 
 RENDER_IMAGE = "NeuLF Render"
+RENDER_ONLY = "a render-only model (model.pt without its checkpoint.pt): it renders; to train, choose another folder"
 DEPTH_IMAGE = "NeuLF Depth"
 
 
@@ -52,8 +54,9 @@ def model_dir(scene) -> str:
     if not Path(path).is_dir():
         raise NeulfError(f"the model folder {path} does not exist: move a .blend together with its model folder, "
                          "or point Load Model at the model.")
-    if not (Path(path) / "checkpoint.pt").is_file():
-        raise NeulfError(f"{path} holds no trained model (checkpoint.pt missing); train it or load another folder.")
+    if not has_render_model(path):
+        raise NeulfError(f"{path} holds no trained model (neither checkpoint.pt nor model.pt); train it or load "
+                         "another folder.")
     return path
 
 
@@ -67,11 +70,6 @@ def store_path(path: str) -> str:
     return path
 
 
-def read_model_json(path: str) -> dict:
-    try:
-        return json.loads((Path(path) / "model.json").read_text())
-    except (OSError, json.JSONDecodeError):
-        return {}
 
 
 def progress_text(progress: dict) -> str:
@@ -120,14 +118,17 @@ def refresh_model_status(scene) -> str:
     if not Path(path).is_dir():
         props.last_status = f"{model_not_found(path)} move it back or use Load Model"
         return props.last_status
-    meta = read_model_json(path)
+    meta = read_metadata(path)
     owner = training_holder(path)
     if owner is not None:  # e.g. the .blend reopened while the training Blender left behind saves
         props.last_status = trained_elsewhere_text(owner, meta.get("progress", {}))
         handlers.watch_other_trainings()  # the panel follows it and says when it has stopped
         return props.last_status
-    if not meta or not (Path(path) / "checkpoint.pt").is_file():
+    if not meta or not has_render_model(path):
         props.last_status = f"no checkpoint in {path} yet; Train starts the model"
+        return props.last_status
+    if not can_resume(path):  # (the core renders it, and refuses to train over it)
+        props.last_status = RENDER_ONLY
         return props.last_status
     progress = meta.get("progress", {})
     props.last_status = model_status(meta)
@@ -247,9 +248,9 @@ def readable_model(context, path: str) -> dict:
     refuse_linked(context.scene, "load its model")
     if not path.strip():
         raise NeulfError("choose the model folder (the one training wrote, holding model.json).")
-    meta = read_model_json(path)
+    meta = read_metadata(path)
     if not meta:
-        if (Path(path) / "model.json").is_file():
+        if (Path(path) / METADATA_NAME).is_file():
             raise NeulfError(f"{path}/model.json cannot be read (damaged or not a NeuLF model's): copy the model "
                              "folder again from where it came, or train a new model into another folder.")
         raise NeulfError(f"{path} holds no NeuLF model (model.json missing).")
@@ -264,7 +265,7 @@ def attach_model(context, path: str) -> dict:
     progress = meta.get("progress", {})
     if progress.get("val_psnr") is not None:
         props.last_psnr = float(progress["val_psnr"])
-    props.last_status = model_status(meta)
+    props.last_status = RENDER_ONLY if has_render_model(path) and not can_resume(path) else model_status(meta)
     collection, root = capture.find_capture(context.scene)
     fingerprint = meta.get("scene", {}).get("fingerprint")
     if collection is not None and meta.get("slab") and fingerprint in (None, props.fingerprint):
@@ -321,7 +322,7 @@ def start_training(context, *, minutes=None, steps=None):
         raise NeulfError(being_trained_message(out, owner, "it was started before, perhaps by a Blender that closed: "
                                                              "wait until the panel says it stopped, then press Train "
                                                              "to continue it"))
-    resume = (Path(out) / "checkpoint.pt").is_file()
+    resume = can_resume(out)
     resumed_from = None
     if resume:  # budgets count from the start of training: add to what is done (as the budget counts it)
         done_steps, done_seconds = budget_done(out)
@@ -333,11 +334,13 @@ def start_training(context, *, minutes=None, steps=None):
     prefs = get_prefs(context)
     python, extra = worker_python(prefs)
     device = None if prefs is None or prefs.device == "AUTO" else prefs.device.lower()
+    fast_field = get_preset(props.preset).field == "disparity"  # (its options mean nothing to the other fields)
     job = jobs.TrainJob(python, scene_dir, out, minutes=minutes, steps=steps, resume=resume, preset=props.preset,
                         scale=props.train_scale or None, images_dir=abspath(props.images_dir) or None, device=device,
-                        env=jobs.core_environment(extra), sweep_teacher=props.sweep_teacher,
-                        depth_layers=props.depth_layers, appearance=CHOICE_OPTION[props.appearance],
-                        refine_poses=CHOICE_OPTION[props.refine_poses], back_surface=CHOICE_OPTION[props.back_surface],
+                        env=jobs.core_environment(extra), sweep_teacher=CHOICE_OPTION[props.sweep_teacher],
+                        depth_layers=props.depth_layers if fast_field else -1, appearance=CHOICE_OPTION[props.appearance],
+                        refine_poses=CHOICE_OPTION[props.refine_poses],
+                        back_surface=CHOICE_OPTION[props.back_surface] if fast_field else None,
                         stop_early=props.stop_early, two_starts=props.two_starts, members=props.members)
     job.state["resumed_from"] = resumed_from
     props.model_dir = store_path(out)
@@ -359,13 +362,13 @@ def scenes_of_model(path: str) -> list:
 def _show_training_result(scene, state: dict, out: str) -> None:
     """A finished (cancelled, failed) training's status and model, in a scene of that model."""
     status = job_status_text(state) if state["status"] != "failed" else f"failed: {state['error']}"
-    if state["status"] == "failed" and (Path(out) / "checkpoint.pt").is_file():
+    if state["status"] == "failed" and can_resume(out):
         # (where the last checkpoint left it: what Train continues from, e.g. after the process was killed)
-        status = f"{status.rstrip('.')}; the model as last saved: {progress_text(read_model_json(out).get('progress', {}))}"
+        status = f"{status.rstrip('.')}; the model as last saved: {progress_text(read_metadata(out).get('progress', {}))}"
     scene.neulf.last_status = status
     if state.get("val_psnr") is not None:
         scene.neulf.last_psnr = float(state["val_psnr"])
-    if (Path(out) / "model.json").is_file():
+    if (Path(out) / METADATA_NAME).is_file():
         with bpy.context.temp_override(scene=scene):
             try:
                 attach_model(bpy.context, out)
@@ -392,7 +395,7 @@ class NEULF_OT_train(_Reporting, bpy.types.Operator):
         steps = self.steps or (props.train_steps if not self.minutes else 0)
         minutes = self.minutes or props.train_minutes
         job, resume = start_training(context, minutes=None if steps else minutes, steps=steps or None)
-        kept = read_model_json(job.model_dir).get("train_config", {}).get("preset") if resume else None
+        kept = read_metadata(job.model_dir).get("train_config", {}).get("preset") if resume else None
         if kept and kept != props.preset:  # (a model's network cannot change; its options apply to a new one)
             self.report({"WARNING"}, f"the model keeps its preset '{kept}': the panel's '{props.preset}' applies to a "
                                      "new model (choose another Model folder)")

@@ -3,6 +3,8 @@
 import bpy
 from bpy.props import BoolProperty, EnumProperty, FloatProperty, IntProperty, PointerProperty, StringProperty
 
+from ..neulf_core import presets as core_presets  # (torch-free)
+
 def _relative_path_options() -> set:
     """Blender 4.5+ warns about '//' paths unless the property says it supports them; 4.2
     rejects the option, and only when the class registers (bpy.props defers the check), so
@@ -14,10 +16,18 @@ def _relative_path_options() -> set:
 
 PATH_OPTIONS = _relative_path_options()
 
-PRESETS = [
-    ("fast", "Fast", "Factorised feature planes and a tiny MLP: minutes on a CPU"),
-    ("authors", "Authors", "The authors' 8 x 256 MLP (slow without a GPU)"),
-    ("paper", "Paper", "The paper's 20 x 256 MLP (hours on a GPU)"),
+# The core's presets that Blender offers, described in the core's words (a description typed
+# here had gone stale when `fast` changed field).  Not offered: `auto` (a search of sizes
+# before training: the CLI's) and `planes` (an earlier field, kept for comparison).
+OFFERED_PRESETS = {"fast": "Fast", "authors": "Authors", "paper": "Paper"}
+PRESETS = [(name, label, core_presets.PRESETS[name].description[:1].upper() + core_presets.PRESETS[name].description[1:])
+           for name, label in OFFERED_PRESETS.items()]
+# "Depth from Photos" (the sweep teacher); numbered so that a .blend saved when it was a
+# checkbox reads on as Auto (1, its old default) or Off (0).
+TEACHER_CHOICES = [
+    ("OFF", "Off", "Never", 0),
+    ("AUTO", "Auto", "The preset's choice: on for Fast, off for the authors' and the paper's networks (their recipes)", 1),
+    ("ON", "On", "Always", 2),
 ]
 # "Varying Exposure": what `train` gets (operators.start_training; Auto passes nothing, the trainer decides).
 APPEARANCE_CHOICES = [
@@ -72,11 +82,11 @@ class NeulfSceneSettings(bpy.types.PropertyGroup):
     train_steps: IntProperty(name="Steps", default=0, min=0,
                              description="Training steps to add instead of minutes (0: use minutes)")
     preset: EnumProperty(name="Preset", items=PRESETS, default="fast")
-    sweep_teacher: BoolProperty(name="Depth from Photos", default=True,
+    sweep_teacher: EnumProperty(name="Depth from Photos", default="AUTO", items=TEACHER_CHOICES,
                                 description="Guide early training with the depth a plane sweep finds in the photos: "
                                             "better depth for click-to-focus and a sharper image on the scenes measured")
-    depth_layers: IntProperty(name="Depth Layers", default=-1, min=-1, max=32,
-                              description="Fast and Auto presets: depth layers for sharper depth edges on shallow "
+    depth_layers: IntProperty(name="Depth Layers", default=-1, min=-1, max=core_presets.MAX_DEPTH_LAYERS,
+                              description="Fast preset: depth layers for sharper depth edges on shallow "
                                           "scenes; worse on deep ones (-1: automatic, 8 when the scene's far/near "
                                           "depth ratio is at most 3 and 18 or more photos train; 0: none)")
     appearance: EnumProperty(name="Varying Exposure", default="AUTO", items=APPEARANCE_CHOICES,
@@ -117,8 +127,10 @@ class NeulfSceneSettings(bpy.types.PropertyGroup):
                ("9", "9", "The mean of 3 x 3 points in each pixel"),
                ("16", "16", "The mean of 4 x 4 points in each pixel")),
         description="Points per pixel whose colours are averaged in renders (anti-aliasing)")
-    chunk: IntProperty(name="Chunk", default=1 << 15, min=256, max=1 << 22,
-                       description="Rays per network call (lower it when memory runs out)")
+    chunk: IntProperty(name="Chunk", default=0, min=0, max=1 << 22,
+                       description="Rays per network call. 0: the device's own (32,768 on a CPU, 1,048,576 on a GPU, "
+                                   "where large chunks halved the frame time). A chunk the device has no memory for "
+                                   "is retried in halves; a smaller one lowers the peak")
 
     last_status: StringProperty(description="Last training result")
     last_psnr: FloatProperty(description="Validation PSNR of the last training run (dB)")

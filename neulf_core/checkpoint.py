@@ -20,13 +20,12 @@ import torch
 
 from .errors import NeulfError
 from .files import atomic_write_bytes
+# (the names and readers live in the torch-free model_files; they are imported from here too)
+from .model_files import CHECKPOINT_NAME, METADATA_NAME, MODEL_NAME, read_metadata, render_path  # noqa: F401
 
 FORMAT = "neulf-checkpoint"
 VERSION = 1
-CHECKPOINT_NAME = "checkpoint.pt"
-METADATA_NAME = "model.json"
 MODEL_FORMAT = "neulf-model"
-MODEL_NAME = "model.pt"
 # Tensors smaller than this stay float32 in model.pt: the decoders are a few kB, and their
 # rounding would be the only fp16 error that reaches the colour without interpolation.
 HALF_MIN_ELEMENTS = 4096
@@ -128,27 +127,6 @@ def checkpoint_path(model_dir: Path) -> Path:
     if model_dir.is_file():
         return model_dir
     return model_dir / CHECKPOINT_NAME
-
-
-def render_path(model_dir: Path) -> Path:
-    """The file to render from: model.pt, unless checkpoint.pt is newer (a crash between
-    the two writes, or a checkpoint replaced by hand) or model.pt is missing."""
-    model_dir = Path(model_dir).expanduser()
-    if model_dir.is_file():
-        return model_dir
-    small, full = model_dir / MODEL_NAME, model_dir / CHECKPOINT_NAME
-    if small.is_file() and (not full.is_file() or small.stat().st_mtime_ns >= full.stat().st_mtime_ns):
-        return small
-    return full
-
-
-def read_metadata(model_dir) -> dict:
-    """model.json as a dict, or {} where there is none readable (a new folder, one a user tidied)."""
-    try:
-        metadata = json.loads((Path(model_dir).expanduser() / METADATA_NAME).read_text())
-    except (OSError, ValueError):
-        return {}
-    return metadata if isinstance(metadata, dict) else {}
 
 
 def saved_scene_record(model_dir) -> dict | None:

@@ -20,6 +20,8 @@ from pathlib import Path
 import numpy as np
 
 from .errors import OUT_OF_MEMORY, NeulfError, is_out_of_memory
+from .model_files import read_metadata
+from .presets import MAX_DEPTH_LAYERS
 
 EXIT_USAGE = 2
 
@@ -54,7 +56,6 @@ POSITIVE_INT = _number(int, 0, above=True)
 NON_NEGATIVE_INT = _number(int, 0, above=False)
 # Training above the photos' own size would enlarge them: no detail gained, scale² the cost.
 TRAIN_SCALE = _number(float, 0, above=True, highest=1)
-MAX_DEPTH_LAYERS = 64  # (8 is the default's; each layer is a plane of the geometry: thousands exhaust memory)
 
 
 from .video import VIDEO_SUFFIXES  # noqa: E402  (numpy and errors only: no torch at start-up)
@@ -135,16 +136,12 @@ def cmd_train(args) -> int:
     from .train import TrainConfig, train
 
     # (numbers are checked by the parser's types: POSITIVE, NON_NEGATIVE, ...)
-    preset = get_preset(args.preset)  # fail before loading the scene and drawing progress, not after
+    get_preset(args.preset)  # fail before loading the scene and drawing progress, not after
     overrides = {}
-    if args.depth_layers is not None:
-        if preset.field != "disparity" or args.depth_layers > MAX_DEPTH_LAYERS:
-            raise NeulfError(f"--depth-layers takes a count from 0 to {MAX_DEPTH_LAYERS}, with the fast or auto preset.")
+    if args.depth_layers is not None:  # (with another preset than fast or auto: refused by train.check_config)
+        if args.depth_layers > MAX_DEPTH_LAYERS:
+            raise NeulfError(f"--depth-layers takes a count from 0 to {MAX_DEPTH_LAYERS}.")
         overrides["geometry_layers"] = args.depth_layers
-    if args.coarse_to_fine is not None and preset.field != "disparity":
-        raise NeulfError("--coarse-to-fine / --no-coarse-to-fine apply to the fast and auto presets only.")
-    if args.back_surface is not None and preset.field != "disparity":
-        raise NeulfError("--back-surface / --no-back-surface apply to the fast and auto presets only.")
     config = TrainConfig(
         preset=args.preset, steps=args.steps, minutes=args.minutes, scale=args.scale, holdout_every=args.holdout_every,
         exclude=_names(args.exclude), seed=args.seed, checkpoint_seconds=args.checkpoint_seconds,
@@ -230,10 +227,7 @@ def _say_what_resume_keeps(args) -> None:
 
     if not checkpoint_path(Path(args.out)).is_file():
         return  # (training says there is nothing to resume)
-    try:
-        saved = json.loads((Path(args.out) / "model.json").read_text()).get("train_config", {})
-    except (OSError, ValueError):
-        return  # (the checkpoint itself is read, and checked, by training)
+    saved = read_metadata(args.out).get("train_config", {})  # (unreadable: training reads, and checks, the checkpoint)
     asked = {dest: getattr(args, dest) for dest in KEPT_ON_RESUME if dest in getattr(args, "given", ())}
     if "exclude" in asked:
         asked["exclude"] = _names(asked["exclude"])

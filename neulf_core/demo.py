@@ -13,6 +13,7 @@ import time
 from pathlib import Path
 
 from .errors import NeulfError
+from .model_files import can_resume
 
 
 def _say(text: str) -> None:
@@ -55,7 +56,7 @@ def run_demo(out: Path, minutes: float = 3.0, keep: bool = False) -> dict:
             _say(f"   removing the previous demo model {model_dir} (trained on the previous reconstruction)")
             shutil.rmtree(model_dir)
     _say(f"3/5 training the light field for {minutes:g} minutes (every 8th view held out)")
-    resume = (model_dir / "checkpoint.pt").is_file()
+    resume = can_resume(model_dir)
     code = cli_main(["train", str(scene_dir), "--out", str(model_dir), "--minutes", str(minutes)] + (["--resume"] if resume else []))
     if code != 0:
         raise NeulfError("training failed; see the message above.")

@@ -33,11 +33,9 @@ from pathlib import Path
 from typing import Callable
 
 from .errors import NeulfError
+from .model_files import CHECKPOINT_NAME, METADATA_NAME
 
 STATE_NAME = "members.json"
-# checkpoint.CHECKPOINT_NAME and METADATA_NAME, spelt here: the Blender layer imports this module
-# (work_done) where torch, which checkpoint.py imports, may be missing (a test checks they agree).
-CHECKPOINT_FILE, METADATA_FILE = "checkpoint.pt", "model.json"
 MEMBERS_DIR = "members"
 MEMBER_SEED_OFFSET = 1000
 MAX_MEMBERS = 8
@@ -223,7 +221,7 @@ def member_count(config, model_dir: Path, resume: bool) -> int | None:
     if asked is not None and not 1 <= asked <= MAX_MEMBERS:
         raise NeulfError(f"--members takes 1 to {MAX_MEMBERS}, not {asked}.")
     state = read_state(model_dir) if resume else None
-    if state is None and not (resume and (Path(model_dir) / CHECKPOINT_FILE).is_file()):
+    if state is None and not (resume and (Path(model_dir) / CHECKPOINT_NAME).is_file()):
         return asked  # a new model
     if state is None and asked is None and _rule_pending(model_dir):
         return None  # stopped before the first member had measured its step rate
@@ -242,7 +240,7 @@ def members_progress(model_dir: str | Path) -> list[tuple[int, float]]:
     done = []
     for member in range(1, (state["count"] if state else 1) + 1):
         try:
-            progress = json.loads((member_dir(model_dir, member) / METADATA_FILE).read_text()).get("progress", {})
+            progress = json.loads((member_dir(model_dir, member) / METADATA_NAME).read_text()).get("progress", {})
         except (OSError, ValueError):
             continue
         done.append((int(progress.get("step", 0)), float(progress.get("elapsed", 0.0))))
@@ -276,7 +274,7 @@ def _rule_pending(model_dir: Path) -> bool:
     """Whether the model's first member trains under the rule and has not decided it (a
     minutes budget stopped before the step rate was measured)."""
     try:
-        meta = json.loads((Path(model_dir) / METADATA_FILE).read_text())
+        meta = json.loads((Path(model_dir) / METADATA_NAME).read_text())
     except (OSError, ValueError):
         return False
     return meta.get("train_config", {}).get("members", 1) is None and "members_rule" not in meta
@@ -359,7 +357,7 @@ class _MemberProgress:
 def _members_rule(model_dir: Path) -> dict:
     """model.json's `members_rule`: the first member's verdict on a minutes budget ({} for none)."""
     try:
-        return json.loads((Path(model_dir) / METADATA_FILE).read_text()).get("members_rule") or {}
+        return json.loads((Path(model_dir) / METADATA_NAME).read_text()).get("members_rule") or {}
     except (OSError, ValueError):
         return {}
 

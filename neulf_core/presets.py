@@ -111,6 +111,10 @@ APPEARANCE_GEOMETRY = {"geometry_channels": 8}
 # docs/STABILITY.md, "Adam's second moment").
 APPEARANCE_ADAM_BETA2 = 0.999
 
+# The most depth layers the fast field takes (8 is the default's; each layer is a plane of the
+# geometry: thousands exhaust memory).  The CLI and Blender both refuse more.
+MAX_DEPTH_LAYERS = 64
+
 PRESETS: dict[str, Preset] = {
     "paper": Preset("mlp", {"depth": 20, "width": 256, "skip": "input"}, lr=5e-4, lr_decay_per_epoch=0.995,
                     description="the paper's network: 20 x 256 ReLU layers, raw-input skips every 4 layers"),

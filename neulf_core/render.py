@@ -406,16 +406,19 @@ class LightField:
 
         inside_scene = self.camera_inside_scene(view.R, view.t)  # (a view moved into the scene: as render does)
         need_depth = depth or inside_scene
-        behind, outside = [0], [0]
+        # Per ray, written by index: a chunk retried after running out of memory counts once (summed,
+        # the retried chunk's rays were counted twice: "200% of the rays leave the region").
+        behind = np.zeros(len(directions), bool)
+        outside = np.zeros(len(directions), bool)
 
         def render_rays(start: int, stop: int):
             d = torch.as_tensor(directions[start:stop], device=self.device, dtype=self.geometry_dtype)
             rgb, slab_depth, ok, uvst = self.query(origin_t, d, need_depth, want_colour=not spread and lens is None)
             axis = self._axis_depth(origin_t, d, slab_depth, forward) if need_depth else None
             if inside_scene:
-                behind[0] += int((ok & (axis <= 0)).sum())
+                behind[start:stop] = (ok & (axis <= 0)).cpu().numpy()
                 ok = ok & (axis > 0)
-            outside[0] += int(((uvst.abs() > 1 + EXTRAPOLATION_MARGIN).any(dim=1) & ok).sum())
+            outside[start:stop] = ((uvst.abs() > 1 + EXTRAPOLATION_MARGIN).any(dim=1) & ok).cpu().numpy()
             if lens is not None:
                 rgb = self._refocused_colour(origin_t, d, view.R, focus_distance, aperture, lens)
             elif spread:
@@ -433,7 +436,7 @@ class LightField:
             depth_map = depth_map.reshape(height, width)
             depth_map[~valid] = np.nan
         return Rendering(rgb_out.reshape(height, width, 3), depth_map, valid,
-                         self._camera_warnings(view.R, view.t, valid, outside[0], behind[0]))
+                         self._camera_warnings(view.R, view.t, valid, int(outside.sum()), int(behind.sum())))
 
     def view_depth_at(self, view: View, scale: float | None, x: float, y: float) -> float:
         """Depth along the optical axis under image point (x, y) of a registered view, through its

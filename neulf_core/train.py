@@ -176,7 +176,7 @@ def _build_field(preset_name: str, overrides: dict, train_views, slab: Slab, sca
         if appearance:
             options.update(APPEARANCE_GEOMETRY)
     options.update(overrides)
-    if options.get("geometry_layers") and "depth_detail_shift" not in overrides:
+    if preset.field == "disparity" and options.get("geometry_layers") and "depth_detail_shift" not in overrides:
         # The depth detail only where there are no depth layers: both give a depth edge a place
         # that stays put as the camera moves, and with the layers the detail measured nothing at
         # equal training time (1.5 minutes at the 20x benchmark's setting, side by side, seeds
@@ -295,6 +295,11 @@ def _train(scene, model_dir: Path, config: TrainConfig, images_dir, resume: bool
     return run.finish()
 
 
+# Options of the fast field alone (the disparity field of the fast and auto presets), by their
+# TrainConfig field and command-line flag.
+FAST_FIELD_ONLY = {"coarse_to_fine": "--coarse-to-fine", "back_surface": "--back-surface"}
+
+
 def check_config(config: TrainConfig) -> None:
     """Refuse, in one line naming the option (TrainConfig field and CLI flag), values the run
     could not use: a negative budget trained forever, a NaN one "finished" untrained, a negative
@@ -316,6 +321,13 @@ def check_config(config: TrainConfig) -> None:
     _check_number(config.validate_seconds, "validate_seconds", "--validate-seconds", lowest=0)
     _check_number(config.max_passes, "max_passes", "--max-passes", lowest=0)
     _check_number(config.pixel_jitter, "pixel_jitter", "--pixel-jitter", lowest=0)
+    if get_preset(config.preset).field != "disparity":  # (said, not dropped: the other fields have no such option)
+        given = [f"{flag} (TrainConfig.{name})" for name, flag in FAST_FIELD_ONLY.items() if getattr(config, name) is not None]
+        if "geometry_layers" in (config.field_overrides or {}):
+            given.append("--depth-layers (TrainConfig.field_overrides['geometry_layers'])")
+        if given:
+            raise NeulfError(f"{', '.join(given)}: an option of the fast field (the fast and auto presets), which the "
+                             f"preset '{config.preset}' does not train; leave it out, or choose the fast preset.")
 
 
 def _is_number(value) -> bool:

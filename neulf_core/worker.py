@@ -28,6 +28,7 @@ from pathlib import Path
 import numpy as np
 
 from .errors import NeulfError, as_user_error
+from .model_files import CHECKPOINT_NAME, METADATA_NAME, MODEL_NAME, has_render_model
 
 PROTOCOL_VERSION = 1
 
@@ -104,7 +105,7 @@ class Service:
     def model_info(self, model_dir: str) -> dict:
         """The model's metadata (slab, scene, rig, training progress) without loading weights."""
         path = Path(model_dir).expanduser()
-        meta_path = path / "model.json"
+        meta_path = path / METADATA_NAME
         if not meta_path.is_file():
             self.light_field(model_dir)  # raises the checkpoint's own clear error
             raise NeulfError(f"{path} has a checkpoint but no model.json; train or resume it once more to rewrite it.")
@@ -129,19 +130,20 @@ class Service:
             self._cached = (key, LightField.load(model_dir, self.device))
         return self._cached[1]
 
-    def render(self, model_dir: str, K, width: int, height: int, R, t, depth: bool = True, chunk: int = 1 << 15,
+    def render(self, model_dir: str, K, width: int, height: int, R, t, depth: bool = True, chunk: int | None = None,
                on_progress=None, focus_distance: float | None = None, aperture: float = 0.0,
                pixel_samples: int = 4, max_lens_samples: int | None = None) -> dict:
         """RGB (H, W, 3) float32 in [0, 1], row 0 at the top; depth along the optical axis.
         `aperture` > 0 (lens radius, model units) refocuses at `focus_distance` with at most
         `max_lens_samples` lens samples (None: refocus.MAX_SAMPLES); each pixel the mean over
         `pixel_samples` points of it (render.PIXEL_SAMPLES; the default 4 is
-        render.DEFAULT_PIXEL_SAMPLES, written out: torch is imported lazily here)."""
+        render.DEFAULT_PIXEL_SAMPLES, written out: torch is imported lazily here); `chunk` rays
+        per call of the field (None or 0: the device's own, LightField.default_chunk)."""
         field = self.light_field(model_dir)
         report = None if on_progress is None else (lambda done, total: on_progress(done / total))
         lens = {"max_samples": int(max_lens_samples)} if max_lens_samples else {}
         rendering = field.render(np.asarray(K), int(width), int(height), np.asarray(R), np.asarray(t), depth=depth,
-                                 chunk=int(chunk), on_chunk=report, focus_distance=focus_distance, aperture=aperture,
+                                 chunk=int(chunk) if chunk else None, on_chunk=report, focus_distance=focus_distance, aperture=aperture,
                                  pixel_samples=int(pixel_samples), **lens)
         return {"rgb": rendering.rgb, "depth": rendering.depth, "valid": rendering.valid,
                 "warnings": list(rendering.warnings)}
@@ -183,8 +185,8 @@ def model_stamp(model_dir) -> tuple:
     folder = Path(model_dir).expanduser()
     if folder.is_file():
         return (folder.stat().st_mtime_ns,)
-    names = [folder / "checkpoint.pt", folder / "model.pt", folder / "members.json"]
-    names += sorted(folder.glob("members/*/checkpoint.pt")) + sorted(folder.glob("members/*/model.pt"))
+    names = [folder / CHECKPOINT_NAME, folder / MODEL_NAME, folder / "members.json"]
+    names += sorted(folder.glob(f"members/*/{CHECKPOINT_NAME}")) + sorted(folder.glob(f"members/*/{MODEL_NAME}"))
     stamps = []
     for name in names:
         try:
@@ -196,7 +198,7 @@ def model_stamp(model_dir) -> tuple:
 
 def _has_model(model_dir: str) -> bool:
     path = Path(model_dir).expanduser()
-    return (path / "model.json").is_file() or (path / "checkpoint.pt").is_file()
+    return (path / METADATA_NAME).is_file() or has_render_model(path)
 
 
 # ----------------------------------------------------------------------------- JSON lines

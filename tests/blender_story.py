@@ -33,7 +33,7 @@ PLANE_NORMAL = np.array([0.25, -0.15, -1.0]) / np.linalg.norm([0.25, -0.15, -1.0
 GRID = [(x, y) for y in (-0.3, 0.0, 0.3) for x in (-0.3, 0.0, 0.3)]
 
 STEPS = ["install", "import", "cameras_match_pycolmap", "slab_planes", "reimport_no_duplicates", "train_blocking",
-         "train_options", "train_timer_resume", "train_cancel", "train_cancel_resume", "train_killed", "members", "render_camera", "pixel_samples",
+         "train_options", "train_timer_resume", "train_cancel", "train_cancel_resume", "train_killed", "members", "render_camera", "render_only_model", "pixel_samples",
          "render_worker_process", "focus_at", "pick_focus_frame", "pick_focus_click", "root_scale", "engine_f12", "composite_cg", "viewport_preview", "spiral_video", "video_cut_short", "artist_settings", "capture_identity", "save_reload",
          "blend_moved", "linked_scene", "quit_while_training", "open_other_while_training", "reconstruct_photos", "user_errors", "dependencies_status",
          "install_dependencies"]
@@ -304,11 +304,21 @@ def run_story(setup: dict) -> None:  # noqa: C901 - one story, told in order
             report = reports_of(lambda: bpy.ops.neulf.train(steps=12))
             assert "keeps its preset 'fast'" in report, report
             assert json.loads((options_model / "model.json").read_text())["train_config"]["preset"] == "fast"
+            # A new Authors model: "Depth from Photos" on Auto is the preset's choice (off: the authors'
+            # recipe; it had always been sent on), and the fast field's options are not passed.
+            props.model_dir, props.back_surface, props.depth_layers = str(work / "model_authors"), "ON", 8
+            job, _ = mod("operators").start_training(bpy.context, steps=5)
+            job.cancel()
+            while mod("tasks").poll_all():
+                time.sleep(0.05)
+            passed = [a for a in job.argv if a.startswith("--")]
+            assert "--preset" in passed and not {"--sweep-teacher", "--no-sweep-teacher", "--back-surface",
+                                                 "--depth-layers"} & set(passed), passed
             return status
 
         finally:
             props.model_dir, props.appearance, props.refine_poses = saved, "AUTO", "AUTO"
-            props.stop_early, props.preset = True, "fast"
+            props.stop_early, props.preset, props.back_surface, props.depth_layers = True, "fast", "AUTO", -1
 
     @story.step("train_timer_resume", "train_blocking")
     def _():
@@ -448,6 +458,29 @@ def run_story(setup: dict) -> None:  # noqa: C901 - one story, told in order
         finally:
             props.model_dir, props.members = saved, 0
         return f"two members of 20 steps of half the batch; {props.last_status.split(';')[0]}"
+
+    @story.step("render_only_model", "render_camera")
+    def _():
+        """A model folder shipped to render (model.pt, its checkpoint.pt left out, as the README
+        describes): Load Model, Render Camera and a reopened file's status take it as the core
+        does (Blender had refused it, and said Train would start it)."""
+        ops = mod("operators")
+        props = bpy.context.scene.neulf
+        shipped = work / "model_shipped"
+        shutil.copytree(model, shipped)
+        (shipped / "checkpoint.pt").unlink()
+        saved, status = props.model_dir, props.last_status
+        try:
+            assert bpy.ops.neulf.load_model(directory=str(shipped)) == {"FINISHED"}
+            assert props.last_status == ops.RENDER_ONLY, props.last_status
+            props.last_status = ""
+            assert ops.refresh_model_status(bpy.context.scene) == ops.RENDER_ONLY
+            assert bpy.ops.neulf.render_camera() == {"FINISHED"}
+            shipped_psnr = psnr(image_array("NeuLF Render"), ctx["render"])
+        finally:
+            props.model_dir, props.last_status = saved, status
+        assert shipped_psnr > 35, shipped_psnr  # (model.pt stores 8-bit grids and float16 weights)
+        return f"model.pt alone renders {shipped_psnr:.1f} dB from the checkpoint's render"
 
     @story.step("pixel_samples", "render_camera")
     def _():

@@ -244,3 +244,21 @@ def test_the_worker_reloads_a_model_whose_second_member_trained_on(tmp_path):
     os.utime(member, ns=(member.stat().st_atime_ns, member.stat().st_mtime_ns + 10**9))
     assert model_stamp(model) != stamp
     assert service.light_field(str(model)) is not first
+
+
+@pytest.mark.parametrize("options, named", [
+    (dict(back_surface=True), "--back-surface (TrainConfig.back_surface)"),
+    (dict(coarse_to_fine=False), "--coarse-to-fine (TrainConfig.coarse_to_fine)"),
+    (dict(field_overrides={"geometry_layers": 8}), "--depth-layers (TrainConfig.field_overrides['geometry_layers'])"),
+], ids=["back surface", "coarse to fine", "depth layers"])
+def test_options_of_the_fast_field_are_refused_for_another_preset(options, named, tmp_path):
+    """The Python API had dropped them without a word for the MLP presets (only the CLI
+    refused), and depth layers failed naming an option the user never gave."""
+    from neulf_core.errors import NeulfError
+    from neulf_core.train import TrainConfig, check_config
+
+    for preset in ("authors", "paper", "planes"):
+        with pytest.raises(NeulfError) as refused:
+            check_config(TrainConfig(preset=preset, steps=10, **options))
+        assert named in str(refused.value) and "depth_detail_shift" not in str(refused.value)
+    check_config(TrainConfig(preset="fast", steps=10, **options))  # (the fast field's own)

@@ -98,3 +98,29 @@ def test_frame_rendered_after_out_of_memory_matches_small_chunks(light_field, ti
         assert np.allclose(a.rgb, b.rgb, atol=1e-6)
         assert np.allclose(a.depth, b.depth, atol=1e-6, equal_nan=True)
     assert small.warnings == big.warnings
+
+
+def test_a_chunk_retried_after_its_points_ran_out_of_memory_counts_its_rays_once(light_field, tiny_scene,
+                                                                                  monkeypatch):
+    """A view moved sideways, so some of its rays leave the captured region: a chunk whose
+    multi-point pass (after the rays were counted) runs out of memory is retried, and
+    render_view's warning still counts each ray once (it had said "200% of the rays leave")."""
+    import dataclasses
+
+    view = load_scene(tiny_scene).views[0]
+    moved = dataclasses.replace(view, t=view.t + view.R @ np.array([0.25, 0.0, 0.0]))
+    plain = light_field.render_view(moved, depth=False, pixel_samples=4)
+    leaving = [w for w in plain.warnings if "leave" in w]
+    assert leaving, plain.warnings  # (the test needs rays that leave the region)
+    mean_colour, refused = light_field._mean_colour, []
+
+    def once_out_of_memory(rays):
+        if not refused:
+            refused.append(True)
+            raise OUT_OF_MEMORY("the points of a pixel do not fit")
+        return mean_colour(rays)
+
+    monkeypatch.setattr(light_field, "_mean_colour", once_out_of_memory)
+    retried = light_field.render_view(moved, depth=False, pixel_samples=4)
+    assert refused and retried.warnings == plain.warnings
+    assert np.allclose(retried.rgb, plain.rgb, atol=1e-6)

@@ -1,0 +1,50 @@
+"""What a model folder holds, by name, and the two questions every reader asks of it: which
+file a render loads, and what model.json says.  Torch-free, so Blender's own Python (which
+has no torch) answers them as the core does: a reader deciding for itself had refused the
+render-only model (model.pt alone) the core renders.
+
+MODEL_DIR/checkpoint.pt  everything to render and to resume (checkpoint.py writes it)
+MODEL_DIR/model.pt       the render-only copy to ship
+MODEL_DIR/model.json     the metadata, for people and other programs (no weights)
+MODEL_DIR/members.json, MODEL_DIR/members/N/  a model of several members (members.py)
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+CHECKPOINT_NAME = "checkpoint.pt"
+METADATA_NAME = "model.json"
+MODEL_NAME = "model.pt"
+
+
+def render_path(model_dir) -> Path:
+    """The file to render from: model.pt, unless checkpoint.pt is newer (a crash between
+    the two writes, or a checkpoint replaced by hand) or model.pt is missing."""
+    model_dir = Path(model_dir).expanduser()
+    if model_dir.is_file():
+        return model_dir
+    small, full = model_dir / MODEL_NAME, model_dir / CHECKPOINT_NAME
+    if small.is_file() and (not full.is_file() or small.stat().st_mtime_ns >= full.stat().st_mtime_ns):
+        return small
+    return full
+
+
+def has_render_model(model_dir) -> bool:
+    """Whether the folder holds a model to render (its checkpoint, or model.pt alone)."""
+    return render_path(model_dir).is_file()
+
+
+def can_resume(model_dir) -> bool:
+    """Whether training can continue the folder's model (model.pt alone cannot: no optimizer state)."""
+    return (Path(model_dir).expanduser() / CHECKPOINT_NAME).is_file()
+
+
+def read_metadata(model_dir) -> dict:
+    """model.json as a dict, or {} where there is none readable (a new folder, one a user tidied)."""
+    try:
+        metadata = json.loads((Path(model_dir).expanduser() / METADATA_NAME).read_text())
+    except (OSError, ValueError):
+        return {}
+    return metadata if isinstance(metadata, dict) else {}
