@@ -9,6 +9,7 @@ palette, RGBA, CMYK, with an EXIF orientation.  Everything here turns that into 
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 
 import numpy as np
@@ -114,13 +115,18 @@ def save_rgb(path: Path, rgb: np.ndarray) -> None:
     Image.fromarray(rgb).save(path)
 
 
+LLFF_COPY = re.compile(r"image\d+", re.IGNORECASE)  # the stem of LLFF's downsampled copies (image000)
+
+
 def resolve_image_paths(folder: Path, names: list[str]) -> dict[str, Path | None]:
     """Map each model image name to a file in `folder` (None where no file fits).
 
     Tried in order, per name: the exact relative path; the same stem with another image
-    extension (case-insensitive).  If no name resolves that way and the folder holds
-    exactly as many images as there are names, pair them in sorted order (LLFF's
-    `images_N/image000.png` copies are numbered in the sorted order of the originals).
+    extension (case-insensitive).  If no name resolves that way and the folder holds exactly
+    as many of LLFF's numbered copies (`images_N/image000.png`, numbered in the sorted order of
+    the originals), pair them in sorted order.  Photos named otherwise are never paired by
+    order: renamed ones ('canclip (1).png' ... after a rename in a file manager) sort otherwise
+    than the model's names and had given 29 of 30 views another view's photo without a word.
     """
     files = list_images(folder)
     by_stem: dict[str, Path] = {}
@@ -135,6 +141,7 @@ def resolve_image_paths(folder: Path, names: list[str]) -> dict[str, Path | None
         stem_dir = exact.parent
         candidates = [p for p in stem_dir.glob(Path(name).stem + ".*") if is_image_file(p)] if stem_dir.is_dir() else []
         found[name] = sorted(candidates)[0] if candidates else by_stem.get(Path(name).stem.lower())
-    if not any(found.values()) and len(files) == len(names) and names:
+    if (not any(found.values()) and len(files) == len(names) and names
+            and all(LLFF_COPY.fullmatch(path.stem) for path in files)):
         found = dict(zip(sorted(names), files))
     return found

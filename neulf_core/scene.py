@@ -388,8 +388,10 @@ def _require_all_images(paths: dict[str, Path | None], images_dir: Path) -> None
     if not missing:
         return
     shown = ", ".join(missing[:3]) + (" ..." if len(missing) > 3 else "")
+    renamed = " (photos renamed since the reconstruction? give them the model's names again)" if len(missing) == len(
+        paths) and len(list_images(images_dir)) == len(paths) else ""
     raise NeulfError(
-        f"{len(missing)} of {len(paths)} images the model names are not in {images_dir} ({shown}); "
+        f"{len(missing)} of {len(paths)} images the model names are not in {images_dir} ({shown}){renamed}; "
         "put them there or pass --images with the folder that holds them."
     )
 

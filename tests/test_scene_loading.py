@@ -624,3 +624,15 @@ def test_scales_that_are_not_finite_and_positive_are_refused(tmp_path, scale):
     with pytest.raises(NeulfError, match="image scale"):
         view.load_image(scale)
     assert scaled_size(view.size, 0.5) == (24, 18) and scaled_size(view.size, np.float32(2.0)) == (96, 72)
+
+
+def test_photos_renamed_are_not_paired_by_their_order(tmp_path):
+    """Photos renamed after the reconstruction ('canclip (1).png' ... from a file manager) sort
+    otherwise than the model's names: paired in sorted order, most views had had another
+    view's photo without a word (CanClip scored 19.6 dB instead of 33.8).  Only LLFF's
+    numbered copies are paired by order; anything else is refused, with the likely cause."""
+    folder = lookup_scene(tmp_path)
+    for i, name in enumerate(("renamed (10).png", "renamed (2).png", "renamed (1).png")):
+        write_image(folder / "images" / name, (48, 36), value=50 * i)
+    with pytest.raises(NeulfError, match=r"3 of 3 images .*photos renamed since the reconstruction"):
+        load_scene(folder)
