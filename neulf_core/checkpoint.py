@@ -181,6 +181,10 @@ def _read(path: Path, model_dir: Path, map_location) -> dict:
                              f"folder training wrote (train's --out), or train one with: python -m neulf_core train "
                              f"{model_dir} --out MODEL_DIR")
         raise NeulfError(f"{model_dir} holds no trained model ({CHECKPOINT_NAME} missing); train one with: python -m neulf_core train SCENE --out {model_dir}")
+    if Path(model_dir).expanduser().is_file() and path.suffix.lower() != ".pt" and not zipfile.is_zipfile(path):
+        # (a photo or poses_bounds.npy given by mistake: not a damaged checkpoint to delete)
+        raise NeulfError(f"{path} is not a NeuLF model: give the model folder training wrote (train's --out), or its "
+                         f"{MODEL_NAME} or {CHECKPOINT_NAME}.")
     damaged = _damaged_member(path)
     try:
         if damaged:

@@ -27,6 +27,7 @@ from .rays import pinhole_K, pinhole_rays, pixel_centres, shifted_K, single_pixe
 from .refocus import MAX_SAMPLES, lens_rays, lens_samples, max_blur_radius_px, sample_count
 from .scene import View
 from .slab import Slab
+from .trained_scene import other_reconstruction
 
 # Rays per chunk.  On a CPU a chunk's intermediates (a few MB) stay in cache and are reused
 # by the allocator: with 1 thread, 16k-32k rays rendered the default field about 10% faster
@@ -202,10 +203,8 @@ class LightField:
         """Registered views can only be rendered in the frame the model was trained in."""
         saved = self.meta.get("scene", {})
         if saved.get("fingerprint") not in (None, scene.fingerprint()):
-            raise NeulfError(
-                f"the model was trained on another reconstruction ({saved.get('root')}); its light slab lives in that "
-                "scene's coordinate frame, so render views of that scene (or give --cameras in its frame)."
-            )
+            # (its light slab lives in that scene's coordinate frame; --cameras in that frame render too)
+            raise NeulfError(other_reconstruction(saved, scene, "render and score its views"))
 
     # ------------------------------------------------------------------ core
     def default_chunk(self) -> int:

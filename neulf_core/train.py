@@ -43,7 +43,8 @@ from .progress import emit as _emit
 from .presets import APPEARANCE_ADAM_BETA2, APPEARANCE_GEOMETRY, DEFAULT_PRESET, get_preset
 from .scene import Scene, load_scene, scaled_size, split_views
 from .slab import Slab, fit_slab, wide_views
-from .trained_scene import camera_record, changed_cameras, images_dir_as_trained, trained_photo_size
+from .trained_scene import (camera_record, changed_cameras, images_dir_as_trained, other_reconstruction,
+                            trained_photo_size)
 from .teacher import strong_pull, sweep_depth_targets, sweep_photo_scale, teacher_fade, teacher_loss, teacher_weight
 from .point_depth import point_depth_loss, point_depth_targets
 
@@ -1071,10 +1072,7 @@ def _config_for_resume(payload: dict, config: TrainConfig, scene: Scene) -> Trai
     checkpoint interval may change."""
     saved = payload["scene"]
     if saved["fingerprint"] != scene.fingerprint():
-        raise NeulfError(
-            f"the checkpoint was trained on another scene ({saved['root']}, {len(saved['views'])} views); "
-            "resume it with that scene, or train a new model into another --out folder."
-        )
+        raise NeulfError(other_reconstruction(saved, scene, "resume it"))
     other = [(v, trained_photo_size(v, saved)) for v in scene.views if trained_photo_size(v, saved)]
     if other:
         view, (width, height) = other[0]

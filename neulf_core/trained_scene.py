@@ -104,3 +104,17 @@ def changed_cameras_note(views: list[View], saved_scene: dict | None) -> str | N
     return (f"{len(changed)} view(s) ({shown}) have another camera (focal length, principal point, distortion or "
             "rotation) than when the model trained: they are rendered as the scene says now, through a light field "
             "learnt with the old cameras; train a new model for the new ones.")
+
+
+def other_reconstruction(saved_scene: dict, scene, what_to_do: str) -> str:
+    """The message for a scene whose fingerprint (names and centres) is not the model's.  Where
+    the model recorded this very folder, the reconstruction in it changed (COLMAP run again in
+    place): saying "another reconstruction (this folder)" had told the user to give the folder
+    they had given."""
+    root = saved_scene.get("root")
+    if root and Path(root).expanduser().resolve() == Path(scene.root).expanduser().resolve():
+        return (f"the camera poses in {scene.root} changed since the model trained (COLMAP run again there, or the "
+                f"model edited): {what_to_do} with the reconstruction it trained on (a copy of it), or train a new "
+                "model for this one.")
+    return (f"the model was trained on another reconstruction ({root}, {len(saved_scene.get('views', []))} views): "
+            f"{what_to_do} with that scene, or train a new model for this one.")

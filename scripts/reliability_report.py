@@ -51,6 +51,7 @@ CASES = [
     Case("A folder with no model", [
         *_ids(f"{REL}::test_broken_scene_folder", "no model"),
         f"{REL}::test_a_scene_folder_given_as_the_model_is_said",
+        f"{REL}::test_a_file_that_is_no_model_is_not_called_a_damaged_checkpoint",
         *_ids(f"{CKPT}::test_cli_errors_are_one_line", "folder without a model"),
         f"{LOADING}::test_scene_folder_errors"]),
     Case("A truncated or corrupted `.bin`", [
@@ -60,7 +61,7 @@ CASES = [
     Case("A model whose images are missing or only partly present", [
         *_ids(f"{REL}::test_broken_scene_folder", "all images missing", "some images missing", "unreadable image"),
         *_ids(f"{CKPT}::test_cli_errors_are_one_line", "missing images", "unreadable image"),
-        f"{LOADING}::test_missing_images_are_counted"]),
+        f"{LOADING}::test_missing_images_are_counted", f"{LOADING}::test_photos_renamed_are_not_paired_by_their_order"]),
     Case("Images of other sizes than the model", [
         *_ids(f"{REL}::test_photos_in_other_formats_train", "other size than the model"),
         f"{REL}::test_photos_of_another_aspect_ratio",
@@ -89,6 +90,7 @@ CASES = [
         f"{CKPT}::test_atomic_write_failure_keeps_the_old_file"]),
     Case("A checkpoint from another scene", [
         f"{REL}::test_checkpoint_of_another_scene", f"{CKPT}::test_resume_with_another_scene",
+        f"{REL}::test_a_reconstruction_changed_in_place_is_said_so",
         *_ids(f"{CKPT}::test_cli_errors_are_one_line", "render: another scene", "resume with another scene")]),
     Case("A checkpoint from another version", [
         *_ids(f"{REL}::test_damaged_checkpoint", "another version"), f"{CKPT}::test_other_version_format_and_damage"]),

@@ -433,7 +433,7 @@ def test_resume_with_another_scene(trained, tmp_path, tiny_scene_factory):
     _, model_dir, _ = trained
     other_scene = tiny_scene_factory(tmp_path / "other_scene", shift=(0.05, 0.0, 0.0))
     model = copy_model(model_dir, tmp_path / "model")
-    with pytest.raises(NeulfError, match="another scene"):
+    with pytest.raises(NeulfError, match="another reconstruction"):
         train(other_scene, model, small_config(12), resume=True)
     light_field = LightField.load(model, "cpu")
     with pytest.raises(NeulfError, match="another reconstruction"):

@@ -415,7 +415,45 @@ def test_checkpoint_of_another_scene(model, tiny_scene_factory, tmp_path, capfd,
                  "another reconstruction")
     resumed = shutil.copytree(model, tmp_path / "model")
     expect_error(["train", other, "--out", resumed, "--resume", "--steps", "6"], capfd, record_property,
-                 "another scene", "another --out")
+                 "another reconstruction", "train a new model")
+
+
+def test_a_file_that_is_no_model_is_not_called_a_damaged_checkpoint(tiny_scene, tmp_path, capfd, record_property):
+    """A photo or poses_bounds.npy given as the model: said to be no model (it had been called a
+    corrupted checkpoint, with the advice to delete the user's own file)."""
+    photo = next((Path(tiny_scene) / "images").iterdir())
+    poses = tmp_path / "poses_bounds.npy"
+    np.save(poses, np.zeros((3, 17)))
+    for given in (photo, poses):
+        message = expect_error(["render", given, "--scene", tiny_scene, "--views", "all", "--out", tmp_path / "out"],
+                               capfd, record_property, "is not a NeuLF model", "train's --out")
+        assert "delete" not in message and "corrupted" not in message
+    assert photo.is_file() and poses.is_file()
+
+
+def test_a_reconstruction_changed_in_place_is_said_so(model, tiny_scene, tmp_path, capfd, record_property):
+    """COLMAP run again in the scene folder the model trained on (every camera 1 mm over): the
+    refusal says the poses there changed (it had said "another reconstruction" and named the
+    very folder given)."""
+    import pycolmap
+
+    scene = Path(shutil.copytree(tiny_scene, tmp_path / "scene"))
+    model_copy = Path(shutil.copytree(model, tmp_path / "model"))
+    meta = json.loads((model_copy / "model.json").read_text())
+    for name in ("checkpoint.pt", "model.pt"):  # (the model as if trained on the copy: its recorded folder)
+        payload = torch.load(model_copy / name, weights_only=False)
+        payload["scene"]["root"] = str(scene)
+        torch.save(payload, model_copy / name)
+    meta["scene"]["root"] = str(scene)
+    (model_copy / "model.json").write_text(json.dumps(meta))
+    recon = pycolmap.Reconstruction(str(scene / "sparse" / "0"))
+    for image in recon.images.values():
+        pose = image.cam_from_world()
+        image.frame.rig_from_world = pycolmap.Rigid3d(pose.rotation, pose.translation + np.array([0.001, 0.0, 0.0]))
+    recon.write(str(scene / "sparse" / "0"))
+    for command in (["eval", model_copy, "--scene", scene], ["train", scene, "--out", model_copy, "--resume", "--steps", "6"]):
+        message = expect_error(command, capfd, record_property, "camera poses in", "changed since the model trained")
+        assert "another reconstruction" not in message
 
 
 # ----------------------------------------------------------------------------- processes that die
