@@ -549,7 +549,7 @@ ERROR_CASES = {
     "existing model without --resume": (lambda c: ["train", str(c["scene"]), "--out", c["model"], "--steps", "1"],
                                         "already holds a trained model"),
     "resume with another scene": (lambda c: ["train", c["other_scene"], "--out", c["model"], "--steps", "9", "--resume"],
-                                  "another scene"),
+                                  "another reconstruction"),
 }
 
 
