@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import tempfile
 from pathlib import Path
 
 import bpy
@@ -304,6 +305,19 @@ class NEULF_OT_load_model(_Reporting, bpy.types.Operator):
 # ----------------------------------------------------------------------------- training
 
 
+def refuse_unwritable_model_folder(out: str, chosen: bool) -> None:
+    """Said before the training process starts, naming the panel's field: the default folder
+    sits inside the capture's, which may be read-only (a downloaded dataset, a share)."""
+    try:
+        Path(out).mkdir(parents=True, exist_ok=True)
+        with tempfile.TemporaryFile(dir=out):
+            pass
+    except OSError as exc:
+        where = "" if chosen else " (the Model field is empty, so the model goes into the capture folder)"
+        raise NeulfError(f"cannot write the model folder {out}{where}: {exc.strerror}; choose a folder you can write "
+                         "in the panel's Model field.") from None
+
+
 def start_training(context, *, minutes=None, steps=None):
     """Start (or continue) training the scene's model in a separate process."""
     refuse_linked(context.scene, "train its model")
@@ -317,6 +331,7 @@ def start_training(context, *, minutes=None, steps=None):
         raise NeulfError(f"the model folder {out} does not exist: move the .blend together with its model folder or "
                          "point Load Model at the model; to start a new model there, create the folder first (or "
                          "choose another).")
+    refuse_unwritable_model_folder(out, chosen=bool(props.model_dir))
     owner = training_holder(out)
     if owner is not None:  # its checkpoints would overwrite ours, and the step to continue from is not known yet
         raise NeulfError(being_trained_message(out, owner, "it was started before, perhaps by a Blender that closed: "
@@ -668,6 +683,18 @@ def restore_after_render(scene, saved: list, video: Path | None = None) -> None:
     bpy.app.handlers.render_cancel.append(cut_short)
 
 
+def refuse_odd_video_size(render) -> None:
+    """H.264 takes even widths and heights only, and Blender's writer does not pad (the CLI's
+    video does): said before the render, not as FFmpeg's error after the first frame."""
+    width = render.resolution_x * render.resolution_percentage // 100
+    height = render.resolution_y * render.resolution_percentage // 100
+    if width % 2 or height % 2:
+        raise NeulfError(f"an H.264 video needs an even width and height, and this render is {width}x{height} "
+                         f"(Output > Resolution {render.resolution_x}x{render.resolution_y} at "
+                         f"{render.resolution_percentage} %): set an even size, e.g. {width + width % 2}x"
+                         f"{height + height % 2} at 100 %.")
+
+
 def video_path(filepath: str) -> str:
     """The video file a path names: a folder (an existing one, or a path ending in a slash) gets
     neulf.mp4 inside it; a name without .mp4 gets it."""
@@ -702,6 +729,7 @@ class NEULF_OT_render_video(_Reporting, bpy.types.Operator):
         if scene.camera is None:
             raise NeulfError("the scene has no active camera.")
         capture.camera_request(scene, scene.camera)  # (an orthographic or panoramic camera: said before the render)
+        refuse_odd_video_size(scene.render)
         path = video_path(self.filepath)
         Path(path).parent.mkdir(parents=True, exist_ok=True)
         saved = saved_render_settings(scene)

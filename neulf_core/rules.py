@@ -379,3 +379,23 @@ def announce_default_appearance(progress, n_train_views: int, exposure_stops: fl
     _emit(progress, event="appearance", train_views=n_train_views, exposure_difference_stops=exposure_stops,
           message=f"neighbouring photos differ in exposure by {exposure_stops:.2f} stops: learning a colour "
           "transform per photo (--no-appearance turns it off; docs/STABILITY.md)")
+
+
+def announce_field_choices(progress, field_name: str, field_options: dict, asked: dict, teacher: bool) -> None:
+    """One line for what the rules chose for a new fast field (depth layers, the coarse-to-fine
+    ramp, the back surface) and whether the plane sweep guides early depth; `asked`: the
+    TrainConfig values the user gave (None: the rule's), so the line names what the rules chose
+    and leaves out what was asked for."""
+    chosen = []
+    if field_name == "disparity":
+        if "geometry_layers" not in asked:
+            chosen.append(f"{field_options.get('geometry_layers', 0)} depth layers (--depth-layers)")
+        if asked.get("coarse_to_fine") is None:
+            chosen.append(f"coarse-to-fine {'on' if field_options.get('geometry_coarse_to_fine') else 'off'} "
+                          "(--coarse-to-fine)")
+        if asked.get("back_surface") is None:
+            chosen.append(f"back surface {'on' if field_options.get('back_surface') else 'off'} (--back-surface)")
+    if asked.get("teacher") is None:
+        chosen.append(f"depth from the photos' plane sweep {'on' if teacher else 'off'} (--sweep-teacher)")
+    if chosen:
+        _emit(progress, event="stage", message="by rule: " + ", ".join(chosen))

@@ -520,6 +520,12 @@ class TrainingRun:
             self.field_module, self.preset = _build_field(config.preset, config.field_overrides, self.train_views,
                                                           self.slab, config.scale, config.appearance,
                                                           config.coarse_to_fine, config.back_surface)
+        if not resumed:
+            rules.announce_field_choices(
+                self.progress, self.preset.field, dict(self.field_module.config.__dict__),
+                {"coarse_to_fine": config.coarse_to_fine, "back_surface": config.back_surface, "teacher": config.teacher,
+                 **{name: True for name in config.field_overrides}},
+                _teacher_wanted(self.train_views, config, self.preset, None))
         self.field_module.to(self.device).train()
         self.appearance = (_view_appearance(len(self.train_views), self.exposures, resumed).to(self.device)
                            if config.appearance else None)

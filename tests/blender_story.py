@@ -1797,7 +1797,7 @@ def run_story(setup: dict) -> None:  # noqa: C901 - one story, told in order
         assert Path(bpy.path.abspath(bpy.context.scene.neulf.scene_dir)).resolve() == out.resolve()
         return f"{len(cams)} cameras, focal {focal:.1f} px, {seconds:.1f} s; {message.strip()}"
 
-    @story.step("user_errors", "install")
+    @story.step("user_errors", "install", "train_blocking")
     def _():
         props = bpy.context.scene.neulf
         props.model_dir = str(work / "no_such_model")
@@ -1824,6 +1824,23 @@ def run_story(setup: dict) -> None:  # noqa: C901 - one story, told in order
                                                                                   empty.neulf.last_status)
         finally:
             bpy.data.scenes.remove(empty)
+        # A model folder that cannot be written (here: inside a file): said before training starts,
+        # naming the panel's field; and a video size H.264 cannot take, before its render.
+        in_a_file = work / "a_file"
+        in_a_file.write_text("")
+        props.model_dir = str(in_a_file / "model")
+        messages.append(error_of(lambda: bpy.ops.neulf.train(steps=5)))
+        assert "cannot write the model folder" in messages[-1] and "Model field" in messages[-1], messages[-1]
+        render = bpy.context.scene.render
+        size = (render.resolution_x, render.resolution_y, render.resolution_percentage)
+        render.resolution_x, render.resolution_y, render.resolution_percentage = 960, 540, 25
+        props.model_dir = str(model)
+        try:
+            messages.append(error_of(lambda: bpy.ops.neulf.render_video(filepath=str(work / "odd.mp4"))))
+        finally:
+            render.resolution_x, render.resolution_y, render.resolution_percentage = size
+        assert "even width and height" in messages[-1] and "240x135" in messages[-1], messages[-1]
+        props.model_dir = str(work / "no_such_model")
         p, chosen = prefs(), prefs().python_path  # a "Python" that is not one: Train must not say it finished
         p.python_path = shutil.which("true") or "/bin/true"
         try:

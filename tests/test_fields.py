@@ -807,3 +807,20 @@ def test_total_variation_gradient_is_autograds():
     mine, = torch.autograd.grad(by_hand * 3.0, planes)
     theirs, = torch.autograd.grad(reference * 3.0, planes)
     assert torch.allclose(mine, theirs)
+
+
+def test_training_says_what_the_rules_chose_for_the_field(tiny_scene, tmp_path, capsys):
+    """The README says training prints each choice a rule made: the fast field's depth layers,
+    coarse-to-fine ramp and back surface, and the sweep teacher, had been chosen without a word.
+    What the user asked for is not repeated as a rule's choice."""
+    from neulf_core.cli import main
+
+    args = ["train", str(tiny_scene), "--steps", "2", "--batch-size", "256", "--validate-seconds", "1e9"]
+    assert main(args + ["--out", str(tmp_path / "ruled")]) == 0
+    ruled = [line for line in capsys.readouterr().err.splitlines() if line.startswith("by rule: ")]
+    assert len(ruled) == 1 and all(part in ruled[0] for part in (
+        "depth layers (--depth-layers)", "coarse-to-fine on", "back surface off", "plane sweep on")), ruled
+    assert main(args + ["--out", str(tmp_path / "asked"), "--depth-layers", "4", "--no-sweep-teacher",
+                        "--back-surface"]) == 0
+    ruled = [line for line in capsys.readouterr().err.splitlines() if line.startswith("by rule: ")]
+    assert ruled == ["by rule: coarse-to-fine on (--coarse-to-fine)"], ruled
