@@ -10,7 +10,6 @@ import os
 import queue
 import signal
 import subprocess
-import sys
 import threading
 import time
 from collections import deque
@@ -470,10 +469,6 @@ def pip_install_job(python: str, target: str, packages: list[str], index_url: st
     env.pop("PYTHONHOME", None)
     env["PYTHONNOUSERSITE"] = "1"
     return CommandJob(argv, env, kind="install")
-
-
-def interpreter_of_this_blender() -> str:
-    return sys.executable
 
 
 def pose_text(poses: dict | None) -> str:

@@ -1,6 +1,6 @@
 """neulf_core: neural 4D light fields (NeuLF) from forward-facing captures, Blender-free.
 
-Data flows one way: scene -> slab -> rays -> field -> trainer -> renderer.
+Data flows one way: scene -> rays -> slab -> dataset -> field -> trainer -> renderer.
 """
 
 import sys

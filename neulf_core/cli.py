@@ -620,7 +620,9 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("reconstruct", help="photos -> COLMAP model (pycolmap SfM)")
     p.add_argument("images_dir")
     p.add_argument("--out", required=True, help="scene folder to write (images/, sparse/0)")
-    p.add_argument("--camera-model", default="SIMPLE_RADIAL")
+    p.add_argument("--camera-model", default="SIMPLE_RADIAL",
+                   help="COLMAP camera model (default SIMPLE_RADIAL: one focal length and one radial distortion term; "
+                        "OPENCV for wide lenses, PINHOLE for undistorted photos)")
     p.set_defaults(run=cmd_reconstruct)
 
     p = sub.add_parser("train", help="train a light field on a scene")

@@ -112,8 +112,9 @@ SPLITS = ("steps", "batch")
 # seed: the default's configurations 15 of 18 pairs up, -0.13 to +0.35 dB.  On a GPU a step's
 # time hardly grows with its rays (an H200's step is bound by kernel launches, README), so half
 # the batch would buy few more steps: the steps split stays there, as the H200 measured it
-# (docs/members_h200/MEMBERS.md).  Below MEMBERS_PASSES the default trains one member either way
-# (the batch split at every budget lost on HCI, above).
+# (docs/members_h200/MEMBERS.md).  Below the split's pass threshold (passes_for_members: 12 for
+# the batch split, MEMBERS_PASSES for the steps split) the default trains one member (the batch
+# split asked for at every budget lost on HCI, above).
 DEFAULT_SPLIT_ON_CPU = "batch"
 
 

@@ -109,7 +109,8 @@ class TrainConfig:
                                         # lose, docs/TRAINING.md; 1: anywhere in its pixel)
     members: int | None = None          # light fields trained apart, rendered as their mean (members.py;
                                         # None: the rule -- 2 where the budget passes over the training
-                                        # pixels at least 60 times, else 1 -- or a resumed model's count);
+                                        # pixels at least 12 times on a CPU (the batch split), 60 on a GPU,
+                                        # else 1 -- or a resumed model's count);
                                         # they share the budget
     members_split: str | None = None    # how members share it (members.SPLITS): "steps" -- each 1/N of the
                                         # steps -- or "batch": each all the steps with 1/N of the rays a step,
