@@ -346,7 +346,7 @@ class LightField:
     def depth_at(self, K, R, t, x: float, y: float) -> float:
         """Depth along the optical axis of the ray through pixel (x, y) (top-left origin, in
         pixels: x = 10.5 is the centre of column 10) -- what auto-refocus focuses on."""
-        return _picked_depth(float(self.render(single_pixel_K(K, x, y), 1, 1, R, t, depth=True).depth[0, 0]), x, y)
+        return picked_depth(float(self.render(single_pixel_K(K, x, y), 1, 1, R, t, depth=True).depth[0, 0]), x, y)
 
     def _camera_warnings(self, R, t, valid: np.ndarray, outside: int, behind: int = 0) -> list[str]:
         notes = []
@@ -447,14 +447,15 @@ class LightField:
         _, slab_depth, ok, _ = self.query(origin_t, d, want_depth=True, want_colour=False)
         forward = torch.as_tensor(view.R[2], device=self.device, dtype=self.geometry_dtype)
         value = float(self._axis_depth(origin_t, d, slab_depth, forward)[0]) if bool(ok[0]) else math.nan
-        return _picked_depth(value, x, y, f" of {view.name}")
+        return picked_depth(value, x, y, f" of {view.name}")
 
 
-def _picked_depth(value: float, x: float, y: float, where: str = "") -> float:
-    """A depth picked under one pixel, or one line saying why there is none."""
+def picked_depth(value: float, x: float, y: float, where: str = "", what_to_do: str = "") -> float:
+    """A depth picked under one pixel, or one line saying why there is none (`what_to_do`: the
+    caller's advice, e.g. Blender's to click elsewhere)."""
     if not np.isfinite(value) or value <= 0:
         raise NeulfError(f"the light field has no depth at pixel ({x:g}, {y:g}){where}: the ray misses the light slab, "
-                         "or what it meets lies behind the camera.")
+                         f"or what it meets lies behind the camera{what_to_do}.")
     return value
 
 

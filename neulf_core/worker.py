@@ -151,16 +151,14 @@ class Service:
     def depth_at(self, model_dir: str, K, R, t, x: float, y: float) -> dict:
         """Depth along the optical axis of the ray through image point (x, y) (pixel units,
         top-left origin; pixel (i, j) has its centre at (i + 0.5, j + 0.5)): a 1-ray render."""
-        from .rays import single_pixel_K  # imported here: Blender's Python imports this module and has no pycolmap
+        # (imported here: Blender's Python imports this module and has no pycolmap or torch)
+        from .rays import single_pixel_K
+        from .render import picked_depth
 
-        K1 = single_pixel_K(K, x, y)
         field = self.light_field(model_dir)
-        rendering = field.render(K1, 1, 1, np.asarray(R), np.asarray(t), depth=True)
-        value = float(rendering.depth[0, 0])
-        if not np.isfinite(value) or value <= 0:
-            raise NeulfError("the light field has no depth at that point (the ray misses the light slab, or what it "
-                             "meets lies behind the camera); click on the captured scene itself, from a camera in "
-                             "front of it.")
+        rendering = field.render(single_pixel_K(K, x, y), 1, 1, np.asarray(R), np.asarray(t), depth=True)
+        value = picked_depth(float(rendering.depth[0, 0]), x, y, what_to_do="; click on the captured scene itself, "
+                                                                             "from a camera in front of it")
         return {"depth": value, "rgb": rendering.rgb[0, 0].tolist(), "warnings": list(rendering.warnings)}
 
     def spiral(self, model_dir: str, frames: int = 60) -> dict:

@@ -262,3 +262,27 @@ def test_options_of_the_fast_field_are_refused_for_another_preset(options, named
             check_config(TrainConfig(preset=preset, steps=10, **options))
         assert named in str(refused.value) and "depth_detail_shift" not in str(refused.value)
     check_config(TrainConfig(preset="fast", steps=10, **options))  # (the fast field's own)
+
+
+def test_the_worker_s_depth_pick_is_the_light_field_s(tmp_path):
+    """Blender's depth pick (focus) goes through the worker: its depth is LightField.depth_at's,
+    and where there is none the one message says so, with what to do in Blender."""
+    from neulf_core.cli import main
+    from neulf_core.errors import NeulfError
+    from neulf_core.render import LightField
+    from neulf_core.scene import load_scene
+    from neulf_core.worker import Service
+
+    from conftest import make_tiny_scene
+
+    scene = make_tiny_scene(tmp_path / "scene")
+    model = tmp_path / "model"
+    assert main(["train", str(scene), "--out", str(model), "--steps", "4", "--batch-size", "256",
+                 "--validate-seconds", "1e9"]) == 0
+    view = load_scene(scene).views[1]
+    K = view.camera.calibration_matrix()
+    picked = Service().depth_at(str(model), K, view.R, view.t, 20.5, 15.5)
+    assert picked["depth"] == LightField.load(model, "cpu").depth_at(K, view.R, view.t, 20.5, 15.5)
+    away = np.diag([-1.0, 1.0, -1.0]) @ view.R  # (turned to look back over the capture)
+    with pytest.raises(NeulfError, match=r"no depth at pixel \(20.5, 15.5\).*click on the captured scene itself"):
+        Service().depth_at(str(model), K, away, view.t, 20.5, 15.5)
