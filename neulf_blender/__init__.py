@@ -1,9 +1,12 @@
 """NeuLF for Blender: import captures, train and render neural light fields.
 
 Modules: convert (camera maths, numpy only), jobs (processes, no bpy), core (where
-neulf_core runs), capture (Blender objects), properties, operators, focus (focus_at and
-the click-to-focus eyedropper), panel, engine, preferences, tasks (job polling), handlers
-(on file load, the training status is read again from the model folder).  Nothing here
+neulf_core runs), capture (Blender objects), properties, model_folder (a scene's model folder
+and its status line), operators, video_settings (Render Video's output and what it puts back),
+focus (focus_at and the click-to-focus eyedropper), panel, engine (the NeuLF render engine),
+viewport (the viewport preview's renderer thread), compositing (CG objects into the light
+field), preferences, tasks (job polling), handlers (on file load, the training status is read
+again from the model folder).  Nothing here
 imports bpy at import time, so the Blender-free parts can be tested without Blender.
 """
 

@@ -11,6 +11,7 @@ import bpy
 from mathutils import Matrix
 
 from . import capture, compositing, convert, viewport
+from .model_folder import model_dir
 from ..neulf_core.errors import OUT_OF_MEMORY, NeulfError, is_out_of_memory
 
 _RENDERERS = weakref.WeakSet()  # the viewports' PreviewRenderers, for the redraw timer
@@ -56,7 +57,6 @@ class NeulfRenderEngine(bpy.types.RenderEngine):
     def _render_view(self, depsgraph, original, view: str) -> bool:
         """Render one view (a stereo eye by name, or "" without multiview) of this call's view
         layer into its result; False where it stopped (cancelled, or an error reported)."""
-        from .operators import model_dir
         from .preferences import get_core
 
         scene = depsgraph.scene_eval
@@ -194,8 +194,6 @@ def _region_only(request: dict, render) -> dict:
 def _viewport_view(scene, depsgraph, region, view) -> tuple[dict, tuple]:
     """The render request of the viewport's pinhole (in the model's frame; looking through the
     scene camera, with the camera's depth of field) and the key of its preview image."""
-    from .operators import model_dir
-
     model = model_dir(scene)  # (raises with what to do when there is none)
     _collection, root = capture.find_capture(scene)
     root_matrix = root.evaluated_get(depsgraph).matrix_world if root is not None else Matrix.Identity(4)

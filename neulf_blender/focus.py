@@ -13,7 +13,8 @@ import bpy
 from bpy.props import FloatProperty
 
 from . import capture, convert
-from .operators import _Reporting, model_dir
+from .model_folder import model_dir
+from .operators import _Reporting
 from .preferences import get_core
 from ..neulf_core.errors import NeulfError
 

@@ -13,6 +13,8 @@ import os
 import bpy
 from bpy.app.handlers import persistent
 
+from .model_folder import TRAINED_ELSEWHERE, abspath, refresh_model_status, store_path
+
 PATH_PROPERTIES = ("scene_dir", "images_dir", "model_dir")
 _saving: dict = {}  # (scene, property) -> absolute folder, from save_pre to save_post
 
@@ -30,8 +32,6 @@ def relative_to(path: str, blend_file: str) -> str:
 @persistent
 def on_save_pre(filepath="", *_args):
     """The folders as the file being written sees them (a Save Copy too)."""
-    from .operators import abspath
-
     on_save_post()  # (a save that failed on Blender 4.2, which calls no handler after it: restored now)
     if not filepath:  # (the startup file)
         return
@@ -49,8 +49,6 @@ def on_save_pre(filepath="", *_args):
 def on_save_post(*_args):
     """The folders relative to the file now open (the one saved, or after Save Copy the one
     that was open)."""
-    from .operators import store_path
-
     for (scene_name, name), absolute in _saving.items():
         scene = bpy.data.scenes.get(scene_name)
         if scene is not None:
@@ -69,8 +67,6 @@ def on_load_pre(*_args):
 
 @persistent
 def on_load_post(*_args):
-    from .operators import refresh_model_status
-
     for scene in bpy.data.scenes:
         try:
             if scene.neulf.model_dir:
@@ -85,8 +81,6 @@ WATCH_INTERVAL = 2.0
 def other_training_tick():
     """Timer: re-read the status of every scene whose model folder another process trains; the
     panel follows that training and, once it has stopped, says that Train continues it."""
-    from .operators import TRAINED_ELSEWHERE, refresh_model_status
-
     busy = False
     for scene in bpy.data.scenes:
         try:

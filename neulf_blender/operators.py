@@ -1,8 +1,8 @@
-"""Operators: thin Blender <-> neulf_core translation.  User errors are one-line reports."""
+"""Operators: thin Blender <-> neulf_core translation.  User errors are one-line reports.
+The model folder's handling is model_folder.py's; Render Video's settings, video_settings.py's."""
 
 from __future__ import annotations
 
-import os
 import tempfile
 from pathlib import Path
 
@@ -10,132 +10,22 @@ import bpy
 import numpy as np
 from bpy.props import FloatProperty, IntProperty, StringProperty
 
-from . import capture, compositing, handlers, jobs, tasks
-from .jobs import job_status_text, pose_text
+from . import capture, compositing, jobs, tasks
+from .jobs import job_status_text
+from .model_folder import (abspath, attach_model, model_dir, model_not_found, progress_text,
+                           readable_model, refuse_linked, scenes_of_model, store_path)
 from .preferences import get_core, get_prefs, worker_python
 from .properties import CHOICE_OPTION
+from .video_settings import (configure_video, refuse_odd_video_size, restore_after_render, restore_render_settings,
+                             saved_render_settings, video_path)
 from ..neulf_core.errors import NeulfError
 from ..neulf_core.lock import being_trained_message, training_holder
 from ..neulf_core.members import budget_done
-from ..neulf_core.model_files import METADATA_NAME, can_resume, has_render_model, read_metadata
+from ..neulf_core.model_files import METADATA_NAME, can_resume, read_metadata
 from ..neulf_core.presets import get_preset
 
 RENDER_IMAGE = "NeuLF Render"
-RENDER_ONLY = "a render-only model (model.pt without its checkpoint.pt): it renders; to train, choose another folder"
 DEPTH_IMAGE = "NeuLF Depth"
-
-
-def abspath(path: str, library=None) -> str:
-    """A '//' path made absolute: relative to the open .blend, or to `library`'s file for data
-    linked from it (a linked scene's model sits beside the file it was saved in)."""
-    return os.path.normpath(bpy.path.abspath(path, library=library)) if path else ""
-
-
-def scene_model_dir(scene) -> str:
-    """The scene's model folder, absolute ("" where it has none)."""
-    return abspath(scene.neulf.model_dir, scene.library)
-
-
-def is_model_of(scene, path: str) -> bool:
-    """Whether `path` (absolute) is the scene's model folder."""
-    return bool(scene.neulf.model_dir) and scene_model_dir(scene) == os.path.normpath(path)
-
-
-def refuse_linked(scene, what: str) -> None:
-    """Linked data cannot be changed for good (the library's file holds it): said, not half done."""
-    if scene.library is not None:
-        raise NeulfError(f"the scene {scene.name} is linked from {abspath(scene.library.filepath)}: "
-                         f"{what} in that file (or make the scene local: Object > Relations > Make Local).")
-
-
-def model_dir(scene) -> str:
-    path = scene_model_dir(scene)
-    if not path:
-        raise NeulfError("no NeuLF model: train one (Train NeuLF) or load a model folder (Load Model).")
-    if not Path(path).is_dir():
-        raise NeulfError(f"the model folder {path} does not exist: move a .blend together with its model folder, "
-                         "or point Load Model at the model.")
-    if not has_render_model(path):
-        raise NeulfError(f"{path} holds no trained model (neither checkpoint.pt nor model.pt); train it or load "
-                         "another folder.")
-    return path
-
-
-def store_path(path: str) -> str:
-    """Relative to the .blend when it is saved (so moving both keeps the link)."""
-    if bpy.data.filepath:
-        try:
-            return bpy.path.relpath(path)
-        except ValueError:  # another drive on Windows
-            return path
-    return path
-
-
-
-
-def progress_text(progress: dict) -> str:
-    """One line for the panel from model.json's progress: where the model is and what Train does next."""
-    status, step = progress.get("status", "?"), progress.get("step", "?")
-    if status == "finished":
-        return f"finished at step {step}"
-    if status == "cancelled":
-        return f"stopped at step {step} (checkpoint saved); Train continues it"
-    if status == "training":  # the last periodic checkpoint: its process ended without the final save
-        return f"interrupted at step {step} (last checkpoint); Train continues it"
-    return f"{status} at step {step}"
-
-
-def model_status(meta: dict) -> str:
-    """progress_text, and the pose corrections where the model has them."""
-    return progress_text(meta.get("progress", {})) + pose_text(meta.get("pose_corrections"))
-
-
-TRAINED_ELSEWHERE = "being trained by another process"  # how the panel's line starts (see below)
-
-
-def trained_elsewhere_text(owner: dict, progress: dict) -> str:
-    """The panel's line while another process (a training an earlier Blender started, or one
-    from a terminal) trains the model folder: Train would be refused until it stops."""
-    at = f" at step {progress['step']}" if "step" in progress else ""
-    return f"{TRAINED_ELSEWHERE} (pid {owner['pid']} on {owner['host']}){at}; when it stops, Train continues it"
-
-
-def model_not_found(path: str) -> str:
-    """The start of the status of a scene whose model folder `path` has gone."""
-    return f"model folder not found: {path};"
-
-
-def refresh_model_status(scene) -> str:
-    """The scene's `last_status` (shown in the panel) from its model folder, e.g. when a .blend
-    is opened after Blender quit during training: the folder, not the .blend, knows how far
-    training got.  Returns the status line."""
-    props = scene.neulf
-    if not props.model_dir:
-        return props.last_status
-    path = scene_model_dir(scene)
-    training = tasks.get("train")
-    if training is not None and training.running and is_model_of(scene, training.model_dir):
-        return props.last_status  # this session's own job reports its progress
-    if not Path(path).is_dir():
-        props.last_status = f"{model_not_found(path)} move it back or use Load Model"
-        return props.last_status
-    meta = read_metadata(path)
-    owner = training_holder(path)
-    if owner is not None:  # e.g. the .blend reopened while the training Blender left behind saves
-        props.last_status = trained_elsewhere_text(owner, meta.get("progress", {}))
-        handlers.watch_other_trainings()  # the panel follows it and says when it has stopped
-        return props.last_status
-    if not meta or not has_render_model(path):
-        props.last_status = f"no checkpoint in {path} yet; Train starts the model"
-        return props.last_status
-    if not can_resume(path):  # (the core renders it, and refuses to train over it)
-        props.last_status = RENDER_ONLY
-        return props.last_status
-    progress = meta.get("progress", {})
-    props.last_status = model_status(meta)
-    if progress.get("val_psnr") is not None:
-        props.last_psnr = float(progress["val_psnr"])
-    return props.last_status
 
 
 class _Reporting:
@@ -244,36 +134,6 @@ class NEULF_OT_reconstruct(_Reporting, bpy.types.Operator):
 # ----------------------------------------------------------------------------- model
 
 
-def readable_model(context, path: str) -> dict:
-    """model.json of the model folder `path`, which the scene can take; else a NeulfError."""
-    refuse_linked(context.scene, "load its model")
-    if not path.strip():
-        raise NeulfError("choose the model folder (the one training wrote, holding model.json).")
-    meta = read_metadata(path)
-    if not meta:
-        if (Path(path) / METADATA_NAME).is_file():
-            raise NeulfError(f"{path}/model.json cannot be read (damaged or not a NeuLF model's): copy the model "
-                             "folder again from where it came, or train a new model into another folder.")
-        raise NeulfError(f"{path} holds no NeuLF model (model.json missing).")
-    return meta
-
-
-def attach_model(context, path: str) -> dict:
-    """Store the model folder (relative to the .blend) and show its slab."""
-    meta = readable_model(context, path)
-    props = context.scene.neulf
-    props.model_dir = store_path(path)
-    progress = meta.get("progress", {})
-    if progress.get("val_psnr") is not None:
-        props.last_psnr = float(progress["val_psnr"])
-    props.last_status = RENDER_ONLY if has_render_model(path) and not can_resume(path) else model_status(meta)
-    collection, root = capture.find_capture(context.scene)
-    fingerprint = meta.get("scene", {}).get("fingerprint")
-    if collection is not None and meta.get("slab") and fingerprint in (None, props.fingerprint):
-        capture.set_slab_planes(collection, root, meta["slab"])
-    return meta
-
-
 class NEULF_OT_load_model(_Reporting, bpy.types.Operator):
     """Attach a trained NeuLF model folder to this scene"""
 
@@ -367,11 +227,6 @@ def start_training(context, *, minutes=None, steps=None):
 
     tasks.start("train", job, done)
     return job, resume
-
-
-def scenes_of_model(path: str) -> list:
-    """The open file's scenes whose model folder is `path`."""
-    return [scene for scene in bpy.data.scenes if scene.library is None and is_model_of(scene, path)]
 
 
 def _show_training_result(scene, state: dict, out: str) -> None:
@@ -615,99 +470,6 @@ class NEULF_OT_spiral_path(_Reporting, bpy.types.Operator):
         scene.frame_end = start + len(path["R"]) - 1
         self.report({"INFO"}, f"keyframed {len(path['R'])} frames on {camera.name}")
         return {"FINISHED"}
-
-
-def configure_video(scene, filepath: str) -> None:
-    settings = scene.render.image_settings
-    if hasattr(settings, "media_type"):  # 5.0+
-        settings.media_type = "VIDEO"
-    settings.file_format = "FFMPEG"
-    scene.render.ffmpeg.format = "MPEG4"
-    scene.render.ffmpeg.codec = "H264"
-    scene.render.filepath = filepath
-
-
-# What Render Video changes for its render and puts back after: the artist's engine and output
-# (a next Ctrl+F12 would otherwise write an MP4 where an image sequence was set up).
-VIDEO_RENDER_SETTINGS = (("render", ("engine", "filepath")),
-                         ("render.image_settings", ("media_type", "file_format", "color_mode", "color_depth",
-                                                    "quality", "compression", "exr_codec")),
-                         ("render.ffmpeg", ("format", "codec")))
-
-
-def _settings_owner(scene, path: str):
-    owner = scene
-    for part in path.split("."):
-        owner = getattr(owner, part)
-    return owner
-
-
-def saved_render_settings(scene) -> list:
-    return [(path, name, getattr(_settings_owner(scene, path), name)) for path, names in VIDEO_RENDER_SETTINGS
-            for name in names if hasattr(_settings_owner(scene, path), name)]
-
-
-def restore_render_settings(scene, saved: list) -> None:
-    for path, name, value in saved:
-        try:
-            setattr(_settings_owner(scene, path), name, value)
-        except (TypeError, ValueError, AttributeError):  # (a value the restored format does not offer)
-            pass
-
-
-def restore_after_render(scene, saved: list, video: Path | None = None) -> None:
-    """Put the settings back once an interactive render (which runs on after the operator) ends.
-    A render that ends early (cancelled, or a frame failed) removes its `video`, which stops
-    where the render did and would otherwise pass for the whole camera path -- as the blocking
-    path does."""
-    def restore(*_args):
-        for handlers in (bpy.app.handlers.render_complete, bpy.app.handlers.render_cancel):
-            for handler in (restore, cut_short):
-                if handler in handlers:
-                    handlers.remove(handler)
-        target = bpy.data.scenes.get(scene_name)
-        if target is not None:
-            restore_render_settings(target, saved)
-
-    def cut_short(*_args):
-        restore()
-        if video is not None and video.is_file():
-            video.unlink()
-            target = bpy.data.scenes.get(scene_name)
-            if target is not None:
-                target.neulf.last_status = (f"Render Video stopped before the last frame; the partial video was removed "
-                                            f"({video.name})")
-
-    scene_name = scene.name
-    bpy.app.handlers.render_complete.append(restore)
-    bpy.app.handlers.render_cancel.append(cut_short)
-
-
-def refuse_odd_video_size(render) -> None:
-    """H.264 takes even widths and heights only, and Blender's writer does not pad (the CLI's
-    video does): said before the render, not as FFmpeg's error after the first frame."""
-    width = render.resolution_x * render.resolution_percentage // 100
-    height = render.resolution_y * render.resolution_percentage // 100
-    if width % 2 or height % 2:
-        raise NeulfError(f"an H.264 video needs an even width and height, and this render is {width}x{height} "
-                         f"(Output > Resolution {render.resolution_x}x{render.resolution_y} at "
-                         f"{render.resolution_percentage} %): set an even size, e.g. {width + width % 2}x"
-                         f"{height + height % 2} at 100 %.")
-
-
-def video_path(filepath: str) -> str:
-    """The video file a path names: a folder (an existing one, or a path ending in a slash) gets
-    neulf.mp4 inside it; a name without .mp4 gets it."""
-    given = filepath or "//neulf.mp4"
-    path = abspath(given)
-    if not os.path.isabs(path):  # ('//' in a file never saved: no folder to be relative to)
-        raise NeulfError(f"'{given}' is relative to the .blend, which is not saved yet: save it first, or choose the "
-                         "video's folder.")
-    if given.endswith(("/", "\\")) or os.path.isdir(path):
-        path = os.path.join(path, "neulf.mp4")
-    if not path.lower().endswith(".mp4"):
-        path += ".mp4"
-    return path
 
 
 class NEULF_OT_render_video(_Reporting, bpy.types.Operator):

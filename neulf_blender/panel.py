@@ -6,7 +6,7 @@ from pathlib import Path
 import bpy
 
 from . import compositing, tasks
-from .operators import TRAINED_ELSEWHERE, is_model_of
+from .model_folder import TRAINED_ELSEWHERE, is_model_of
 
 CHARS_PER_PIXEL = 1 / 7.0  # the UI font's average advance at 1x scale, for wrapping labels
 

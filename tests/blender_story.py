@@ -464,7 +464,7 @@ def run_story(setup: dict) -> None:  # noqa: C901 - one story, told in order
         """A model folder shipped to render (model.pt, its checkpoint.pt left out, as the README
         describes): Load Model, Render Camera and a reopened file's status take it as the core
         does (Blender had refused it, and said Train would start it)."""
-        ops = mod("operators")
+        folder = mod("model_folder")
         props = bpy.context.scene.neulf
         shipped = work / "model_shipped"
         shutil.copytree(model, shipped)
@@ -472,9 +472,9 @@ def run_story(setup: dict) -> None:  # noqa: C901 - one story, told in order
         saved, status = props.model_dir, props.last_status
         try:
             assert bpy.ops.neulf.load_model(directory=str(shipped)) == {"FINISHED"}
-            assert props.last_status == ops.RENDER_ONLY, props.last_status
+            assert props.last_status == folder.RENDER_ONLY, props.last_status
             props.last_status = ""
-            assert ops.refresh_model_status(bpy.context.scene) == ops.RENDER_ONLY
+            assert folder.refresh_model_status(bpy.context.scene) == folder.RENDER_ONLY
             assert bpy.ops.neulf.render_camera() == {"FINISHED"}
             shipped_psnr = psnr(image_array("NeuLF Render"), ctx["render"])
         finally:
@@ -1194,7 +1194,7 @@ def run_story(setup: dict) -> None:  # noqa: C901 - one story, told in order
         request = viewport.view_request(camera.matrix_world.inverted(), window, big * width, big * height,
                                         r.matrix_world)
         request.pop("scale")
-        request["model_dir"] = mod("operators").model_dir(scene)
+        request["model_dir"] = mod("model_folder").model_dir(scene)
         key = viewport.view_key(request, request["model_dir"], 0.0)
         lines = []
         for mode in ("AUTO", "WORKER"):
@@ -1355,7 +1355,7 @@ def run_story(setup: dict) -> None:  # noqa: C901 - one story, told in order
         2): neither the UI's render (which runs on after the operator; handlers clean up after
         it) nor a script's leaves a video that would pass for the whole path, and the artist's
         render settings come back."""
-        ops = mod("operators")
+        video = mod("video_settings")
         scene = bpy.context.scene
         scene.frame_set(scene.frame_start)
         spiral = scene.camera
@@ -1370,11 +1370,11 @@ def run_story(setup: dict) -> None:  # noqa: C901 - one story, told in order
         try:
             # The UI's branch of Render Video, line by line: its render is Blender's job, which
             # the operator has returned before.
-            saved = ops.saved_render_settings(scene)
+            saved = video.saved_render_settings(scene)
             scene.render.engine = "NEULF"
-            ops.configure_video(scene, str(work / "cut_ui.mp4"))
+            video.configure_video(scene, str(work / "cut_ui.mp4"))
             written = Path(scene.render.frame_path(frame=scene.frame_start))
-            ops.restore_after_render(scene, saved, written)
+            video.restore_after_render(scene, saved, written)
             try:
                 bpy.ops.render.render("INVOKE_DEFAULT", animation=True, scene=scene.name)
             except RuntimeError:

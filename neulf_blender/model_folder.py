@@ -1,0 +1,168 @@
+"""A scene's model folder as Blender sees it: its path (stored relative to the .blend, read
+relative to it or to a linked scene's library), whether it holds a model to render, the panel's
+status line from its model.json, and attaching one to a scene.  What a folder holds is the
+core's answer (neulf_core.model_files), never decided here."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import bpy
+
+from . import capture, tasks
+from .jobs import pose_text
+from ..neulf_core.errors import NeulfError
+from ..neulf_core.lock import training_holder
+from ..neulf_core.model_files import METADATA_NAME, can_resume, has_render_model, read_metadata
+
+
+RENDER_ONLY = "a render-only model (model.pt without its checkpoint.pt): it renders; to train, choose another folder"
+
+
+def abspath(path: str, library=None) -> str:
+    """A '//' path made absolute: relative to the open .blend, or to `library`'s file for data
+    linked from it (a linked scene's model sits beside the file it was saved in)."""
+    return os.path.normpath(bpy.path.abspath(path, library=library)) if path else ""
+
+
+def scene_model_dir(scene) -> str:
+    """The scene's model folder, absolute ("" where it has none)."""
+    return abspath(scene.neulf.model_dir, scene.library)
+
+
+def is_model_of(scene, path: str) -> bool:
+    """Whether `path` (absolute) is the scene's model folder."""
+    return bool(scene.neulf.model_dir) and scene_model_dir(scene) == os.path.normpath(path)
+
+
+def refuse_linked(scene, what: str) -> None:
+    """Linked data cannot be changed for good (the library's file holds it): said, not half done."""
+    if scene.library is not None:
+        raise NeulfError(f"the scene {scene.name} is linked from {abspath(scene.library.filepath)}: "
+                         f"{what} in that file (or make the scene local: Object > Relations > Make Local).")
+
+
+def model_dir(scene) -> str:
+    path = scene_model_dir(scene)
+    if not path:
+        raise NeulfError("no NeuLF model: train one (Train NeuLF) or load a model folder (Load Model).")
+    if not Path(path).is_dir():
+        raise NeulfError(f"the model folder {path} does not exist: move a .blend together with its model folder, "
+                         "or point Load Model at the model.")
+    if not has_render_model(path):
+        raise NeulfError(f"{path} holds no trained model (neither checkpoint.pt nor model.pt); train it or load "
+                         "another folder.")
+    return path
+
+
+def store_path(path: str) -> str:
+    """Relative to the .blend when it is saved (so moving both keeps the link)."""
+    if bpy.data.filepath:
+        try:
+            return bpy.path.relpath(path)
+        except ValueError:  # another drive on Windows
+            return path
+    return path
+
+
+def progress_text(progress: dict) -> str:
+    """One line for the panel from model.json's progress: where the model is and what Train does next."""
+    status, step = progress.get("status", "?"), progress.get("step", "?")
+    if status == "finished":
+        return f"finished at step {step}"
+    if status == "cancelled":
+        return f"stopped at step {step} (checkpoint saved); Train continues it"
+    if status == "training":  # the last periodic checkpoint: its process ended without the final save
+        return f"interrupted at step {step} (last checkpoint); Train continues it"
+    return f"{status} at step {step}"
+
+
+def model_status(meta: dict) -> str:
+    """progress_text, and the pose corrections where the model has them."""
+    return progress_text(meta.get("progress", {})) + pose_text(meta.get("pose_corrections"))
+
+
+TRAINED_ELSEWHERE = "being trained by another process"  # how the panel's line starts (see below)
+
+
+def trained_elsewhere_text(owner: dict, progress: dict) -> str:
+    """The panel's line while another process (a training an earlier Blender started, or one
+    from a terminal) trains the model folder: Train would be refused until it stops."""
+    at = f" at step {progress['step']}" if "step" in progress else ""
+    return f"{TRAINED_ELSEWHERE} (pid {owner['pid']} on {owner['host']}){at}; when it stops, Train continues it"
+
+
+def model_not_found(path: str) -> str:
+    """The start of the status of a scene whose model folder `path` has gone."""
+    return f"model folder not found: {path};"
+
+
+def refresh_model_status(scene) -> str:
+    """The scene's `last_status` (shown in the panel) from its model folder, e.g. when a .blend
+    is opened after Blender quit during training: the folder, not the .blend, knows how far
+    training got.  Returns the status line."""
+    props = scene.neulf
+    if not props.model_dir:
+        return props.last_status
+    path = scene_model_dir(scene)
+    training = tasks.get("train")
+    if training is not None and training.running and is_model_of(scene, training.model_dir):
+        return props.last_status  # this session's own job reports its progress
+    if not Path(path).is_dir():
+        props.last_status = f"{model_not_found(path)} move it back or use Load Model"
+        return props.last_status
+    meta = read_metadata(path)
+    owner = training_holder(path)
+    if owner is not None:  # e.g. the .blend reopened while the training Blender left behind saves
+        props.last_status = trained_elsewhere_text(owner, meta.get("progress", {}))
+        from .handlers import watch_other_trainings  # (handlers imports this module)
+
+        watch_other_trainings()  # the panel follows it and says when it has stopped
+        return props.last_status
+    if not meta or not has_render_model(path):
+        props.last_status = f"no checkpoint in {path} yet; Train starts the model"
+        return props.last_status
+    if not can_resume(path):  # (the core renders it, and refuses to train over it)
+        props.last_status = RENDER_ONLY
+        return props.last_status
+    progress = meta.get("progress", {})
+    props.last_status = model_status(meta)
+    if progress.get("val_psnr") is not None:
+        props.last_psnr = float(progress["val_psnr"])
+    return props.last_status
+
+
+def readable_model(context, path: str) -> dict:
+    """model.json of the model folder `path`, which the scene can take; else a NeulfError."""
+    refuse_linked(context.scene, "load its model")
+    if not path.strip():
+        raise NeulfError("choose the model folder (the one training wrote, holding model.json).")
+    meta = read_metadata(path)
+    if not meta:
+        if (Path(path) / METADATA_NAME).is_file():
+            raise NeulfError(f"{path}/model.json cannot be read (damaged or not a NeuLF model's): copy the model "
+                             "folder again from where it came, or train a new model into another folder.")
+        raise NeulfError(f"{path} holds no NeuLF model (model.json missing).")
+    return meta
+
+
+def attach_model(context, path: str) -> dict:
+    """Store the model folder (relative to the .blend) and show its slab."""
+    meta = readable_model(context, path)
+    props = context.scene.neulf
+    props.model_dir = store_path(path)
+    progress = meta.get("progress", {})
+    if progress.get("val_psnr") is not None:
+        props.last_psnr = float(progress["val_psnr"])
+    props.last_status = RENDER_ONLY if has_render_model(path) and not can_resume(path) else model_status(meta)
+    collection, root = capture.find_capture(context.scene)
+    fingerprint = meta.get("scene", {}).get("fingerprint")
+    if collection is not None and meta.get("slab") and fingerprint in (None, props.fingerprint):
+        capture.set_slab_planes(collection, root, meta["slab"])
+    return meta
+
+
+def scenes_of_model(path: str) -> list:
+    """The open file's scenes whose model folder is `path`."""
+    return [scene for scene in bpy.data.scenes if scene.library is None and is_model_of(scene, path)]
