@@ -81,7 +81,7 @@ def validation_split(scene: Scene, config: TrainConfig):
     return fit, validation, held
 
 
-def validation_psnr(model_dir: Path, views, scale: float, device: str | None = None) -> float:
+def mean_view_psnr(model_dir: Path, views, scale: float, device: str | None = None) -> float:
     """Mean PSNR of full renders of `views` by the shipped model file (model.pt)."""
     return float(np.mean(view_psnrs(model_dir, views, scale, device)))
 
@@ -242,7 +242,7 @@ def score_candidate(scene: Scene, run: TrainConfig, candidate: Candidate, valida
         if result.status == "cancelled":
             return False
         candidate.steps = result.step
-        candidate.val_psnr = validation_psnr(Path(folder), validation, run.scale, run.device)
+        candidate.val_psnr = mean_view_psnr(Path(folder), validation, run.scale, run.device)
         candidate.model_bytes = (Path(folder) / MODEL_NAME).stat().st_size
     return True
 

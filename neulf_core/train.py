@@ -240,7 +240,10 @@ def _set_learning_rate(optimizer, preset, rays_seen: int, n_rays: int, fraction:
 
 
 @torch.no_grad()
-def validation_psnr(field_module, rays: RaySet, chunk: int = 1 << 15) -> float:
+def ray_sample_psnr(field_module, rays: RaySet, chunk: int = 1 << 15) -> float:
+    """PSNR of the pooled squared error over a sample of held-out rays: the "val" training logs
+    (and the Blender panel shows).  Not eval's score, the mean of whole views' PSNRs (pooled, it
+    is at most that mean), which autosize.mean_view_psnr computes for the size search."""
     field_module.eval()
     total, count = 0.0, 0
     for start in range(0, len(rays), chunk):
@@ -782,7 +785,7 @@ class TrainingRun:
                                     self.step_limit, self.step)
 
     def _validate(self) -> None:
-        self.val = validation_psnr(self.field_module, self.val_rays) if self.val_rays is not None else None
+        self.val = ray_sample_psnr(self.field_module, self.val_rays) if self.val_rays is not None else None
         record = {"step": self.step, "elapsed": round(self.elapsed, 2), "loss": self.loss_value,
                   "train_psnr": -10 * math.log10(max(self.loss_value, 1e-12)), "val_psnr": self.val, "lr": self.lr}
         self.history.append(record)
