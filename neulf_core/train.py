@@ -242,8 +242,8 @@ def _set_learning_rate(optimizer, preset, rays_seen: int, n_rays: int, fraction:
 @torch.no_grad()
 def ray_sample_psnr(field_module, rays: RaySet, chunk: int = 1 << 15) -> float:
     """PSNR of the pooled squared error over a sample of held-out rays: the "val" training logs
-    (and the Blender panel shows).  Not eval's score, the mean of whole views' PSNRs (pooled, it
-    is at most that mean), which autosize.mean_view_psnr computes for the size search."""
+    (and the Blender panel shows).  Not eval's score, the mean of whole views' PSNRs (pooled over
+    views, a PSNR comes out below that mean), which autosize.mean_view_psnr computes for the size search."""
     field_module.eval()
     total, count = 0.0, 0
     for start in range(0, len(rays), chunk):
