@@ -21,7 +21,7 @@ import numpy as np
 from .checkpoint import METADATA_NAME, MODEL_NAME, checkpoint_path, load_checkpoint, save_checkpoint
 from .errors import NeulfError
 from .fields.disparity import texture_size_for
-from .lock import being_trained_message, training_holder
+from .lock import training_lock
 from .memo import kept_while_training
 from .metrics import psnr
 from .render import LightField
@@ -114,30 +114,26 @@ def train_auto(scene: Scene | str | Path, model_dir: str | Path, config: TrainCo
     """`train()` for the auto preset: size search on validation views, then the final run."""
     model_dir = Path(model_dir).expanduser()
     check_config(config)
-    if resume and checkpoint_path(model_dir).is_file():  # the size was chosen before: continue it
-        record = load_checkpoint(model_dir).get("autosize")
-        result = train(scene, model_dir, config, images_dir=images_dir, resume=True, progress=progress, should_stop=should_stop)
-        return _record(model_dir, record, result)
-    _refuse_before_the_search(model_dir, resume)
-    if resume:  # (and nothing to resume: the search starts)
-        say_nothing_to_resume(model_dir, progress)
-    started = time.monotonic()  # a minutes budget is the whole run's: the photos' loading and the rules' probe too
-    if not isinstance(scene, Scene):
-        scene = load_scene(scene, images_dir)
-    # One training call (memo.py): the candidates read the photos and build their rays once, and
-    # a warning about the scale is said once.
-    with kept_while_training():
-        return _search_and_train(scene, model_dir, replace(config, preset=PRESET), progress, should_stop, factors,
-                                 tolerance_db, started)
-
-
-def _refuse_before_the_search(model_dir: Path, resume: bool) -> None:
-    """What the final training would refuse, said before the search spends its share of the
-    budget (40 %: four minutes of a ten-minute run had gone before the refusal)."""
-    holder = training_holder(model_dir)
-    if holder is not None:
-        raise NeulfError(being_trained_message(model_dir, holder, "wait for it to finish or stop it, then resume"))
-    refuse_to_overwrite(model_dir, resume)
+    # The folder's lock is held through the search too (its 40 % of the budget): a second training
+    # of the folder started meanwhile trained to its end, and this run, its search spent, was then
+    # refused as overwriting a model.  The final train() takes the lock again (training_lock).
+    with training_lock(model_dir):
+        if resume and checkpoint_path(model_dir).is_file():  # the size was chosen before: continue it
+            record = load_checkpoint(model_dir).get("autosize")
+            result = train(scene, model_dir, config, images_dir=images_dir, resume=True, progress=progress,
+                           should_stop=should_stop)
+            return _record(model_dir, record, result)
+        refuse_to_overwrite(model_dir, resume)  # (said before the search spends its share of the budget)
+        if resume:  # (and nothing to resume: the search starts)
+            say_nothing_to_resume(model_dir, progress)
+        started = time.monotonic()  # a minutes budget is the whole run's: the photos' loading and the rules' probe too
+        if not isinstance(scene, Scene):
+            scene = load_scene(scene, images_dir)
+        # One training call (memo.py): the candidates read the photos and build their rays once, and
+        # a warning about the scale is said once.
+        with kept_while_training():
+            return _search_and_train(scene, model_dir, replace(config, preset=PRESET), progress, should_stop, factors,
+                                     tolerance_db, started)
 
 
 def _search_and_train(scene: Scene, model_dir: Path, config: TrainConfig, progress, should_stop, factors,

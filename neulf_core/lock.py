@@ -13,7 +13,9 @@ import contextlib
 import json
 import os
 import platform
+import secrets
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -102,20 +104,63 @@ def being_trained_message(model_dir: Path, owner: dict, what_next: str) -> str:
     return f"{model_dir} is being trained by process {owner['pid']} on {owner['host']}; {what_next}{gone}."
 
 
-def _try_create(path: Path) -> bool:
+def _new_record() -> dict:
+    return {"pid": os.getpid(), "host": platform.node(), "started": time.time()}
+
+
+def _try_create(path: Path) -> dict | None:
+    """Create `path` holding this process's record, and return the record; None where `path`
+    exists.  The record is written to a file of its own, then linked to `path` (which fails where
+    `path` exists), so the file is created already holding it: created empty and written after,
+    a process that read it in between took it for a stale lock, deleted it and took its own, and
+    two trainings held the folder."""
+    record = _new_record()
+    # (".new", not ".tmp": checkpoint.remove_stale_temporaries deletes a folder's .tmp files
+    # while another process may be linking its lock's; the name is no longer than a checkpoint's
+    # temporary, train's check of the folder's path length covers it)
+    temporary = path.with_name(f".{path.name}.{os.getpid()}.{secrets.token_hex(4)}.new")
     try:
-        fd = os.open(path, os.O_CREAT | os.O_EXCL | os.O_WRONLY)
+        temporary.write_text(json.dumps(record))
+        os.link(temporary, path)
     except FileExistsError:
+        return None
+    except OSError:  # no hard links (FAT32/exFAT, some network shares), or no room for the longer name
+        return _create_then_write(path, record)
+    finally:
+        with contextlib.suppress(OSError):
+            temporary.unlink()
+    return record
+
+
+def _create_then_write(path: Path, record: dict) -> dict | None:
+    """`_try_create` where a file cannot be linked: created exclusively, then written (a reader
+    that finds it empty waits, `_being_written`)."""
+    try:
+        descriptor = os.open(path, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o666)
+    except FileExistsError:
+        return None
+    with os.fdopen(descriptor, "w") as handle:
+        json.dump(record, handle)
+    return record
+
+
+# How long a lock that cannot be read counts as being written (_create_then_write's window, a
+# passing read error on a network folder) before it counts as stale.
+UNREADABLE_GRACE_SECONDS = 2.0
+
+
+def _being_written(path: Path) -> bool:
+    try:
+        age = time.time() - path.stat().st_mtime
+    except OSError:
         return False
-    with os.fdopen(fd, "w") as handle:
-        json.dump({"pid": os.getpid(), "host": platform.node(), "started": time.time()}, handle)
-    return True
+    return age < UNREADABLE_GRACE_SECONDS and _read_owner(path) is None
 
 
 def claim(path: Path) -> None:
     """Record this process at `path` (a new file), as a training lock does: for work folders
     another run must not remove while this one uses them (reconstruct's)."""
-    if not _try_create(Path(path)):
+    if _try_create(Path(path)) is None:
         raise FileExistsError(path)
 
 
@@ -134,26 +179,91 @@ def claim_holder(path: Path, unreadable_for_seconds: float) -> dict | None:
     return owner
 
 
+# The training locks this process holds: the lock file's resolved path -> (the thread holding it,
+# how many times it was taken).  The auto preset holds its folder's lock through its size search
+# and takes it again for its final training (train_auto -> train) in the same thread.
+_held: dict[str, list] = {}
+_held_guard = threading.Lock()
+
+
 @contextlib.contextmanager
 def training_lock(model_dir: Path):
+    """Hold MODEL_DIR's training lock for the block (module docstring); a thread that holds it
+    already takes it again.  A second process, or another thread of this one, is refused."""
     model_dir = Path(model_dir)
     if model_dir.exists() and not model_dir.is_dir():
         raise NeulfError(f"{model_dir} is a file; a model is a folder: choose another --out.")
+    key = str((model_dir / LOCK_NAME).resolve())
+    with _held_guard:
+        entry = _held.get(key)
+        again = entry is not None and entry[0] == threading.get_ident()
+        if again:
+            entry[1] += 1
+    if again:
+        try:
+            yield
+        finally:
+            with _held_guard:
+                entry[1] -= 1
+        return
     created = not model_dir.exists()
     model_dir.mkdir(parents=True, exist_ok=True)
     path = model_dir / LOCK_NAME
     try:
-        while not _try_create(path):
-            owner = _holder(path)
-            if owner is not None:
-                raise NeulfError(being_trained_message(model_dir, owner, "wait for it to finish or stop it, then resume"))
-            with contextlib.suppress(FileNotFoundError):
-                path.unlink()  # stale: its process is gone
+        record = _take(path, model_dir)
+        with _held_guard:
+            _held[key] = [threading.get_ident(), 1]
         try:
             yield
         finally:
-            with contextlib.suppress(FileNotFoundError):
-                path.unlink()
+            with _held_guard:
+                del _held[key]
+            _release(path, record)
     finally:
         if created and model_dir.is_dir() and not any(model_dir.iterdir()):
             model_dir.rmdir()  # a training that failed before its first checkpoint leaves nothing behind
+
+
+def _take(path: Path, model_dir: Path) -> dict:
+    """Create the lock `path` (taking over a stale one) and return its record, or refuse."""
+    while (record := _try_create(path)) is None:
+        owner = _holder(path)
+        if owner is not None:
+            raise NeulfError(being_trained_message(model_dir, owner, "wait for it to finish or stop it, then resume"))
+        if _being_written(path):
+            time.sleep(0.01)
+        else:
+            _remove_if_stale(path)
+    return record
+
+
+def _remove_if_stale(path: Path) -> None:
+    """Delete the lock `path` if its process is gone, one process at a time: two that both found
+    it stale deleted it in turn, the second deleting the lock the first had made meanwhile, and
+    both trained.  A process holding `path`.takeover judges the lock again and deletes it; no
+    lock can appear in its place in between (locks are made only where none is, and only a
+    process holding the takeover deletes another's)."""
+    takeover = path.with_name(f".{path.name}.takeover")
+    if _try_create(takeover) is None:
+        # Another process is deleting the stale lock (for microseconds); if that process died
+        # meanwhile its takeover file is stale in turn.
+        if _holder(takeover) is None and not _being_written(takeover):
+            with contextlib.suppress(FileNotFoundError):
+                takeover.unlink()
+        time.sleep(0.01)
+        return
+    try:
+        if path.exists() and _holder(path) is None and not _being_written(path):
+            with contextlib.suppress(FileNotFoundError):
+                path.unlink()
+    finally:
+        with contextlib.suppress(FileNotFoundError):
+            takeover.unlink()
+
+
+def _release(path: Path, record: dict) -> None:
+    """Delete the lock `path` if it is still this process's own (`record`): one taken over
+    meanwhile as stale (a clock or process number misjudged) is another training's now."""
+    if _read_owner(path) == record:
+        with contextlib.suppress(FileNotFoundError):
+            path.unlink()

@@ -1,0 +1,173 @@
+"""The training lock (lock.py) under processes that race for it, and the auto preset's size
+search under it."""
+
+from __future__ import annotations
+
+import json
+import os
+import platform
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import pytest
+
+from neulf_core.errors import NeulfError
+from neulf_core.lock import LOCK_NAME, training_holder, training_lock
+
+REPO = Path(__file__).resolve().parent.parent
+
+# One racer: for each trial, at the trial's instant, take the lock of folder ROOT/<trial>; while
+# holding it, count the racers that hold it too (each marks itself in the folder).
+RACER = r"""
+import json, os, sys, time
+from pathlib import Path
+from neulf_core.errors import NeulfError
+from neulf_core.lock import training_lock
+
+root, trials, first, period, hold = Path(sys.argv[1]), int(sys.argv[2]), float(sys.argv[3]), float(sys.argv[4]), float(sys.argv[5])
+for trial in range(trials):
+    folder, start = root / str(trial), first + trial * period
+    time.sleep(max(0.0, start - time.time() - 0.02))
+    while time.time() < start:  # (the last moments spun: the racers leave together)
+        pass
+    try:
+        with training_lock(folder):
+            mark = folder / f"holding.{os.getpid()}"
+            mark.touch()
+            time.sleep(hold)
+            together = len(list(folder.glob("holding.*")))
+            mark.unlink()
+        print(json.dumps([trial, "held", together]), flush=True)
+    except NeulfError:
+        print(json.dumps([trial, "refused", 0]), flush=True)
+"""
+
+
+def race(root: Path, racers: int, trials: int, period: float = 0.45, hold: float = 0.3) -> list:
+    first = time.time() + 1.0 + 0.1 * racers  # (after every racer has started)
+    env = {**os.environ, "PYTHONPATH": str(REPO), "OMP_NUM_THREADS": "1"}
+    processes = [subprocess.Popen([sys.executable, "-c", RACER, str(root), str(trials), str(first), str(period),
+                                   str(hold)], env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+                 for _ in range(racers)]
+    rows = []
+    for process in processes:
+        out, err = process.communicate(timeout=120)
+        assert process.returncode == 0, err
+        rows += [json.loads(line) for line in out.splitlines()]
+    assert len(rows) == racers * trials
+    return rows
+
+
+def dead_process_id() -> int:
+    process = subprocess.Popen([sys.executable, "-c", "pass"])
+    process.wait()
+    return process.pid
+
+
+@pytest.mark.parametrize("left_by", ["nobody", "a process that is gone"])
+def test_processes_racing_for_a_lock_never_hold_it_together(tmp_path, left_by, record_property):
+    """Six processes take one folder's lock at the same instant, twenty times.  The lock was
+    created empty and written after: a racer that read it in between took it for a stale lock,
+    deleted it and took its own (and the loser's release then deleted the winner's), so two or
+    three held it together in 4 of 20 trials.  Where a stale lock is left (its process gone),
+    two racers that both judged it stale deleted it in turn, the second deleting the first's new
+    lock."""
+    trials, gone = 20, dead_process_id()
+    for trial in range(trials):
+        (tmp_path / str(trial)).mkdir()
+        if left_by != "nobody":
+            stale = {"pid": gone, "host": platform.node(), "started": time.time()}
+            (tmp_path / str(trial) / LOCK_NAME).write_text(json.dumps(stale))
+    rows = race(tmp_path, racers=6, trials=trials)
+    shared = sorted({trial for trial, what, together in rows if what == "held" and together > 1})
+    held = {trial for trial, what, _ in rows if what == "held"}
+    record_property("message", f"{len(shared)} of {trials} trials with two holders at once")
+    assert shared == [], f"trials with two holders at once: {shared}"
+    assert held == set(range(trials))  # each folder was trained by one racer (a stale lock taken over)
+    leftovers = [p.relative_to(tmp_path) for p in tmp_path.rglob("*") if p.is_file()]
+    assert leftovers == []  # no lock, temporary or takeover file stays behind
+
+
+def test_a_lock_is_released_only_while_it_is_still_this_process(tmp_path):
+    """A holder's release deleted whatever training.lock was there: a lock another process had
+    taken meanwhile (the race above) was deleted, and the folder left unlocked while trained."""
+    sleeper = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"])
+    try:
+        with training_lock(tmp_path):
+            other = {"pid": sleeper.pid, "host": platform.node(), "started": time.time()}
+            (tmp_path / LOCK_NAME).write_text(json.dumps(other))  # (as a racer that took the lock over would)
+        assert training_holder(tmp_path)["pid"] == sleeper.pid
+        with pytest.raises(NeulfError, match=f"being trained by process {sleeper.pid}"):
+            with training_lock(tmp_path):
+                pass
+    finally:
+        sleeper.kill()
+        sleeper.wait()
+
+
+def test_a_lock_being_written_is_not_taken_for_a_stale_one(tmp_path):
+    """Where a lock cannot be linked into place whole (a drive without hard links), it is made
+    empty and written just after: one found empty and new is waited for, not deleted."""
+    sleeper = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"])
+    try:
+        (tmp_path / LOCK_NAME).touch()
+        writer = threading.Timer(0.3, lambda: (tmp_path / LOCK_NAME).write_text(
+            json.dumps({"pid": sleeper.pid, "host": platform.node(), "started": time.time()})))
+        writer.start()
+        with pytest.raises(NeulfError, match=f"being trained by process {sleeper.pid}"):
+            with training_lock(tmp_path):
+                pass
+        writer.join()
+    finally:
+        sleeper.kill()
+        sleeper.wait()
+
+
+def test_the_thread_holding_a_lock_takes_it_again_and_others_are_refused(tmp_path):
+    """The auto preset holds the lock through its search and its final train() takes it again;
+    another thread of the process is still refused."""
+    with training_lock(tmp_path / "m"):
+        with training_lock(tmp_path / "m"):
+            refused = []
+
+            def other_thread():
+                try:
+                    with training_lock(tmp_path / "m"):
+                        pass
+                except NeulfError as error:
+                    refused.append(str(error))
+
+            thread = threading.Thread(target=other_thread)
+            thread.start()
+            thread.join()
+            assert refused and f"process {os.getpid()}" in refused[0]
+        assert training_holder(tmp_path / "m")["pid"] == os.getpid()  # still held: the outer block runs
+    assert not (tmp_path / "m").exists()
+
+
+def test_the_auto_presets_search_holds_the_lock(tiny_scene, tmp_path):
+    """While the auto preset's size search ran (40 % of the budget) the folder was not locked: a
+    second training of it ran to its end, and the auto run, its search spent, was then refused
+    as overwriting a model."""
+    from neulf_core.autosize import train_auto
+    from neulf_core.train import TrainConfig
+
+    model, seen = tmp_path / "model", {}
+
+    def progress(event):
+        if event.get("event") == "autosize" and not seen:  # the search's first candidate is done
+            seen["holder"] = training_holder(model)
+            seen["second"] = subprocess.run(
+                [sys.executable, "-m", "neulf_core", "train", str(tiny_scene), "--out", str(model), "--steps", "5",
+                 "--batch-size", "64"], env={**os.environ, "PYTHONPATH": str(REPO), "OMP_NUM_THREADS": "1"},
+                capture_output=True, text=True, timeout=300)
+
+    config = TrainConfig(preset="auto", steps=30, batch_size=256, validate_seconds=1e9, checkpoint_seconds=1e9)
+    result = train_auto(tiny_scene, model, config, progress=progress)
+    assert seen["holder"] is not None and seen["holder"]["pid"] == os.getpid()
+    assert seen["second"].returncode != 0 and f"being trained by process {os.getpid()}" in seen["second"].stderr
+    assert result.status == "finished"
+    assert training_holder(model) is None and not (model / LOCK_NAME).exists()
