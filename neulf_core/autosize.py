@@ -21,13 +21,15 @@ import numpy as np
 from .checkpoint import METADATA_NAME, MODEL_NAME, checkpoint_path, load_checkpoint, save_checkpoint
 from .errors import NeulfError
 from .fields.disparity import texture_size_for
+from .files import refuse_a_path_too_long
 from .lock import training_lock
 from .memo import kept_while_training
 from .metrics import psnr
 from .render import LightField
 from .scene import Scene, load_scene, scaled_size, split_views
 from .slab import fit_slab
-from .train import TrainConfig, TrainResult, check_config, refuse_to_overwrite, say_nothing_to_resume, train
+from .train import (TrainConfig, TrainResult, check_config, longest_path_written, refuse_to_overwrite,
+                    say_nothing_to_resume, train)
 from .progress import emit as _emit
 from .rules import (LOSSES_DECISION_STEP, announce_default_losses, default_back_surface, default_coarse_to_fine,
                     default_consistency, default_depth_detail_reads, default_geometry_tv, default_max_passes,
@@ -118,6 +120,7 @@ def train_auto(scene: Scene | str | Path, model_dir: str | Path, config: TrainCo
     # of the folder started meanwhile trained to its end, and this run, its search spent, was then
     # refused as overwriting a model.  The final train() takes the lock again (training_lock).
     with training_lock(model_dir):
+        refuse_a_path_too_long(model_dir, longest_path_written(config))
         if resume and checkpoint_path(model_dir).is_file():  # the size was chosen before: continue it
             record = load_checkpoint(model_dir).get("autosize")
             result = train(scene, model_dir, config, images_dir=images_dir, resume=True, progress=progress,

@@ -5,9 +5,12 @@ torch-free, so the EXR writer can use it in Blender's own Python.
 
 from __future__ import annotations
 
+import errno
 import os
 import secrets
 from pathlib import Path
+
+from .errors import NeulfError
 
 
 def atomic_write_bytes(path: str | Path, data: bytes) -> None:
@@ -16,7 +19,7 @@ def atomic_write_bytes(path: str | Path, data: bytes) -> None:
     models and renders unreadable to the user's group, a render farm or a second account."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    temporary = path.with_name(f".{path.name}.{os.getpid()}.{secrets.token_hex(4)}.tmp")
+    temporary = path.with_name(temporary_name(path.name))
     descriptor = os.open(temporary, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666)
     try:
         with os.fdopen(descriptor, "wb") as handle:
@@ -32,3 +35,29 @@ def atomic_write_bytes(path: str | Path, data: bytes) -> None:
     except BaseException:
         temporary.unlink(missing_ok=True)
         raise
+
+
+def temporary_name(name: str) -> str:
+    """The name `atomic_write_bytes` writes a file called `name` under first, beside it."""
+    return f".{name}.{os.getpid()}.{secrets.token_hex(4)}.tmp"
+
+
+def refuse_a_path_too_long(folder: Path, longest: Path) -> None:
+    """Refuse, in one line and before any work, a folder whose path leaves no room for the
+    longest path a run writes inside it (`longest`, relative to it).  A checkpoint's temporary
+    name is longer than anything a training makes before its first checkpoint, which then
+    failed ("File name too long"), the run's work lost.  The limit is on the whole path (260
+    characters on Windows without long paths, 4096 bytes on Linux), so a file named as long as
+    `longest` is made in `folder` itself and removed."""
+    folder, length = Path(folder), len(str(longest))
+    probe = folder / ("." + "n" * max(1, length - 5) + ".tmp")  # (.tmp: a run killed here leaves what training removes)
+    try:
+        os.close(os.open(probe, os.O_WRONLY | os.O_CREAT, 0o666))
+    except OSError as exc:
+        # ENOENT: Windows' answer for a path over MAX_PATH; `folder` itself exists (it holds the lock)
+        if exc.errno not in (errno.ENAMETOOLONG, errno.ENOENT):
+            raise
+        raise NeulfError(f"the model folder's path is too long: {folder} ({len(str(folder))} characters) leaves no room "
+                         f"for the files training writes inside it (such as {longest}, {length} characters more); "
+                         "choose a shorter --out folder.") from None
+    probe.unlink()

@@ -29,6 +29,7 @@ from .consistency import SlabGeometry, camera_neighbours, multiview_losses
 from .dataset import RaySet, kept_rayset, mean_colour
 from .device import describe_device, keep_freed_cpu_memory, pick_device
 from .errors import NeulfError
+from .files import refuse_a_path_too_long, temporary_name
 from .fields import build_field, count_parameters, make_config
 from .fields.disparity import slab_geometry, texture_size_for
 from .interrupt import ctrl_c_stops
@@ -268,6 +269,7 @@ def train(scene: Scene | str | Path, model_dir: str | Path, config: TrainConfig,
         return train_two_starts(_train, scene, folder, config, images_dir, resume, progress, should_stop)
 
     with training_lock(model_dir), kept_while_training(), ctrl_c_stops(should_stop) as (stop, ctrl_c):
+        refuse_a_path_too_long(model_dir, longest_path_written(config))
         remove_stale_temporaries(model_dir)
         refuse_a_model_without_its_checkpoint(model_dir, resume)
         if resume and not checkpoint_path(model_dir).is_file():
@@ -280,6 +282,21 @@ def train(scene: Scene | str | Path, model_dir: str | Path, config: TrainConfig,
     if ctrl_c():
         raise KeyboardInterrupt  # (saved: the caller's Ctrl-C passed on)
     return result
+
+
+def longest_path_written(config: TrainConfig) -> Path:
+    """The longest path, relative to the model folder, a training writes: a checkpoint's
+    temporary (files.atomic_write_bytes) in the last member's second start, where the run can
+    have members and two starts."""
+    from .members import MAX_MEMBERS, MEMBERS_DIR
+    from .starts import SECOND_START_DIR
+
+    folder = Path()
+    if config.members != 1:
+        folder = folder / MEMBERS_DIR / str(MAX_MEMBERS)
+    if config.two_starts is not False:
+        folder = folder / SECOND_START_DIR
+    return folder / temporary_name(CHECKPOINT_NAME)
 
 
 def say_nothing_to_resume(model_dir: Path, progress) -> None:

@@ -1,5 +1,5 @@
-"""The training lock (lock.py) under processes that race for it, and the auto preset's size
-search under it."""
+"""The training lock (lock.py) under processes that race for it, the auto preset's size search
+under it, and a model folder whose path leaves no room for the files training writes."""
 
 from __future__ import annotations
 
@@ -171,3 +171,42 @@ def test_the_auto_presets_search_holds_the_lock(tiny_scene, tmp_path):
     assert seen["second"].returncode != 0 and f"being trained by process {os.getpid()}" in seen["second"].stderr
     assert result.status == "finished"
     assert training_holder(model) is None and not (model / LOCK_NAME).exists()
+
+
+def long_folder(base: Path, room: int) -> Path:
+    """A folder path under `base` that leaves `room` characters for the names inside it before
+    the system's path limit (PATH_MAX counts the terminating NUL)."""
+    limit = os.pathconf(base, "PC_PATH_MAX") - 1
+    longest_part = os.pathconf(base, "PC_NAME_MAX")
+    path = str(base)
+    while limit - room - len(path) - 1 > longest_part:
+        path += "/" + "d" * (longest_part - 10)
+    return Path(path + "/" + "m" * (limit - room - len(path) - 1))
+
+
+@pytest.mark.skipif(sys.platform == "win32", reason="os.pathconf: POSIX")
+def test_a_model_folder_path_too_long_for_the_checkpoint_is_refused_before_training(tiny_scene, tmp_path):
+    """Room for training.lock but not for a checkpoint's temporary name
+    (.checkpoint.pt.PID.HEX.tmp, and under members/N/ and second_start/): the run trained until
+    its first checkpoint, which failed ("File name too long"), its work lost."""
+    from neulf_core.train import TrainConfig, train
+
+    model = long_folder(tmp_path, room=len("/" + LOCK_NAME) + 2)
+    config = TrainConfig(preset="planes", steps=20, batch_size=64, validate_seconds=1e9, members=1, two_starts=False,
+                         field_overrides={"spatial_res": [8, 16], "channels": 4})
+    events = []
+    with pytest.raises(NeulfError, match=r"^the model folder's path is too long: .*choose a shorter --out folder\.$"):
+        train(tiny_scene, model, config, progress=events.append)
+    assert events == []  # refused before the scene was loaded, let alone a step trained
+    assert not model.exists()
+    # Room for the top folder's files, but not for a second member's second start: refused too.
+    model = long_folder(tmp_path, room=45)
+    with pytest.raises(NeulfError, match="path is too long"):
+        train(tiny_scene, model, TrainConfig(preset="planes", steps=20, batch_size=64, members=2))
+    assert not model.exists()
+    # The auto preset says so before its size search.
+    from neulf_core.autosize import train_auto
+
+    with pytest.raises(NeulfError, match="path is too long"):
+        train_auto(tiny_scene, model, TrainConfig(preset="auto", steps=30, batch_size=256), progress=events.append)
+    assert events == [] and not model.exists()
