@@ -14,6 +14,7 @@ import os
 import shlex
 import signal
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -63,8 +64,9 @@ from .video import VIDEO_SUFFIXES  # noqa: E402  (numpy and errors only: no torc
 
 def _output_folder(path) -> Path:
     """The folder `--out` names, made where missing; a file there, or a folder that cannot be
-    written (read-only, no permission), is said before anything is computed."""
-    out = Path(path)
+    written (read-only, no permission), is said before anything is computed.  `~` is the home
+    folder, as for the model and the scene (a quoted or --out=~/x path reaches us unexpanded)."""
+    out = Path(path).expanduser()
     if out.exists() and not out.is_dir():
         raise NeulfError(f"{out} is a file, not a folder: give --out a folder to write into.")
     try:
@@ -78,7 +80,7 @@ def _output_folder(path) -> Path:
 
 def _video_file(path) -> Path:
     """The video file `--out` names, its folder checked as `_output_folder` checks one."""
-    out = Path(path)
+    out = Path(path).expanduser()
     if out.is_dir():
         raise NeulfError(f"--out {out} is a folder: give a video file's name (inside it, say {out / 'spiral.mp4'}).")
     if out.suffix.lower() not in VIDEO_SUFFIXES:
@@ -96,6 +98,52 @@ def _os_error_line(exc: OSError) -> str:
         return (f"{what} (writing{where}): free some space or write elsewhere, and run the command again; a training "
                 "keeps its last saved checkpoint, if it had saved one, which --resume continues.")
     return f"cannot read or write{where}: {exc.strerror or exc}. Check the path and its permissions."
+
+
+# The signal that stopped a render, eval or video, by _sigterm_interrupts (main says it, and
+# exits 128 + its number, as a stopped training does).
+_stopped_by: list[int] = []
+
+
+def _sigterm_interrupts() -> None:
+    """SIGTERM (kill, a scheduler's time limit, a render farm) and Windows' SIGBREAK stop a render,
+    eval or video as Ctrl-C does: files half-written are removed and main says one line.  Called
+    after the command's imports: `import pycolmap` puts glog's failure handler on SIGTERM, which
+    printed a 34-line C stack dump and left a half-written video in place of an earlier one.
+    (train and reconstruct install their own handlers; main puts the previous one back.)"""
+    if threading.current_thread() is not threading.main_thread():
+        return  # (signals reach the main thread only; signal.signal refuses other threads)
+
+    def on_signal(signum, _frame):
+        _stopped_by.append(signum)
+        raise KeyboardInterrupt
+
+    for name in ("SIGTERM", "SIGBREAK"):
+        if hasattr(signal, name):
+            signal.signal(getattr(signal, name), on_signal)
+
+
+def _stop_handlers() -> dict:
+    """The handlers _sigterm_interrupts replaces, for main to put back (an in-process caller, the
+    tests or demo, keeps its own)."""
+    if threading.current_thread() is not threading.main_thread():
+        return {}
+    return {getattr(signal, name): signal.getsignal(getattr(signal, name)) for name in ("SIGTERM", "SIGBREAK")
+            if hasattr(signal, name)}
+
+
+def _restore_stop_handlers(handlers: dict) -> None:
+    for signum, handler in handlers.items():
+        if handler is not None and signal.getsignal(signum) is not handler:  # (None: set outside Python)
+            signal.signal(signum, handler)
+
+
+def _interrupted_line(exc: KeyboardInterrupt) -> str:
+    """What a stopped command says: how it was stopped, and where a cut-short video's frames are."""
+    how = f"stopped by {signal.Signals(_stopped_by[0]).name}" if _stopped_by else "interrupted"
+    from .video import VideoCutShort
+
+    return f"{how}: {exc}." if isinstance(exc, VideoCutShort) else how
 
 
 def _names(text: str | None) -> list[str] | None:
@@ -317,6 +365,7 @@ def _detach_output() -> None:
 
 
 def _load_cameras_json(path: Path) -> list[dict]:
+    path = Path(path).expanduser()
     try:
         data = json.loads(Path(path).read_text())
     except FileNotFoundError:
@@ -357,15 +406,23 @@ def _pixel_count(value) -> int:
     return int(value)
 
 
+def _rendering_files(stem: str, want_depth: bool, exr: bool) -> list[str]:
+    """The files _save_rendering writes for `stem`."""
+    return ([f"{stem}.png"] + ([f"{stem}_depth.npy", f"{stem}_depth.png"] if want_depth else [])
+            + ([f"{stem}.exr"] if exr else []))
+
+
 def _save_rendering(out: Path, stem: str, rendering, want_depth: bool, exr: bool = False) -> None:
+    """Each file written whole or not at all (a render stopped while writing had left a truncated
+    PNG under its final name)."""
     from .exr import rendering_channels, write_exr
-    from .images import save_rgb
+    from .images import save_npy, save_rgb
     from .video import depth_to_colour
 
     save_rgb(out / f"{stem}.png", rendering.rgb)
     depth = rendering.depth if want_depth else None
     if depth is not None:
-        np.save(out / f"{stem}_depth.npy", depth.astype(np.float32))
+        save_npy(out / f"{stem}_depth.npy", depth.astype(np.float32))
         save_rgb(out / f"{stem}_depth.png", depth_to_colour(depth))
     if exr:
         write_exr(out / f"{stem}.exr", rendering_channels(rendering.rgb, depth, rendering.valid))
@@ -463,11 +520,26 @@ def _looking_away(names: list[str], light_field, rendered: int, out: Path) -> st
             f"the other {rendered} image(s) are in {out}.")
 
 
+def _refuse_the_trained_photos(out: Path, light_field, file_names: list[str]) -> None:
+    """render --cameras, which reads no scene: refuse an --out that is the folder of the photos
+    the model trained on (model.json's scene), or would write over one of them."""
+    from .outputs import refuse_writing_over_photos
+    from .trained_scene import images_dir_as_trained
+
+    saved = light_field.meta.get("scene") or {}
+    if not saved.get("root"):
+        return
+    folder = images_dir_as_trained(saved["root"], None, saved) or Path(saved["root"]).expanduser() / "images"
+    refuse_writing_over_photos(out, file_names, [folder / name for name in saved.get("photo_sizes") or {}], folder)
+
+
 def cmd_render(args) -> int:
+    from .outputs import refuse_clashing_names, refuse_writing_over_photos, view_file_stems
     from .render import LightField
     from .scene import load_scene, select_views
     from .trained_scene import changed_cameras_note, images_dir_as_trained, other_photos_note, scale_as_trained
 
+    _sigterm_interrupts()
     if (args.scene is None) == (args.cameras is None):
         raise NeulfError("render needs either --scene SCENE_DIR --views NAME,... or --cameras CAMERAS.json.")
     if args.cameras and args.views:
@@ -478,7 +550,11 @@ def cmd_render(args) -> int:
     count, started = 0, time.perf_counter()
     if args.cameras:
         blind, inside = [], []
-        for cam in _load_cameras_json(args.cameras):
+        cameras = _load_cameras_json(args.cameras)
+        files = {cam["name"]: _rendering_files(cam["name"], args.depth, args.exr) for cam in cameras}
+        refuse_clashing_names(files, out)  # (names that differ in case only, or a_depth beside a --depth a)
+        _refuse_the_trained_photos(out, light_field, [name for names in files.values() for name in names])
+        for cam in cameras:
             cam = _scaled_camera(cam, args.scale)
             rendering = _render_pinhole(light_field, cam, args, focus_options)
             if not rendering.valid.any():  # a picture of the background colour only: say so, render the rest
@@ -498,6 +574,11 @@ def cmd_render(args) -> int:
         scene = load_scene(args.scene, images_dir_as_trained(args.scene, args.images, saved))
         light_field.check_scene(scene)
         views = select_views(scene, names, saved["held_out"])
+        stems = view_file_stems(views, scene.views)  # (a rig's left/f1.png and right/f1.png: left_f1, right_f1)
+        files = {view.name: _rendering_files(stems[view.name], args.depth, args.exr) for view in views}
+        refuse_clashing_names(files, out)
+        refuse_writing_over_photos(out, [name for names in files.values() for name in names],
+                                   [view.image_path for view in scene.views], scene.images_dir)
         for note in (other_photos_note(views, saved) if args.scale is None else None, changed_cameras_note(views, saved)):
             if note:
                 print(f"warning: {note}", file=sys.stderr)
@@ -509,7 +590,7 @@ def cmd_render(args) -> int:
                 focus = _view_focus(light_field, view, scale, pixel)
             rendering = light_field.render_view(view, scale, depth=args.depth, pixel_samples=args.pixel_samples,
                                                 focus_distance=focus, aperture=aperture)
-            _save_rendering(out, view.stem, rendering, args.depth, args.exr)
+            _save_rendering(out, stems[view.name], rendering, args.depth, args.exr)
             count += 1
     print(f"rendered {count} image(s) into {out} in {time.perf_counter() - started:.1f} s")
     return 0
@@ -520,9 +601,14 @@ def cmd_render(args) -> int:
 
 def cmd_eval(args) -> int:
     from .evaluate import evaluate_model
+    from .model_files import has_render_model
 
-    if args.out or Path(args.model_dir).is_dir():  # (a mistyped model folder gets its own message, no eval/ made)
-        _output_folder(args.out or Path(args.model_dir) / "eval")
+    _sigterm_interrupts()
+    # The folder checked (and made) before anything renders, but only for a folder holding a
+    # model: a mistyped model folder, or a scene or photo folder given as the model, gets its
+    # own message from evaluate_model, and no eval/ (or --out) made inside it.
+    if has_render_model(args.model_dir) and (args.out or Path(args.model_dir).expanduser().is_dir()):
+        _output_folder(args.out or Path(args.model_dir).expanduser() / "eval")
     report = evaluate_model(args.model_dir, args.scene, images_dir=args.images, out_dir=args.out,
                             views=_names(args.views), device=args.device, fit_poses=args.fit_poses,
                             pixel_samples=args.pixel_samples)
@@ -560,6 +646,7 @@ def cmd_video(args) -> int:
     from .render import LightField
     from .video import write_video
 
+    _sigterm_interrupts()
     out = _video_file(args.out)
     light_field = LightField.load(args.model_dir, args.device, args.precision)
     centres, K, width, height = _rig_from_meta(light_field)
@@ -571,9 +658,13 @@ def cmd_video(args) -> int:
             yield light_field.render(K, width, height, R, t, depth=False, pixel_samples=args.pixel_samples).rgb
             print(f"\rframe {i + 1}/{len(poses)}", end="", file=sys.stderr, flush=True)
 
-    count = write_video(frames(), out, fps=args.fps)
+    try:
+        count = write_video(frames(), out, fps=args.fps)
+    except KeyboardInterrupt:
+        print(file=sys.stderr)  # (the message on its own line, not after "frame 662/2000")
+        raise
     seconds = time.perf_counter() - started
-    print(f"\nwrote {count} frames to {args.out} ({seconds / count * 1000:.0f} ms per frame)", file=sys.stderr)
+    print(f"\nwrote {count} frames to {out} ({seconds / count * 1000:.0f} ms per frame)", file=sys.stderr)
     return 0
 
 
@@ -771,6 +862,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    stop_handlers = _stop_handlers()
+    _stopped_by.clear()
     try:
         argv = sys.argv[1:] if argv is None else argv
         args = build_parser().parse_args(argv)
@@ -782,9 +875,12 @@ def main(argv: list[str] | None = None) -> int:
         end_line()
         print(f"error: {exc}", file=sys.stderr)
         return EXIT_USAGE
-    except KeyboardInterrupt:
-        print("interrupted", file=sys.stderr)
-        return 130
+    except KeyboardInterrupt as exc:
+        from .progress import end_line
+
+        end_line()
+        print(_interrupted_line(exc), file=sys.stderr)
+        return 128 + (_stopped_by[0] if _stopped_by else int(signal.SIGINT))
     except (MemoryError, RuntimeError) as exc:  # (torch says a CPU or MPS allocator failed with a RuntimeError)
         if not is_out_of_memory(exc):
             raise
@@ -796,3 +892,5 @@ def main(argv: list[str] | None = None) -> int:
         end_line()
         print(f"error: {_os_error_line(exc)}", file=sys.stderr)
         return EXIT_USAGE
+    finally:
+        _restore_stop_handlers(stop_handlers)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import csv
+import io
 import json
 import time
 from pathlib import Path
@@ -10,9 +11,11 @@ from pathlib import Path
 import numpy as np
 
 from .errors import NeulfError
+from .files import atomic_write_bytes
 from .images import save_rgb
 from .lpips import load_lpips, lpips_distance
 from .metrics import psnr, ssim
+from .outputs import refuse_clashing_names, refuse_writing_over_photos, view_file_stems
 from .render import DEFAULT_PIXEL_SAMPLES, LightField
 from .poses import fit_view_pose
 from .scene import camera_spacing, load_scene, select_views
@@ -29,8 +32,14 @@ def evaluate_model(model_dir, scene_dir, *, images_dir=None, out_dir=None, views
     scene = load_scene(scene_dir, images_dir_as_trained(scene_dir, images_dir, saved))
     light_field.check_scene(scene)
     names = _view_names(views, saved["held_out"], scene)
-    out = Path(out_dir) if out_dir else Path(model_dir) / "eval"
+    out = Path(out_dir).expanduser() if out_dir else Path(model_dir).expanduser() / "eval"
     chosen = [scene.view(name) for name in names]
+    stems = view_file_stems(chosen, scene.views)  # (a rig's left/f1.png and right/f1.png: left_f1, right_f1)
+    if save_images:
+        files = {view.name: [f"{stems[view.name]}.png"] for view in chosen}
+        refuse_clashing_names(files, out)
+        refuse_writing_over_photos(out, [name for names in files.values() for name in names],
+                                   [view.image_path for view in scene.views], scene.images_dir)
     notes = [note for note in (other_photos_note(chosen, saved), changed_cameras_note(chosen, saved)) if note]
     mean_colour = np.asarray(light_field.meta["scene"]["mean_colour"], dtype=np.float32)
     rows, baseline = [], []
@@ -55,7 +64,7 @@ def evaluate_model(model_dir, scene_dir, *, images_dir=None, out_dir=None, views
                             pose_fit_degrees=degrees, pose_fit_shift=moved)
         baseline.append(psnr(np.broadcast_to(mean_colour, target.shape), target))
         if save_images:
-            save_rgb(out / f"{view.stem}.png", rendering.rgb)
+            save_rgb(out / f"{stems[view.name]}.png", rendering.rgb)
     report = {
         "model": str(model_dir), "scene": str(scene_dir), "scale": light_field.trained_scale, "views": rows,
         "images": str(scene.images_dir) if scene.images_dir else None, "warnings": notes,
@@ -66,12 +75,13 @@ def evaluate_model(model_dir, scene_dir, *, images_dir=None, out_dir=None, views
         report["mean_lpips"] = float(np.mean([r["lpips"] for r in rows]))
     if fit_poses:
         report["mean_psnr_pose_fitted"] = float(np.mean([r["psnr_pose_fitted"] for r in rows]))
-    out.mkdir(parents=True, exist_ok=True)
-    (out / "eval.json").write_text(json.dumps(report, indent=2))
-    with open(out / "eval.csv", "w", newline="") as handle:
-        writer = csv.DictWriter(handle, fieldnames=list(rows[0]))
-        writer.writeheader()
-        writer.writerows(rows)
+    # (written whole or not at all, as the renders: files.atomic_write_bytes)
+    atomic_write_bytes(out / "eval.json", json.dumps(report, indent=2).encode())
+    table = io.StringIO(newline="")
+    writer = csv.DictWriter(table, fieldnames=list(rows[0]))
+    writer.writeheader()
+    writer.writerows(rows)
+    atomic_write_bytes(out / "eval.csv", table.getvalue().encode())
     report["written"] = str(out / "eval.json")
     return report
 

@@ -9,6 +9,7 @@ palette, RGBA, CMYK, with an EXIF orientation.  Everything here turns that into 
 
 from __future__ import annotations
 
+import io
 import re
 from pathlib import Path
 
@@ -16,6 +17,7 @@ import numpy as np
 from PIL import Image, ImageOps, UnidentifiedImageError
 
 from .errors import NeulfError
+from .files import atomic_write_bytes
 
 IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp", ".webp")  # what Pillow and COLMAP both read
 
@@ -108,11 +110,24 @@ def to_uint8(rgb: np.ndarray) -> np.ndarray:
 
 
 def save_rgb(path: Path, rgb: np.ndarray) -> None:
-    """Save float [0,1] or uint8 (H, W, 3) as an 8-bit PNG."""
+    """Save float [0,1] or uint8 (H, W, 3) as an 8-bit image (PNG; the format `path`'s suffix
+    names).  Encoded in memory and written atomically (files.atomic_write_bytes): a render
+    stopped while writing had left a truncated PNG under the finished one's name."""
     if rgb.dtype != np.uint8:
         rgb = to_uint8(rgb)
-    Path(path).parent.mkdir(parents=True, exist_ok=True)
-    Image.fromarray(rgb).save(path)
+    image_format = Image.registered_extensions().get(Path(path).suffix.lower())
+    if image_format is None:
+        raise ValueError(f"unknown file extension: {Path(path).suffix}")  # (what PIL's save(path) says)
+    encoded = io.BytesIO()
+    Image.fromarray(rgb).save(encoded, format=image_format)
+    atomic_write_bytes(path, encoded.getbuffer())  # (a view, not a copy)
+
+
+def save_npy(path: Path, array: np.ndarray) -> None:
+    """np.save, written atomically as save_rgb writes."""
+    encoded = io.BytesIO()
+    np.save(encoded, array)
+    atomic_write_bytes(path, encoded.getbuffer())  # (no copy: a 12-megapixel depth map is 48 MB)
 
 
 LLFF_COPY = re.compile(r"image\d+", re.IGNORECASE)  # the stem of LLFF's downsampled copies (image000)

@@ -2,7 +2,10 @@
 
 from __future__ import annotations
 
+import contextlib
 import math
+import os
+import secrets
 from fractions import Fraction
 from pathlib import Path
 from typing import Iterable
@@ -35,18 +38,43 @@ def depth_to_colour(depth: np.ndarray) -> np.ndarray:
     return colour.astype(np.uint8)
 
 
+class VideoCutShort(KeyboardInterrupt):
+    """A video stopped part-way (Ctrl-C, SIGTERM): the file asked for was not written; the
+    frames so far were kept as `partial` (NAME.partial.mp4), or None where none could be."""
+
+    def __init__(self, path: Path, partial: Path | None, frames: int):
+        left = f"the earlier {path} is kept as it was" if path.exists() else f"{path} was not written"
+        kept = f"the frames made are in {partial}" if partial else "it was stopped inside the encoder: none were kept"
+        super().__init__(f"the video stopped after {frames} frame(s), unfinished: {left}; {kept}")
+        self.path, self.partial, self.frames = path, partial, frames
+
+
+def partial_video_path(path: str | Path) -> Path:
+    """Where a video stopped part-way keeps its frames: spiral.mp4 -> spiral.partial.mp4."""
+    path = Path(path)
+    return path.with_name(f"{path.stem}.partial{path.suffix}")
+
+
 def write_video(frames: Iterable[np.ndarray], path: str | Path, fps: float = 30) -> int:
     """Encode frames to `path` (.mp4, .mov, .mkv or .m4v); returns the frame count.
 
     Frames are (H, W, 3) RGB, (H, W) grey or (H, W, 4) RGBA (alpha dropped), uint8 or float
-    [0, 1], all the size of the first; `fps` may be fractional (29.97)."""
+    [0, 1], all the size of the first; `fps` may be fractional (29.97).
+
+    The video is encoded under a temporary name beside `path`, which it replaces only once
+    finished: a run stopped part-way had replaced an earlier video with a cut-short one that
+    played as finished (Ctrl-C) or with an unplayable stub (SIGTERM).  An error leaves nothing;
+    a KeyboardInterrupt between two frames (the user chose to stop there) keeps the frames so
+    far as partial_video_path(path) and raises VideoCutShort, which says where."""
     import av  # imported here: only video writing needs it
 
     path = _video_path(path)
     rate = _frame_rate(fps)
     path.parent.mkdir(parents=True, exist_ok=True)
-    count, muxed = 0, False
-    container = av.open(str(path), mode="w")  # (the file is only created by the first packet)
+    # (the suffix kept last: PyAV picks the container from it)
+    temporary = path.with_name(f".{path.stem}.{os.getpid()}.{secrets.token_hex(4)}.tmp{path.suffix}")
+    count, encoding = 0, False
+    container = av.open(str(temporary), mode="w")
     try:
         stream = None
         for frame in frames:
@@ -63,30 +91,58 @@ def write_video(frames: Iterable[np.ndarray], path: str | Path, fps: float = 30)
                 raise NeulfError(f"video frame {count} is {frame.shape[1]}x{frame.shape[0]} but the first frame is "
                                  f"{size[1]}x{size[0]}: every frame of a video must be the same size.")
             frame = np.pad(frame, ((0, stream.height - size[0]), (0, stream.width - size[1]), (0, 0)), mode="edge")
-            for packet in stream.encode(av.VideoFrame.from_ndarray(np.ascontiguousarray(frame), format="rgb24")):
-                container.mux(packet)
-                muxed = True
+            frame = av.VideoFrame.from_ndarray(np.ascontiguousarray(frame), format="rgb24")
+            # A KeyboardInterrupt anywhere but here lands between two frames, what is encoded
+            # whole; here, a packet the encoder gave could be lost (a broken video): `encoding`.
+            encoding = True
+            container.mux(stream.encode(frame))
             count += 1
+            encoding = False
         if stream is None:
             raise NeulfError("no frames to write to the video.")
-        for packet in stream.encode():
-            container.mux(packet)
-    except Exception:
-        container.close()
-        # What was written is a cut-short video under the finished one's name: leave none.  (A
-        # Ctrl-C, not caught here, keeps the frames so far: the user chose to stop there.)
-        if muxed:
-            path.unlink(missing_ok=True)
+        encoding = True
+        _finish(container, stream, temporary)
+    except KeyboardInterrupt as stop:
+        if count == 0:
+            _discard(container, temporary)
+            raise
+        if encoding:  # (rare: a frame's render takes the time) nothing whole to keep
+            _discard(container, temporary)
+            raise VideoCutShort(path, None, count) from stop
+        try:
+            _finish(container, stream, temporary)
+        except BaseException:  # (a second Ctrl-C while finishing)
+            _discard(container, temporary)
+            raise
+        partial = partial_video_path(path)
+        os.replace(temporary, partial)
+        raise VideoCutShort(path, partial, count) from stop
+    except BaseException:
+        _discard(container, temporary)
         raise
-    finally:
-        container.close()  # (again after an error: closing twice is harmless)
+    os.replace(temporary, path)
     return count
+
+
+def _finish(container, stream, path: Path) -> None:
+    """The encoder's held-back frames written, the container closed, the file on disk."""
+    container.mux(stream.encode())
+    container.close()
+    with open(path, "rb+") as handle:  # (on disk before it replaces anything: files.atomic_write_bytes's care)
+        os.fsync(handle.fileno())
+
+
+def _discard(container, path: Path) -> None:
+    """The cut-short temporary file removed (the error that stopped it is the one to say)."""
+    with contextlib.suppress(Exception):
+        container.close()
+    path.unlink(missing_ok=True)
 
 
 def _video_path(path: str | Path) -> Path:
     """`path` checked before anything is rendered: PyAV picks the container from the suffix,
     and one that cannot hold H.264 (.png, .gif, none) fails only at the first frame."""
-    path = Path(path)
+    path = Path(path).expanduser()
     if path.is_dir() or path.suffix.lower() not in VIDEO_SUFFIXES:
         raise NeulfError(f"cannot write a video to {path}: give a file name ending in {', '.join(VIDEO_SUFFIXES)} (H.264).")
     return path
