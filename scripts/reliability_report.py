@@ -259,6 +259,30 @@ CASES = [
         "tests/test_blender_convert.py::test_an_older_python_is_told_before_any_import_fails",
         "tests/test_blender_convert.py::test_a_killed_process_is_said_to_be_killed",
         "tests/test_blender_convert.py::test_thread_call_ends_with_result_error_or_cancel"]),
+    Case("Two trainings of one folder at once (processes racing for a new or a stale lock, a training started during "
+         "the auto preset's size search): one trains, the others are refused; a model folder whose path leaves no "
+         "room for a checkpoint is refused before training", [
+        "tests/test_lock.py::test_processes_racing_for_a_lock_never_hold_it_together[nobody]",
+        "tests/test_lock.py::test_processes_racing_for_a_lock_never_hold_it_together[a process that is gone]",
+        "tests/test_lock.py::test_a_lock_is_released_only_while_it_is_still_this_process",
+        "tests/test_lock.py::test_a_lock_being_written_is_not_taken_for_a_stale_one",
+        "tests/test_lock.py::test_the_thread_holding_a_lock_takes_it_again_and_others_are_refused",
+        "tests/test_lock.py::test_the_auto_presets_search_holds_the_lock",
+        "tests/test_lock.py::test_a_model_folder_path_too_long_for_the_checkpoint_is_refused_before_training"]),
+    Case("Outputs of render, eval and video: never written over the scene's photos; a rig's views that share a "
+         "stem each get their own file; whole files or none when stopped; a video stopped part-way keeps the earlier "
+         "one and says where its frames are; SIGTERM ends in one line; ~ is the home folder; eval makes nothing in a "
+         "folder that holds no model", [
+        *_ids("tests/test_outputs.py::test_renders_never_replace_the_scene_s_photos", "render into images",
+              "eval into images", "render from inside images", "render cameras into images"),
+        "tests/test_outputs.py::test_a_rig_s_views_that_share_a_stem_each_get_their_own_render",
+        "tests/test_outputs.py::test_a_rig_s_photo_folder_is_refused_as_out",
+        "tests/test_outputs.py::test_renders_and_eval_files_are_replaced_whole",
+        "tests/test_outputs.py::test_a_render_stopped_by_sigterm_says_one_line_and_leaves_whole_files",
+        *_ids("tests/test_outputs.py::test_a_video_stopped_part_way_keeps_the_earlier_video", "SIGTERM", "SIGINT"),
+        "tests/test_outputs.py::test_tilde_is_the_home_folder_for_every_output",
+        *_ids("tests/test_outputs.py::test_eval_of_a_folder_that_is_not_a_model_leaves_nothing_in_it", "scene",
+              "photos", "empty")]),
     Case("No network access unless the user asks for the dependency install, with the declared permission", [
         f"{REL}::test_no_network_unless_the_user_installs", f"{STORY}[install_dependencies]"]),
 ]
