@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import io
 import json
+import shlex
 import zipfile
 from pathlib import Path
 
@@ -168,7 +169,8 @@ def _damaged_member(path: Path) -> str | None:
 
 def _read(path: Path, model_dir: Path, map_location) -> dict:
     if not Path(model_dir).expanduser().exists():
-        raise NeulfError(f"model folder {model_dir} does not exist; train one with: python -m neulf_core train SCENE --out {model_dir}")
+        raise NeulfError(f"model folder {model_dir} does not exist; train one with: python -m neulf_core train SCENE --out "
+                         f"{shlex.quote(str(model_dir))}")
     if not path.is_file():
         from .lock import training_holder
 
@@ -179,8 +181,9 @@ def _read(path: Path, model_dir: Path, map_location) -> dict:
         if any((Path(model_dir) / name).exists() for name in ("sparse", "images", "poses_bounds.npy")):
             raise NeulfError(f"{model_dir} is a scene folder (photos and camera poses), not a model: give the model "
                              f"folder training wrote (train's --out), or train one with: python -m neulf_core train "
-                             f"{model_dir} --out MODEL_DIR")
-        raise NeulfError(f"{model_dir} holds no trained model ({CHECKPOINT_NAME} missing); train one with: python -m neulf_core train SCENE --out {model_dir}")
+                             f"{shlex.quote(str(model_dir))} --out MODEL_DIR")
+        raise NeulfError(f"{model_dir} holds no trained model ({CHECKPOINT_NAME} missing); train one with: python -m "
+                         f"neulf_core train SCENE --out {shlex.quote(str(model_dir))}")
     if Path(model_dir).expanduser().is_file() and path.suffix.lower() != ".pt" and not zipfile.is_zipfile(path):
         # (a photo or poses_bounds.npy given by mistake: not a damaged checkpoint to delete)
         raise NeulfError(f"{path} is not a NeuLF model: give the model folder training wrote (train's --out), or its "

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import copy
 import hashlib
+import shlex
 import struct
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -225,7 +226,7 @@ def load_scene(scene_dir: str | Path, images_dir: str | Path | None = None) -> S
                          f"{scene_dir.parent} (the one holding sparse/ and images/).")
     raise NeulfError(
         f"no camera model in {scene_dir}: expected sparse/0/cameras.bin (or .txt) from COLMAP, "
-        f"or poses_bounds.npy from LLFF. To make one from photos run: python -m neulf_core reconstruct PHOTOS --out {scene_dir}"
+        f"or poses_bounds.npy from LLFF. To make one from photos run: python -m neulf_core reconstruct PHOTOS --out {shlex.quote(str(scene_dir))}"
     )
 
 
