@@ -70,6 +70,9 @@ def evaluate_model(model_dir, scene_dir, *, images_dir=None, out_dir=None, views
         "images": str(scene.images_dir) if scene.images_dir else None, "warnings": notes,
         "mean_psnr": float(np.mean([r["psnr"] for r in rows])), "mean_ssim": float(np.mean([r["ssim"] for r in rows])),
         "mean_colour_psnr": float(np.mean(baseline)), "device": str(light_field.device), "pixel_samples": pixel_samples,
+        # (which state of the model was scored: an eval run while training goes on is tied to its step)
+        "model_step": light_field.meta.get("progress", {}).get("step"),
+        "model_status": light_field.meta.get("progress", {}).get("status"),
     }
     if perceptual is not None:
         report["mean_lpips"] = float(np.mean([r["lpips"] for r in rows]))

@@ -82,6 +82,7 @@ def test_train_render_eval_beats_mean_colour(trained, gt_scene, rendered, tmp_pa
     report = json.loads((model / "eval" / "eval.json").read_text())
     assert [row["view"] for row in report["views"]] == ["view_00_00.png", "view_02_00.png"]  # every 8th, from the first
     assert report["mean_psnr"] > report["mean_colour_psnr"] + 8.0, report
+    assert (report["model_step"], report["model_status"]) == (600, "finished")  # (which state was scored)
 
     # Arbitrary cameras: the generator's own camera file renders as is, at its size.
     out = tmp_path / "renders"
