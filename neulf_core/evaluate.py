@@ -19,7 +19,8 @@ from .outputs import refuse_clashing_names, refuse_writing_over_photos, view_fil
 from .render import DEFAULT_PIXEL_SAMPLES, LightField
 from .poses import fit_view_pose
 from .scene import camera_spacing, load_scene, select_views
-from .trained_scene import changed_cameras_note, images_dir_as_trained, other_photos_note, scale_as_trained
+from .trained_scene import (changed_cameras_note, changed_photos_note, images_dir_as_trained, other_photos_note,
+                            scale_as_trained)
 
 
 def evaluate_model(model_dir, scene_dir, *, images_dir=None, out_dir=None, views=None, device=None,
@@ -40,7 +41,9 @@ def evaluate_model(model_dir, scene_dir, *, images_dir=None, out_dir=None, views
         refuse_clashing_names(files, out)
         refuse_writing_over_photos(out, [name for names in files.values() for name in names],
                                    [view.image_path for view in scene.views], scene.images_dir)
-    notes = [note for note in (other_photos_note(chosen, saved), changed_cameras_note(chosen, saved)) if note]
+    notes = [note for note in (other_photos_note(chosen, saved), changed_cameras_note(chosen, saved),
+                               changed_photos_note(chosen, saved, "their scores compare the model with other photos "
+                                                                   "than it learnt.")) if note]
     mean_colour = np.asarray(light_field.meta["scene"]["mean_colour"], dtype=np.float32)
     rows, baseline = [], []
     perceptual = load_lpips()  # None until the user fetched its weights (python -m neulf_core fetch-lpips)

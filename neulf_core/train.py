@@ -44,8 +44,8 @@ from .progress import emit as _emit
 from .presets import APPEARANCE_ADAM_BETA2, APPEARANCE_GEOMETRY, DEFAULT_PRESET, get_preset
 from .scene import Scene, load_scene, scaled_size, split_views
 from .slab import Slab, fit_slab, wide_views
-from .trained_scene import (camera_record, changed_cameras, images_dir_as_trained, other_reconstruction,
-                            trained_photo_size)
+from .trained_scene import (camera_record, changed_cameras, changed_photos_note, images_dir_as_trained,
+                            other_reconstruction, photo_digests, trained_photo_size)
 from .teacher import strong_pull, sweep_depth_targets, sweep_photo_scale, teacher_fade, teacher_loss, teacher_weight
 from .point_depth import point_depth_loss, point_depth_targets
 
@@ -457,6 +457,12 @@ class TrainingRun:
               held_out=[v.name for v in self.held_views], device=describe_device(self.device), preset=config.preset,
               notes=scene.notes)
         self.no_baseline = not has_baseline(self.train_views, self.slab)
+        self.photo_digests = photo_digests(scene.views)
+        if resumed:
+            note = changed_photos_note(scene.views, resumed["scene"], "training goes on with them as they are now; "
+                                       "for a model of the new photos, train into another --out folder.")
+            if note:
+                _emit(progress, event="warning", message=note)
         if not resumed:
             _say_wide_views(self.slab, self.train_views, config.scale, progress)
             if self.no_baseline:
@@ -621,6 +627,7 @@ class TrainingRun:
                 # the photos read (folder and sizes): eval, render and resume read the same ones
                 "images": scene.images_record(), "photo_sizes": {v.name: list(v.size) for v in scene.views},
                 "cameras": {v.name: camera_record(v) for v in scene.views},  # (checked on resume and render)
+                "photo_digests": self.photo_digests,  # (eval and resume notice photos replaced since)
                 "mean_colour": mean_colour(self.train_rays).tolist(),
             },
             "train_config": asdict(config),

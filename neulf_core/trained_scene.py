@@ -10,6 +10,7 @@ images_8/, four times its pixels, without a word.)
 
 from __future__ import annotations
 
+import hashlib
 from pathlib import Path
 
 import numpy as np
@@ -118,3 +119,38 @@ def other_reconstruction(saved_scene: dict, scene, what_to_do: str) -> str:
                 "model for this one.")
     return (f"the model was trained on another reconstruction ({root}, {len(saved_scene.get('views', []))} views): "
             f"{what_to_do} with that scene, or train a new model for this one.")
+
+
+def photo_digest(path: Path) -> str:
+    """A short digest of a photo file's bytes: what model.json keeps to notice photos replaced
+    by others of the same name and size (a capture's folder refilled, photos mirrored or
+    edited), which the scene's fingerprint (names, centres) and the sizes do not see.  The
+    bytes, not the pixels: hashing a file is a hundred times cheaper than decoding it."""
+    digest = hashlib.sha1()
+    with open(path, "rb") as handle:
+        for block in iter(lambda: handle.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()[:16]
+
+
+def photo_digests(views: list[View]) -> dict[str, str]:
+    return {view.name: photo_digest(view.image_path) for view in views if view.image_path is not None}
+
+
+def changed_photos(views: list[View], saved_scene: dict | None) -> list[str]:
+    """Names of `views` whose photo is not the file the model trained on (other bytes), where
+    the model recorded its digest and the photo read is of the trained size (another size is
+    another images folder: other_photos_note says that)."""
+    recorded = (saved_scene or {}).get("photo_digests") or {}
+    return [view.name for view in views
+            if view.image_path is not None and view.name in recorded and trained_photo_size(view, saved_scene) is None
+            and photo_digest(view.image_path) != recorded[view.name]]
+
+
+def changed_photos_note(views: list[View], saved_scene: dict | None, consequence: str) -> str | None:
+    changed = changed_photos(views, saved_scene)
+    if not changed:
+        return None
+    shown = ", ".join(changed[:3]) + (" ..." if len(changed) > 3 else "")
+    return (f"{len(changed)} photo(s) ({shown}) are not the files the model trained on (their bytes differ: replaced, "
+            f"edited or saved again): {consequence}")

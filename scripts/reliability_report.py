@@ -209,8 +209,10 @@ CASES = [
     Case("--resume with options other than the model's: said, the model kept", [
         f"{REL}::test_resume_says_which_asked_options_the_model_keeps"]),
     Case("A model trained on another images folder than the scene's default (LLFF's images_N): eval, render and "
-         "--resume read its own photos, or say so; views named twice, or among held-out, scored once", [
+         "--resume read its own photos, or say so; views named twice, or among held-out, scored once; photos "
+         "replaced since training (same names and sizes) said by eval and resume", [
         f"{REL}::test_eval_render_and_resume_read_the_photos_the_model_trained_on",
+        f"{REL}::test_photos_replaced_since_training_are_said",
         f"{REL}::test_eval_scores_each_view_once_and_takes_held_out_among_names",
         f"{REL}::test_blender_import_with_a_model_reads_its_photos"]),
     Case("The training lifecycle: a model whose checkpoint.pt was deleted (model.pt kept) neither trained over nor "
