@@ -118,6 +118,11 @@ def reconstruct(
         new_model_dir = work / "sparse"
         model_dir = out_dir / "sparse" / "0"
         reporter = _ProgressReporter(progress, total=len(names))
+        left_out = left_out_photos(Path(images_dir))
+        if left_out:  # (a mixed folder: those are not in the reconstruction, and nothing else would say so)
+            reporter.report("features", f"warning: {len(left_out)} photo(s) in a camera format that cannot be read are "
+                                        f"left out ({left_out[0].name}{' ...' if len(left_out) > 1 else ''}): export "
+                                        "them as JPEG or PNG to include them")
 
         with _quiet_colmap_logging(), _colmap_errors_as_neulf_errors(reporter):
             reporter.report("features", f"Extracting features from {len(names)} photos")
@@ -211,6 +216,26 @@ def _unwritable(out_dir: Path, error: OSError) -> NeulfError:
 # --------------------------------------------------------------------------- input checks
 
 
+# Cameras' own formats that neither Pillow nor COLMAP reads: an iPhone's default (HEIC), raw files.
+CAMERA_ONLY_FORMATS = (".heic", ".heif", ".avif", ".dng", ".cr2", ".cr3", ".nef", ".arw", ".raf", ".orf", ".rw2")
+
+
+def left_out_photos(images_dir: Path) -> list[Path]:
+    """Photos in a camera's own format directly inside `images_dir`, which are not read."""
+    return sorted(p for p in Path(images_dir).iterdir()
+                  if p.is_file() and not p.name.startswith(".") and p.suffix.lower() in CAMERA_ONLY_FORMATS)
+
+
+def _camera_formats_note(images_dir: Path) -> str:
+    """' (it holds 30 .HEIC photos, which ... : export them as JPEG)', or ''."""
+    left_out = left_out_photos(images_dir)
+    if not left_out:
+        return ""
+    kinds = ", ".join(sorted({p.suffix.upper() for p in left_out}))
+    return (f" (it holds {len(left_out)} {kinds} photo(s), which cannot be read: export them as JPEG or PNG -- on an "
+            "iPhone, Settings > Camera > Formats > Most Compatible takes JPEGs from then on)")
+
+
 def find_photos(images_dir: Path) -> list[Path]:
     """The photos directly inside ``images_dir``, sorted by name; raises if unusable."""
     if not images_dir.exists():
@@ -223,8 +248,8 @@ def find_photos(images_dir: Path) -> list[Path]:
     photos = list_images(images_dir)
     if not photos:
         raise NeulfError(
-            f"No photos found in {images_dir}; accepted extensions are {', '.join(IMAGE_EXTENSIONS)} "
-            "(subfolders are not searched)."
+            f"No photos found in {images_dir}{_camera_formats_note(images_dir)}; accepted extensions are "
+            f"{', '.join(IMAGE_EXTENSIONS)} (subfolders are not searched)."
         )
     if len(photos) < MIN_PHOTOS:
         raise NeulfError(

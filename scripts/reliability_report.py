@@ -72,7 +72,8 @@ CASES = [
         *_ids(f"{REL}::test_photos_in_other_formats_train", "grayscale", "RGBA", "16-bit RGB", "16-bit grayscale",
               "EXIF-rotated JPEG"),
         f"{LOADING}::test_load_rgb_grayscale", f"{LOADING}::test_load_rgb_rgba_composites_on_black",
-        f"{LOADING}::test_load_rgb_16_bit_is_scaled_not_clipped", f"{LOADING}::test_exif_rotated_jpeg"]),
+        f"{LOADING}::test_load_rgb_16_bit_is_scaled_not_clipped", f"{LOADING}::test_exif_rotated_jpeg",
+        "tests/test_reconstruct.py::test_photos_in_a_camera_s_own_format_are_named"]),
     Case("An empty point cloud", [f"{REL}::test_empty_point_cloud", f"{GEOMETRY}::test_fit_slab_overrides_and_invalid_depths"]),
     Case("A model with a single image", [f"{REL}::test_single_image"]),
     Case("A capture that is not forward-facing (a ring of cameras)", [

@@ -254,6 +254,35 @@ def test_folder_without_photos_lists_accepted_extensions(tmp_path):
         reconstruct(tmp_path / "photos", tmp_path / "scene")
 
 
+def test_photos_in_a_camera_s_own_format_are_named(capture, tmp_path):
+    """An iPhone's HEIC photos (or raw files) are not read: a folder of only those is said to
+    hold them, with what to do (it had said only "no photos found"), and a folder mixing them
+    with JPEGs says that they are left out before reconstructing the rest."""
+    only_heic = tmp_path / "heic"
+    only_heic.mkdir()
+    for i in range(5):
+        (only_heic / f"IMG_{i:04d}.HEIC").write_bytes(b"not decoded")
+    with pytest.raises(NeulfError, match=r"5 \.HEIC photo\(s\), which cannot be read: export them as JPEG"):
+        reconstruct(only_heic, tmp_path / "scene_heic")
+
+    class Stop(Exception):
+        pass
+
+    def first_event(event):
+        seen.append(event["message"])
+        raise Stop()
+
+    photos, true_centres = capture
+    mixed = copy_photos(sorted(true_centres), photos, tmp_path / "mixed")
+    for name in ("IMG_9001.HEIC", "IMG_9002.dng"):
+        (mixed / name).write_bytes(b"not decoded")
+    seen = []
+    with pytest.raises(Stop):
+        reconstruct(mixed, tmp_path / "scene_mixed", progress=first_event)
+    assert seen[0].startswith("warning: 2 photo(s) in a camera format that cannot be read are left out (IMG_9001.HEIC"), \
+        seen
+
+
 def test_two_photos_are_not_enough(capture, tmp_path):
     photos, true_centres = capture
     two = copy_photos(sorted(true_centres)[:2], photos, tmp_path / "photos")
