@@ -59,6 +59,7 @@ NON_NEGATIVE_INT = _number(int, 0, above=False)
 TRAIN_SCALE = _number(float, 0, above=True, highest=1)
 
 
+from .frames import DEFAULT_FRAME_COUNT  # noqa: E402  (numpy, Pillow: no torch at start-up)
 from .video import VIDEO_SUFFIXES  # noqa: E402  (numpy and errors only: no torch at start-up)
 
 
@@ -151,6 +152,24 @@ def _names(text: str | None) -> list[str] | None:
 
 
 # ----------------------------------------------------------------------------- reconstruct
+
+
+def cmd_frames(args) -> int:
+    from .frames import extract_frames
+
+    shown = [-1]
+
+    def report(done: int, total: int) -> None:
+        percent = min(100, 100 * done // max(total, 1))
+        if percent >= shown[0] + 10:  # (a line every tenth: stderr may be a log)
+            shown[0] = percent
+            print(f"[frames] {done}/{total} frames read", file=sys.stderr, flush=True)
+
+    _sigterm_interrupts()  # (PyAV's decoder is stopped between frames; written photos are removed)
+    written = extract_frames(Path(args.video), Path(args.out), args.count, progress=report)
+    print(f"{len(written)} photos written to {Path(args.out).expanduser()}; next: python -m neulf_core reconstruct "
+          f"{shlex.quote(str(Path(args.out).expanduser()))} --out SCENE_DIR")
+    return 0
 
 
 def cmd_reconstruct(args) -> int:
@@ -707,6 +726,14 @@ def build_parser() -> argparse.ArgumentParser:
                      allow_abbrev=False)
     # (whole option names: --resume's check reads which options were written)
     sub = parser.add_subparsers(dest="command", required=True, parser_class=functools.partial(_Parser, allow_abbrev=False))
+
+    p = sub.add_parser("frames", help="video -> photos: the sharpest frame of each stretch of a capture's video")
+    p.add_argument("video")
+    p.add_argument("--out", required=True, help="a new or empty folder for the photos (frame_0001.png, ...)")
+    p.add_argument("--count", type=POSITIVE_INT, default=DEFAULT_FRAME_COUNT,
+                   help=f"photos to pick, one from each of that many equal stretches of the video (default "
+                        f"{DEFAULT_FRAME_COUNT})")
+    p.set_defaults(run=cmd_frames)
 
     p = sub.add_parser("reconstruct", help="photos -> COLMAP model (pycolmap SfM)")
     p.add_argument("images_dir")

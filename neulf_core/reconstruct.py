@@ -29,6 +29,7 @@ from __future__ import annotations
 import contextlib
 import filecmp
 import os
+import shlex
 import shutil
 import tempfile
 import time
@@ -40,6 +41,7 @@ import pycolmap
 from PIL import Image, ImageOps, UnidentifiedImageError
 
 from .errors import NeulfError
+from .frames import is_video
 from .images import IMAGE_EXTENSIONS, list_images
 from .lock import claim, claim_holder
 
@@ -243,6 +245,10 @@ def find_photos(images_dir: Path) -> list[Path]:
             f"Photo folder {images_dir} does not exist; pass the folder that holds your photos."
         )
     if not images_dir.is_dir():
+        if is_video(images_dir):
+            raise NeulfError(f"{images_dir} is a video: pick its sharpest frames as photos first, with python -m "
+                             f"neulf_core frames {shlex.quote(str(images_dir))} --out PHOTOS_DIR, then reconstruct "
+                             "PHOTOS_DIR.")
         raise NeulfError(f"{images_dir} is a file, not a folder; pass the folder that holds your photos.")
     # Hidden files are skipped: macOS "._IMG_0001.jpg" resource forks look like photos.
     photos = list_images(images_dir)

@@ -590,3 +590,55 @@ def test_a_relative_scene_folder(capture, tmp_path, monkeypatch):
     model_dir = reconstruct(capture[0], Path("relative_scene"))
     assert pycolmap.Reconstruction(model_dir).num_reg_images() == len(capture[1])
     assert work_folders(tmp_path / "relative_scene") == []
+
+
+# -------------------------------------------------------------------------- a capture filmed
+
+
+def test_a_video_gives_its_sharpest_frames_and_they_reconstruct(capture, tmp_path, capfd):
+    """A capture filmed: each of the 8 views held for three frames, the first and last blurred
+    as a moving camera blurs them.  `frames --count 8` keeps the sharp one of each stretch, in
+    order, and the photos reconstruct with every view registered."""
+    from PIL import ImageFilter
+
+    from neulf_core.cli import main
+    from neulf_core.video import write_video
+
+    photos, true_centres = capture
+    names = sorted(true_centres)
+    sharp = [np.asarray(Image.open(photos / name).convert("RGB")) for name in names]
+    blurred = [np.asarray(Image.fromarray(view).filter(ImageFilter.GaussianBlur(2.5))) for view in sharp]
+    clip = tmp_path / "walk.mp4"
+    write_video([frame for s, b in zip(sharp, blurred) for frame in (b, s, b)], clip, fps=6)
+    assert main(["frames", str(clip), "--out", str(tmp_path / "frames"), "--count", "8"]) == 0
+    picked = sorted((tmp_path / "frames").iterdir())
+    assert [p.name for p in picked] == [f"frame_{i:04d}.png" for i in range(1, 9)]
+    for path, s, b in zip(picked, sharp, blurred):
+        frame = np.asarray(Image.open(path), dtype=np.float32)[:HEIGHT, :WIDTH]  # (H.264 pads to even sizes)
+        assert np.abs(frame - s).mean() < 0.5 * np.abs(frame - b).mean(), path.name  # the sharp frame, each stretch
+    assert "next: python -m neulf_core reconstruct" in capfd.readouterr().out
+    model = pycolmap.Reconstruction(reconstruct(tmp_path / "frames", tmp_path / "scene"))
+    assert model.num_reg_images() == len(names)
+
+
+def test_frames_refuses_what_it_cannot_use(capture, tmp_path):
+    from neulf_core.frames import extract_frames, upright
+
+    with pytest.raises(NeulfError, match="does not exist"):
+        extract_frames(tmp_path / "missing.mp4", tmp_path / "out")
+    not_video = tmp_path / "notes.mp4"
+    not_video.write_text("not a video")
+    with pytest.raises(NeulfError, match="cannot read .* as a video"):
+        extract_frames(not_video, tmp_path / "out")
+    with pytest.raises(NeulfError, match="already holds photos"):  # (frames would be reconstructed with them)
+        extract_frames(not_video, capture[0])
+    with pytest.raises(NeulfError, match="is a video: pick its sharpest frames"):  # reconstruct given the video
+        reconstruct(not_video, tmp_path / "scene")
+    assert not (tmp_path / "out").exists()
+    # A phone's portrait clip is stored sideways with a turn to apply (PyAV's rotation: counter-
+    # clockwise degrees): -90 turns the stored frame a quarter clockwise.
+    stored = np.zeros((2, 3, 3), np.uint8)
+    stored[0, 0] = 255  # top left
+    shown = upright(stored, -90)
+    assert shown.shape == (3, 2, 3) and shown[0, 1, 0] == 255  # top right
+    assert upright(stored, 0) is stored
