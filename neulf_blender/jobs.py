@@ -256,6 +256,26 @@ class TrainJob(ProcessJob):
                 "with torch in the add-on's preferences (Python with torch), and press Check"))
 
 
+class FramesJob(ProcessJob):
+    """`python -m neulf_core frames VIDEO --out PHOTOS --count N`: "[frames] D/T frames read" on stderr."""
+
+    kind = "frame picking"
+
+    def __init__(self, python: str, video: str, photos_dir: str, count: int, env: dict | None = None):
+        self.photos_dir = photos_dir
+        super().__init__([python, "-m", "neulf_core", "frames", video, "--out", photos_dir, "--count", str(int(count))],
+                         env)
+
+    def on_stderr(self, line: str) -> None:
+        if line.startswith("[frames]"):
+            self.state["message"] = "picking sharp frames: " + line.removeprefix("[frames]").strip()
+            try:
+                done, total = line.split()[1].split("/")
+                self.state["fraction"] = min(1.0, int(done) / max(1, int(total)))
+            except (IndexError, ValueError):
+                pass
+
+
 class ReconstructJob(ProcessJob):
     """`python -m neulf_core reconstruct IMAGES --out SCENE`: progress lines on stderr."""
 

@@ -105,29 +105,88 @@ class NEULF_OT_reconstruct(_Reporting, bpy.types.Operator):
         if not photos or not Path(photos).is_dir():
             raise NeulfError("choose the folder that holds the photos.")
         out = abspath(self.scene_dir) or str(Path(photos).parent / f"{Path(photos).name}_neulf")
+        start_reconstruction(context, photos, out)
+        if not bpy.app.background:
+            self.report({"INFO"}, f"reconstructing {photos} into {out} in the background")
+        return {"FINISHED"}
+
+
+def start_reconstruction(context, photos: str, out: str) -> None:
+    """Reconstruct `photos` into the scene folder `out` in the background, then import it into
+    the scene it was started from (where that file is still open)."""
+    python, extra = worker_python(get_prefs(context))
+    job = jobs.ReconstructJob(python, photos, out, env=jobs.core_environment(extra))
+    scene_name, opened = context.scene.name, tasks.opened_files
+
+    def done(job):
+        scene = bpy.data.scenes.get(scene_name) if tasks.same_file_since(opened) else None
+        if job.state["status"] != "finished" or scene is None:
+            found = job.state["status"] == "finished"  # (another .blend was opened meanwhile)
+            print(f"NeuLF: reconstruction {job.state['status']}: "
+                  + (f"the scene is in {out}: import it with Import COLMAP / LLFF" if found
+                     else str(job.state.get("error"))))
+            return
+        with bpy.context.temp_override(scene=scene):
+            bpy.ops.neulf.import_colmap(directory=out)
+
+    tasks.start("reconstruct", job, done)
+    _wait_in_background(job, "reconstruction")
+
+
+def _wait_in_background(job, what: str) -> None:
+    """In background mode (scripts, tests) run the job to its end (its `done` included) and raise
+    its failure; in the UI the timer drains it and the panel shows it."""
+    if bpy.app.background:
+        job.wait()
+        tasks.poll_all()
+        if job.state["status"] != "finished":
+            raise NeulfError(f"{what} failed: {job.state['error']}")
+
+
+class NEULF_OT_reconstruct_video(_Reporting, bpy.types.Operator):
+    """Pick the sharpest frames of a capture's video as photos, reconstruct them with pycolmap in the background, then import it"""
+
+    bl_idname = "neulf.reconstruct_video"
+    bl_label = "Reconstruct Video (pycolmap)"
+
+    filepath: StringProperty(subtype="FILE_PATH", description="The capture's video")
+    filter_glob: StringProperty(default="*.mp4;*.mov;*.m4v;*.mkv;*.avi;*.webm;*.mts", options={"HIDDEN"})
+    count: IntProperty(name="Photos", default=60, min=3, max=1000,
+                       description="Photos to pick: the sharpest frame of each of that many equal stretches of the video")
+    scene_dir: StringProperty(name="Scene Folder", subtype="DIR_PATH",
+                              description="Where to write the COLMAP scene (default: next to the video)")
+
+    @classmethod
+    def poll(cls, context):
+        return not tasks.running("reconstruct")
+
+    def invoke(self, context, event):
+        context.window_manager.fileselect_add(self)
+        return {"RUNNING_MODAL"}
+
+    def run(self, context):
+        video = abspath(self.filepath)
+        if not video or not Path(video).is_file():
+            raise NeulfError("choose the video file of the capture.")
+        stem = Path(video).stem
+        out = abspath(self.scene_dir) or str(Path(video).parent / f"{stem}_neulf")
+        photos = str(Path(out).parent / f"{Path(out).name}_frames")  # (beside the scene: reconstruct links them)
         python, extra = worker_python(get_prefs(context))
-        job = jobs.ReconstructJob(python, photos, out, env=jobs.core_environment(extra))
+        job = jobs.FramesJob(python, video, photos, self.count, env=jobs.core_environment(extra))
         scene_name, opened = context.scene.name, tasks.opened_files
 
         def done(job):
             scene = bpy.data.scenes.get(scene_name) if tasks.same_file_since(opened) else None
             if job.state["status"] != "finished" or scene is None:
-                found = job.state["status"] == "finished"  # (another .blend was opened meanwhile)
-                print(f"NeuLF: reconstruction {job.state['status']}: "
-                      + (f"the scene is in {out}: import it with Import COLMAP / LLFF" if found
-                         else str(job.state.get("error"))))
+                print(f"NeuLF: frame picking {job.state['status']}: {job.state.get('error') or photos}")
                 return
             with bpy.context.temp_override(scene=scene):
-                bpy.ops.neulf.import_colmap(directory=out)
+                start_reconstruction(bpy.context, photos, out)
 
-        tasks.start("reconstruct", job, done)
-        if bpy.app.background:
-            job.wait()
-            tasks.poll_all()
-            if job.state["status"] != "finished":
-                raise NeulfError(f"reconstruction failed: {job.state['error']}")
-        else:
-            self.report({"INFO"}, f"reconstructing {photos} into {out} in the background")
+        tasks.start("reconstruct", job, done)  # (one capture job at a time: the panel shows either)
+        _wait_in_background(job, "frame picking")  # (in background mode, the reconstruction too)
+        if not bpy.app.background:
+            self.report({"INFO"}, f"picking frames of {video} into {photos}, then reconstructing into {out}")
         return {"FINISHED"}
 
 
@@ -577,6 +636,6 @@ def menu_import(self, context):
     self.layout.operator(NEULF_OT_import_colmap.bl_idname, text="NeuLF Capture (COLMAP/LLFF)")
 
 
-CLASSES = (NEULF_OT_import_colmap, NEULF_OT_reconstruct, NEULF_OT_load_model, NEULF_OT_train, NEULF_OT_cancel_train,
+CLASSES = (NEULF_OT_import_colmap, NEULF_OT_reconstruct, NEULF_OT_reconstruct_video, NEULF_OT_load_model, NEULF_OT_train, NEULF_OT_cancel_train,
            NEULF_OT_render_camera, NEULF_OT_spiral_path,
            NEULF_OT_render_video, NEULF_OT_use_capture_camera, NEULF_OT_viewport_preview, NEULF_OT_composite_cg)

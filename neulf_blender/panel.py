@@ -56,11 +56,13 @@ class NEULF_PT_main(bpy.types.Panel):
         col.label(text="Capture", icon="OUTLINER_OB_CAMERA")
         col.operator("neulf.import_colmap", text="Import COLMAP / LLFF", icon="IMPORT")
         col.operator("neulf.reconstruct", text="Reconstruct Photos", icon="IMAGE_DATA")
-        recon = tasks.get("reconstruct")
+        col.operator("neulf.reconstruct_video", text="Reconstruct Video", icon="FILE_MOVIE")
+        recon = tasks.get("reconstruct")  # (a video's frame picking, then its reconstruction)
+        what = "Picking frames" if recon is not None and recon.kind == "frame picking" else "Reconstructing"
         if recon is not None and recon.running:
-            _job_box(layout, recon, "Reconstructing")
+            _job_box(layout, recon, what)
         elif recon is not None and recon.state["status"] == "failed":
-            _wrapped_label(layout, context, f"Reconstruction failed: {recon.state['error']}", icon="ERROR")
+            _wrapped_label(layout, context, f"{what} failed: {recon.state['error']}", icon="ERROR")
         if props.scene_dir:
             layout.label(text=bpy.path.basename(props.scene_dir.rstrip("/\\")) or props.scene_dir, icon="FILE_FOLDER")
         layout.operator("neulf.use_capture_camera", icon="VIEW_CAMERA")

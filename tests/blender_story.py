@@ -1795,7 +1795,17 @@ def run_story(setup: dict) -> None:  # noqa: C901 - one story, told in order
         assert "reconstruction failed" in message and "Only 2 photo" in message, message
         assert "Traceback" not in message and message.count("\n") <= 1, message
         assert Path(bpy.path.abspath(bpy.context.scene.neulf.scene_dir)).resolve() == out.resolve()
-        return f"{len(cams)} cameras, focal {focal:.1f} px, {seconds:.1f} s; {message.strip()}"
+        # The capture filmed: Reconstruct Video picks a frame of each stretch, then reconstructs and imports them.
+        bpy.ops.wm.read_homefile(use_empty=True)
+        filmed = work / "filmed"
+        assert bpy.ops.neulf.reconstruct_video(filepath=setup["video"], count=setup["video_photos"],
+                                               scene_dir=str(filmed)) == {"FINISHED"}
+        picked = sorted(p.name for p in (work / "filmed_frames").iterdir())
+        assert picked == [f"frame_{i:04d}.png" for i in range(1, setup["video_photos"] + 1)], picked
+        assert Path(bpy.path.abspath(bpy.context.scene.neulf.scene_dir)).resolve() == filmed.resolve()
+        assert len(cameras()) == setup["video_photos"], len(cameras())
+        return (f"{len(cams)} cameras, focal {focal:.1f} px, {seconds:.1f} s; {message.strip()}; a video: "
+                f"{len(picked)} frames picked, reconstructed and imported")
 
     @story.step("user_errors", "install", "train_blocking")
     def _():

@@ -92,8 +92,15 @@ def capture(tmp_path_factory) -> dict:
     folder = tmp_path_factory.mktemp("capture")
     scene_dir = make_scene(folder / "scene")
     write_synthetic_capture(folder / "photos")
+    from PIL import Image
+
+    from neulf_core.video import write_video
+
+    # The same capture filmed: each photo held for two frames (Reconstruct Video picks one of each).
+    frames = [np.asarray(Image.open(photo).convert("RGB")) for photo in sorted((folder / "photos").iterdir())]
+    write_video([frame for frame in frames for _ in range(2)], folder / "walk.mp4", fps=4)
     return {"scene_dir": str(scene_dir), "reference": reference_values(scene_dir), "photos": str(folder / "photos"),
-            "photos_focal": FOCAL_PX}
+            "photos_focal": FOCAL_PX, "video": str(folder / "walk.mp4"), "video_photos": len(frames)}
 
 
 # ----------------------------------------------------------------------------- pytest side
