@@ -390,6 +390,9 @@ class WorkerClient:
             return self._call(op, on_progress, should_stop, timeout, args)
 
     def _call(self, op: str, on_progress, should_stop, timeout: float | None, args: dict):
+        # (this call's lines only: an earlier call's traceback had been given as the cause of a worker
+        # the system killed later)
+        self._stderr.clear()
         if not self.alive:
             self._start()
         self._next_id += 1

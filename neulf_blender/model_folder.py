@@ -14,6 +14,7 @@ from . import capture, tasks
 from .jobs import pose_text
 from ..neulf_core.errors import NeulfError
 from ..neulf_core.lock import training_holder
+from ..neulf_core.members import member_dir, read_state
 from ..neulf_core.model_files import METADATA_NAME, can_resume, has_render_model, read_metadata
 
 
@@ -78,9 +79,24 @@ def progress_text(progress: dict) -> str:
     return f"{status} at step {step}"
 
 
-def model_status(meta: dict) -> str:
-    """progress_text, and the pose corrections where the model has them."""
-    return progress_text(meta.get("progress", {})) + pose_text(meta.get("pose_corrections"))
+def saved_progress_text(path: str, meta: dict) -> str:
+    """progress_text of the model folder `path` (its model.json `meta`): the first member's, or,
+    where a later member is unfinished (training stopped in it), that member's -- the first's
+    "finished" had read as nothing left to train."""
+    state = read_state(Path(path))
+    if state and state["count"] > 1 and meta.get("progress", {}).get("status") == "finished":
+        finished = {int(m) for m in state.get("finished", [])}
+        for member in range(2, state["count"] + 1):
+            if member not in finished:
+                progress = read_metadata(member_dir(path, member)).get("progress")
+                where = progress_text(progress) if progress else "not started; Train continues it"
+                return f"member {member} of {state['count']} {where}"
+    return progress_text(meta.get("progress", {}))
+
+
+def model_status(path: str, meta: dict) -> str:
+    """saved_progress_text, and the pose corrections where the model has them."""
+    return saved_progress_text(path, meta) + pose_text(meta.get("pose_corrections"))
 
 
 TRAINED_ELSEWHERE = "being trained by another process"  # how the panel's line starts (see below)
@@ -127,7 +143,7 @@ def refresh_model_status(scene) -> str:
         props.last_status = RENDER_ONLY
         return props.last_status
     progress = meta.get("progress", {})
-    props.last_status = model_status(meta)
+    props.last_status = model_status(path, meta)
     if progress.get("val_psnr") is not None:
         props.last_psnr = float(progress["val_psnr"])
     return props.last_status
@@ -155,7 +171,7 @@ def attach_model(context, path: str) -> dict:
     progress = meta.get("progress", {})
     if progress.get("val_psnr") is not None:
         props.last_psnr = float(progress["val_psnr"])
-    props.last_status = RENDER_ONLY if has_render_model(path) and not can_resume(path) else model_status(meta)
+    props.last_status = RENDER_ONLY if has_render_model(path) and not can_resume(path) else model_status(path, meta)
     collection, root = capture.find_capture(context.scene)
     fingerprint = meta.get("scene", {}).get("fingerprint")
     if collection is not None and meta.get("slab") and fingerprint in (None, props.fingerprint):

@@ -12,7 +12,7 @@ from bpy.props import FloatProperty, IntProperty, StringProperty
 
 from . import capture, compositing, jobs, tasks
 from .jobs import job_status_text
-from .model_folder import (abspath, attach_model, model_dir, model_not_found, progress_text,
+from .model_folder import (abspath, attach_model, model_dir, model_not_found, saved_progress_text,
                            readable_model, refuse_linked, scenes_of_model, store_path)
 from .preferences import get_core, get_prefs, worker_python
 from .properties import CHOICE_OPTION
@@ -215,7 +215,11 @@ class NEULF_OT_load_model(_Reporting, bpy.types.Operator):
             self.report({"WARNING"}, "the model was trained on another reconstruction than the imported cameras; "
                                      "its renders will not line up with them.")
         elif not context.scene.neulf.scene_dir and scene_meta.get("root") and Path(scene_meta["root"]).is_dir():
-            import_scene(context, scene_meta["root"], model_path=path)  # (first: a failed import leaves the scene as it was)
+            try:  # (first, through the model's photos; a capture that fails to import leaves nothing half-built)
+                import_scene(context, scene_meta["root"], model_path=path)
+            except NeulfError as exc:  # (rendering needs only the model: photos moved or not copied along)
+                self.report({"WARNING"}, f"the capture it trained on could not be imported ({exc}); the model renders "
+                                         "without it (Import COLMAP / LLFF takes an Images folder)")
         attach_model(context, path)
         self.report({"INFO"}, f"model loaded: {path}")
         return {"FINISHED"}
@@ -293,7 +297,7 @@ def _show_training_result(scene, state: dict, out: str) -> None:
     status = job_status_text(state) if state["status"] != "failed" else f"failed: {state['error']}"
     if state["status"] == "failed" and can_resume(out):
         # (where the last checkpoint left it: what Train continues from, e.g. after the process was killed)
-        status = f"{status.rstrip('.')}; the model as last saved: {progress_text(read_metadata(out).get('progress', {}))}"
+        status = f"{status.rstrip('.')}; the model as last saved: {saved_progress_text(out, read_metadata(out))}"
     scene.neulf.last_status = status
     if state.get("val_psnr") is not None:
         scene.neulf.last_psnr = float(state["val_psnr"])
@@ -558,8 +562,15 @@ class NEULF_OT_render_video(_Reporting, bpy.types.Operator):
         configure_video(scene, path)
         written = Path(scene.render.frame_path(frame=scene.frame_start))  # (the name Blender gives the video)
         if not bpy.app.background:
-            restore_after_render(scene, saved, written)
-            bpy.ops.render.render("INVOKE_DEFAULT", animation=True, scene=scene.name)
+            forget = restore_after_render(scene, saved, written)
+            try:
+                started = bpy.ops.render.render("INVOKE_DEFAULT", animation=True, scene=scene.name)
+            except RuntimeError as exc:  # (the render refused to start: its handlers must not wait for it)
+                forget()
+                raise NeulfError(str(exc).removeprefix("Error: ").strip()) from None
+            if "CANCELLED" in started:
+                forget()
+                raise NeulfError("Blender is rendering already: wait for that render to end, then Render Video again.")
             return {"FINISHED"}
         try:
             try:

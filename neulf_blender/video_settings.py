@@ -51,16 +51,21 @@ def restore_render_settings(scene, saved: list) -> None:
             pass
 
 
-def restore_after_render(scene, saved: list, video: Path | None = None) -> None:
+def restore_after_render(scene, saved: list, video: Path | None = None):
     """Put the settings back once an interactive render (which runs on after the operator) ends.
     A render that ends early (cancelled, or a frame failed) removes its `video`, which stops
     where the render did and would otherwise pass for the whole camera path -- as the blocking
-    path does."""
-    def restore(*_args):
+    path does.  Returns `forget()`: for a render that did not start (Blender was rendering
+    already), the handlers are removed and the settings put back at once (left registered, a
+    later render's cancel would have removed this video)."""
+    def remove_handlers():
         for handlers in (bpy.app.handlers.render_complete, bpy.app.handlers.render_cancel):
             for handler in (restore, cut_short):
                 if handler in handlers:
                     handlers.remove(handler)
+
+    def restore(*_args):
+        remove_handlers()
         target = bpy.data.scenes.get(scene_name)
         if target is not None:
             restore_render_settings(target, saved)
@@ -77,6 +82,7 @@ def restore_after_render(scene, saved: list, video: Path | None = None) -> None:
     scene_name = scene.name
     bpy.app.handlers.render_complete.append(restore)
     bpy.app.handlers.render_cancel.append(cut_short)
+    return restore
 
 
 def refuse_odd_video_size(render) -> None:

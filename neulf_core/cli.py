@@ -549,7 +549,8 @@ def _refuse_the_trained_photos(out: Path, light_field, file_names: list[str]) ->
     if not saved.get("root"):
         return
     folder = images_dir_as_trained(saved["root"], None, saved) or Path(saved["root"]).expanduser() / "images"
-    refuse_writing_over_photos(out, file_names, [folder / name for name in saved.get("photo_sizes") or {}], folder)
+    refuse_writing_over_photos(out, file_names, [folder / name for name in saved.get("photo_sizes") or {}], folder,
+                               saved["root"])
 
 
 def cmd_render(args) -> int:
@@ -597,7 +598,7 @@ def cmd_render(args) -> int:
         files = {view.name: _rendering_files(stems[view.name], args.depth, args.exr) for view in views}
         refuse_clashing_names(files, out)
         refuse_writing_over_photos(out, [name for names in files.values() for name in names],
-                                   [view.image_path for view in scene.views], scene.images_dir)
+                                   [view.image_path for view in scene.views], scene.images_dir, scene.root)
         for note in (other_photos_note(views, saved) if args.scale is None else None, changed_cameras_note(views, saved)):
             if note:
                 print(f"warning: {note}", file=sys.stderr)

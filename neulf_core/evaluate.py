@@ -33,14 +33,15 @@ def evaluate_model(model_dir, scene_dir, *, images_dir=None, out_dir=None, views
     scene = load_scene(scene_dir, images_dir_as_trained(scene_dir, images_dir, saved))
     light_field.check_scene(scene)
     names = _view_names(views, saved["held_out"], scene)
-    out = Path(out_dir).expanduser() if out_dir else Path(model_dir).expanduser() / "eval"
+    model_path = Path(model_dir).expanduser()  # (a model file given: its folder's eval/, not model.pt/eval)
+    out = Path(out_dir).expanduser() if out_dir else (model_path.parent if model_path.is_file() else model_path) / "eval"
     chosen = [scene.view(name) for name in names]
     stems = view_file_stems(chosen, scene.views)  # (a rig's left/f1.png and right/f1.png: left_f1, right_f1)
     if save_images:
         files = {view.name: [f"{stems[view.name]}.png"] for view in chosen}
         refuse_clashing_names(files, out)
         refuse_writing_over_photos(out, [name for names in files.values() for name in names],
-                                   [view.image_path for view in scene.views], scene.images_dir)
+                                   [view.image_path for view in scene.views], scene.images_dir, scene.root)
     notes = [note for note in (other_photos_note(chosen, saved), changed_cameras_note(chosen, saved),
                                changed_photos_note(chosen, saved, "their scores compare the model with other photos "
                                                                    "than it learnt.")) if note]

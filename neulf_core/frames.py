@@ -10,6 +10,7 @@ sideways with a rotation to apply) and written as PNG, in order, for `reconstruc
 
 from __future__ import annotations
 
+import contextlib
 import math
 from pathlib import Path
 from typing import Callable
@@ -57,31 +58,42 @@ def extract_frames(video: Path, out_dir: Path, count: int = DEFAULT_FRAME_COUNT,
         container = av.open(str(video))
     except (av.error.FFmpegError, OSError) as exc:
         raise NeulfError(f"cannot read {video} as a video ({exc}); give a video file (MP4, MOV, ...).") from None
-    with container:
-        if not container.streams.video:
-            raise NeulfError(f"{video} holds no video stream.")
-        stream = container.streams.video[0]
-        stream.thread_type = "AUTO"
-        total = _frame_estimate(stream, container)
-        best = _sharpest_per_window(container.decode(stream), total, count, progress)
-    if len(best) < 3:
-        raise NeulfError(f"{video} gave {len(best)} frame(s); a capture needs at least 3 (20 or more work best): "
-                         "film a longer, slower pass over the scene.")
     created = not out_dir.exists()
-    out_dir.mkdir(parents=True, exist_ok=True)
-    written = []
+    written: list[Path] = []
     try:
-        for number, window in enumerate(sorted(best), start=1):
-            path = out_dir / f"frame_{number:04d}.png"
-            save_rgb(path, best[window][1])  # (written whole: a stopped run leaves no cut PNG)
-            written.append(path)
-    except BaseException:
+        with container, _decoding_errors_said(video):
+            if not container.streams.video:
+                raise NeulfError(f"{video} holds no video stream.")
+            stream = container.streams.video[0]
+            stream.thread_type = "AUTO"
+            total = _frame_estimate(stream, container)
+            out_dir.mkdir(parents=True, exist_ok=True)
+            for rgb in _sharpest_per_window(container.decode(stream), total, count, progress):
+                path = out_dir / f"frame_{len(written) + 1:04d}.png"
+                save_rgb(path, rgb)  # (written whole: a stopped run leaves no cut PNG)
+                written.append(path)
+        if len(written) < 3:
+            raise NeulfError(f"{video} gave {len(written)} frame(s); a capture needs at least 3 (20 or more work best): "
+                             "film a longer, slower pass over the scene.")
+    except BaseException:  # (Ctrl-C, SIGTERM, a broken stream: no half set of photos to reconstruct)
         for path in written:
             path.unlink(missing_ok=True)
         if created and out_dir.is_dir() and not any(out_dir.iterdir()):
             out_dir.rmdir()
         raise
     return written
+
+
+@contextlib.contextmanager
+def _decoding_errors_said(video: Path):
+    """A clip damaged part-way (a copy cut short) fails inside FFmpeg: one line, not its traceback."""
+    import av
+
+    try:
+        yield
+    except av.error.FFmpegError as exc:
+        raise NeulfError(f"{video} could not be read to its end ({exc}): copy the video again, or trim it to the "
+                         "part that plays.") from None
 
 
 def _refuse_inputs(video: Path, out_dir: Path, count: int) -> None:
@@ -103,17 +115,23 @@ def _frame_estimate(stream, container) -> int:
     return max(1, int(math.ceil(seconds * rate)))
 
 
-def _sharpest_per_window(frames, total: int, count: int, progress) -> dict[int, tuple[float, np.ndarray]]:
-    """{window: (sharpness, upright RGB)} over the decoded `frames`, `total` of them expected,
-    cut into `count` windows (frames past the estimate fall into the last)."""
-    best: dict[int, tuple[float, np.ndarray]] = {}
+def _sharpest_per_window(frames, total: int, count: int, progress):
+    """The sharpest frame (upright RGB) of each of `count` windows over the decoded `frames`,
+    `total` of them expected (frames past the estimate fall into the last), yielded as each
+    window ends: one frame is held at a time, not a clip's worth (60 frames of 4K: 1.5 GB)."""
     windows = min(count, total)
+    window, best = 0, None
     for index, frame in enumerate(frames):
-        window = min(windows - 1, index * windows // total)
+        at = min(windows - 1, index * windows // total)
+        if at != window and best is not None:
+            yield best[1]
+            best = None
+        window = at
         rgb = frame.to_ndarray(format="rgb24")
         score = sharpness(rgb)
-        if window not in best or score > best[window][0]:
-            best[window] = (score, upright(rgb, getattr(frame, "rotation", 0) or 0))
+        if best is None or score > best[0]:
+            best = (score, upright(rgb, getattr(frame, "rotation", 0) or 0))
         if progress is not None:
             progress(index + 1, total)
-    return best
+    if best is not None:
+        yield best[1]

@@ -154,7 +154,9 @@ def _being_written(path: Path) -> bool:
         age = time.time() - path.stat().st_mtime
     except OSError:
         return False
-    return age < UNREADABLE_GRACE_SECONDS and _read_owner(path) is None
+    # (a modification time in the future -- a share whose server clock runs ahead, a folder copied
+    # with its times -- is no write in progress: waiting for it had hung training silently)
+    return 0 <= age < UNREADABLE_GRACE_SECONDS and _read_owner(path) is None
 
 
 def claim(path: Path) -> None:

@@ -40,14 +40,27 @@ def refuse_clashing_names(files_by_view: dict[str, list[str]], out: Path) -> Non
                                  "different folders.")
 
 
-def refuse_writing_over_photos(out: Path, file_names, photos, photo_folder=None) -> None:
+def photo_folders_of(scene_root) -> set[Path]:
+    """A scene's photo folders besides the one read: `images/` and LLFF's `images_N/` copies (a
+    model trained on images_8 had rendered over images_16's photos)."""
+    root = Path(scene_root).expanduser()
+    if not root.is_dir():
+        return set()
+    return {child for child in root.iterdir() if child.is_dir() and (child.name == "images"
+                                                                     or child.name.startswith("images_"))}
+
+
+def refuse_writing_over_photos(out: Path, file_names, photos, photo_folder=None, scene_root=None) -> None:
     """Refuse, before anything renders, an `out` that is a folder holding the scene's photos
-    (`photo_folder`, or the folder of any of `photos`), or where one of `file_names` is one of
-    `photos` (the same file, however reached: a link, another letter case)."""
+    (`photo_folder`, the folder of any of `photos`, or a photo folder of `scene_root`), or where
+    one of `file_names` is one of `photos` (the same file, however reached: a link, another
+    letter case)."""
     out = Path(out).expanduser()
     photos = [Path(p) for p in photos if p is not None]
     folders = {Path(photo_folder)} if photo_folder is not None else set()
     folders |= {photo.parent for photo in photos}
+    if scene_root is not None:
+        folders |= photo_folders_of(scene_root)
     for folder in folders:
         if _same_file(out, folder):
             raise NeulfError(f"--out {out} is a folder of the scene's photos ({folder}): renders written there would "

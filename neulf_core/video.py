@@ -49,6 +49,18 @@ class VideoCutShort(KeyboardInterrupt):
         self.path, self.partial, self.frames = path, partial, frames
 
 
+def _remove_abandoned_temporaries(path: Path) -> None:
+    """Delete the temporaries of earlier runs for `path` whose process is gone (killed outright,
+    SIGKILL, before it could remove its own): each had stayed beside the video, as big as the
+    frames it had written.  A live process's (another run writing the same name) is left."""
+    from .lock import _process_alive
+
+    for leftover in path.parent.glob(f".{path.stem}.*.tmp{path.suffix}"):
+        pid = leftover.name[len(path.stem) + 2:].split(".", 1)[0]
+        if pid.isdigit() and not _process_alive(int(pid)):
+            leftover.unlink(missing_ok=True)
+
+
 def partial_video_path(path: str | Path) -> Path:
     """Where a video stopped part-way keeps its frames: spiral.mp4 -> spiral.partial.mp4."""
     path = Path(path)
@@ -71,6 +83,7 @@ def write_video(frames: Iterable[np.ndarray], path: str | Path, fps: float = 30)
     path = _video_path(path)
     rate = _frame_rate(fps)
     path.parent.mkdir(parents=True, exist_ok=True)
+    _remove_abandoned_temporaries(path)
     # (the suffix kept last: PyAV picks the container from it)
     temporary = path.with_name(f".{path.stem}.{os.getpid()}.{secrets.token_hex(4)}.tmp{path.suffix}")
     count, encoding = 0, False

@@ -256,7 +256,7 @@ CASES = [
     Case("Blender's worker and render: a video whose frame fails (in the UI too) leaves no video that passes for "
          "the whole path; a bug in a frame ends the render in one line; a missing package, packages of another "
          "Python version, a Python older than 3.10 and a killed process are named; Load Model whose capture "
-         "import fails leaves the scene as it was; Render Camera runs on a thread that can be cancelled", [
+         "cannot be imported attaches the model with a warning; Render Camera runs on a thread that can be cancelled", [
         f"{STORY}[video_cut_short]", f"{STORY}[user_errors]",
         "tests/test_blender_convert.py::test_explain_failure",
         "tests/test_blender_convert.py::test_an_older_python_is_told_before_any_import_fails",
@@ -271,13 +271,17 @@ CASES = [
         "tests/test_lock.py::test_a_lock_being_written_is_not_taken_for_a_stale_one",
         "tests/test_lock.py::test_the_thread_holding_a_lock_takes_it_again_and_others_are_refused",
         "tests/test_lock.py::test_the_auto_presets_search_holds_the_lock",
-        "tests/test_lock.py::test_a_model_folder_path_too_long_for_the_checkpoint_is_refused_before_training"]),
+        "tests/test_lock.py::test_a_model_folder_path_too_long_for_the_checkpoint_is_refused_before_training",
+        "tests/test_lock.py::test_an_empty_lock_dated_in_the_future_is_not_waited_for"]),
     Case("Outputs of render, eval and video: never written over the scene's photos; a rig's views that share a "
          "stem each get their own file; whole files or none when stopped; a video stopped part-way keeps the earlier "
          "one and says where its frames are; SIGTERM ends in one line; ~ is the home folder; eval makes nothing in a "
          "folder that holds no model", [
         *_ids("tests/test_outputs.py::test_renders_never_replace_the_scene_s_photos", "render into images",
               "eval into images", "render from inside images", "render cameras into images"),
+        *_ids("tests/test_outputs.py::test_renders_never_replace_another_photo_folder_of_the_scene", "render", "eval"),
+        "tests/test_outputs.py::test_eval_of_a_model_file_writes_beside_it",
+        "tests/test_outputs.py::test_a_video_killed_outright_leaves_no_temporary_after_the_next",
         "tests/test_outputs.py::test_a_rig_s_views_that_share_a_stem_each_get_their_own_render",
         "tests/test_outputs.py::test_a_rig_s_photo_folder_is_refused_as_out",
         "tests/test_outputs.py::test_renders_and_eval_files_are_replaced_whole",

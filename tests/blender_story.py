@@ -455,6 +455,21 @@ def run_story(setup: dict) -> None:  # noqa: C901 - one story, told in order
             assert bpy.ops.neulf.render_camera() == {"FINISHED"}
             image = image_array("NeuLF Render")
             assert np.isfinite(image).all() and image.std() > 0.01
+            # Stopped in the second member (as a process the system killed there leaves it): the status
+            # is the second member's, not the first's "finished", which had read as nothing left to train.
+            state_file, second = members_model / "members.json", members_model / "members" / "2" / "model.json"
+            kept_state, kept_second = state_file.read_text(), second.read_text()
+            state_file.write_text(json.dumps({**state, "finished": []}))
+            stopped = json.loads(kept_second)
+            stopped["progress"].update(status="training", step=12)
+            second.write_text(json.dumps(stopped))
+            try:
+                interrupted = mod("model_folder").refresh_model_status(bpy.context.scene)
+            finally:
+                state_file.write_text(kept_state)
+                second.write_text(kept_second)
+            assert interrupted.startswith("member 2 of 2 interrupted at step 12 (last checkpoint); Train continues it"), \
+                interrupted
         finally:
             props.model_dir, props.members = saved, 0
         return f"two members of 20 steps of half the batch; {props.last_status.split(';')[0]}"
@@ -1382,6 +1397,19 @@ def run_story(setup: dict) -> None:  # noqa: C901 - one story, told in order
             assert not written.exists() and scene.render.engine == engine, (written, scene.render.engine)
             removed = scene.neulf.last_status
             assert "partial video was removed" in removed, removed
+            # A render that did not start (Blender rendering already): forgotten at once, so a later
+            # render's cancel cannot remove this path's (complete, earlier) video.
+            kept = work / "kept.mp4"
+            kept.write_bytes(b"an earlier video")
+            saved = video.saved_render_settings(scene)
+            scene.render.engine = "NEULF"
+            forget = video.restore_after_render(scene, saved, kept)
+            forget()
+            assert scene.render.engine == engine and not any(
+                "cut_short" in getattr(h, "__name__", "") for h in bpy.app.handlers.render_cancel)
+            for handler in list(bpy.app.handlers.render_cancel):
+                handler(scene)
+            assert kept.read_bytes() == b"an earlier video"
             # A script's (blocking) Render Video.
             failed = error_of(lambda: bpy.ops.neulf.render_video(filepath=str(work / "cut_script.mp4")))
             assert "ortho" in failed and not list(work.glob("cut_script*")), failed
@@ -1820,7 +1848,8 @@ def run_story(setup: dict) -> None:  # noqa: C901 - one story, told in order
         messages.append(error_of(lambda: bpy.ops.neulf.load_model(directory=str(damaged))))
         assert "cannot be read" in messages[-1], messages[-1]
         # A model whose capture folder is no capture (moved, emptied): in an empty scene Load Model
-        # imports the capture first, and its failure leaves the scene without the model.
+        # imports the capture first; its failure is a warning, and the model is attached (it
+        # renders without the photos) with no half-built capture.
         elsewhere, not_a_capture = work / "model_of_no_capture", work / "not_a_capture"
         elsewhere.mkdir(exist_ok=True)
         not_a_capture.mkdir(exist_ok=True)
@@ -1829,9 +1858,9 @@ def run_story(setup: dict) -> None:  # noqa: C901 - one story, told in order
         empty = bpy.data.scenes.new("StoryEmpty")
         try:
             with bpy.context.temp_override(scene=empty):
-                messages.append(error_of(lambda: bpy.ops.neulf.load_model(directory=str(elsewhere))))
-            assert (empty.neulf.model_dir, empty.neulf.last_status) == ("", ""), (empty.neulf.model_dir,
-                                                                                  empty.neulf.last_status)
+                loaded = reports_of(lambda: bpy.ops.neulf.load_model(directory=str(elsewhere)))
+            assert "could not be imported" in loaded and "Traceback" not in loaded, loaded
+            assert empty.neulf.model_dir and not empty.neulf.scene_dir and empty.neulf.root is None, loaded
         finally:
             bpy.data.scenes.remove(empty)
         # A model folder that cannot be written (here: inside a file): said before training starts,

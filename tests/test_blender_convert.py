@@ -244,6 +244,14 @@ def test_worker_process_describes_a_scene(ext, tmp_path):
         with pytest.raises(Exception, match="no camera model"):
             client.call("describe_scene", scene_dir=str(tmp_path), timeout=60)
         assert client.alive  # a user error does not end the worker
+        # A bug's traceback on the worker's stderr belongs to its call: a later call (which may find
+        # the worker killed) does not give it as its cause.
+        with pytest.raises(Exception, match="TypeError"):
+            client.call("model_info", model_dir=str(tmp_path), bogus=1, timeout=60)
+        time.sleep(0.2)  # (the stderr reader catches the traceback)
+        assert any("TypeError" in line for line in client._stderr)
+        client.call("info", timeout=60)
+        assert not any("TypeError" in line for line in client._stderr), list(client._stderr)
     finally:
         client.close()
     assert not client.alive

@@ -210,3 +210,23 @@ def test_a_model_folder_path_too_long_for_the_checkpoint_is_refused_before_train
     with pytest.raises(NeulfError, match="path is too long"):
         train_auto(tiny_scene, model, TrainConfig(preset="auto", steps=30, batch_size=256), progress=events.append)
     assert events == [] and not model.exists()
+
+
+def test_an_empty_lock_dated_in_the_future_is_not_waited_for(tmp_path):
+    """An unreadable lock whose modification time is ahead of this clock (a share whose server
+    runs ahead, a folder copied with its times) is stale, not one being written: training had
+    waited for the clock to catch up without a word."""
+    import os
+    import time
+
+    from neulf_core.lock import LOCK_NAME, training_lock
+
+    folder = tmp_path / "model"
+    folder.mkdir()
+    lock = folder / LOCK_NAME
+    lock.write_text("")
+    ahead = time.time() + 600
+    os.utime(lock, (ahead, ahead))
+    started = time.monotonic()
+    with training_lock(folder):
+        assert time.monotonic() - started < 1.0

@@ -109,6 +109,29 @@ def test_renders_never_replace_the_scene_s_photos(case, model, tiny_scene, tmp_p
     assert digests(scene / "images") == before
 
 
+@pytest.mark.parametrize("command", ["render", "eval"])
+def test_renders_never_replace_another_photo_folder_of_the_scene(command, model, tiny_scene, tmp_path, capfd,
+                                                                 record_property):
+    """A scene with LLFF-style copies beside the photos the model read (images_2/): those are the
+    scene's photos too (a model trained on fern's images_8 had rendered over images_16's)."""
+    scene = tmp_path / "scene"
+    shutil.copytree(tiny_scene, scene)
+    shutil.copytree(scene / "images", scene / "images_2")
+    before = digests(scene / "images_2")
+    argv = [command, model, "--scene", scene, "--views", "all", "--out", scene / "images_2", "--pixel-samples", "1"]
+    expect_error(argv, capfd, record_property, "the scene's photos", "give --out another folder")
+    assert digests(scene / "images_2") == before
+
+
+def test_eval_of_a_model_file_writes_beside_it(model, tiny_scene, tmp_path, capfd):
+    """eval given the model file itself (model.pt): its eval/ beside it (it had failed at the end,
+    after scoring, on 'model.pt/eval: Not a directory')."""
+    folder = Path(shutil.copytree(model, tmp_path / "model"))
+    code, _, err = run_cli(["eval", folder / "model.pt", "--scene", tiny_scene, "--pixel-samples", "1"], capfd)
+    assert code == 0, err
+    assert (folder / "eval" / "eval.json").is_file()
+
+
 # ----------------------------------------------------------------------------- a rig's views
 
 
@@ -290,3 +313,23 @@ def test_eval_of_a_folder_that_is_not_a_model_leaves_nothing_in_it(given, tiny_s
     expect_error(["eval", folder, "--scene", scene], capfd, record_property)
     expect_error(["eval", folder, "--scene", scene, "--out", tmp_path / "scores"], capfd, record_property)
     assert sorted(p.relative_to(tmp_path) for p in tmp_path.rglob("*")) == before
+
+
+def test_a_video_killed_outright_leaves_no_temporary_after_the_next(tmp_path):
+    """SIGKILL gives no chance to clean up: the killed run's hidden temporary stays until the next
+    run writing that video, which removes it (they had stayed for good, as big as their frames);
+    a live run's temporary is left alone."""
+    import os
+
+    from neulf_core.video import write_video
+
+    frame = np.zeros((16, 16, 3), np.uint8)
+    dead = subprocess.Popen([sys.executable, "-c", "pass"])
+    dead.wait()
+    abandoned = tmp_path / f".spiral.{dead.pid}.0badf00d.tmp.mp4"
+    live = tmp_path / f".spiral.{os.getppid()}.1badf00d.tmp.mp4"
+    for leftover in (abandoned, live):
+        leftover.write_bytes(b"frames of a run")
+    write_video([frame] * 3, tmp_path / "spiral.mp4", fps=10)
+    assert not abandoned.exists() and live.exists()
+    assert sorted(p.name for p in tmp_path.iterdir()) == [live.name, "spiral.mp4"]

@@ -642,3 +642,25 @@ def test_frames_refuses_what_it_cannot_use(capture, tmp_path):
     shown = upright(stored, -90)
     assert shown.shape == (3, 2, 3) and shown[0, 1, 0] == 255  # top right
     assert upright(stored, 0) is stored
+
+
+def test_frames_of_a_clip_cut_short_leave_no_photos(capture, tmp_path):
+    """A copy of a clip cut off part-way, and a clip of two frames: one line each, and no photos
+    left behind for reconstruct to take as a capture."""
+    from neulf_core.frames import extract_frames
+    from neulf_core.video import write_video
+
+    photos, true_centres = capture
+    views = [np.asarray(Image.open(photos / name).convert("RGB")) for name in sorted(true_centres)]
+    clip = tmp_path / "clip.mp4"
+    write_video(views * 4, clip, fps=8)
+    data = clip.read_bytes()
+    cut = tmp_path / "cut.mp4"
+    cut.write_bytes(data[:len(data) // 2])  # (the index at the end of an MP4 is gone)
+    with pytest.raises(NeulfError, match="cut|could not be read|cannot read"):
+        extract_frames(cut, tmp_path / "out_cut", count=8)
+    assert not (tmp_path / "out_cut").exists()
+    write_video(views[:2], tmp_path / "short.mp4", fps=8)
+    with pytest.raises(NeulfError, match="gave 2 frame"):
+        extract_frames(tmp_path / "short.mp4", tmp_path / "out_short", count=8)
+    assert not (tmp_path / "out_short").exists()
