@@ -81,7 +81,19 @@ class NEULF_OT_import_colmap(_Reporting, bpy.types.Operator):
         return {"FINISHED"}
 
 
-class NEULF_OT_reconstruct(_Reporting, bpy.types.Operator):
+class _CaptureJob(_Reporting):
+    """Reconstruct Photos and Reconstruct Video: a file browser first; one capture job at a time."""
+
+    @classmethod
+    def poll(cls, context):
+        return not tasks.running("reconstruct")
+
+    def invoke(self, context, event):
+        context.window_manager.fileselect_add(self)
+        return {"RUNNING_MODAL"}
+
+
+class NEULF_OT_reconstruct(_CaptureJob, bpy.types.Operator):
     """Reconstruct a folder of photos with pycolmap in the background, then import it"""
 
     bl_idname = "neulf.reconstruct"
@@ -91,14 +103,6 @@ class NEULF_OT_reconstruct(_Reporting, bpy.types.Operator):
     scene_dir: StringProperty(name="Scene Folder", subtype="DIR_PATH",
                               description="Where to write the COLMAP scene (default: next to the photos)")
     filter_folder: bpy.props.BoolProperty(default=True, options={"HIDDEN"})
-
-    @classmethod
-    def poll(cls, context):
-        return not tasks.running("reconstruct")
-
-    def invoke(self, context, event):
-        context.window_manager.fileselect_add(self)
-        return {"RUNNING_MODAL"}
 
     def run(self, context):
         photos = abspath(self.directory)
@@ -143,7 +147,7 @@ def _wait_in_background(job, what: str) -> None:
             raise NeulfError(f"{what} failed: {job.state['error']}")
 
 
-class NEULF_OT_reconstruct_video(_Reporting, bpy.types.Operator):
+class NEULF_OT_reconstruct_video(_CaptureJob, bpy.types.Operator):
     """Pick the sharpest frames of a capture's video as photos, reconstruct them with pycolmap in the background, then import it"""
 
     bl_idname = "neulf.reconstruct_video"
@@ -155,14 +159,6 @@ class NEULF_OT_reconstruct_video(_Reporting, bpy.types.Operator):
                        description="Photos to pick: the sharpest frame of each of that many equal stretches of the video")
     scene_dir: StringProperty(name="Scene Folder", subtype="DIR_PATH",
                               description="Where to write the COLMAP scene (default: next to the video)")
-
-    @classmethod
-    def poll(cls, context):
-        return not tasks.running("reconstruct")
-
-    def invoke(self, context, event):
-        context.window_manager.fileselect_add(self)
-        return {"RUNNING_MODAL"}
 
     def run(self, context):
         video = abspath(self.filepath)

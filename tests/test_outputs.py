@@ -26,26 +26,10 @@ from PIL import Image
 
 from conftest import tiny_camera, tiny_poses, write_colmap_model
 from neulf_core.cli import main
+from test_reliability import expect_error, run_cli  # (the CLI run as the reliability tests run it)
 
 REPO = Path(__file__).resolve().parents[1]
 QUICK_TRAIN = ["--steps", "2", "--batch-size", "256", "--validate-seconds", "1e9", "--progress", "json"]
-
-
-def run_cli(argv, capfd) -> tuple[int, str, str]:
-    capfd.readouterr()
-    code = main([str(a) for a in argv])
-    captured = capfd.readouterr()
-    return code, captured.out, captured.err
-
-
-def expect_error(argv, capfd, record_property, *expected) -> str:
-    code, out, err = run_cli(argv, capfd)
-    record_property("message", err.strip() or f"(nothing on stderr; exit {code})")
-    lines = err.splitlines()
-    assert code == 2 and len(lines) == 1 and lines[0].startswith("error: "), (code, err)
-    for text in expected:
-        assert text in lines[0]
-    return lines[0]
 
 
 def cli_process(argv, **kwargs) -> subprocess.Popen:
