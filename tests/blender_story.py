@@ -33,7 +33,7 @@ PLANE_NORMAL = np.array([0.25, -0.15, -1.0]) / np.linalg.norm([0.25, -0.15, -1.0
 GRID = [(x, y) for y in (-0.3, 0.0, 0.3) for x in (-0.3, 0.0, 0.3)]
 
 STEPS = ["install", "import", "cameras_match_pycolmap", "slab_planes", "reimport_no_duplicates", "train_blocking",
-         "train_options", "train_timer_resume", "train_cancel", "train_cancel_resume", "train_killed", "members", "render_camera", "render_only_model", "pixel_samples",
+         "train_options", "train_timer_resume", "panel_draws", "train_cancel", "train_cancel_resume", "train_killed", "members", "render_camera", "render_only_model", "pixel_samples",
          "render_worker_process", "focus_at", "pick_focus_frame", "pick_focus_click", "root_scale", "engine_f12", "composite_cg", "viewport_preview", "spiral_video", "video_cut_short", "artist_settings", "capture_identity", "save_reload",
          "blend_moved", "linked_scene", "quit_while_training", "open_other_while_training", "reconstruct_photos", "user_errors", "dependencies_status",
          "install_dependencies"]
@@ -334,6 +334,71 @@ def run_story(setup: dict) -> None:  # noqa: C901 - one story, told in order
         assert meta["progress"]["step"] == 60, meta["progress"]
         assert bpy.context.scene.neulf.last_status.startswith("finished")
         return f"polled {len(fractions)} times, val {job.state['val_psnr']}"
+
+    @story.step("panel_draws", "train_timer_resume")
+    def _():
+        """The N-panel drawn headless into a layout that records what it draws: every property it
+        shows exists (Blender would draw a missing one as an error in the panel) and every button's
+        operator is registered -- with a model, with each preset (the fast field's options greyed
+        out for the others), and with a failed frame picking in the capture's job slot."""
+        from types import SimpleNamespace
+
+        drawn = []
+
+        class RecordingLayout:
+            def __init__(self):
+                self.enabled, self.alert, self.active = True, False, True
+
+            def column(self, **_options):
+                return RecordingLayout()
+
+            row = box = column
+
+            def label(self, text="", **_options):
+                drawn.append(("label", text, self.enabled))
+
+            def separator(self, **_options):
+                pass
+
+            def progress(self, text="", **_options):
+                drawn.append(("progress", text, self.enabled))
+
+            def prop(self, data, name, **_options):
+                assert name in data.bl_rna.properties, f"the panel draws {type(data).__name__}.{name}, which is not one"
+                drawn.append(("prop", name, self.enabled))
+
+            def operator(self, idname, **_options):
+                group, name = idname.split(".")
+                getattr(getattr(bpy.ops, group), name).get_rna_type()  # (KeyError where it is not registered)
+                drawn.append(("operator", idname, self.enabled))
+
+        props, tasks = bpy.context.scene.neulf, mod("tasks")
+        panel = bpy.types.NEULF_PT_main
+        for preset in ("authors", "fast"):
+            props.preset = preset
+            drawn.clear()
+            panel.draw(SimpleNamespace(layout=RecordingLayout()), bpy.context)
+            greyed = {name for kind, name, enabled in drawn if kind == "prop" and not enabled}
+            assert greyed == ({"depth_layers", "back_surface"} if preset == "authors" else set()), (preset, greyed)
+        buttons = sorted({name for kind, name, _ in drawn if kind == "operator"})
+        kept = tasks.ACTIVE.get("reconstruct")
+        picking = mod("jobs").FramesJob(worker_python or sys.executable, str(work / "no_such_clip.mp4"),
+                                        str(work / "no_frames"), 10, env=mod("jobs").core_environment())
+        tasks.ACTIVE["reconstruct"] = (picking, None)
+        try:
+            picking.wait(timeout=60)
+            drawn.clear()
+            panel.draw(SimpleNamespace(layout=RecordingLayout()), bpy.context)
+        finally:
+            if kept is None:
+                tasks.ACTIVE.pop("reconstruct", None)
+            else:
+                tasks.ACTIVE["reconstruct"] = kept
+        labels = " ".join(text for kind, text, _ in drawn if kind == "label")
+        failed = labels[labels.index("Picking frames failed:"):] if "Picking frames failed:" in labels else ""
+        assert failed and "does not exist" in failed, labels
+        bpy.types.NEULF_PT_view_layer_passes.draw(SimpleNamespace(layout=RecordingLayout()), bpy.context)
+        return f"{len(buttons)} buttons ({', '.join(buttons)}); the fast field's options greyed for authors; {failed[:90]}"
 
     @story.step("train_cancel", "train_timer_resume")
     def _():
