@@ -306,6 +306,38 @@ def _show_training_result(scene, state: dict, out: str) -> None:
             scene.neulf.last_status = status
 
 
+# The panel's settings a continued model keeps as it was trained (TrainJob passes none of them on
+# resume), by property, the model's train_config field and the panel's name.
+KEPT_ON_CONTINUE = (("preset", "preset", "Preset"), ("train_scale", "scale", "Image Scale"),
+                    ("sweep_teacher", "teacher", "Depth from Photos"), ("appearance", "appearance", "Varying Exposure"),
+                    ("refine_poses", "refine_poses", "Refine Poses"), ("back_surface", "back_surface", "Back Surface"),
+                    ("two_starts", "two_starts", "Two Starts"))
+
+
+def _asked(props, name: str):
+    """A panel setting as the trainer takes it; None where it is left to the rules (Auto, 0, on)."""
+    value = getattr(props, name)
+    if name == "train_scale":
+        return value or None
+    if name == "two_starts":
+        return None if value else False
+    return CHOICE_OPTION[value] if value in CHOICE_OPTION else value
+
+
+def settings_kept_on_continue(props, saved: dict) -> list[str]:
+    """The panel's settings asked for (not left to the rules) that differ from those the continued
+    model was trained with, said as the panel names them (the preset alone had been said; Image
+    Scale, Back Surface and the others were dropped without a word)."""
+    kept = []
+    for name, field, label in KEPT_ON_CONTINUE:
+        asked, own = _asked(props, name), saved.get(field)
+        if asked is None or own is None or asked == own:
+            continue
+        shown = ("On" if own else "Off") if isinstance(own, bool) else (f"'{own}'" if isinstance(own, str) else f"{own:g}")
+        kept.append(f"{label} (the model's: {shown})")
+    return kept
+
+
 class NEULF_OT_train(_Reporting, bpy.types.Operator):
     """Train (or continue training) the light field in a separate process; Blender stays usable"""
 
@@ -324,10 +356,10 @@ class NEULF_OT_train(_Reporting, bpy.types.Operator):
         steps = self.steps or (props.train_steps if not self.minutes else 0)
         minutes = self.minutes or props.train_minutes
         job, resume = start_training(context, minutes=None if steps else minutes, steps=steps or None)
-        kept = read_metadata(job.model_dir).get("train_config", {}).get("preset") if resume else None
-        if kept and kept != props.preset:  # (a model's network cannot change; its options apply to a new one)
-            self.report({"WARNING"}, f"the model keeps its preset '{kept}': the panel's '{props.preset}' applies to a "
-                                     "new model (choose another Model folder)")
+        kept = settings_kept_on_continue(props, read_metadata(job.model_dir).get("train_config", {})) if resume else []
+        if kept:  # (a model's network and what defines it cannot change; the panel's settings apply to a new one)
+            self.report({"WARNING"}, f"the model keeps what it was trained with: {', '.join(kept)}; the panel's "
+                                     "settings apply to a new model (choose another Model folder)")
         if not bpy.app.background:
             self.report({"INFO"}, (f"continuing from step {job.state['resumed_from']}" if resume else "training")
                         + " in the background")

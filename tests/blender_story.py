@@ -300,9 +300,12 @@ def run_story(setup: dict) -> None:  # noqa: C901 - one story, told in order
             # the status line says when the default trained with the multi-view losses
             assert ("multi-view losses" in props.last_status) == meta["multiview_losses"], props.last_status
             status = props.last_status
-            props.preset = "authors"  # continued: the model keeps its network, and says so
+            # Continued: the model keeps its network and what it was trained with, and says so in the
+            # panel's words; a setting left to the rules (Auto) is not said.
+            props.preset, props.appearance, props.train_scale, props.back_surface = "authors", "OFF", 0.25, "AUTO"
             report = reports_of(lambda: bpy.ops.neulf.train(steps=12))
-            assert "keeps its preset 'fast'" in report, report
+            assert "Preset (the model's: 'fast'), Image Scale (the model's: " in report, report
+            assert "Varying Exposure (the model's: On)" in report and "Back Surface" not in report, report
             assert json.loads((options_model / "model.json").read_text())["train_config"]["preset"] == "fast"
             # A new Authors model: "Depth from Photos" on Auto is the preset's choice (off: the authors'
             # recipe; it had always been sent on), and the fast field's options are not passed.
@@ -319,6 +322,7 @@ def run_story(setup: dict) -> None:  # noqa: C901 - one story, told in order
         finally:
             props.model_dir, props.appearance, props.refine_poses = saved, "AUTO", "AUTO"
             props.stop_early, props.preset, props.back_surface, props.depth_layers = True, "fast", "AUTO", -1
+            props.train_scale = 0.0
 
     @story.step("train_timer_resume", "train_blocking")
     def _():
