@@ -30,12 +30,20 @@ def is_video(path: Path) -> bool:
     return Path(path).suffix.lower() in VIDEO_INPUT_SUFFIXES
 
 
-def sharpness(rgb: np.ndarray) -> float:
-    """Variance of the 4-neighbour Laplacian of the frame's grayscale, at most SHARPNESS_WIDTH wide."""
-    step = max(1, rgb.shape[1] // SHARPNESS_WIDTH)
-    grey = rgb[::step, ::step].astype(np.float32) @ np.array([0.299, 0.587, 0.114], np.float32)
+def sharpness(grey: np.ndarray) -> float:
+    """Variance of the 4-neighbour Laplacian of a grayscale frame (judged at SHARPNESS_WIDTH)."""
+    grey = grey.astype(np.float32)
     laplacian = (grey[1:-1, :-2] + grey[1:-1, 2:] + grey[:-2, 1:-1] + grey[2:, 1:-1] - 4 * grey[1:-1, 1:-1])
     return float(laplacian.var()) if laplacian.size else 0.0
+
+
+def _judged(frame) -> np.ndarray:
+    """The frame's grayscale at most SHARPNESS_WIDTH wide, from the decoder's own scaler: every
+    frame is judged, and a full-size RGB copy of each (6 MB at 1080p) would be work thrown away
+    for all but the sharpest."""
+    width = min(frame.width, SHARPNESS_WIDTH)
+    height = max(3, round(frame.height * width / frame.width))
+    return frame.reformat(width=width, height=height, format="gray").to_ndarray()
 
 
 def upright(rgb: np.ndarray, rotation: float) -> np.ndarray:
@@ -127,10 +135,9 @@ def _sharpest_per_window(frames, total: int, count: int, progress):
             yield best[1]
             best = None
         window = at
-        rgb = frame.to_ndarray(format="rgb24")
-        score = sharpness(rgb)
-        if best is None or score > best[0]:
-            best = (score, upright(rgb, getattr(frame, "rotation", 0) or 0))
+        score = sharpness(_judged(frame))
+        if best is None or score > best[0]:  # (only a frame that wins is turned into RGB)
+            best = (score, upright(frame.to_ndarray(format="rgb24"), getattr(frame, "rotation", 0) or 0))
         if progress is not None:
             progress(index + 1, total)
     if best is not None:

@@ -24,7 +24,8 @@ from .errors import NeulfError
 LOCK_NAME = "training.lock"
 
 
-def _process_alive(pid: int) -> bool:
+def process_alive(pid: int) -> bool:
+    """Whether process `pid` runs on this machine (a lock's or a temporary's owner)."""
     if sys.platform == "win32":  # os.kill(pid, 0) would terminate the process on Windows
         import ctypes
 
@@ -71,7 +72,7 @@ def _holder(path: Path) -> dict | None:
     pid, host = int(owner["pid"]), str(owner["host"])
     if host != platform.node():
         return owner  # cannot check a process on another machine: assume it runs
-    if not _process_alive(pid):
+    if not process_alive(pid):
         return None
     started, claimed = _process_started_at(pid), owner.get("started")
     if started is not None and isinstance(claimed, (int, float)) and started > claimed + PID_REUSE_MARGIN_SECONDS:

@@ -10,6 +10,7 @@ images_8/, four times its pixels, without a word.)
 
 from __future__ import annotations
 
+import functools
 import hashlib
 from pathlib import Path
 
@@ -125,7 +126,15 @@ def photo_digest(path: Path) -> str:
     """A short digest of a photo file's bytes: what model.json keeps to notice photos replaced
     by others of the same name and size (a capture's folder refilled, photos mirrored or
     edited), which the scene's fingerprint (names, centres) and the sizes do not see.  The
-    bytes, not the pixels: hashing a file is a hundred times cheaper than decoding it."""
+    bytes, not the pixels: hashing a file is a hundred times cheaper than decoding it.  Kept
+    per file state: each member and second start of a training reads the same photos."""
+    status = Path(path).stat()
+    return _file_digest(str(Path(path).resolve()), status.st_size, status.st_mtime_ns)
+
+
+@functools.lru_cache(maxsize=4096)
+def _file_digest(path: str, _size: int, _mtime_ns: int) -> str:
+    """photo_digest of `path` as it is at that size and modification time (the cache's key)."""
     digest = hashlib.sha1()
     with open(path, "rb") as handle:
         for block in iter(lambda: handle.read(1 << 20), b""):

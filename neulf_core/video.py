@@ -53,11 +53,11 @@ def _remove_abandoned_temporaries(path: Path) -> None:
     """Delete the temporaries of earlier runs for `path` whose process is gone (killed outright,
     SIGKILL, before it could remove its own): each had stayed beside the video, as big as the
     frames it had written.  A live process's (another run writing the same name) is left."""
-    from .lock import _process_alive
+    from .lock import process_alive
 
     for leftover in path.parent.glob(f".{path.stem}.*.tmp{path.suffix}"):
         pid = leftover.name[len(path.stem) + 2:].split(".", 1)[0]
-        if pid.isdigit() and not _process_alive(int(pid)):
+        if pid.isdigit() and not process_alive(int(pid)):
             leftover.unlink(missing_ok=True)
 
 
