@@ -112,8 +112,9 @@ def _rescaled(progress, offset: float, share: float, label: str | None):
 
 def train_auto(scene: Scene | str | Path, model_dir: str | Path, config: TrainConfig, *, images_dir=None,
                resume: bool = False, progress=None, should_stop=None, factors=FACTORS,
-               tolerance_db: float = TOLERANCE_DB) -> TrainResult:
-    """`train()` for the auto preset: size search on validation views, then the final run."""
+               tolerance_db: float = TOLERANCE_DB, asked: dict[str, str] | None = None) -> TrainResult:
+    """`train()` for the auto preset: size search on validation views, then the final run
+    (`asked`: as train()'s)."""
     model_dir = Path(model_dir).expanduser()
     check_config(config)
     # The folder's lock is held through the search too (its 40 % of the budget): a second training
@@ -124,7 +125,7 @@ def train_auto(scene: Scene | str | Path, model_dir: str | Path, config: TrainCo
         if resume and checkpoint_path(model_dir).is_file():  # the size was chosen before: continue it
             record = load_checkpoint(model_dir).get("autosize")
             result = train(scene, model_dir, config, images_dir=images_dir, resume=True, progress=progress,
-                           should_stop=should_stop)
+                           should_stop=should_stop, asked=asked)
             return _record(model_dir, record, result)
         refuse_to_overwrite(model_dir, resume)  # (said before the search spends its share of the budget)
         if resume:  # (and nothing to resume: the search starts)

@@ -220,8 +220,6 @@ def cmd_train(args) -> int:
         max_passes=args.max_passes,
         two_starts=args.two_starts, pixel_jitter=args.pixel_jitter, members=args.members, members_split=args.members_split,
     )
-    if args.resume:
-        _say_what_resume_keeps(args)
     stop = {"signal": None, "reader_gone": False}
 
     def on_signal(signum, _frame):
@@ -238,7 +236,7 @@ def cmd_train(args) -> int:
     previous = {s: signal.signal(s, on_signal) for s in signals}
     try:
         run = train_auto if args.preset == AUTO_PRESET else train  # auto: a size search, then train()
-        result = run(args.scene_dir, args.out, config, images_dir=args.images, resume=args.resume,
+        result = run(args.scene_dir, args.out, config, images_dir=args.images, resume=args.resume, asked=_options_asked(args),
                        progress=_Reporter(make_reporter(args.progress), on_reader_gone),
                        should_stop=lambda: stop["signal"] is not None or stop["reader_gone"])
     finally:
@@ -277,66 +275,17 @@ def _of_member(model_dir: Path) -> str:
     return f" of member {member} of {count}" if count > 1 else ""
 
 
-# The options a model keeps from its first training (train._config_for_resume), by their
-# TrainConfig field, and how the command line gives them.
-# (The seed, the batch and the members' split: _run_choices_kept.)
-KEPT_ON_RESUME = {"preset": "preset", "holdout_every": "holdout_every", "exclude": "exclude",
-                  "scale": "scale", "st_depth": "st_depth", "near": "near", "far": "far",
-                  "sweep_teacher": "teacher", "point_depth": "point_depth", "consistency": "consistency",
-                  "appearance": "appearance", "refine_poses": "refine_poses", "coarse_to_fine": "coarse_to_fine",
-                  "back_surface": "back_surface", "two_starts": "two_starts", "pixel_jitter": "pixel_jitter"}
+# The CLI's option destinations that name a TrainConfig field of another name.
+FIELD_OF_OPTION = {"sweep_teacher": "teacher", "depth_layers": "geometry_layers"}
 
 
-def _say_what_resume_keeps(args) -> None:
-    """--resume continues the model as it was trained: an option asked for that differs from
-    the model's own is said (not silently dropped)."""
-    from .checkpoint import checkpoint_path
+def _options_asked(args) -> dict[str, str]:
+    """The TrainConfig fields the command line asked for, each by its option's name: what
+    --resume's warning names (resume_options.kept_on_resume)."""
+    from .resume_options import KEPT
 
-    if not checkpoint_path(Path(args.out)).is_file():
-        return  # (training says there is nothing to resume)
-    saved = read_metadata(args.out).get("train_config", {})  # (unreadable: training reads, and checks, the checkpoint)
-    asked = {dest: getattr(args, dest) for dest in KEPT_ON_RESUME if dest in getattr(args, "given", ())}
-    if "exclude" in asked:
-        asked["exclude"] = _names(asked["exclude"])
-    differ = [f"--{dest.replace('_', '-')} (the model's: {saved.get(field)!r})" for dest, field in KEPT_ON_RESUME.items()
-              if dest in asked and field in saved and asked[dest] != saved[field]]
-    differ += _run_choices_kept(args, Path(args.out), saved)
-    layers = (saved.get("field_overrides") or {}).get("geometry_layers")
-    if "depth_layers" in getattr(args, "given", ()) and args.depth_layers != layers:
-        differ.append(f"--depth-layers (the model's: {'the rule' if layers is None else layers})")
-    if differ:
-        print(f"warning: --resume continues the model as it was trained, so these options keep the model's own "
-              f"values: {', '.join(differ)}; to train with them, give --out a new folder.", file=sys.stderr)
-
-
-def _run_choices_kept(args, out: Path, saved: dict) -> list[str]:
-    """--seed, --members-split and --batch-size asked on --resume where the model's differ (they had
-    been dropped without a word).  A model's seed is its run's (members.json, or starts.json where
-    a second start was kept, whose folder trained with the second seed), its split members.json's."""
-    from .presets import get_preset
-
-    def read(name: str) -> dict:
-        try:
-            return json.loads((out / name).read_text())
-        except (OSError, ValueError):
-            return {}
-
-    given = getattr(args, "given", ())
-    members, starts = read("members.json"), read("starts.json")
-    differ = []
-    seed = members.get("seed", starts.get("seed", saved.get("seed")))
-    if "seed" in given and seed is not None and args.seed != seed:
-        differ.append(f"--seed (the model's: {seed})")
-    if "members_split" in given and members.get("split") and args.members_split != members["split"]:
-        differ.append(f"--members-split (the model's: {members['split']!r})")
-    batch = saved.get("batch_size")
-    if batch is None and saved.get("preset"):
-        batch = get_preset(saved["preset"]).batch_size
-    if members and saved.get("batch_size") and members.get("split") == "batch":
-        batch = int(saved["batch_size"]) * int(members.get("count", 1))  # (each member keeps its share: the whole)
-    if "batch_size" in given and batch is not None and args.batch_size != batch:
-        differ.append(f"--batch-size (the model's: {batch})")
-    return differ
+    fields = {FIELD_OF_OPTION.get(dest, dest) for dest in getattr(args, "given", ())}
+    return {name: option for name, option in KEPT.items() if name in fields}
 
 
 def _given_options(argv: list[str]) -> set[str]:

@@ -41,6 +41,7 @@ from . import pose_check, rules
 from . import poses as poses_module
 from .poses import DEPTH_LIKE_GAUGE, PoseRefinement
 from .progress import emit as _emit
+from .resume_options import fields_set, kept_message, kept_on_resume
 from .presets import APPEARANCE_ADAM_BETA2, APPEARANCE_GEOMETRY, DEFAULT_PRESET, get_preset
 from .scene import Scene, load_scene, scaled_size, split_views
 from .slab import Slab, fit_slab, wide_views
@@ -258,8 +259,13 @@ def ray_sample_psnr(field_module, rays: RaySet, chunk: int = 1 << 15) -> float:
 
 
 def train(scene: Scene | str | Path, model_dir: str | Path, config: TrainConfig, *, images_dir=None, resume: bool = False,
-          progress: Callable[[dict], None] | None = None, should_stop: Callable[[], bool] | None = None) -> TrainResult:
-    """Train (or with `resume`, continue) the light field of `scene` into `model_dir`."""
+          progress: Callable[[dict], None] | None = None, should_stop: Callable[[], bool] | None = None,
+          asked: dict[str, str] | None = None) -> TrainResult:
+    """Train (or with `resume`, continue) the light field of `scene` into `model_dir`.
+
+    `asked`: the TrainConfig fields the caller asked for, each by the name to call it (the
+    command line's options); None: the fields `config` sets away from their defaults, by their
+    own names.  A resumed model keeps its own values of these, and says which differed."""
     model_dir = Path(model_dir).expanduser()
     check_config(config)
     from .members import train_members  # (it trains the members, each as train_two_starts does)
@@ -274,6 +280,8 @@ def train(scene: Scene | str | Path, model_dir: str | Path, config: TrainConfig,
         refuse_a_model_without_its_checkpoint(model_dir, resume)
         if resume and not checkpoint_path(model_dir).is_file():
             say_nothing_to_resume(model_dir, progress)
+        elif resume:
+            say_what_resume_keeps(model_dir, config, asked, progress)
         if resume and not isinstance(scene, Scene):  # the photos it trained on (LLFF: images_N/)
             images_dir = images_dir_as_trained(scene, images_dir, saved_scene_record(model_dir))
         scene = scene if isinstance(scene, Scene) else load_scene(scene, images_dir)
@@ -301,6 +309,17 @@ def longest_path_written(config: TrainConfig) -> Path:
 
 def say_nothing_to_resume(model_dir: Path, progress) -> None:
     _emit(progress, event="warning", message=f"{model_dir} holds no model to resume yet: training a new one.")
+
+
+def say_what_resume_keeps(model_dir: Path, config: TrainConfig, asked: dict[str, str] | None, progress) -> None:
+    """The options asked for that the resumed model keeps as it has them (they had been dropped
+    without a word from Python)."""
+    names = asked if asked is not None else {name: name for name in fields_set(config)}
+    kept = kept_on_resume(model_dir, config, names)
+    if kept:
+        _emit(progress, event="warning", message=(
+            f"resuming continues the model as it was trained, so these options keep the model's own values: "
+            f"{kept_message(kept, names)}; to train with them, train into a new model folder."))
 
 
 def _train(scene, model_dir: Path, config: TrainConfig, images_dir, resume: bool, progress, should_stop,

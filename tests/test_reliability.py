@@ -1204,18 +1204,46 @@ def test_resume_says_which_asked_options_the_model_keeps(model, tiny_scene, tmp_
     """--resume continues the model as it was trained; options asked for that differ from its
     own are said (they were dropped without a word), and the run goes on."""
     resumed = shutil.copytree(model, tmp_path / "model")
-    code, _, err = run_cli(["train", tiny_scene, "--out", resumed, "--resume", "--steps", "4", "--batch-size", "256",
-                            "--validate-seconds", "1e9", "--preset", "planes", "--holdout-every", "4", "--progress", "json"],
-                           capfd)
-    record_property("message", err.strip())
+    code, out, err = run_cli(["train", tiny_scene, "--out", resumed, "--resume", "--steps", "4", "--batch-size", "256",
+                              "--validate-seconds", "1e9", "--preset", "planes", "--holdout-every", "4", "--progress",
+                              "json"], capfd)
     assert code == 0, err
-    warning = next(line for line in err.splitlines() if line.startswith("warning: --resume"))
+    warnings = [json.loads(line)["message"] for line in out.splitlines() if '"warning"' in line]
+    warning = next(w for w in warnings if w.startswith("resuming continues the model as it was trained"))
+    record_property("message", warning)
     assert "--preset (the model's: 'fast')" in warning and "--holdout-every (the model's: 8)" in warning, warning
     assert "--batch-size" not in warning  # (asked as the model has it: nothing to say)
     meta = json.loads((resumed / METADATA_NAME).read_text())
     assert meta["train_config"]["preset"] == "fast" and meta["progress"]["step"] == 4
     code, out, err = run_cli(["train", tiny_scene, "--out", tmp_path / "new", "--resume", *QUICK_TRAIN], capfd)
     assert code == 0 and (out + err).count("holds no model to resume yet: training a new one") == 1, out + err
+
+
+def test_resume_from_python_says_which_options_the_model_keeps(model, tiny_scene, tmp_path):
+    """train(resume=True) from Python keeps the model's own preset, scale, seed, ... as the
+    command line does; the fields set otherwise are said in a warning event, by their own
+    names (they were dropped without a word)."""
+    from dataclasses import replace
+
+    from neulf_core.train import TrainConfig, train
+
+    resumed = shutil.copytree(model, tmp_path / "model")
+    saved = json.loads((resumed / METADATA_NAME).read_text())["train_config"]
+    same = TrainConfig(**{k: v for k, v in saved.items() if k in TrainConfig.__dataclass_fields__})
+    events = []
+    train(tiny_scene, resumed, replace(same, steps=saved["steps"] + 1, minutes=None, validate_seconds=1e9),
+          resume=True, progress=events.append)
+    assert not [e for e in events if e["event"] == "warning"]  # (as the model has them: nothing to say)
+    asked = replace(same, steps=saved["steps"] + 2, minutes=None, validate_seconds=1e9, scale=saved["scale"] / 2,
+                    seed=7, field_overrides={"geometry_layers": 1})
+    train(tiny_scene, resumed, asked, resume=True, progress=events.append)
+    warning = next(e["message"] for e in events if e["event"] == "warning")
+    assert warning.startswith("resuming continues the model as it was trained"), warning
+    assert f"scale (the model's: {saved['scale']!r})" in warning and "seed (the model's: 0)" in warning, warning
+    assert "geometry_layers (the model's: the rule)" in warning, warning
+    assert "preset" not in warning and "steps" not in warning  # (the budget may change: not kept)
+    meta = json.loads((resumed / METADATA_NAME).read_text())
+    assert meta["train_config"]["scale"] == saved["scale"] and meta["progress"]["step"] == saved["steps"] + 2
 
 
 def test_eval_takes_all_and_held_out(model, tiny_scene, tmp_path, capfd):
@@ -1353,11 +1381,11 @@ def test_resume_says_a_seed_a_split_or_a_batch_the_model_keeps(model, tiny_scene
     resumed = shutil.copytree(model, tmp_path / "model")
     code, _, err = run_cli(["train", tiny_scene, "--out", resumed, "--resume", "--steps", "4", "--batch-size", "512",
                             "--validate-seconds", "1e9", "--seed", "7"], capfd)
-    warning = next(line for line in err.splitlines() if line.startswith("warning: --resume"))
+    warning = next(line for line in err.splitlines() if line.startswith("warning: resuming continues"))
     assert code == 0 and "--seed (the model's: 0)" in warning and "--batch-size (the model's: 256)" in warning, err
     code, _, err = run_cli(["train", tiny_scene, "--out", resumed, "--resume", "--steps", "5", "--batch-size", "256",
                             "--validate-seconds", "1e9", "--seed", "0"], capfd)
-    assert code == 0 and "warning: --resume" not in err, err
+    assert code == 0 and "warning: resuming continues" not in err, err
 
 
 def test_a_failed_write_names_its_file(tmp_path, monkeypatch):
