@@ -247,7 +247,8 @@ class LightField:
         stays the centre ray's (a refocused render's lens samples already spread over the
         pixel's light, so it takes them alone).  A pixel whose surface lies behind the camera (a
         camera inside the scene's depth range) is not valid: the background colour, depth NaN
-        (its centre ray decides: the other rays of a refocused or multi-point pixel are not tested).
+        (its centre ray decides; a refocused or multi-point pixel's other rays that meet a surface
+        behind it count as the background in its mean).
         `on_chunk(rows_done, height)` is called after each band of rows; where it returns False
         the render stops there, and the Rendering says so (`complete` False, a warning)."""
         width, height = image_size(width, height)
@@ -283,11 +284,12 @@ class LightField:
                 ahead = axis > 0  # (else the surface this ray's line meets lies behind the camera)
                 behind[rows] = (valid & ~ahead).reshape(bottom - top, width).sum(1).cpu().numpy()
                 valid = valid & ahead
+            facing = forward if inside_scene else None  # (only there can a pixel's other rays meet surfaces behind it)
             if lens is not None:
-                rgb = self._refocused_colour(origin, directions, R, focus_distance, aperture, lens)
+                rgb = self._refocused_colour(origin, directions, R, focus_distance, aperture, lens, facing)
             elif spread:
-                rgb = self._mean_colour(pinhole_rays(shifted_K(K, offset), R, t_local, width, height, self.device,
-                                                     self.geometry_dtype, rows) for offset in offsets)
+                rgb = self._mean_colour((pinhole_rays(shifted_K(K, offset), R, t_local, width, height, self.device,
+                                                      self.geometry_dtype, rows) for offset in offsets), facing)
             if inside_scene:
                 rgb = torch.where(valid[:, None], rgb, self.background)
             band = bottom - top
@@ -331,17 +333,26 @@ class LightField:
         count = sample_count(blur, max_samples)
         return None if count == 1 else lens_samples(count)
 
-    def _mean_colour(self, rays) -> torch.Tensor:
+    def _mean_colour(self, rays, forward: torch.Tensor | None = None) -> torch.Tensor:
         """The mean colour over bundles of rays (origin, directions), one bundle at a time (a
-        pixel's points, or a refocused render's lens samples)."""
+        pixel's points, or a refocused render's lens samples).  With `forward` (the optical axis
+        of a camera inside the scene's depth range) a ray whose surface lies behind the camera
+        counts as the background, as a pixel's centre ray does: a lens ray past the edge of a
+        foreground object the camera has moved beyond had brought that object's colour into
+        the pixels beside it."""
         total, count = None, 0
         for origin, directions in rays:
-            rgb = self.query(origin, directions, want_depth=False)[0]
+            if forward is None:
+                rgb = self.query(origin, directions, want_depth=False)[0]
+            else:
+                rgb, slab_depth, valid, _ = self.query(origin, directions)
+                behind = valid & (self._axis_depth(origin, directions, slab_depth, forward) <= 0)
+                rgb = torch.where(behind[:, None], self.background, rgb)
             total, count = (rgb if total is None else total + rgb), count + 1
         return total / count
 
-    def _refocused_colour(self, origin, directions, R, focus, aperture, lens) -> torch.Tensor:
-        return self._mean_colour(lens_rays(origin, directions, R, focus, aperture, point) for point in lens)
+    def _refocused_colour(self, origin, directions, R, focus, aperture, lens, forward=None) -> torch.Tensor:
+        return self._mean_colour((lens_rays(origin, directions, R, focus, aperture, point) for point in lens), forward)
 
     def depth_at(self, K, R, t, x: float, y: float) -> float:
         """Depth along the optical axis of the ray through pixel (x, y) (top-left origin, in
@@ -418,10 +429,11 @@ class LightField:
                 behind[start:stop] = (ok & (axis <= 0)).cpu().numpy()
                 ok = ok & (axis > 0)
             outside[start:stop] = ((uvst.abs() > 1 + EXTRAPOLATION_MARGIN).any(dim=1) & ok).cpu().numpy()
+            facing = forward if inside_scene else None
             if lens is not None:
-                rgb = self._refocused_colour(origin_t, d, view.R, focus_distance, aperture, lens)
+                rgb = self._refocused_colour(origin_t, d, view.R, focus_distance, aperture, lens, facing)
             elif spread:
-                rgb = self._mean_colour(moved_rays(start, stop))
+                rgb = self._mean_colour(moved_rays(start, stop), facing)
             if inside_scene:
                 rgb = torch.where(ok[:, None], rgb, self.background)
             rgb_out[start:stop] = rgb.cpu().numpy()

@@ -997,6 +997,37 @@ def test_a_camera_past_the_scene_sees_no_surface_behind_it(model):
     assert light_field.render(K, width, height, R, t).valid.all()
 
 
+def test_a_refocused_pixel_takes_no_colour_from_a_surface_behind_the_camera(model):
+    """A camera moved into the scene, refocused with a wide lens: each lens ray whose surface
+    lies behind the camera counts as the background, as a pixel's centre ray does (only the
+    centre ray was tested, so a surface the camera had moved past bled into the pixels beside
+    it).  The reference is the mean over the lens rays, built here from the lens samples."""
+    from neulf_core.rays import pinhole_rays
+    from neulf_core.refocus import MAX_SAMPLES, lens_rays
+    from neulf_core.render import LightField
+
+    light_field = LightField.load(model, "cpu")
+    K, width, height, R, t = novel_camera(centre=(0.0, 0.0, 2.8), target=(2.0, 0.0, 3.8))  # tilted, inside
+    aperture, focus = 0.5, 1.0  # (its lens reaches past the learned surface near z = 3)
+    assert light_field.camera_inside_scene(R, t)
+    rendering = light_field.render(K, width, height, R, t, aperture=aperture, focus_distance=focus)
+    origin, directions = pinhole_rays(K, R, light_field.slab.origin_relative_t(R, t), width, height)
+    forward = torch.as_tensor(R[2], dtype=torch.float64)
+    total, behind_rays = 0, 0
+    for point in light_field._lens_plan(K, focus, aperture, MAX_SAMPLES):
+        lens_origin, lens_directions = lens_rays(origin, directions, R, focus, aperture, point)
+        rgb, slab_depth, valid, _ = light_field.query(lens_origin, lens_directions)
+        rotation = torch.as_tensor(light_field.slab.rotation)
+        length = (slab_depth - lens_origin @ rotation[2]) / (lens_directions @ rotation[2])
+        behind = valid & (length * (lens_directions @ forward) <= 0)  # the surface point's side of the lens
+        total = total + torch.where(behind[:, None], light_field.background, rgb)
+        behind_rays += int(behind.reshape(height, width)[torch.as_tensor(rendering.valid)].sum())
+    count = len(light_field._lens_plan(K, focus, aperture, MAX_SAMPLES))
+    reference = (total / count).reshape(height, width, 3).numpy()
+    assert behind_rays > 0.1 * count * rendering.valid.sum()  # (lens rays of pixels in view meet surfaces behind)
+    assert np.abs(rendering.rgb[rendering.valid] - reference[rendering.valid]).max() < 1e-5
+
+
 CAMERAS_REFUSED = {
     # what is wrong: (K, R, t) -> text of the one line (before: a torch error, or a wrong picture)
     "t of 4 numbers": (lambda K, R, t: (K, R, np.append(t, 1.0)), "t 3 numbers"),
