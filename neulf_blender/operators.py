@@ -559,7 +559,9 @@ class NEULF_OT_spiral_path(_Reporting, bpy.types.Operator):
                 camera.keyframe_insert("rotation_euler", frame=start + i)
             camera.keyframe_insert("location", frame=start + i)
         scene.frame_end = start + len(path["R"]) - 1
-        self.report({"INFO"}, f"keyframed {len(path['R'])} frames on {camera.name}")
+        done = f"keyframed {len(path['R'])} frames on {camera.name}"
+        warnings = path.get("warnings", [])
+        self.report({"WARNING"} if warnings else {"INFO"}, "; ".join([done, *warnings]))
         return {"FINISHED"}
 
 

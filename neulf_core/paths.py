@@ -12,6 +12,20 @@ import numpy as np
 from .slab import Slab
 
 
+# A rig whose cameras stand within this fraction of the st plane's depth of each other has no
+# baseline: its light field holds the views from one place only (train.has_baseline).
+NO_BASELINE_FRACTION = 1e-6
+STILL_SPIRAL = ("the capture's cameras all stood at one place (a tripod panorama, or one photo many times): a light "
+                "field of it shows the scene from there only, so every frame of the spiral is the same view; take the "
+                "photos from positions a little apart for a path to fly through")
+
+
+def rig_has_baseline(slab: Slab, camera_centres: np.ndarray) -> bool:
+    """Whether the cameras stand apart by more than NO_BASELINE_FRACTION of the scene's depth."""
+    local = slab.to_slab(np.asarray(camera_centres, np.float64).reshape(-1, 3))
+    return float(np.ptp(local, axis=0).max()) > NO_BASELINE_FRACTION * slab.z_st
+
+
 def look_at(position: np.ndarray, target: np.ndarray, down_hint: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """World-to-camera (R, t) of a COLMAP-convention camera at `position` looking at `target`."""
     z = target - position

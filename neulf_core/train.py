@@ -41,6 +41,7 @@ from . import pose_check, rules
 from . import poses as poses_module
 from .poses import DEPTH_LIKE_GAUGE, PoseRefinement
 from .progress import emit as _emit
+from .paths import rig_has_baseline
 from .resume_options import fields_set, kept_message, kept_on_resume
 from .presets import APPEARANCE_ADAM_BETA2, APPEARANCE_GEOMETRY, DEFAULT_PRESET, get_preset
 from .scene import Scene, load_scene, scaled_size, split_views
@@ -1076,9 +1077,8 @@ def _rig(views, scale: float) -> dict:
 
 
 def has_baseline(views, slab: Slab) -> bool:
-    """Whether the training cameras stand apart by more than a millionth of the scene's depth."""
-    centres = slab.to_slab(np.stack([view.center for view in views]))
-    return float(np.ptp(centres, axis=0).max()) > 1e-6 * slab.z_st
+    """Whether the training cameras stand apart (paths.rig_has_baseline)."""
+    return rig_has_baseline(slab, np.stack([view.center for view in views]))
 
 
 def _say_blank_photos(views, blank: list[int], progress) -> None:

@@ -162,17 +162,20 @@ class Service:
         return {"depth": value, "rgb": rendering.rgb[0, 0].tolist(), "warnings": list(rendering.warnings)}
 
     def spiral(self, model_dir: str, frames: int = 60) -> dict:
-        """A camera path through the capture: world-to-camera poses plus the rig's pinhole."""
-        from .paths import spiral_path
+        """A camera path through the capture: world-to-camera poses plus the rig's pinhole, and
+        warnings (a rig from one place makes a still path)."""
+        from .paths import STILL_SPIRAL, rig_has_baseline, spiral_path
         from .slab import Slab
 
         info = self.model_info(model_dir)
         rig = info.get("rig")
         if not rig or not info.get("slab"):
             raise NeulfError("this model has no saved camera rig; retrain it with this version.")
-        poses = spiral_path(Slab.from_dict(info["slab"]), np.asarray(rig["centres"]), frames=int(frames))
+        slab, centres = Slab.from_dict(info["slab"]), np.asarray(rig["centres"])
+        poses = spiral_path(slab, centres, frames=int(frames))
         return {"R": [p[0].tolist() for p in poses], "t": [p[1].tolist() for p in poses], "K": rig["K"],
-                "width": rig["width"], "height": rig["height"]}
+                "width": rig["width"], "height": rig["height"],
+                "warnings": [] if rig_has_baseline(slab, centres) else [STILL_SPIRAL]}
 
 
 def model_stamp(model_dir) -> tuple:

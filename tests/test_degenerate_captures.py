@@ -105,6 +105,17 @@ def test_a_tripod_panorama_is_said_and_not_pose_checked(tiny_scene, tmp_path, ca
     assert err.count("taken from one place") == 1, err
     meta = json.loads((tmp_path / "model" / METADATA_NAME).read_text())
     assert meta["train_config"]["refine_poses"] is False, meta["train_config"]
+    # Its video is one view 8 times over (nothing to fly through): said, by the CLI and to Blender.
+    assert main(["video", str(tmp_path / "model"), "--out", str(tmp_path / "still.mp4"), "--frames", "8",
+                 "--pixel-samples", "1"]) == 0
+    err = capfd.readouterr().err
+    assert err.count("every frame of the spiral is the same view") == 1, err
+    from neulf_core.worker import Service
+
+    path = Service().spiral(str(tmp_path / "model"), 8)
+    assert len(path["R"]) == 8 and "every frame of the spiral is the same view" in path["warnings"][0]
+    assert main(["train", str(tiny_scene), "--out", str(tmp_path / "rig"), "--steps", "1", *QUICK]) == 0
+    assert Service().spiral(str(tmp_path / "rig"), 8)["warnings"] == []  # (a rig of cameras apart: nothing to say)
 
 
 def test_ssim_of_photos_smaller_than_its_window():
