@@ -38,6 +38,7 @@ SCRIPTS = {
                 "--cache", f"{TMP}/cache"],
     "seed_disagreement": ["--canclip", MISSING, "--configurations", "canclip-6-photos", "--seeds", "0", "--steps", "1",
                           "--models", f"{TMP}/models"],
+    "wide_photo": ["--scene", MISSING, "--steps", "1", "--seeds", "0", "--work", f"{TMP}/work"],
 }
 
 

@@ -77,9 +77,9 @@ def test_a_video_takes_a_fractional_frame_rate(model, tmp_path):
 
 
 def test_a_photo_that_sees_far_wider_than_the_others_is_said(tiny_scene, tmp_path):
-    """One wide or fisheye photo stretches the slab over what it sees, and the others get a small
-    share of the texture (the audit's 94-degree photo among 56-degree ones: held-out 31.3 -> 27.5
-    dB; a fisheye 20.6): training says which photo, once."""
+    """One wide or fisheye photo stretches the slab over what it sees: training names it, once,
+    as a note (on a real capture such a photo helped the held-out views, benchmarks/wide_photo.py;
+    a warning had told the user to hold it out)."""
     from neulf_core.scene import split_views
     from neulf_core.slab import fit_slab, wide_views
     from neulf_core.train import TrainConfig, train
@@ -94,5 +94,6 @@ def test_a_photo_that_sees_far_wider_than_the_others_is_said(tiny_scene, tmp_pat
     said = []
     train(wide_scene, tmp_path / "model", TrainConfig(steps=4, batch_size=256, validate_seconds=1e9, members=2),
           progress=said.append)
-    wide = [event for event in said if event.get("event") == "warning" and event.get("views") == ["view_03.png"]]
-    assert len(wide) == 1 and "--exclude" in wide[0]["message"], said
+    wide = [event for event in said if event.get("event") == "stage" and event.get("views") == ["view_03.png"]]
+    assert len(wide) == 1 and "view_03.png" in wide[0]["message"] and "--exclude" in wide[0]["message"], said
+    assert not [event for event in said if event.get("event") == "warning" and "as wide" in event["message"]]
