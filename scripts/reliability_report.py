@@ -184,6 +184,7 @@ CASES = [
         *_ids(f"{REL}::test_refocus_values_it_cannot_use", "aperture nan", "aperture negative", "no lens samples"),
         f"{REL}::test_a_render_stopped_by_on_chunk_says_so",
         f"{REL}::test_a_camera_past_the_scene_sees_no_surface_behind_it",
+        f"{REL}::test_a_refocused_pixel_takes_no_colour_from_a_surface_behind_the_camera",
         f"{REL}::test_render_view_gives_the_camera_s_warnings",
         f"{REL}::test_ctrl_c_in_a_python_train_call_saves_and_resumes",
         f"{REL}::test_ctrl_c_stops_a_python_train_call_between_steps",
@@ -207,8 +208,9 @@ CASES = [
         f"{STORY}[capture_identity]",
         "tests/test_blender_convert.py::test_a_root_scaled_unevenly_is_refused",
         "tests/test_blender_convert.py::test_the_first_scene_camera_is_of_the_photos_most_common_size"]),
-    Case("--resume with options other than the model's: said, the model kept", [
-        f"{REL}::test_resume_says_which_asked_options_the_model_keeps"]),
+    Case("--resume (and train(resume=True) from Python) with options other than the model's: said, the model kept", [
+        f"{REL}::test_resume_says_which_asked_options_the_model_keeps",
+        f"{REL}::test_resume_from_python_says_which_options_the_model_keeps"]),
     Case("A model trained on another images folder than the scene's default (LLFF's images_N): eval, render and "
          "--resume read its own photos, or say so; views named twice, or among held-out, scored once; photos "
          "replaced since training (same names and sizes) said by eval and resume", [
