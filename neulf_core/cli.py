@@ -748,8 +748,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--back-surface", action=argparse.BooleanOptionalAction, default=None,
                    help="fast/auto presets: a second surface behind each ray's first, the two texture reads "
                         "blended (default: on for deep scenes, far/near above 3: the project's scene +0.2-0.4 dB, fern "
-                        "level; Statue +0.48 dB when asked, CanClip -0.13; about 1.4x the time a step and 1.5x a "
-                        "render; docs/TRAINING.md)")
+                        "level; Statue +0.48 dB when asked, CanClip -0.13; a frame 1.23x one surface's; docs/TRAINING.md)")
     p.add_argument("--max-passes", type=NON_NEGATIVE, metavar="N",
                    help="fast/auto presets: stop once the steps have passed over the training pixels N times, "
                         "whatever the budget (default: 100 with at most 13 training views, where more training "
