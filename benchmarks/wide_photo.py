@@ -22,10 +22,7 @@ arms before and after a change, on the same machine).
 from __future__ import annotations
 
 import argparse
-import csv
 import json
-import os
-import platform
 import sys
 import tempfile
 import time
@@ -35,6 +32,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from reference_data import skip_unless_present  # noqa: E402
+from speed_accuracy import append_rows, machine  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 ARMS = ("cropped", "wide", "wide-excluded")
@@ -102,19 +100,6 @@ def run_arm(scene: Path, arm: str, seed: int, steps: int, wide: str, work: Path,
             "wide_named": any("see more than twice as wide" in w for w in warnings)}
 
 
-def machine() -> str:
-    """The processor's name (/proc/cpuinfo where there is one) and its core count."""
-    name = platform.processor() or platform.machine()
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                name = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
-    return f"{name}, {os.cpu_count()} cores"
-
-
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--scene", type=Path, default=REPO.parent / "shared" / "data" / "canclip")
@@ -137,20 +122,18 @@ def main() -> int:
         if kind not in scenes:
             scenes[kind] = make_scene(args.scene, work / f"scene_{kind}", args.crop,
                                       None if kind == "cropped" else args.wide)
-    new_file = not args.csv.exists()
-    with args.csv.open("a", newline="") as handle:
-        writer = csv.writer(handle)
-        if new_file:
-            writer.writerow(["date", "machine", "label", "arm", "seed", "steps", "scale", "crop", "wide_photo", "psnr",
-                             "per_view_psnr", "train_seconds", "wide_named"])
-        for seed in [int(s) for s in args.seeds.split(",")]:
-            for arm in args.arms.split(","):
-                scene = scenes["cropped" if arm == "cropped" else "wide"]
-                row = run_arm(scene, arm, seed, args.steps, args.wide, work, args.scale)
-                print(json.dumps({"label": args.label, "arm": arm, "seed": seed, **row}), flush=True)
-                writer.writerow([time.strftime("%Y-%m-%d"), machine(), args.label, arm, seed, args.steps, args.scale, args.crop, args.wide,
-                                 f"{row['psnr']:.3f}", row["per_view"], row["seconds"], row["wide_named"]])
-                handle.flush()
+    columns = ["date", "machine", "label", "arm", "seed", "steps", "scale", "crop", "wide_photo", "psnr",
+               "per_view_psnr", "train_seconds", "wide_named"]
+    for seed in [int(s) for s in args.seeds.split(",")]:
+        for arm in args.arms.split(","):
+            scene = scenes["cropped" if arm == "cropped" else "wide"]
+            row = run_arm(scene, arm, seed, args.steps, args.wide, work, args.scale)
+            print(json.dumps({"label": args.label, "arm": arm, "seed": seed, **row}), flush=True)
+            append_rows(args.csv, [{"date": time.strftime("%Y-%m-%d"), "machine": machine(), "label": args.label,
+                                    "arm": arm, "seed": seed, "steps": args.steps, "scale": args.scale,
+                                    "crop": args.crop, "wide_photo": args.wide, "psnr": f"{row['psnr']:.3f}",
+                                    "per_view_psnr": row["per_view"], "train_seconds": row["seconds"],
+                                    "wide_named": row["wide_named"]}], columns)
     return 0
 
 
