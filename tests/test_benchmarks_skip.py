@@ -39,6 +39,7 @@ SCRIPTS = {
     "seed_disagreement": ["--canclip", MISSING, "--configurations", "canclip-6-photos", "--seeds", "0", "--steps", "1",
                           "--models", f"{TMP}/models"],
     "wide_photo": ["--scene", MISSING, "--steps", "1", "--seeds", "0", "--work", f"{TMP}/work"],
+    "frames_time": ["--scene", MISSING, "--count", "2", "--work", f"{TMP}/work"],
 }
 
 
