@@ -644,6 +644,39 @@ def test_frames_refuses_what_it_cannot_use(capture, tmp_path):
     assert upright(stored, 0) is stored
 
 
+def _with_display_matrix(clip: Path, matrix: list[int]) -> None:
+    """Write `matrix` (QuickTime's 3x3 display matrix: a, b, u, c, d, v, tx, ty, w; 16.16 fixed
+    point, u, v and w 2.30) into the MP4's video track header ('tkhd'), as a phone does."""
+    import struct
+
+    data = bytearray(clip.read_bytes())
+    at = data.find(b"tkhd")
+    start = at + 4 + (40 if data[at + 4] == 0 else 52)  # (version 1 keeps 64-bit times)
+    data[start:start + 36] = struct.pack(">9i", *matrix)
+    clip.write_bytes(bytes(data))
+
+
+def test_a_portrait_phone_clip_gives_upright_photos(tmp_path):
+    """A phone filming in portrait stores its frames sideways and a display matrix in the MP4's
+    track header that turns them: a quarter turn clockwise (x' = tx - y, y' = x, QuickTime's
+    matrix [0, 1, 0; -1, 0, 0; tx, 0, 1]).  The photos are as the clip is shown: tall, with the
+    stored frame's left edge on top."""
+    from neulf_core.frames import extract_frames
+    from neulf_core.video import write_video
+
+    stored = np.zeros((32, 64, 3), np.uint8)
+    stored[:, :8] = 255  # the stored frame's left edge
+    clip = tmp_path / "portrait.mp4"
+    write_video([stored] * 6, clip, fps=6)
+    _with_display_matrix(clip, [0, 1 << 16, 0, -(1 << 16), 0, 0, 32 << 16, 0, 1 << 30])
+    photos = extract_frames(clip, tmp_path / "photos", count=3)
+    shown = np.asarray(Image.open(photos[0]).convert("L"), np.float32)
+    assert shown.shape == (64, 32)  # tall, as shown
+    assert shown[:6].mean() > 200 and shown[10:].mean() < 30  # the stored left edge on top
+    _with_display_matrix(clip, [1 << 16, 0, 0, 0, 1 << 16, 0, 0, 0, 1 << 30])  # (no turn: as stored)
+    assert np.asarray(Image.open(extract_frames(clip, tmp_path / "as_stored", count=3)[0])).shape[:2] == (32, 64)
+
+
 def test_frames_of_a_clip_cut_short_leave_no_photos(capture, tmp_path):
     """A copy of a clip cut off part-way, and a clip of two frames: one line each, and no photos
     left behind for reconstruct to take as a capture."""
