@@ -260,8 +260,28 @@ def test_fit_slab_on_a_synthetic_rig(rig):
     # The st plane sits at the harmonic mean depth of the points (mean disparity), inside their range.
     depths = (scene.points - slab.origin) @ slab.rotation[2]
     assert depths.min() < slab.z_st < depths.max()
+    # ... exactly there: the harmonic mean of the points' depths (the 1 % tails left out), not their
+    # arithmetic mean (4.1 here against 3.86).
+    kept = depths[(depths >= np.percentile(depths, 1)) & (depths <= np.percentile(depths, 99))]
+    assert slab.z_st == pytest.approx(1.0 / np.mean(1.0 / kept), rel=1e-9)
     assert slab.z_near == pytest.approx(0.9 * np.percentile(depths, 1), rel=0.05)
     assert slab.z_far == pytest.approx(1.1 * np.percentile(depths, 99), rel=0.05)
+
+
+def test_rays_more_than_80_degrees_off_the_slab_axis_do_not_cross_it():
+    """A ray at 79 degrees to the slab axis crosses the planes; one at 81 does not (nor one
+    looking back), and a camera whose corner rays run that far off is refused by the slab."""
+    slab = Slab(rotation=np.eye(3), origin=np.zeros(3), z_uv=0.0, z_st=1.0, z_near=0.5, z_far=2.0,
+                lo=-np.ones(4), hi=np.ones(4))
+    angles = np.radians([0.0, 79.0, 81.0, 100.0])
+    directions = torch.from_numpy(np.column_stack([np.sin(angles), np.zeros(4), np.cos(angles)]))
+    _, valid = slab.rays_to_uvst(torch.zeros(3, dtype=torch.float64), directions)
+    assert valid.tolist() == [True, True, False, False]
+    rig = synthetic_rig(model="PINHOLE")
+    wide = pycolmap.Camera(model="PINHOLE", width=40, height=30, params=[3.0, 3.0, 20.0, 15.0])  # corners 83 degrees off
+    views = [View(v.name, wide, v.R, v.t) for v in rig.views]
+    with pytest.raises(NeulfError, match="almost parallel to the light slab"):
+        fit_slab(Scene(Path("wide"), views, rig.points, "colmap"), views)
 
 
 def test_fit_slab_overrides_and_invalid_depths():
