@@ -76,6 +76,11 @@ def test_render_takes_the_mean_over_the_pixel_and_keeps_the_centre_depth(light_f
     four = light_field.render(K, width, height, R, view.t, depth=True, pixel_samples=4)
     assert 0 < centre.valid.sum() < centre.valid.size and centre.warnings
     assert np.array_equal(four.valid, centre.valid) and four.warnings == centre.warnings
+    # The pixels whose rays miss the slab show the background colour, not what the field extrapolates
+    # (the four-point render's edge pixels mix it with their points that do cross the slab).
+    background = light_field.background.cpu().numpy()
+    assert np.allclose(centre.rgb[~centre.valid], background)
+    assert not np.allclose(centre.rgb[centre.valid], background)
     assert np.array_equal(four.depth, centre.depth, equal_nan=True)
 
 
