@@ -462,6 +462,18 @@ def test_load_rgb_resizes_with_box_filter(tmp_path):
     np.testing.assert_array_equal(small, np.full((2, 2, 3), 50, np.uint8))
 
 
+def test_saved_renders_round_to_the_nearest_level(tmp_path):
+    """A render's float colours are written rounded, not truncated (which darkens every pixel by half a level)."""
+    from neulf_core.images import save_rgb, to_uint8
+
+    levels = np.array([0.0, 0.4, 0.5, 0.6, 100.6, 254.51, 255.0]) / 255.0
+    rgb = np.repeat(levels[None, :, None], 3, axis=2)
+    expected = np.array([0, 0, 0, 1, 101, 255, 255])
+    np.testing.assert_array_equal(to_uint8(rgb)[0, :, 0], expected)
+    save_rgb(tmp_path / "r.png", rgb)
+    np.testing.assert_array_equal(load_rgb(tmp_path / "r.png")[0, :, 0], expected)
+
+
 # ----------------------------------------------------------------------------- held-out split
 
 
@@ -525,6 +537,22 @@ def test_llff_poses_are_read_in_colmap_convention(tmp_path):
         centre = np.array([0.1 * i, 0.05 * (i % 2), 0.0])
         np.testing.assert_allclose(view.center, centre, atol=1e-12)
         np.testing.assert_allclose(view.R, look_at_rotation(centre, np.array([0.0, 0.0, 3.0])), atol=1e-12)
+        # (h, w, f) = (36, 48, 40): a pinhole with its principal point at the image's centre
+        assert view.size == (48, 36) and view.camera.model_name == "PINHOLE"
+        np.testing.assert_allclose(view.camera.params, [40.0, 40.0, 24.0, 18.0])
+
+
+def test_the_full_resolution_most_llff_copies_are_read(tmp_path):
+    """No images/: of LLFF's images_2/ and images_8/ the larger photos are read (images_8's intrinsics scale)."""
+    folder = llff_scene(tmp_path)
+    (folder / "images").rename(folder / "images_2")
+    for i in range(4):
+        write_image(folder / "images_8" / f"img{i:03d}.png", (12, 9), value=20 * i)
+    scene = load_scene(folder)
+    assert scene.images_dir == folder / "images_2"
+    assert all(view.size == (48, 36) for view in scene.views)
+    np.testing.assert_allclose(scene.views[0].camera.params, [40.0, 40.0, 24.0, 18.0])
+    assert load_scene(folder, folder / "images_8").views[0].camera.params[0] == pytest.approx(10.0)
 
 
 @pytest.mark.parametrize("change, message", [
