@@ -118,6 +118,26 @@ def test_video_with_a_nan_frame_writes_it_black(tmp_path):
         assert next(container.decode(video=0)).to_ndarray(format="rgb24").max() < 20
 
 
+def test_video_float_frames_keep_their_brightness(tmp_path):
+    """Renders are float [0, 1]: they are scaled to 8 bits (taken as 0-255 the video was black)."""
+    path = tmp_path / "v.mp4"
+    write_video([_frame(value=0.25), _frame(value=0.75)], path)
+    with av.open(str(path)) as container:
+        means = [frame.to_ndarray(format="rgb24").mean() for frame in container.decode(video=0)]
+    assert means == pytest.approx([0.25 * 255, 0.75 * 255], abs=4)
+
+
+def test_depth_colours_are_warm_near_and_cool_far():
+    """The depth preview (render --depth's _depth.png): near warm, far cool, no depth black."""
+    from neulf_core.video import depth_to_colour
+
+    depth = np.array([[1.0, 2.0, 4.0, 8.0, np.nan]])
+    colour = depth_to_colour(depth).astype(int)[0]
+    red_minus_blue = colour[:4, 0] - colour[:4, 2]
+    assert red_minus_blue[0] > 0 > red_minus_blue[3], colour
+    assert colour[4].tolist() == [0, 0, 0]
+
+
 # ----------------------------------------------------------------------------- evaluate_model
 
 
