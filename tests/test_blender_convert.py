@@ -124,6 +124,27 @@ def test_single_pixel_K_is_that_pixels_ray():
     assert torch.allclose(one[0], all_dirs.reshape(48, 64, 3)[20, 40])
 
 
+def test_a_render_region_renders_the_full_frames_pixels(ext):
+    """F12 with a render region: the region's pixels (Blender's y fractions count from the
+    bottom) through a cropped camera whose every pixel sees the ray the full frame's did."""
+    torch = pytest.importorskip("torch")
+    from neulf_core.rays import pinhole_rays
+
+    # x from 0.25 to 0.75 of 64 pixels, y the upper half (0.5 to 1.0 from the bottom) of 48
+    assert ext.convert.border_region(64, 48, (0.25, 0.75), (0.5, 1.0)) == (16, 0, 32, 24)
+    assert ext.convert.border_region(64, 48, (0.0, 0.5), (0.0, 0.25)) == (0, 36, 32, 12)
+    K = [[58.0, 0.0, 33.3], [0.0, 61.0, 22.6], [0.0, 0.0, 1.0]]
+    R, t = np.eye(3), np.zeros(3)
+    request = {"K": K, "width": 64, "height": 48, "R": R.tolist(), "t": t.tolist()}
+    left, top, width, height = ext.convert.border_region(64, 48, (0.25, 0.75), (0.125, 0.5))
+    crop = ext.convert.crop_request(request, left, top, width, height)
+    assert (crop["width"], crop["height"]) == (width, height) and request["K"] == K  # (the request left as it was)
+    _, full = pinhole_rays(K, R, t, 64, 48, dtype=torch.float64)
+    _, cropped = pinhole_rays(crop["K"], R, t, width, height, dtype=torch.float64)
+    window = full.reshape(48, 64, 3)[top:top + height, left:left + width]
+    assert torch.allclose(cropped.reshape(height, width, 3), window)
+
+
 def test_worker_protocol_errors_are_one_line(tmp_path):
     from neulf_core.worker import serve
 
