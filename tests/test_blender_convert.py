@@ -58,7 +58,8 @@ def test_K_sensor_fits(ext):
     assert K[0, 0] == pytest.approx(50 / 36 * 800) and K[1, 1] == K[0, 0]
     K = ext.convert.K_from_blender(sensor_fit="VERTICAL", width=800, height=400, **common)
     assert K[1, 1] == pytest.approx(50 / 24 * 400)
-    # Shift moves the principal point by shift x the larger dimension; +y shift moves it up (smaller cy).
+    # Shift moves the principal point by shift x the larger dimension; +y shift moves the view up, so the
+    # principal point moves down the image (larger cy).
     K = ext.convert.K_from_blender(sensor_fit="AUTO", width=800, height=400, lens=50.0, sensor_width=36.0,
                                    sensor_height=24.0, shift_x=0.1, shift_y=0.1)
     assert (K[0, 2], K[1, 2]) == pytest.approx((400 - 80, 200 + 80))

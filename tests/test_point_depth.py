@@ -74,6 +74,23 @@ def test_loading_keeps_each_views_triangulated_keypoints(tracked_scene, tiny_sce
     assert all(v.keypoints is None for v in load_scene(tiny_scene).views)  # points without tracks
 
 
+def test_keypoints_follow_photos_smaller_than_the_model_s(tracked_scene, tmp_path):
+    """Photos on disk at half the model's size (LLFF's images_2/, a downsized copy): the keypoints
+    are read at the photos' size, as the cameras are (at the model's they had pulled the rays of
+    pixels twice as far from the corner toward the points' depths)."""
+    from PIL import Image
+
+    half = tmp_path / "images_half"
+    half.mkdir()
+    for photo in sorted((tracked_scene / "images").iterdir()):
+        image = Image.open(photo)
+        image.resize((image.width // 2, image.height // 2), Image.BOX).save(half / photo.name)
+    full, small = load_scene(tracked_scene).views[4], load_scene(tracked_scene, half).views[4]
+    assert small.size == (full.size[0] // 2, full.size[1] // 2)
+    np.testing.assert_allclose(small.keypoints, full.keypoints * 0.5, atol=1e-9)
+    np.testing.assert_array_equal(small.point_ids, full.point_ids)
+
+
 def test_the_training_photos_alone_triangulate_the_points(tracked_scene):
     views = load_scene(tracked_scene).views
     points = triangulate(views[:3])  # three views of one row of the rig

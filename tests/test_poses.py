@@ -458,6 +458,16 @@ def test_the_pose_check_measures_each_cameras_own_part():
     with torch.no_grad():
         poses.rotation[:, 2] += torch.tensor([1e-3, -1e-3] * 4 + [0.0], dtype=torch.float32)  # each its own
     assert poses.own_part_degrees() == pytest.approx(math.degrees(1e-3), rel=0.2)
+    # Turns of unequal sizes: the statistic is their median, not the largest (one camera's big
+    # turn, a photo SfM placed badly, must not call every pose off).
+    turns = np.random.default_rng(5).normal(0.0, 1e-3, len(centres)) * np.linspace(0.2, 3.0, len(centres))
+    basis = np.column_stack([np.ones(len(centres)), centres[:, 0], centres[:, 1]])  # the rig-wide part
+    own = turns - basis @ np.linalg.lstsq(basis, turns, rcond=None)[0]
+    with torch.no_grad():
+        poses.rotation.zero_()
+        poses.rotation[:, 2] = torch.tensor(turns, dtype=torch.float32)
+    assert np.abs(own).max() > 1.5 * np.median(np.abs(own))  # (so the two readings part)
+    assert poses.own_part_degrees() == pytest.approx(math.degrees(np.median(np.abs(own))), rel=1e-3)
 
 
 def test_the_pose_check_goes_by_the_size_of_the_corrections_and_looks_again_when_unsure():
