@@ -484,6 +484,13 @@ def test_photo_exposures_read_each_photos_stops_and_neighbours_compare_them():
     views = torch.arange(4).repeat_interleave(500)
     found = photo_exposures(torch.from_numpy(rgb), views, 4)
     assert np.allclose(found - found[0], stops, atol=0.02)
+    # Luminance weighs green most and blue least (Rec. 709): a red photo and a blue one of the
+    # same linear level are 1.55 stops apart (0.2126 against 0.0722).
+    red, blue = np.zeros((10, 3)), np.zeros((10, 3))
+    red[:, 0], blue[:, 2] = 0.5, 0.5
+    coloured = np.round(to_srgb(np.concatenate([red, blue])) * 255).astype(np.uint8)
+    found = photo_exposures(torch.from_numpy(coloured), torch.arange(2).repeat_interleave(10), 2)
+    assert found[0] - found[1] == pytest.approx(np.log2(0.2126 / 0.0722), abs=0.02)
 
     centres = np.array([[0.0, 0, 0], [1, 0, 0], [2, 0, 0], [3, 0, 0]])
     assert exposure_difference(np.array([0.0, 0.1, 0.2, 0.3]), centres) == pytest.approx(0.1)  # a slow drift

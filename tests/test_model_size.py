@@ -215,6 +215,18 @@ def test_a_damaged_8_bit_grid_gives_a_clear_message(fast_model, tmp_path):
         LightField.load(model, "cpu")
 
 
+def test_half_precision_keeps_tensors_float16_would_overflow():
+    """model.pt keeps large float tensors as float16, except one float16 would turn to inf (a
+    value past 65504): it stays float32, as do small and integer tensors."""
+    from neulf_core.checkpoint import HALF_MIN_ELEMENTS, half_state_dict
+
+    large = torch.linspace(-1, 1, HALF_MIN_ELEMENTS)
+    out = half_state_dict({"plain": large, "huge": large * 1e5, "small": torch.ones(3), "ints": torch.arange(HALF_MIN_ELEMENTS)})
+    assert out["plain"].dtype == torch.float16 and out["huge"].dtype == torch.float32
+    assert out["small"].dtype == torch.float32 and out["ints"].dtype == torch.int64
+    assert torch.equal(out["huge"], large * 1e5)
+
+
 def test_8_bit_grids_round_trip_within_half_a_step_per_channel():
     from neulf_core.checkpoint import compact_state_dict, dequantise_grid
     grid = torch.randn(2, 3, 17, 9) * torch.tensor([0.01, 1.0, 100.0]).view(1, 3, 1, 1)

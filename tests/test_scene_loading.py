@@ -652,6 +652,9 @@ def test_scales_that_are_not_finite_and_positive_are_refused(tmp_path, scale):
     with pytest.raises(NeulfError, match="image scale"):
         view.load_image(scale)
     assert scaled_size(view.size, 0.5) == (24, 18) and scaled_size(view.size, np.float32(2.0)) == (96, 72)
+    # Rounded, not cut: 1/8 of LLFF's 4032x3024 is 504x378, 1/3 of 1000x563 is 333x188 (188 from
+    # 187.67: what LLFF's own images_N and every other reader of the scale give)
+    assert scaled_size((4032, 3024), 1 / 8) == (504, 378) and scaled_size((1000, 563), 1 / 3) == (333, 188)
 
 
 def test_photos_renamed_are_not_paired_by_their_order(tmp_path):
