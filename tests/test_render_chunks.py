@@ -114,11 +114,11 @@ def test_a_chunk_retried_after_its_points_ran_out_of_memory_counts_its_rays_once
     assert leaving, plain.warnings  # (the test needs rays that leave the region)
     mean_colour, refused = light_field._mean_colour, []
 
-    def once_out_of_memory(rays):
+    def once_out_of_memory(rays, forward=None):
         if not refused:
             refused.append(True)
             raise OUT_OF_MEMORY("the points of a pixel do not fit")
-        return mean_colour(rays)
+        return mean_colour(rays, forward)
 
     monkeypatch.setattr(light_field, "_mean_colour", once_out_of_memory)
     retried = light_field.render_view(moved, depth=False, pixel_samples=4)
