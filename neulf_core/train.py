@@ -26,7 +26,7 @@ from .appearance import (ViewAppearance, appearance_by_default, blank_photos, ex
 from .checkpoint import (CHECKPOINT_NAME, MODEL_NAME, TRAINING_STATE_KEY, checkpoint_path, load_checkpoint,
                          remove_stale_temporaries, save_checkpoint, saved_scene_record)
 from .consistency import SlabGeometry, camera_neighbours, multiview_losses
-from .dataset import RaySet, kept_rayset, mean_colour
+from .dataset import RaySet, kept_rayset, mean_colour, rows_at
 from .device import describe_device, keep_freed_cpu_memory, pick_device
 from .errors import NeulfError
 from .files import refuse_a_path_too_long, temporary_name
@@ -739,10 +739,11 @@ class TrainingRun:
             self.field_module.set_training_progress(fraction)
         index = torch.randint(self.n_rays, (self.batch,), generator=self.generator).to(self.device)
         uvst, target = self.train_rays.batch(index, self.generator, config.pixel_jitter)
-        view_index = self.train_rays.view_index[index].long()
+        view_index = rows_at(self.train_rays.view_index, index).long()
         pull = teacher_weight(fraction, len(self.train_views), strong=self.strong) if self.teacher is not None else 0.0
-        depth_teacher = (self.teacher[0][index], self.teacher[1][index], pull) if pull > 0 else None
-        depth_points = (self.point_depth[0][index], self.point_depth[1][index]) if self.point_depth is not None else None
+        depth_teacher = (rows_at(self.teacher[0], index), rows_at(self.teacher[1], index), pull) if pull > 0 else None
+        depth_points = (rows_at(self.point_depth[0], index), rows_at(self.point_depth[1], index)) \
+            if self.point_depth is not None else None
         self._look_at_poses(fraction)
         consistency = self.consistency
         corrected = self.poses if self.poses is not None else self.fixed_poses
