@@ -22,6 +22,7 @@ from .checkpoint import load_for_render
 from .device import HALF_DEVICES, keep_freed_cpu_memory, pick_device
 from .errors import NeulfError, is_out_of_memory
 from .fields import build_field, make_config
+from .fields import depth_unit as field_depth_unit
 from .members import finished_members, member_dir
 from .rays import pinhole_K, pinhole_rays, pixel_centres, shifted_K, single_pixel_K, view_rays
 from .refocus import MAX_SAMPLES, lens_rays, lens_samples, max_blur_radius_px, sample_count
@@ -219,8 +220,12 @@ class LightField:
         if not (want_colour or want_depth):
             return None, None, valid, uvst
         with torch.autocast(self.device.type, dtype=torch.float16) if self.half else nullcontext():
-            rgb, depth_unit = self.field(uvst.float())
-        rgb = torch.where(valid[:, None], rgb.float(), self.background)
+            if want_colour:
+                rgb, depth_unit = self.field(uvst.float())
+            else:  # (depth alone: the field leaves out its colour's work where it can)
+                rgb, depth_unit = None, field_depth_unit(self.field, uvst.float())
+        if rgb is not None:
+            rgb = torch.where(valid[:, None], rgb.float(), self.background)
         slab_depth = self.slab.depth_from_unit(depth_unit[:, 0].to(self.geometry_dtype)) if want_depth else None
         return rgb, slab_depth, valid, uvst
 
@@ -487,6 +492,13 @@ class MemberMean(torch.nn.Module):
             more_rgb, more_depth = member(uvst)
             rgb, depth = rgb + more_rgb, depth + more_depth
         return rgb / len(self.members), depth / len(self.members)
+
+    def depth_unit(self, uvst: torch.Tensor) -> torch.Tensor:
+        """forward's depth alone (the members' depth units summed in the same order)."""
+        depth = field_depth_unit(self.members[0], uvst)
+        for member in self.members[1:]:
+            depth = depth + field_depth_unit(member, uvst)
+        return depth / len(self.members)
 
 
 def _field_and_slab(payload: dict, model_dir) -> tuple[torch.nn.Module, Slab]:

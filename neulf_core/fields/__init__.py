@@ -49,6 +49,14 @@ def build_field(name: str, config) -> torch.nn.Module:
     return field
 
 
+def depth_unit(field: torch.nn.Module, uvst: torch.Tensor) -> torch.Tensor:
+    """The field's depth output (N, 1) alone, as its forward gives it: a field that can leave
+    out its colour's work for it (a `depth_unit` method: the disparity field, an ensemble of
+    members) does, another runs its whole forward."""
+    own = getattr(field, "depth_unit", None)
+    return own(uvst) if own is not None else field(uvst)[1]
+
+
 def count_parameters(field: torch.nn.Module) -> int:
     return sum(p.numel() for p in field.parameters())
 
