@@ -9,9 +9,23 @@ Two sources, one convention (COLMAP: x right, y down, z forward, pixel centres a
 
 from __future__ import annotations
 
+import hashlib
+import threading
+from collections import OrderedDict
+
 import numpy as np
 import pycolmap
 import torch
+
+# The bearings last unprojected (`camera_bearings`), by a digest of the camera and the pixels,
+# up to this many bytes: a capture's photos mostly share one camera and pixel grid, so the
+# training rays of every view, the plane sweep's, and the renders of the held-out views (each
+# chunk's points of a pixel) ask for the same bearings again.  pycolmap's iterative
+# undistortion is most of a ray's cost there (SIMPLE_RADIAL: 4.6 ms per 32k pixels, a quarter
+# of a 480x270 render_view with 4 points a pixel; the digest takes a tenth of that).
+BEARINGS_KEPT_BYTES = 128 << 20
+_bearings: OrderedDict[bytes, np.ndarray] = OrderedDict()
+_bearings_lock = threading.Lock()
 
 
 def pixel_centres(width: int, height: int) -> np.ndarray:
@@ -26,11 +40,32 @@ def view_rays(camera: pycolmap.Camera, R: np.ndarray, t: np.ndarray, pixels: np.
     """Origin (3,) and unit world directions (N, 3) float64 for `pixels` (default: all, row-major)."""
     if pixels is None:
         pixels = pixel_centres(int(camera.width), int(camera.height))
-    bearings = camera.cam_ray_from_img(np.ascontiguousarray(pixels, dtype=np.float64))
-    bearings = np.asarray(bearings, dtype=np.float64)
-    directions = bearings @ R  # R^T applied to each row: camera frame -> world frame
+    directions = camera_bearings(camera, pixels) @ R  # R^T applied to each row: camera frame -> world frame
     directions /= np.linalg.norm(directions, axis=1, keepdims=True)
     return -R.T @ t, directions
+
+
+def camera_bearings(camera: pycolmap.Camera, pixels: np.ndarray) -> np.ndarray:
+    """(N, 3) float64 unit rays, camera frame, of image points `pixels` (N, 2): pycolmap's
+    unprojection, or the same array kept from the last time these were asked (read-only)."""
+    pixels = np.ascontiguousarray(pixels, dtype=np.float64)
+    digest = hashlib.blake2b(pixels.tobytes(), digest_size=16)
+    digest.update(f"{camera.model} {int(camera.width)} {int(camera.height)}".encode())
+    digest.update(np.asarray(camera.params, dtype=np.float64).tobytes())
+    key = digest.digest()
+    with _bearings_lock:
+        kept = _bearings.get(key)
+        if kept is not None:
+            _bearings.move_to_end(key)
+            return kept
+    bearings = np.asarray(camera.cam_ray_from_img(pixels), dtype=np.float64)
+    bearings.setflags(write=False)
+    if bearings.nbytes <= BEARINGS_KEPT_BYTES:
+        with _bearings_lock:
+            _bearings[key] = bearings
+            while sum(kept.nbytes for kept in _bearings.values()) > BEARINGS_KEPT_BYTES:
+                _bearings.popitem(last=False)
+    return bearings
 
 
 def pinhole_rays(K, R, t, width: int, height: int, device="cpu", dtype=torch.float64, rows: slice | None = None):
