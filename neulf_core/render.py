@@ -283,7 +283,8 @@ class LightField:
         def render_rows(top: int, bottom: int):
             rows = slice(top, bottom)
             origin, directions = pinhole_rays(K, R, t_local, width, height, self.device, self.geometry_dtype, rows)
-            rgb, slab_depth, valid, uvst = self.query(origin, directions, need_depth, want_colour=not spread)
+            rgb, slab_depth, valid, uvst = self.query(origin, directions, need_depth,
+                                                      want_colour=not spread and lens is None)  # (else not used)
             axis = self._axis_depth(origin, directions, slab_depth, forward) if need_depth else None
             if inside_scene:
                 ahead = axis > 0  # (else the surface this ray's line meets lies behind the camera)

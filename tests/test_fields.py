@@ -824,3 +824,24 @@ def test_training_says_what_the_rules_chose_for_the_field(tiny_scene, tmp_path, 
                         "--back-surface"]) == 0
     ruled = [line for line in capsys.readouterr().err.splitlines() if line.startswith("by rule: ")]
     assert ruled == ["by rule: coarse-to-fine on (--coarse-to-fine)"], ruled
+
+
+@pytest.mark.parametrize("options", [{"back_surface": False}, {}, {"geometry_layers": 2}],
+                         ids=["one surface", "back surface", "depth layers"])
+def test_depth_alone_is_forward_s_depth_to_the_bit(options):
+    """A depth-only query (a render's centre rays, a picked pixel) skips the texture reads and
+    the colour decoder: its depth unit is forward's exactly, for one field and for members'
+    mean (the render path's MemberMean), so depth maps stay what they were."""
+    from neulf_core.fields import depth_unit
+    from neulf_core.render import MemberMean
+
+    torch.manual_seed(0)
+    fields = [_back_surface_field(**options) for _ in range(2)]
+    rays = torch.rand(300, 4) * 2 - 1
+    with torch.no_grad():
+        for field in fields:
+            field.geometry.decoder[-1].weight.normal_()  # surfaces that differ from ray to ray
+        for field in [fields[0], MemberMean(fields)]:
+            assert torch.equal(depth_unit(field, rays), field(rays)[1])
+        mlp = build_field("mlp", make_config("mlp", {"width": 16, "depth": 2}))
+        assert torch.equal(depth_unit(mlp, rays), mlp(rays)[1])  # (no depth of its own: its forward's)

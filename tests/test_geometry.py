@@ -476,3 +476,22 @@ def test_slab_keeps_its_tensors_but_follows_changed_values_and_leaves_them_out_o
     assert origins.grad is not None
     for other in (pickle.loads(pickle.dumps(slab)), copy.deepcopy(slab)):
         assert "_tensor_cache" not in other.__dict__ and np.array_equal(other.origin, slab.origin)
+
+
+def test_bearings_kept_are_pycolmap_s_and_follow_the_camera():
+    """view_rays keeps the bearings it last unprojected (pycolmap's undistortion is a quarter of
+    a render_view): asked again they are the same read-only array, equal to pycolmap's; another
+    lens, size or set of pixels gives its own."""
+    from neulf_core.rays import camera_bearings, pixel_centres
+
+    camera = pycolmap.Camera(model="SIMPLE_RADIAL", width=40, height=30, params=[35.0, 20.0, 15.0, -0.2])
+    pixels = pixel_centres(40, 30)
+    first = camera_bearings(camera, pixels)
+    expected = np.asarray(camera.cam_ray_from_img(pixels), np.float64)
+    np.testing.assert_array_equal(first, expected)
+    assert camera_bearings(camera, pixels.copy()) is first and not first.flags.writeable
+    other = pycolmap.Camera(model="SIMPLE_RADIAL", width=40, height=30, params=[35.0, 20.0, 15.0, -0.1])
+    np.testing.assert_array_equal(camera_bearings(other, pixels), np.asarray(other.cam_ray_from_img(pixels)))
+    shifted = pixels + 0.25
+    np.testing.assert_array_equal(camera_bearings(camera, shifted), np.asarray(camera.cam_ray_from_img(shifted)))
+    assert not np.array_equal(camera_bearings(camera, shifted), first)
