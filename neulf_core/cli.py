@@ -104,11 +104,6 @@ def _os_error_line(exc: OSError) -> str:
 # The signal that stopped a render, eval or video, by _sigterm_interrupts (main says it, and
 # exits 128 + its number, as a stopped training does).
 _stopped_by: list[int] = []
-# Every stop signal received (Ctrl-C's SIGINT too).  Python drops a KeyboardInterrupt that a
-# signal handler raises while a finalizer or a C library's Python callback runs ("Exception
-# ignored in ..."): a video of 100000 frames stopped by Ctrl-C went on to its end in one run of
-# the tests.  A loop of frames checks this between frames (_stop_if_signalled).
-_signalled: list[int] = []
 
 
 def _sigterm_interrupts() -> None:
@@ -122,24 +117,11 @@ def _sigterm_interrupts() -> None:
 
     def on_signal(signum, _frame):
         _stopped_by.append(signum)
-        _signalled.append(signum)
-        raise KeyboardInterrupt
-
-    def on_interrupt(signum, _frame):
-        _signalled.append(signum)
         raise KeyboardInterrupt
 
     for name in ("SIGTERM", "SIGBREAK"):
         if hasattr(signal, name):
             signal.signal(getattr(signal, name), on_signal)
-    if signal.getsignal(signal.SIGINT) is signal.default_int_handler:  # (a caller's own is left alone)
-        signal.signal(signal.SIGINT, on_interrupt)
-
-
-def _stop_if_signalled() -> None:
-    """Raise the KeyboardInterrupt of a stop signal received whose own was dropped (_signalled)."""
-    if _signalled:
-        raise KeyboardInterrupt
 
 
 def _stop_handlers() -> dict:
@@ -147,7 +129,7 @@ def _stop_handlers() -> dict:
     tests or demo, keeps its own)."""
     if threading.current_thread() is not threading.main_thread():
         return {}
-    return {getattr(signal, name): signal.getsignal(getattr(signal, name)) for name in ("SIGINT", "SIGTERM", "SIGBREAK")
+    return {getattr(signal, name): signal.getsignal(getattr(signal, name)) for name in ("SIGTERM", "SIGBREAK")
             if hasattr(signal, name)}
 
 
@@ -644,7 +626,6 @@ def cmd_video(args) -> int:
 
     def frames():
         for i, (R, t) in enumerate(poses):
-            _stop_if_signalled()
             yield light_field.render(K, width, height, R, t, depth=False, pixel_samples=args.pixel_samples).rgb
             print(f"\rframe {i + 1}/{len(poses)}", end="", file=sys.stderr, flush=True)
 
@@ -861,7 +842,6 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     stop_handlers = _stop_handlers()
     _stopped_by.clear()
-    _signalled.clear()
     try:
         argv = sys.argv[1:] if argv is None else argv
         args = build_parser().parse_args(argv)
