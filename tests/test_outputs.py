@@ -33,8 +33,12 @@ QUICK_TRAIN = ["--steps", "2", "--batch-size", "256", "--validate-seconds", "1e9
 
 
 def cli_process(argv, **kwargs) -> subprocess.Popen:
+    """The CLI in a process of its own, with Ctrl-C's SIGINT as a terminal's foreground command has
+    it: the tests run as a background job of a non-interactive shell (`cmd &`) inherit SIGINT
+    ignored, which Python then keeps, and a video sent SIGINT had rendered on past the test's time."""
     env = dict(os.environ, PYTHONPATH=str(REPO) + os.pathsep + os.environ.get("PYTHONPATH", ""), OMP_NUM_THREADS="1")
-    return subprocess.Popen([sys.executable, "-m", "neulf_core", *[str(a) for a in argv]], env=env, text=True, **kwargs)
+    return subprocess.Popen([sys.executable, "-m", "neulf_core", *[str(a) for a in argv]], env=env, text=True,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL), **kwargs)
 
 
 def digests(folder: Path) -> dict[str, str]:
