@@ -19,6 +19,7 @@ import datetime
 import os
 import platform
 import re
+import signal
 import subprocess
 import sys
 import tempfile
@@ -328,7 +329,10 @@ def test_environment() -> dict:
 def run_tests(node_ids: list[str], junit: Path) -> int:
     args = pytest_command("-q", f"--junitxml={junit}", "-o", "junit_logging=system-out", "-o",
                           "junit_family=xunit1", *node_ids)
-    return subprocess.run(args, cwd=REPO, env=test_environment()).returncode
+    # Ctrl-C as a terminal's foreground command has it: the report run as a background job of a
+    # non-interactive shell (`cmd &`) inherits SIGINT ignored, and the real-Ctrl-C test skipped.
+    restore = (lambda: signal.signal(signal.SIGINT, signal.SIG_DFL)) if os.name == "posix" else None
+    return subprocess.run(args, cwd=REPO, env=test_environment(), preexec_fn=restore).returncode
 
 
 def node_id(case: ElementTree.Element) -> str:
