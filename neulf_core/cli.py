@@ -21,7 +21,6 @@ from pathlib import Path
 import numpy as np
 
 from .errors import OUT_OF_MEMORY, NeulfError, is_out_of_memory
-from .model_files import read_metadata
 from .presets import MAX_DEPTH_LAYERS
 
 EXIT_USAGE = 2
