@@ -497,6 +497,17 @@ def spiral_camera(scene, camera):
     return spiral
 
 
+def path_camera(scene, camera) -> dict | None:
+    """The pinhole a camera path will be flown with -- the camera's lens (a capture camera's is
+    the spiral's own camera's: a copy) at the scene's render size -- for the core to say which
+    frames see past the capture and the lens that keeps them inside; None for a camera NeuLF
+    does not render (said when it is rendered)."""
+    if camera.type != "CAMERA" or camera.data.type != "PERSP":
+        return None
+    request = capture.camera_request(scene, camera)
+    return {"K": request["K"], "width": request["width"], "height": request["height"], "lens_mm": camera.data.lens}
+
+
 def clear_transform_keys(obj) -> None:
     """Remove the object's location and rotation keyframes, keeping the rest of its animation
     (a lens, a custom property, visibility)."""
@@ -532,7 +543,8 @@ class NEULF_OT_spiral_path(_Reporting, bpy.types.Operator):
             raise NeulfError("the scene has no active camera to animate.")
         refuse_linked(scene, "keyframe its camera")
         frames = self.frames or scene.neulf.spiral_frames
-        path = get_core(context).call("spiral", model_dir=model_dir(scene), frames=frames)
+        path = get_core(context).call("spiral", model_dir=model_dir(scene), frames=frames,
+                                      camera=path_camera(scene, camera))
         _collection, root = capture.find_capture(scene)
         root_matrix = root.matrix_world.copy() if root is not None else capture.Matrix.Identity(4)
         camera = spiral_camera(scene, camera)

@@ -610,7 +610,7 @@ def cmd_fetch_lpips(args) -> int:
 
 
 def cmd_video(args) -> int:
-    from .paths import STILL_SPIRAL, rig_has_baseline, spiral_path
+    from .paths import STILL_SPIRAL, past_capture_warning, rig_has_baseline, spiral_path
     from .render import LightField
     from .video import write_video
 
@@ -618,9 +618,11 @@ def cmd_video(args) -> int:
     out = _video_file(args.out)
     light_field = LightField.load(args.model_dir, args.device, args.precision)
     centres, K, width, height = _rig_from_meta(light_field)
+    poses = spiral_path(light_field.slab, centres, frames=args.frames)
     if not rig_has_baseline(light_field.slab, centres):
         print(f"warning: {STILL_SPIRAL}.", file=sys.stderr)
-    poses = spiral_path(light_field.slab, centres, frames=args.frames)
+    elif note := past_capture_warning(light_field.slab, K, width, height, poses):
+        print(f"warning: {note}.", file=sys.stderr)
     started = time.perf_counter()
 
     def frames():

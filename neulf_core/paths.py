@@ -7,6 +7,9 @@ forward-backward motion, every frame looking at the centre of the st plane.
 
 from __future__ import annotations
 
+import math
+from dataclasses import replace
+
 import numpy as np
 
 from .slab import Slab
@@ -51,3 +54,79 @@ def spiral_path(slab: Slab, camera_centres: np.ndarray, frames: int = 60, rotati
         position = slab.to_world((centre + offset)[None])[0]
         poses.append(look_at(position, target, down))
     return poses
+
+
+# ----------------------------------------------------------------------------- what a path's frames see
+
+# Frames are checked on an image this many pixels wide: a coarse grid is enough to count the
+# share of a frame's rays that leave the captured region, and 60 frames take milliseconds.
+PATH_CHECK_WIDTH = 64
+# The longest lens (times the given focal length) looked for to keep a path inside the capture.
+LONGEST_LENS_FACTOR = 16.0
+
+
+def share_past_capture(slab: Slab, K, width: int, height: int, poses) -> np.ndarray:
+    """For each (R, t) in `poses`, the share of the camera's rays (of those that face the slab)
+    whose (u, v, s, t) lie past the region the photos captured, counted as the renderer counts
+    them for its warning (render.EXTRAPOLATION_MARGIN), on a grid PATH_CHECK_WIDTH wide."""
+    import torch
+
+    from .rays import pinhole_rays
+    from .render import EXTRAPOLATION_MARGIN
+
+    grid = min(1.0, PATH_CHECK_WIDTH / width)
+    small_K = np.array(K, np.float64).reshape(3, 3)
+    small_K[:2] *= grid  # (focal lengths, skew and principal point: the same view, fewer pixels)
+    small_width, small_height = max(1, round(width * grid)), max(1, round(height * grid))
+    local = replace(slab, origin=np.zeros(3))  # (rays relative to the slab's origin, as the renderer makes them)
+    shares = []
+    for R, t in poses:
+        origin, directions = pinhole_rays(small_K, R, slab.origin_relative_t(R, t), small_width, small_height,
+                                          dtype=torch.float32)
+        uvst, valid = local.rays_to_uvst(origin, directions)
+        past = (uvst.abs() > 1 + EXTRAPOLATION_MARGIN).any(dim=1) & valid
+        shares.append(float(past.sum()) / max(1, int(valid.sum())))
+    return np.array(shares)
+
+
+def lens_keeping_inside(slab: Slab, K, width: int, height: int, poses, share: float) -> float | None:
+    """The smallest factor (to 1 %) by which the focal length of `K` must grow for no frame of
+    `poses` to see more than `share` of its rays past the capture: 1.0 where none does already,
+    None where not even LONGEST_LENS_FACTOR does (the positions themselves lie past it)."""
+
+    def inside(factor: float) -> bool:
+        longer = np.array(K, np.float64).reshape(3, 3)
+        longer[0, :2] *= factor  # (focal length and skew: a longer lens on the same sensor)
+        longer[1, 1] *= factor
+        return bool(share_past_capture(slab, longer, width, height, poses).max() <= share)
+
+    if inside(1.0):
+        return 1.0
+    if not inside(LONGEST_LENS_FACTOR):
+        return None
+    short, long = 1.0, LONGEST_LENS_FACTOR
+    while long / short > 1.01:  # (a narrower view sees less past the edges: the share falls as the lens grows)
+        middle = math.sqrt(short * long)
+        short, long = (short, middle) if inside(middle) else (middle, long)
+    return long
+
+
+def past_capture_warning(slab: Slab, K, width: int, height: int, poses, lens_mm: float | None = None) -> str | None:
+    """A warning where frames of `poses` through the camera `K` (width x height) see more than
+    render.PAST_CAPTURE_FRACTION of their rays past the captured region, else None.  Given the
+    camera's focal length in mm (Blender's lens), it names the lens that keeps every frame inside."""
+    from .render import PAST_CAPTURE_FRACTION
+
+    shares = share_past_capture(slab, K, width, height, poses)
+    past = shares > PAST_CAPTURE_FRACTION
+    if not past.any():
+        return None
+    note = (f"{int(past.sum())} of {len(shares)} frames look past the region the photos captured (up to "
+            f"{shares.max():.0%} of a frame): what they show there is the light field's guess")
+    if lens_mm is None:
+        return note
+    factor = lens_keeping_inside(slab, K, width, height, poses, PAST_CAPTURE_FRACTION)
+    if factor is None:
+        return note + (f"; not even a lens {LONGEST_LENS_FACTOR:g} times as long keeps them inside: the path "
+                       "passes places the photos did not see")
+    return note + f"; a lens of {math.ceil(lens_mm * factor)} mm or longer (this camera's: {lens_mm:g} mm) keeps every frame inside"

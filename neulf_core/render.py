@@ -42,6 +42,8 @@ DEFAULT_CHUNK = 1 << 15
 ACCELERATOR_CHUNK = 1 << 20
 # Rays whose (u, v, s, t) lie this far outside the trained range are extrapolation.
 EXTRAPOLATION_MARGIN = 0.1
+# A render is said to leave the captured region where more of its rays than this do.
+PAST_CAPTURE_FRACTION = 0.05
 # Field evaluation precision.  "half" runs the field's matrix products in float16 under
 # autocast (tensor cores on a GPU); ray geometry, (u, v, s, t) and the texture reads stay
 # float32, and the disparity field keeps its geometry branch in float32 (fields/disparity.py).
@@ -381,7 +383,7 @@ class LightField:
             notes.append(f"{invisible / valid.size:.1%} of the pixels look away from the light slab (facing away or "
                          "too oblique) and show the background colour")
         total = int(valid.sum())
-        if total and outside / total > 0.05:
+        if total and outside / total > PAST_CAPTURE_FRACTION:
             notes.append(f"{outside / total:.0%} of the rays leave the region the cameras captured: "
                          "move the camera closer to the capture positions for reliable results")
         return notes

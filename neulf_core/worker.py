@@ -161,10 +161,12 @@ class Service:
                                                                              "from a camera in front of it")
         return {"depth": value, "rgb": rendering.rgb[0, 0].tolist(), "warnings": list(rendering.warnings)}
 
-    def spiral(self, model_dir: str, frames: int = 60) -> dict:
+    def spiral(self, model_dir: str, frames: int = 60, camera: dict | None = None) -> dict:
         """A camera path through the capture: world-to-camera poses plus the rig's pinhole, and
-        warnings (a rig from one place makes a still path)."""
-        from .paths import STILL_SPIRAL, rig_has_baseline, spiral_path
+        warnings (a rig from one place makes a still path; with `camera`, the pinhole that will
+        fly it -- K, width, height and its lens in mm -- frames that see past the capture, and the
+        lens that keeps them inside)."""
+        from .paths import STILL_SPIRAL, past_capture_warning, rig_has_baseline, spiral_path
         from .slab import Slab
 
         info = self.model_info(model_dir)
@@ -173,9 +175,15 @@ class Service:
             raise NeulfError("this model has no saved camera rig; retrain it with this version.")
         slab, centres = Slab.from_dict(info["slab"]), np.asarray(rig["centres"])
         poses = spiral_path(slab, centres, frames=int(frames))
+        if not rig_has_baseline(slab, centres):
+            warnings = [STILL_SPIRAL]
+        elif camera is not None:
+            warnings = [past_capture_warning(slab, camera["K"], int(camera["width"]), int(camera["height"]), poses,
+                                             lens_mm=camera.get("lens_mm"))]
+        else:
+            warnings = []
         return {"R": [p[0].tolist() for p in poses], "t": [p[1].tolist() for p in poses], "K": rig["K"],
-                "width": rig["width"], "height": rig["height"],
-                "warnings": [] if rig_has_baseline(slab, centres) else [STILL_SPIRAL]}
+                "width": rig["width"], "height": rig["height"], "warnings": [note for note in warnings if note]}
 
 
 def model_stamp(model_dir) -> tuple:

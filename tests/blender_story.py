@@ -14,6 +14,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import re
 import shutil
 import sys
 import time
@@ -1420,6 +1421,17 @@ def run_story(setup: dict) -> None:  # noqa: C901 - one story, told in order
             poses.append(np.array(scene.camera.matrix_world))
         assert not np.allclose(poses[0], poses[1])
         assert np.allclose(np.array(capture_camera.matrix_world), np.array(photo_pose))
+        # A lens a quarter as long sees past the capture: said when keyframing, with the lens that
+        # keeps the path inside (it had been said only frame by frame when rendered).
+        lens = spiral.data.lens
+        spiral.data.lens = lens / 4
+        wide = reports_of(lambda: bpy.ops.neulf.spiral_path(frames=3))
+        spiral.data.lens = lens
+        assert "frames look past the region the photos captured" in wide and "mm or longer" in wide, wide
+        longer = int(re.search(r"a lens of (\d+) mm or longer", wide).group(1))
+        assert lens / 4 < longer <= math.ceil(lens * 1.01), (wide, lens)
+        quiet = reports_of(lambda: bpy.ops.neulf.spiral_path(frames=3))
+        assert "look past" not in quiet, quiet
         assert not bpy.data.filepath  # the default '//neulf.mp4' in a file never saved: said, not lost
         unsaved = error_of(lambda: bpy.ops.neulf.render_video())
         assert "not saved yet" in unsaved and unsaved.strip().count("\n") == 0, unsaved
