@@ -293,6 +293,12 @@ CASES = [
         "tests/test_outputs.py::test_tilde_is_the_home_folder_for_every_output",
         *_ids("tests/test_outputs.py::test_eval_of_a_folder_that_is_not_a_model_leaves_nothing_in_it", "scene",
               "photos", "empty")]),
+    Case("A camera path that looks past the captured region (a lens wider than the capture's): said before "
+         "rendering, by the CLI's video and Blender's Spiral Camera Path, with the lens (mm) that keeps it inside", [
+        "tests/test_camera_path.py::test_the_share_is_the_renderers_own_count",
+        "tests/test_camera_path.py::test_the_lens_that_keeps_the_path_inside_is_the_shortest",
+        "tests/test_camera_path.py::test_spiral_for_blender_names_the_lens",
+        "tests/test_camera_path.py::test_video_says_frames_past_the_capture", f"{STORY}[spiral_video]"]),
     Case("No network access unless the user asks for the dependency install, with the declared permission", [
         f"{REL}::test_no_network_unless_the_user_installs", f"{STORY}[install_dependencies]"]),
 ]

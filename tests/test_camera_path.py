@@ -78,7 +78,7 @@ def test_the_lens_that_keeps_the_path_inside_is_the_shortest(tiny_model):
     assert f"not even a lens {LONGEST_LENS_FACTOR:g} times as long" in note, note
 
 
-def test_spiral_for_blender_names_the_lens(tiny_model):
+def test_spiral_for_blender_names_the_lens(tiny_model, record_property):
     """Blender's Spiral Camera Path sends the camera that will fly it: a wide one is told which
     frames see past the capture and the lens (mm) that keeps them inside."""
     from neulf_core.worker import Service
@@ -93,10 +93,11 @@ def test_spiral_for_blender_names_the_lens(tiny_model):
     assert len(warnings) == 1 and "frames look past the region the photos captured" in warnings[0], warnings
     lens = int(re.search(r"a lens of (\d+) mm or longer \(this camera's: 12.5 mm\)", warnings[0]).group(1))
     assert 12.5 < lens <= 51, warnings  # (the rig's own focal length, 4 x 12.5 mm, keeps it inside)
+    record_property("message", warnings[0])
     assert service.spiral(str(tiny_model), 12)["warnings"] == []  # (no camera given: nothing to check)
 
 
-def test_video_says_frames_past_the_capture(tiny_model, tmp_path, monkeypatch, capfd):
+def test_video_says_frames_past_the_capture(tiny_model, tmp_path, monkeypatch, capfd, record_property):
     import neulf_core.cli as cli
 
     light_field = LightField.load(tiny_model, "cpu")
@@ -109,3 +110,4 @@ def test_video_says_frames_past_the_capture(tiny_model, tmp_path, monkeypatch, c
     assert cli.main(args) == 0
     err = capfd.readouterr().err
     assert err.count("frames look past the region the photos captured") == 1, err
+    record_property("message", next(line for line in err.splitlines() if "look past" in line))
