@@ -263,13 +263,14 @@ def fit_view_pose(light_field, view, scale: float, spacing: float, steps: int = 
         for p, wanted in zip(field.parameters(), frozen):
             p.requires_grad_(wanted)
     # The slab-frame correction as a world-frame pose: x -> C + W (x - C) + m, with W and m
-    # the turn and shift brought out of the slab frame; the camera's rays turn with it.
+    # the turn and shift brought out of the slab frame; the camera's rays turn with it.  In
+    # float64 on the host: MPS has no float64, so the corrections leave the device first.
     with torch.no_grad():
-        rotation, shift = correction.corrections()
-        turn = rotation_matrices(rotation.double().cpu())[0].numpy()
+        rotation, shift = (c.cpu().double() for c in correction.corrections())
+        turn = rotation_matrices(rotation)[0].numpy()
         slab_rotation = light_field.slab.rotation
         turn_world = slab_rotation.T @ turn @ slab_rotation
-        shift_world = slab_rotation.T @ shift.double().cpu().numpy()[0]
+        shift_world = slab_rotation.T @ shift.numpy()[0]
         degrees = float(rotation.norm()) * 180.0 / math.pi
         moved = float(shift.norm()) / spacing
     R = view.R @ turn_world.T
