@@ -2,7 +2,11 @@
 
 from __future__ import annotations
 
+import sys
+from functools import lru_cache
+
 import torch
+import torch.nn.functional as F
 
 from .errors import NeulfError
 
@@ -13,6 +17,13 @@ HALF_DEVICES = ("cuda", "cpu")
 
 # The device types the renderer and training run on (pick_device refuses others).
 SUPPORTED_DEVICES = ("cpu", "cuda", "mps")
+
+# The fields read their textures with grid_sample and border padding, and training needs its
+# backward.  Some torch builds lack it on MPS ("MPS: Unsupported Border padding mode") or give
+# it wrong there: found by mps_shortfall, before a run fails or trains on wrong gradients.
+MPS_SHORTFALL = ("this torch's MPS cannot run grid_sample with border padding (or its gradient) as the CPU does, "
+                 "and the light field needs it")
+MPS_SHORTFALL_FIX = "use --device cpu, or upgrade torch"
 
 
 def pick_device(name: str | None = None) -> torch.device:
@@ -32,12 +43,55 @@ def pick_device(name: str | None = None) -> torch.device:
                              "from 0; use cuda, cuda:0 or --device cpu.")
         if device.type == "mps" and not torch.backends.mps.is_available():
             raise NeulfError("MPS was asked for but is not available on this machine; use --device cpu.")
+        if mps_shortfall(device):
+            raise NeulfError(f"{MPS_SHORTFALL}: {MPS_SHORTFALL_FIX}.")
         return device
     if torch.cuda.is_available():
         return torch.device("cuda")
     if getattr(torch.backends, "mps", None) is not None and torch.backends.mps.is_available():
-        return torch.device("mps")
+        if not mps_shortfall(torch.device("mps")):
+            return torch.device("mps")
+        print(f"note: {MPS_SHORTFALL}; using the CPU (upgrade torch to use MPS).", file=sys.stderr)
     return torch.device("cpu")
+
+
+def mps_shortfall(device: torch.device) -> bool:
+    """Whether `device` is MPS and its torch build falls short of what the core asks of it
+    (border-padded grid_sample and its backward, as the CPU computes them).  Other devices:
+    False.  Probed once per process and device."""
+    return device.type == "mps" and _border_sampling_differs_on(str(device))
+
+
+@lru_cache(maxsize=None)
+def _border_sampling_differs_on(name: str) -> bool:
+    return border_sampling_differs(torch.device(name))
+
+
+def border_sampling_differs(device: torch.device, reference: torch.device = torch.device("cpu")) -> bool:
+    """Whether a tiny bilinear grid_sample with border padding, forward and backward (to the
+    texture and to the grid, as training takes both), fails on `device` or differs there from
+    `reference`'s."""
+    texture = torch.arange(12, dtype=torch.float32).reshape(1, 1, 3, 4) ** 1.5 / 12
+    # Points inside, and outside on either side (where border padding differs from zeros), none
+    # exactly on the edge (where the gradient has two right answers).
+    grid = torch.tensor([[[[-1.3, -0.2], [0.25, 0.55], [0.7, -0.9]], [[1.4, 1.2], [-0.6, 1.7], [0.1, -1.6]]]])
+    upstream = torch.tensor([1.0, -2.0, 0.5, 3.0, -1.5, 2.5]).reshape(1, 1, 2, 3)  # (a gradient of no symmetry)
+    try:
+        found = [_sampled_and_gradients(texture, grid, upstream, where) for where in (reference, device)]
+    except (RuntimeError, NotImplementedError, TypeError):  # what torch raises for an op a device lacks
+        return True
+    return not all(torch.allclose(a, b, rtol=1e-4, atol=1e-5) for a, b in zip(*found))
+
+
+def _sampled_and_gradients(texture, grid, upstream, device: torch.device) -> list[torch.Tensor]:
+    found = []
+    for align_corners in (True, False):  # (the fields' texture reads, the classic plane sweep's)
+        # (Copies, fresh each time: a CPU tensor's .to("cpu") is the tensor itself, whose gradient would add up.)
+        texture_d, grid_d = (x.to(device, copy=True).requires_grad_() for x in (texture, grid))
+        sampled = F.grid_sample(texture_d, grid_d, mode="bilinear", padding_mode="border", align_corners=align_corners)
+        (sampled * upstream.to(device)).sum().backward()
+        found += [x.detach().cpu() for x in (sampled, texture_d.grad, grid_d.grad)]
+    return found
 
 
 def describe_device(device: torch.device) -> str:

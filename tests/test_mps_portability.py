@@ -110,3 +110,103 @@ def test_rendering_colour_and_depth_keeps_float64_off_the_device(trained_on_stan
     assert not mode.refused and mode.device_results
     for rendering in renderings:
         assert np.isfinite(rendering.rgb).all() and rendering.depth is not None
+
+
+# ----------------------------------------------------------------------------- MPS builds that fall short
+
+
+def _calls_per_device(monkeypatch) -> int:
+    """How many grid_sample calls the probe makes on each of its two devices (counted, so the
+    fakes below go wrong on the probed device alone, whatever the probe's number of calls)."""
+    import torch.nn.functional as F
+
+    from neulf_core.device import border_sampling_differs
+
+    calls, real = [], F.grid_sample
+    monkeypatch.setattr(F, "grid_sample", lambda *a, **k: calls.append(1) or real(*a, **k))
+    assert not border_sampling_differs(torch.device("cpu"))  # (a device that samples as the CPU does passes)
+    monkeypatch.setattr(F, "grid_sample", real)
+    assert len(calls) % 2 == 0
+    return len(calls) // 2
+
+
+def _on_the_probed_device(monkeypatch, wrong):
+    """grid_sample as torch has it for the reference's calls, then `wrong(real, *args, **kwargs)`."""
+    import torch.nn.functional as F
+
+    reference_calls, calls, real = _calls_per_device(monkeypatch), [], F.grid_sample
+
+    def sample(*args, **kwargs):
+        calls.append(1)
+        return real(*args, **kwargs) if len(calls) <= reference_calls else wrong(real, *args, **kwargs)
+
+    monkeypatch.setattr(F, "grid_sample", sample)
+
+
+def _lacking(real, *args, **kwargs):
+    raise RuntimeError("MPS: Unsupported Border padding mode")
+
+
+def _off_by_a_little(real, *args, **kwargs):
+    return real(*args, **kwargs) + 1e-3
+
+
+def _wrong_grid_gradient(real, texture, grid, **kwargs):
+    scaled_gradient = grid.detach() + 1.5 * (grid - grid.detach())  # the same values, 1.5 x the gradient
+    return real(texture, scaled_gradient, **kwargs)
+
+
+@pytest.mark.parametrize("wrong", [_lacking, _off_by_a_little, _wrong_grid_gradient])
+def test_the_probe_finds_a_border_sampling_that_fails_or_differs(monkeypatch, wrong):
+    from neulf_core.device import border_sampling_differs
+
+    _on_the_probed_device(monkeypatch, wrong)
+    assert border_sampling_differs(torch.device("cpu"))
+
+
+def _mps_present(monkeypatch, falls_short: bool):
+    """A machine with MPS (and no CUDA) whose MPS does, or does not, fall short of the probe."""
+    from neulf_core import device
+
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    monkeypatch.setattr(torch.backends.mps, "is_available", lambda: True)
+    monkeypatch.setattr(device, "_border_sampling_differs_on", lambda name: falls_short)
+
+
+def test_asking_for_an_mps_that_falls_short_is_refused_in_one_line(monkeypatch, trained_on_stand_in, tiny_scene,
+                                                                    capsys):
+    from neulf_core.cli import EXIT_USAGE, main
+    from neulf_core.device import pick_device
+    from neulf_core.errors import NeulfError
+
+    _mps_present(monkeypatch, falls_short=False)
+    assert pick_device("mps") == torch.device("mps")
+    _mps_present(monkeypatch, falls_short=True)
+    with pytest.raises(NeulfError, match="grid_sample with border padding.*: use --device cpu, or upgrade torch.$"):
+        pick_device("mps")
+    assert pick_device("cpu").type == "cpu"  # (other devices are not probed)
+
+    capsys.readouterr()
+    assert main(["eval", str(trained_on_stand_in), "--scene", str(tiny_scene), "--device", "mps"]) == EXIT_USAGE
+    err = capsys.readouterr().err
+    assert err.startswith("error: this torch's MPS cannot run grid_sample") and err.count("\n") == 1
+    assert "use --device cpu, or upgrade torch." in err and "Traceback" not in err
+
+
+def test_the_default_device_passes_over_an_mps_that_falls_short_with_a_note(monkeypatch, capsys):
+    from neulf_core.device import pick_device
+
+    _mps_present(monkeypatch, falls_short=False)
+    assert pick_device(None) == torch.device("mps") and capsys.readouterr().err == ""
+    _mps_present(monkeypatch, falls_short=True)
+    assert pick_device(None) == torch.device("cpu")
+    note = capsys.readouterr().err
+    assert note.startswith("note: this torch's MPS cannot run grid_sample") and note.count("\n") == 1
+    assert "using the CPU (upgrade torch to use MPS)" in note
+
+
+def test_only_mps_is_probed(monkeypatch):
+    from neulf_core import device
+
+    monkeypatch.setattr(device, "_border_sampling_differs_on", lambda name: pytest.fail(f"probed {name}"))
+    assert not device.mps_shortfall(torch.device("cpu")) and not device.mps_shortfall(STAND_IN)
