@@ -30,6 +30,12 @@ def missing_module_message(module: str) -> str:
             "NeuLF preferences, or click Install dependencies there.")
 
 
+# The RuntimeErrors' words where torch's CPU and MPS allocators refuse: the CPU's "can't allocate
+# memory", MPS's "MPS backend out of memory", and MPS's "Invalid buffer size: 74.51 GB" for one
+# buffer larger than Metal allows (aten/src/ATen/mps/MPSAllocator.mm) -- a smaller chunk fits there too.
+OUT_OF_MEMORY_WORDS = ("can't allocate memory", "out of memory", "Invalid buffer size: ")
+
+
 def is_out_of_memory(exc: BaseException) -> bool:
     """Whether `exc` is a device running out of memory: Python's MemoryError, torch's
     OutOfMemoryError (CUDA), or the RuntimeError torch raises for the CPU and MPS allocators
@@ -37,7 +43,7 @@ def is_out_of_memory(exc: BaseException) -> bool:
     if isinstance(exc, MemoryError) or type(exc).__name__ == "OutOfMemoryError":
         return True
     text = str(exc)
-    return isinstance(exc, RuntimeError) and ("can't allocate memory" in text or "out of memory" in text)
+    return isinstance(exc, RuntimeError) and any(words in text for words in OUT_OF_MEMORY_WORDS)
 
 
 def as_user_error(exc: BaseException) -> NeulfError | None:

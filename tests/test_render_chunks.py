@@ -1,8 +1,8 @@
 """Rendering in chunks (render.in_chunks): a GPU renders a frame in large chunks, and a chunk the
 device has no memory for is tried again in halves.  CPU-only here: the device's refusal is
 played by a field that raises torch's out-of-memory error for chunks above a size, which is
-what CUDA raises; the frame must come out the same as one rendered in small chunks.  A CPU's
-allocator says it with a RuntimeError of its own, which is halved on too."""
+what CUDA raises; the frame must come out the same as one rendered in small chunks.  The CPU's
+and MPS's allocators say it with RuntimeErrors of their own, which are halved on too."""
 
 from __future__ import annotations
 
@@ -98,6 +98,39 @@ def test_frame_rendered_after_out_of_memory_matches_small_chunks(light_field, ti
         assert np.allclose(a.rgb, b.rgb, atol=1e-6)
         assert np.allclose(a.depth, b.depth, atol=1e-6, equal_nan=True)
     assert small.warnings == big.warnings
+
+
+# What torch's MPS allocator raises (aten/src/ATen/mps/MPSAllocator.mm): out of its memory, and one
+# buffer larger than Metal allows, both RuntimeErrors; a smaller chunk fits after either.
+MPS_REFUSALS = ("MPS backend out of memory (MPS allocated: 17.94 GB, other allocations: 1.06 GB, max allowed: 18.13 GB). "
+                "Tried to allocate 256.00 MB on private pool. Use PYTORCH_MPS_HIGH_WATERMARK_RATIO=0.0 to disable upper "
+                "limit for memory allocations (may cause system failure).",
+                "Invalid buffer size: 74.51 GB")
+
+
+@pytest.mark.parametrize("refusal", MPS_REFUSALS)
+def test_a_field_the_mps_allocator_refuses_renders_in_halves(light_field, tiny_scene, monkeypatch, refusal):
+    from neulf_core.errors import is_out_of_memory
+
+    view = load_scene(tiny_scene).views[0]
+    camera = view.scaled_camera(1.0)
+    K, width, height = camera.calibration_matrix(), int(camera.width), int(camera.height)
+    small = light_field.render(K, width, height, view.R, view.t, depth=True, chunk=width * 2)
+    forward, sizes = light_field.field.forward, []
+
+    def refusing(uvst, *args, **kwargs):
+        sizes.append(len(uvst))
+        if len(uvst) > width * 3:
+            raise RuntimeError(refusal)
+        return forward(uvst, *args, **kwargs)
+
+    monkeypatch.setattr(light_field.field, "forward", refusing)
+    big = light_field.render(K, width, height, view.R, view.t, depth=True, chunk=width * height)
+    assert max(sizes) > width * 3 and sizes[-1] <= width * 3  # (refused, then halved until it fitted)
+    assert np.array_equal(small.valid, big.valid)
+    assert np.allclose(small.rgb, big.rgb, atol=1e-6)
+    assert np.allclose(small.depth, big.depth, atol=1e-6, equal_nan=True)
+    assert is_out_of_memory(RuntimeError(refusal)) and not is_out_of_memory(ValueError(refusal))
 
 
 def test_a_chunk_retried_after_its_points_ran_out_of_memory_counts_its_rays_once(light_field, tiny_scene,
