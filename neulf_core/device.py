@@ -94,6 +94,15 @@ def _sampled_and_gradients(texture, grid, upstream, device: torch.device) -> lis
     return found
 
 
+def release_cached_memory() -> None:
+    """Hand back the blocks the GPU allocators keep cached (CUDA's and MPS's both keep what a
+    failed try freed): after running out of memory, before a smaller try."""
+    if torch.cuda.is_available():
+        torch.cuda.empty_cache()
+    if torch.backends.mps.is_available():
+        torch.mps.empty_cache()
+
+
 def describe_device(device: torch.device) -> str:
     if device.type == "cuda":
         return f"cuda ({torch.cuda.get_device_name(device)})"

@@ -19,7 +19,7 @@ import pycolmap
 import torch
 
 from .checkpoint import load_for_render
-from .device import HALF_DEVICES, keep_freed_cpu_memory, pick_device
+from .device import HALF_DEVICES, keep_freed_cpu_memory, pick_device, release_cached_memory
 from .errors import NeulfError, is_out_of_memory
 from .fields import build_field, make_config
 from .fields import depth_unit as field_depth_unit
@@ -95,8 +95,7 @@ def in_chunks(total: int, size: int, run) -> int:
             if not is_out_of_memory(exc) or size == 1:
                 raise
             size = max(1, size // 2)
-            if torch.cuda.is_available():
-                torch.cuda.empty_cache()  # give the failed piece's blocks back before the smaller try
+            release_cached_memory()  # give the failed piece's blocks back before the smaller try
             continue
         if carry_on is False:
             return stop

@@ -53,6 +53,22 @@ def test_in_chunks_halves_on_the_cpu_allocators_refusal_only():
         in_chunks(16, 16, broken)
 
 
+@pytest.mark.parametrize("gpu", ["cuda", "mps"])
+def test_in_chunks_hands_the_gpus_cached_blocks_back_before_the_smaller_try(monkeypatch, gpu):
+    released = []
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: gpu == "cuda")
+    monkeypatch.setattr(torch.backends.mps, "is_available", lambda: gpu == "mps")
+    monkeypatch.setattr(torch.cuda, "empty_cache", lambda: released.append("cuda"))
+    monkeypatch.setattr(torch.mps, "empty_cache", lambda: released.append("mps"))
+
+    def run(start, stop):
+        if stop - start > 4:
+            raise OUT_OF_MEMORY("no room")
+
+    in_chunks(8, 8, run)
+    assert released == [gpu]
+
+
 def test_in_chunks_stops_when_asked_and_gives_up_at_one():
     calls = []
     in_chunks(10, 3, lambda a, b: calls.append((a, b)) or (len(calls) < 2))
