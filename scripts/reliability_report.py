@@ -299,6 +299,20 @@ CASES = [
         "tests/test_camera_path.py::test_the_lens_that_keeps_the_path_inside_is_the_shortest",
         "tests/test_camera_path.py::test_spiral_for_blender_names_the_lens",
         "tests/test_camera_path.py::test_video_says_frames_past_the_capture", f"{STORY}[spiral_video]"]),
+    Case("Apple's MPS: a torch whose MPS lacks border-padded grid_sample (or its gradient) is refused in one line "
+         "(passed over when choosing the fastest device); its 'Invalid buffer size' counts as out of memory; no "
+         "float64 reaches the device (checked on a CPU stand-in that refuses it as MPS does)", [
+        "tests/test_mps_portability.py::test_asking_for_an_mps_that_falls_short_is_refused_in_one_line",
+        "tests/test_mps_portability.py::test_the_default_device_passes_over_an_mps_that_falls_short_with_a_note",
+        *_ids("tests/test_render_chunks.py::test_a_field_the_mps_allocator_refuses_renders_in_halves",
+              "MPS backend out of memory", "Invalid buffer size"),
+        "tests/test_mps_portability.py::test_training_on_the_stand_in_keeps_float64_off_the_device",
+        "tests/test_mps_portability.py::test_fitting_a_held_out_pose_keeps_float64_off_the_device",
+        "tests/test_mps_portability.py::test_the_eval_command_fits_poses_on_the_stand_in",
+        *_ids("tests/test_mps_portability.py::test_rendering_colour_and_depth_keeps_float64_off_the_device", "full",
+              "half")],
+         gap="nothing here has run on a Mac: the float64 check runs on a CPU stand-in, and the probe and MPS's "
+             "out-of-memory words on faked devices"),
     Case("No network access unless the user asks for the dependency install, with the declared permission", [
         f"{REL}::test_no_network_unless_the_user_installs", f"{STORY}[install_dependencies]"]),
 ]

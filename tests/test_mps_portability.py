@@ -174,7 +174,7 @@ def _mps_present(monkeypatch, falls_short: bool):
 
 
 def test_asking_for_an_mps_that_falls_short_is_refused_in_one_line(monkeypatch, trained_on_stand_in, tiny_scene,
-                                                                    capsys):
+                                                                    capsys, record_property):
     from neulf_core.cli import EXIT_USAGE, main
     from neulf_core.device import pick_device
     from neulf_core.errors import NeulfError
@@ -191,6 +191,7 @@ def test_asking_for_an_mps_that_falls_short_is_refused_in_one_line(monkeypatch, 
     err = capsys.readouterr().err
     assert err.startswith("error: this torch's MPS cannot run grid_sample") and err.count("\n") == 1
     assert "use --device cpu, or upgrade torch." in err and "Traceback" not in err
+    record_property("message", err.strip())
 
 
 def test_the_default_device_passes_over_an_mps_that_falls_short_with_a_note(monkeypatch, capsys):

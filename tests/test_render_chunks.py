@@ -124,7 +124,7 @@ MPS_REFUSALS = ("MPS backend out of memory (MPS allocated: 17.94 GB, other alloc
                 "Invalid buffer size: 74.51 GB")
 
 
-@pytest.mark.parametrize("refusal", MPS_REFUSALS)
+@pytest.mark.parametrize("refusal", MPS_REFUSALS, ids=["MPS backend out of memory", "Invalid buffer size"])
 def test_a_field_the_mps_allocator_refuses_renders_in_halves(light_field, tiny_scene, monkeypatch, refusal):
     from neulf_core.errors import is_out_of_memory
 
