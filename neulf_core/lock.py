@@ -250,9 +250,7 @@ def _remove_if_stale(path: Path) -> None:
     if _try_create(takeover) is None:
         # Another process is deleting the stale lock (for microseconds); if that process died
         # meanwhile its takeover file is stale in turn.
-        if _holder(takeover) is None and not _being_written(takeover):
-            with contextlib.suppress(FileNotFoundError):
-                takeover.unlink()
+        _remove_dead_takeover(takeover)
         time.sleep(0.01)
         return
     try:
@@ -262,6 +260,44 @@ def _remove_if_stale(path: Path) -> None:
     finally:
         with contextlib.suppress(FileNotFoundError):
             takeover.unlink()
+
+
+def _remove_dead_takeover(takeover: Path) -> None:
+    """Delete `takeover` where the process that made it is gone (it died while deleting a stale
+    lock): only on that evidence, read from the very file deleted.  A takeover that vanished
+    while being read had been taken for a dead one and deleted -- by then it was the next
+    process's new takeover, so two processes judged the stale lock at once and one deleted the
+    lock the other's neighbour had just made (two trainings held the folder)."""
+    try:
+        judged = _identity(takeover)
+        if _read_owner(takeover) is not None:
+            removable = _holder(takeover) is None  # (its process is gone)
+        else:  # (left unwritten for longer than a write takes: its writer died; a future time counts so too)
+            age = time.time() - takeover.stat().st_mtime
+            removable = not 0 <= age < UNREADABLE_GRACE_SECONDS
+        if not removable or _identity(takeover) != judged:
+            return  # (alive, being written, or replaced while judged: not this process's to delete)
+        # Moved aside first: only one process can move a given file, and the one moved is checked
+        # to be the file judged (a new takeover made meanwhile is put back).
+        aside = takeover.with_name(f"{takeover.name}.{os.getpid()}.{secrets.token_hex(4)}.dead")
+        os.rename(takeover, aside)
+    except OSError:
+        return
+    try:
+        if _identity(aside) != judged:
+            with contextlib.suppress(OSError):
+                os.link(aside, takeover)  # (fails where yet another was made: that one stands)
+    finally:
+        with contextlib.suppress(OSError):
+            aside.unlink()
+
+
+def _identity(path: Path) -> tuple[int, int, int]:
+    """Which file `path` is now: a file deleted and another made in its place (maybe reusing its
+    inode number) differ in their modification time, which a rename keeps (it changes the
+    change time)."""
+    status = path.stat()
+    return status.st_dev, status.st_ino, status.st_mtime_ns
 
 
 def _release(path: Path, record: dict) -> None:

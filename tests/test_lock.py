@@ -230,3 +230,44 @@ def test_an_empty_lock_dated_in_the_future_is_not_waited_for(tmp_path):
     started = time.monotonic()
     with training_lock(folder):
         assert time.monotonic() - started < 1.0
+
+
+def test_a_takeover_that_vanished_while_read_is_not_deleted(tmp_path, monkeypatch):
+    """A process waiting on another's takeover read it just as that one deleted it and the next
+    process made its own: the read found nothing, and the new takeover was deleted as a dead one's
+    (two processes then judged the stale lock at once, and one deleted the lock a third had just
+    made: two holders).  Simulated here by a read that finds nothing once, of a live takeover."""
+    import neulf_core.lock as lock
+
+    takeover = tmp_path / f".{LOCK_NAME}.takeover"
+    takeover.write_text(json.dumps({"pid": os.getpid(), "host": platform.node(), "started": time.time()}))
+    read_owner, reads = lock._read_owner, []
+
+    def vanished_once(path):
+        reads.append(path)
+        return None if len(reads) == 1 else read_owner(path)
+
+    monkeypatch.setattr(lock, "_read_owner", vanished_once)
+    lock._remove_if_stale(tmp_path / LOCK_NAME)
+    assert takeover.exists() and reads, "a live takeover was deleted"
+
+
+@pytest.mark.parametrize("left", ["by a process that is gone", "unwritten long ago"])
+def test_a_dead_processes_takeover_is_deleted(tmp_path, left):
+    """A process that died while deleting a stale lock left its takeover: the next deletes it
+    (and leaves nothing of its own behind), so the folder can be trained again."""
+    from neulf_core.lock import _remove_dead_takeover
+
+    takeover = tmp_path / f".{LOCK_NAME}.takeover"
+    if left == "by a process that is gone":
+        takeover.write_text(json.dumps({"pid": dead_process_id(), "host": platform.node(), "started": time.time()}))
+    else:
+        takeover.write_text("")
+        os.utime(takeover, (time.time() - 60, time.time() - 60))
+    _remove_dead_takeover(takeover)
+    assert list(tmp_path.iterdir()) == []
+    takeover.write_text("")  # (one being written now is left alone)
+    _remove_dead_takeover(takeover)
+    assert takeover.exists()
+    with training_lock(tmp_path / "model"):
+        pass
