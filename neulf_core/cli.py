@@ -341,10 +341,12 @@ def _load_cameras_json(path: Path) -> list[dict]:
         raise NeulfError(f"--cameras {path} is a folder: give the cameras' JSON file.") from None
     except (json.JSONDecodeError, UnicodeDecodeError) as exc:
         raise NeulfError(f"cameras file {path} is not valid JSON ({exc}).") from None
+    except RecursionError:  # (lists nested thousands deep: no camera file is)
+        raise NeulfError(f"cameras file {path} nests its lists too deep to be a camera list; see README 'Camera JSON'.") from None
     cameras = data if isinstance(data, list) else data.get("cameras", data.get("views")) if isinstance(data, dict) else None
     if not isinstance(cameras, list) or not cameras:
         raise NeulfError(f"{path} should hold a list of cameras (or {{\"cameras\": [...]}}); see README 'Camera JSON'.")
-    from .render import camera_arrays
+    from .render import camera_arrays, image_size
 
     parsed = []
     for i, cam in enumerate(cameras):
@@ -353,13 +355,16 @@ def _load_cameras_json(path: Path) -> list[dict]:
             R = np.asarray(cam["R"], dtype=np.float64).reshape(3, 3)
             t = np.asarray(cam["t"], dtype=np.float64).reshape(3)
             width, height = _pixel_count(cam["width"]), _pixel_count(cam["height"])
-        except (KeyError, TypeError, ValueError) as exc:
+        except (KeyError, TypeError, ValueError, OverflowError) as exc:
             raise NeulfError(f"camera {i} in {path} needs K (3x3), R (3x3), t (3), width and height: {exc!r} is wrong.") from None
         try:
             K, R, t = camera_arrays(K, R, t)  # (the checks render makes, said before any camera renders)
+            image_size(width, height)
         except NeulfError as exc:
             raise NeulfError(f"camera {i} in {path}: {exc}") from None
         name = Path(str(cam.get("name", f"camera_{i:03d}"))).stem
+        if not name or name.startswith("."):  # ("" or ".png" would write a hidden, nameless file)
+            raise NeulfError(f"camera {i} in {path} is named {cam.get('name')!r}: give it a file name, e.g. \"camera_{i:03d}\".")
         if any(other["name"] == name for other in parsed):  # (the second image would overwrite the first)
             raise NeulfError(f"two cameras in {path} are named '{name}': give each its own name (its image's file name).")
         parsed.append({"name": name, "K": K, "R": R, "t": t, "width": width, "height": height})
@@ -641,10 +646,9 @@ def cmd_video(args) -> int:
 
 
 def _rig_from_meta(light_field):
-    rig = light_field.meta.get("rig")
-    if not rig:
-        raise NeulfError("this model has no saved camera rig; retrain it with this version.")
-    return np.asarray(rig["centres"]), np.asarray(rig["K"]), int(rig["width"]), int(rig["height"])
+    from .paths import saved_rig
+
+    return saved_rig(light_field.meta)
 
 
 # ----------------------------------------------------------------------------- demo

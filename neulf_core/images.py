@@ -20,6 +20,10 @@ from .errors import NeulfError
 from .files import atomic_write_bytes
 
 IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp", ".webp")  # what Pillow and COLMAP both read
+# The widest or tallest image rendered or trained on: JPEG's own limit, and far past any photo or
+# render (a 16K frame is 15360 wide).  A size past it is a typo or a damaged file, which would
+# fail deep in numpy or pycolmap (a --scale of 1e300, a camera 1e9 pixels wide).
+LARGEST_IMAGE_SIDE = 65535
 
 
 def is_image_file(path: Path) -> bool:

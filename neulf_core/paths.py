@@ -12,6 +12,7 @@ from dataclasses import replace
 
 import numpy as np
 
+from .errors import NeulfError
 from .slab import Slab
 
 
@@ -54,6 +55,30 @@ def spiral_path(slab: Slab, camera_centres: np.ndarray, frames: int = 60, rotati
         position = slab.to_world((centre + offset)[None])[0]
         poses.append(look_at(position, target, down))
     return poses
+
+
+NO_RIG = "this model has no saved camera rig; retrain it with this version"
+
+
+def saved_rig(meta: dict) -> tuple[np.ndarray, np.ndarray, int, int]:
+    """The capture's camera rig a model keeps (its metadata's "rig"): the camera centres (N x 3),
+    the pinhole K (3 x 3), width and height -- what a camera path is flown with; a NeulfError
+    where it is missing or damaged (it had failed in int() or numpy with their own words)."""
+    rig = meta.get("rig")
+    if not rig:
+        raise NeulfError(f"{NO_RIG}.")
+    try:
+        centres = np.asarray(rig["centres"], dtype=np.float64)
+        K = np.asarray(rig["K"], dtype=np.float64)
+        width, height = (int(rig[key]) for key in ("width", "height"))
+        sound = (centres.ndim == 2 and centres.shape[1] == 3 and len(centres) > 0 and K.shape == (3, 3)
+                 and np.isfinite(centres).all() and np.isfinite(K).all() and width > 0 and height > 0)
+    except (KeyError, TypeError, ValueError, OverflowError, AttributeError):
+        sound = False
+    if not sound:
+        raise NeulfError("this model's camera rig (its capture's cameras, kept for camera paths) is damaged; retrain "
+                         "the model, or restore its folder from a backup.")
+    return centres, K, width, height
 
 
 # ----------------------------------------------------------------------------- what a path's frames see

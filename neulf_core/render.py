@@ -23,6 +23,7 @@ from .device import HALF_DEVICES, keep_freed_cpu_memory, pick_device, release_ca
 from .errors import NeulfError, is_out_of_memory
 from .fields import build_field, make_config
 from .fields import depth_unit as field_depth_unit
+from .images import LARGEST_IMAGE_SIDE
 from .members import finished_members, member_dir
 from .rays import pinhole_K, pinhole_rays, pixel_centres, shifted_K, single_pixel_K, view_rays
 from .refocus import MAX_SAMPLES, lens_rays, lens_samples, max_blur_radius_px, sample_count
@@ -116,11 +117,14 @@ def image_size(width, height) -> tuple[int, int]:
     """(width, height) as whole numbers of at least 1 pixel; 80.7 was taken as 80 without a word."""
     try:
         whole = all(not isinstance(v, bool) and float(v).is_integer() for v in (width, height))
-    except (TypeError, ValueError):
+    except (TypeError, ValueError, OverflowError):
         whole = False
     if not whole or int(width) < 1 or int(height) < 1:
         raise NeulfError(f"cannot render a {width!r}x{height!r} image: width and height must be whole numbers of at "
                          "least 1 pixel.")
+    if max(int(width), int(height)) > LARGEST_IMAGE_SIDE:
+        raise NeulfError(f"cannot render a {width!r}x{height!r} image: a side is at most {LARGEST_IMAGE_SIDE} pixels; "
+                         "render a smaller one.")
     return int(width), int(height)
 
 

@@ -20,7 +20,7 @@ import numpy as np
 import pycolmap
 
 from .errors import NeulfError
-from .images import image_size, list_images, load_rgb_sizes, resolve_image_paths
+from .images import LARGEST_IMAGE_SIDE, image_size, list_images, load_rgb_sizes, resolve_image_paths
 
 MODEL_FILES = ("cameras.bin", "cameras.txt")
 
@@ -114,6 +114,10 @@ class Scene:
 
 def scaled_size(size: tuple[int, int], scale: float) -> tuple[int, int]:
     check_scale(scale)
+    if max(size) * float(scale) > LARGEST_IMAGE_SIDE:
+        raise NeulfError(f"--scale {scale:g} makes the {size[0]}x{size[1]} photos {size[0] * float(scale):.4g}x"
+                         f"{size[1] * float(scale):.4g} pixels, past the largest image side of {LARGEST_IMAGE_SIDE}; "
+                         "give a smaller --scale.")
     return max(1, int(round(size[0] * scale))), max(1, int(round(size[1] * scale)))
 
 

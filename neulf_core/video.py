@@ -16,6 +16,8 @@ from .errors import NeulfError
 
 # The containers write_video puts H.264 in, by file suffix (what the CLI's --out takes).
 VIDEO_SUFFIXES = (".mp4", ".mov", ".mkv", ".m4v")
+# No player shows more frames a second; a rate far past it (1e300) overflowed in the encoder.
+FASTEST_FRAME_RATE = 1000
 
 # Anchor colours of a perceptually ordered map (dark blue -> cyan -> yellow -> dark red).
 _DEPTH_COLOURS = np.array([[48, 18, 59], [70, 134, 251], [27, 229, 181], [164, 252, 60], [251, 185, 56], [228, 70, 10], [122, 4, 3]], float)
@@ -169,8 +171,9 @@ def _frame_rate(fps) -> Fraction:
     except (TypeError, ValueError):
         value = math.nan
     rate = Fraction(value).limit_denominator(1001) if math.isfinite(value) else Fraction(0)
-    if rate <= 0:
-        raise NeulfError(f"video frame rate {fps!r}: give a positive number of frames per second (e.g. 30 or 29.97).")
+    if rate <= 0 or rate > FASTEST_FRAME_RATE:
+        raise NeulfError(f"video frame rate {fps!r}: give a positive number of frames per second up to "
+                         f"{FASTEST_FRAME_RATE} (e.g. 30 or 29.97).")
     return rate
 
 

@@ -166,14 +166,14 @@ class Service:
         warnings (a rig from one place makes a still path; with `camera`, the pinhole that will
         fly it -- K, width, height and its lens in mm -- frames that see past the capture, and the
         lens that keeps them inside)."""
-        from .paths import STILL_SPIRAL, past_capture_warning, rig_has_baseline, spiral_path
+        from .paths import NO_RIG, STILL_SPIRAL, past_capture_warning, rig_has_baseline, saved_rig, spiral_path
         from .slab import Slab
 
         info = self.model_info(model_dir)
-        rig = info.get("rig")
-        if not rig or not info.get("slab"):
-            raise NeulfError("this model has no saved camera rig; retrain it with this version.")
-        slab, centres = Slab.from_dict(info["slab"]), np.asarray(rig["centres"])
+        if not info.get("slab"):
+            raise NeulfError(f"{NO_RIG}.")
+        centres, K, width, height = saved_rig(info)
+        slab = Slab.from_dict(info["slab"])
         poses = spiral_path(slab, centres, frames=int(frames))
         if not rig_has_baseline(slab, centres):
             warnings = [STILL_SPIRAL]
@@ -182,8 +182,8 @@ class Service:
                                              lens_mm=camera.get("lens_mm"))]
         else:
             warnings = []
-        return {"R": [p[0].tolist() for p in poses], "t": [p[1].tolist() for p in poses], "K": rig["K"],
-                "width": rig["width"], "height": rig["height"], "warnings": [note for note in warnings if note]}
+        return {"R": [p[0].tolist() for p in poses], "t": [p[1].tolist() for p in poses], "K": K.tolist(),
+                "width": width, "height": height, "warnings": [note for note in warnings if note]}
 
 
 def model_stamp(model_dir) -> tuple:

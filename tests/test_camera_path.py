@@ -111,3 +111,42 @@ def test_video_says_frames_past_the_capture(tiny_model, tmp_path, monkeypatch, c
     err = capfd.readouterr().err
     assert err.count("frames look past the region the photos captured") == 1, err
     record_property("message", next(line for line in err.splitlines() if "look past" in line))
+
+
+DAMAGED_RIGS = {
+    "text for centres": {"centres": "abc", "K": [[1, 0, 0], [0, 1, 0], [0, 0, 1]], "width": 4, "height": 3},
+    "a number for K": {"centres": [[0, 0, 0]], "K": 5, "width": 4, "height": 3},
+    "text for a size": {"centres": [[0, 0, 0]], "K": [[1, 0, 0], [0, 1, 0], [0, 0, 1]], "width": "w", "height": 3},
+    "no height": {"centres": [[0, 0, 0]], "K": [[1, 0, 0], [0, 1, 0], [0, 0, 1]], "width": 4, "height": None},
+    "NaN centres": {"centres": [[float("nan"), 0, 0]], "K": [[1, 0, 0], [0, 1, 0], [0, 0, 1]], "width": 4, "height": 3},
+    "not a dict": [1, 2, 3],
+}
+
+
+@pytest.mark.parametrize("rig", list(DAMAGED_RIGS))
+def test_a_damaged_rig_is_said_in_one_line(rig):
+    from neulf_core.errors import NeulfError
+    from neulf_core.paths import saved_rig
+
+    with pytest.raises(NeulfError, match="camera rig .* is damaged; retrain the model"):
+        saved_rig({"rig": DAMAGED_RIGS[rig]})
+
+
+def test_video_of_a_model_whose_rig_is_damaged_ends_in_one_line(tiny_model, tmp_path, capfd, record_property):
+    """A model file whose rig was damaged (kept types it cannot have) had ended the video in int()'s traceback."""
+    import shutil
+
+    import neulf_core.cli as cli
+
+    model = tmp_path / "model"
+    shutil.copytree(tiny_model, model)
+    for name in ("model.pt", "checkpoint.pt"):
+        if (model / name).exists():
+            payload = torch.load(model / name, map_location="cpu", weights_only=False)
+            payload["rig"] = DAMAGED_RIGS["text for a size"]
+            torch.save(payload, model / name)
+    capfd.readouterr()
+    assert cli.main(["video", str(model), "--out", str(tmp_path / "v.mp4"), "--frames", "2"]) == 2
+    err = capfd.readouterr().err
+    assert err.startswith("error: this model's camera rig") and err.count("\n") == 1 and "Traceback" not in err, err
+    record_property("message", err.strip())
