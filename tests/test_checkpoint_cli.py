@@ -619,7 +619,7 @@ def other_scene(tmp_path_factory, tiny_scene_factory):
 
 
 @pytest.mark.parametrize("case", list(ERROR_CASES))
-def test_cli_errors_are_one_line(case, tiny_scene, cli_model, other_scene, tmp_path, capfd):
+def test_cli_errors_are_one_line(case, tiny_scene, cli_model, other_scene, tmp_path, capfd, record_property):
     (tmp_path / "empty").mkdir()
     context = {"tmp": tmp_path, "scene": tiny_scene, "model": str(cli_model), "new": str(tmp_path / "new_model"),
                "out": str(tmp_path / "out"), "empty": str(tmp_path / "empty"), "other_scene": str(other_scene)}
@@ -634,6 +634,7 @@ def test_cli_errors_are_one_line(case, tiny_scene, cli_model, other_scene, tmp_p
     assert lines[0].startswith("error: "), lines[0]
     assert expected in lines[0]
     assert "Traceback" not in captured.err + captured.out
+    record_property("message", lines[0])
     if argv[0] == "train" and "--resume" not in argv and argv[argv.index("--out") + 1] != context["model"]:
         assert not (tmp_path / "new_model" / CHECKPOINT_NAME).exists()
 
