@@ -9,8 +9,10 @@ palette, RGBA, CMYK, with an EXIF orientation.  Everything here turns that into 
 
 from __future__ import annotations
 
+import contextlib
 import io
 import re
+import threading
 from pathlib import Path
 
 import numpy as np
@@ -35,10 +37,53 @@ def list_images(folder: Path) -> list[Path]:
     return sorted((p for p in folder.iterdir() if is_image_file(p)), key=lambda p: p.name)
 
 
+# The most pixels a photo may have.  Pillow refuses more than 179 MP as a possible decompression
+# bomb (and warns on stderr past 89 MP), with a traceback; real photos go beyond that: Phase
+# One's 150 MP backs, and the 400 MP pixel-shift stills of Fujifilm's GFX100 and Hasselblad's
+# H6D-400c (1.2 GB as decoded RGB).  So photos are read up to 400 MP and a header claiming more
+# is refused before anything is decoded, naming the photo.
+PHOTO_PIXEL_LIMIT = 400_000_000
+
+_own_limit_users = 0
+_own_limit_guard = threading.Lock()
+_pillow_limit: int | None = None
+
+
+@contextlib.contextmanager
+def _photo_pixel_limit():
+    """Pillow's own bomb check off while this module reads a photo, which checks
+    PHOTO_PIXEL_LIMIT itself (_check_pixel_count).  Pillow's limit is one global: it is put
+    back as soon as the last photo being read is open, so other readers keep theirs."""
+    global _own_limit_users, _pillow_limit
+    with _own_limit_guard:
+        if _own_limit_users == 0:
+            _pillow_limit, Image.MAX_IMAGE_PIXELS = Image.MAX_IMAGE_PIXELS, None
+        _own_limit_users += 1
+    try:
+        yield
+    finally:
+        with _own_limit_guard:
+            _own_limit_users -= 1
+            if _own_limit_users == 0:
+                Image.MAX_IMAGE_PIXELS = _pillow_limit
+
+
+def _check_pixel_count(path: Path, image: Image.Image) -> None:
+    width, height = image.size
+    if width * height > PHOTO_PIXEL_LIMIT:
+        raise NeulfError(
+            f"image {path} claims {width}x{height} pixels ({width * height / 1e6:.0f} MP), more than the "
+            f"{PHOTO_PIXEL_LIMIT // 1_000_000} MP a photo may have (or the file is damaged); downscale it, e.g. to "
+            "half its width and height."
+        )
+
+
 def _open(path: Path) -> Image.Image:
     try:
-        image = Image.open(path)
-        image.load()
+        with _photo_pixel_limit():
+            image = Image.open(path)
+            _check_pixel_count(path, image)
+            image.load()
     except (UnidentifiedImageError, OSError, ValueError) as exc:
         raise NeulfError(f"cannot read image {path}: {exc}. Replace or remove the file.") from None
     # Phones store portrait photos landscape plus an EXIF rotation; COLMAP saw them upright.
@@ -48,7 +93,8 @@ def _open(path: Path) -> Image.Image:
 def image_size(path: Path) -> tuple[int, int]:
     """(width, height) of the photo as displayed (EXIF orientation applied)."""
     try:
-        with Image.open(path) as image:
+        with _photo_pixel_limit(), Image.open(path) as image:
+            _check_pixel_count(path, image)
             width, height = image.size
             orientation = image.getexif().get(0x0112, 1)
     except (UnidentifiedImageError, OSError, ValueError) as exc:

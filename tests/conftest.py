@@ -12,7 +12,9 @@ from __future__ import annotations
 import importlib
 import importlib.util
 import os
+import struct
 import sys
+import zlib
 from pathlib import Path
 
 import numpy as np
@@ -235,3 +237,12 @@ def losses_as_for_11_to_20_photos(monkeypatch, poses_off: bool) -> list:
     real = train_module.multiview_losses
     monkeypatch.setattr(train_module, "multiview_losses", lambda *a, **k: calls.append(1) or real(*a, **k))
     return calls
+
+
+def png_header_only(width: int, height: int) -> bytes:
+    """A PNG whose valid header claims width x height and whose pixels are all missing."""
+    def chunk(kind: bytes, data: bytes) -> bytes:
+        return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data) & 0xFFFFFFFF)
+
+    header = struct.pack(">IIBBBBB", width, height, 8, 2, 0, 0, 0)
+    return b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", header) + chunk(b"IDAT", zlib.compress(b"\0" * 100)) + chunk(b"IEND", b"")

@@ -13,7 +13,7 @@ import pycolmap
 import pytest
 from PIL import Image
 
-from conftest import look_at_rotation, scene_or_skip, write_colmap_model
+from conftest import look_at_rotation, png_header_only, scene_or_skip, write_colmap_model
 from neulf_core.errors import NeulfError
 from neulf_core.images import image_size, load_rgb, load_rgb_sizes, resolve_image_paths
 from neulf_core.scene import Scene, View, find_model_dir, load_scene, scaled_size, split_views
@@ -432,6 +432,26 @@ def test_exif_rotated_jpeg(tmp_path):
     assert rgb[2, 2].min() > 200                         # the displayed top-left is white
     resized = load_rgb(tmp_path / "rotated.jpg", (10, 20))
     assert resized.shape == (20, 10, 3)
+
+
+def test_photos_past_pillows_bomb_limit_are_read_up_to_400_mp(tmp_path, monkeypatch):
+    """Pillow refuses more than 179 MP with a traceback (DecompressionBombError); real photos go
+    to 400 MP (pixel-shift stills), so those are read and only more is refused, naming the photo.
+    Pillow's own limit is left as it was for everyone else."""
+    limit = Image.MAX_IMAGE_PIXELS
+    large, bomb = tmp_path / "large.jpg", tmp_path / "bomb.png"
+    Image.new("RGB", (48, 36)).save(large)
+    jpeg = bytearray(large.read_bytes())
+    frame = jpeg.index(b"\xff\xc0")  # baseline frame header: length, precision, height, width
+    jpeg[frame + 5:frame + 9] = (15000).to_bytes(2, "big") + (20000).to_bytes(2, "big")
+    large.write_bytes(bytes(jpeg))  # claims 300 MP; image_size reads the header alone
+    bomb.write_bytes(png_header_only(40000, 30000))
+    assert image_size(large) == (20000, 15000)
+    with pytest.raises(NeulfError, match=r"bomb.png claims 40000x30000 pixels \(1200 MP\).*downscale it"):
+        image_size(bomb)
+    with pytest.raises(NeulfError, match=r"bomb.png claims 40000x30000 pixels"):
+        load_rgb(bomb)
+    assert Image.MAX_IMAGE_PIXELS == limit
 
 
 def test_unreadable_image(tmp_path):
