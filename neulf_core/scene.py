@@ -23,6 +23,8 @@ from .errors import NeulfError
 from .images import LARGEST_IMAGE_SIDE, image_size, list_images, load_rgb_sizes, resolve_image_paths
 
 MODEL_FILES = ("cameras.bin", "cameras.txt")
+# Every file of a COLMAP model pycolmap may open (4.x adds rigs and frames to the legacy three).
+MODEL_PARTS = ("rigs", "cameras", "frames", "images", "points3D")
 
 
 @dataclass
@@ -215,6 +217,8 @@ def load_scene(scene_dir: str | Path, images_dir: str | Path | None = None) -> S
         raise NeulfError(f"{scene_dir} is not a folder; give the scene folder that holds sparse/0 and images/.")
     if images_dir is not None:
         images_dir = Path(images_dir).expanduser()
+        if images_dir.exists() and not images_dir.is_dir():
+            raise NeulfError(f"{images_dir} is a file, not a folder: give --images the folder that holds the photos.")
         if not images_dir.is_dir():
             raise NeulfError(f"images folder {images_dir} does not exist.")
     else:
@@ -238,6 +242,7 @@ def _read_reconstruction(model_dir: Path) -> pycolmap.Reconstruction:
     missing = [n for n in ("cameras", "images") if not any((model_dir / f"{n}.{e}").is_file() for e in ("bin", "txt"))]
     if missing:
         raise NeulfError(f"COLMAP model in {model_dir} is incomplete: {' and '.join(missing)} file missing.")
+    _require_readable(model_dir)
     _check_binary_files(model_dir)
     try:
         return pycolmap.Reconstruction(str(model_dir))
@@ -249,16 +254,43 @@ def _read_reconstruction(model_dir: Path) -> pycolmap.Reconstruction:
         ) from None
 
 
+def _require_readable(model_dir: Path) -> None:
+    """Refuse a model file the user may not read: pycolmap's 'could not open' reads as a
+    damaged model, and exporting again would not help."""
+    for path in (model_dir / f"{part}.{ext}" for part in MODEL_PARTS for ext in ("bin", "txt")):
+        if not path.is_file():
+            continue
+        try:
+            with open(path, "rb"):
+                pass
+        except PermissionError:
+            raise NeulfError(
+                f"cannot read {path}: permission denied (the model's files are not damaged, only not readable by "
+                f"you); make them readable, e.g. chmod u+r {shlex.quote(str(path))}, or run as their owner."
+            ) from None
+
+
 # ----------------------------------------------------------------------------- truncated COLMAP files
 # COLMAP's binary reader trusts every count it reads and goes on past the end of a short
 # file: a truncated cameras.bin loads with zero focal lengths, a truncated images.bin can
 # loop for ever, a truncated points3D.bin allocates until memory runs out (16 GB and four
-# minutes on a 3 kB file).  So the record layout is walked first -- counts and lengths
-# only, nothing is decoded -- and a file whose records do not fill it exactly is refused.
+# minutes on a 3 kB file), a truncated frames.bin or an absurd count in it spins for a
+# minute or two.  So the record layout is walked first -- counts and lengths only, and the
+# rotations, nothing else is decoded -- and a file whose records do not fill it exactly is
+# refused.  (Layouts: COLMAP's src/colmap/scene/reconstruction_io_binary.cc.)
 
 
 class _Truncated(Exception):
     pass
+
+
+class _ZeroRotation(Exception):
+    """A record's rotation quaternion has no direction (zero, NaN or infinite): pycolmap would
+    normalise a zero one to the identity rotation and the camera would silently look along +z."""
+
+    def __init__(self, record: str, norm: float):
+        super().__init__(record)
+        self.record, self.norm = record, norm
 
 
 class _Records:
@@ -277,6 +309,21 @@ class _Records:
     def i32(self) -> int:
         self.skip(4)
         return struct.unpack_from("<i", self.data, self.at - 4)[0]
+
+    def u32(self) -> int:
+        self.skip(4)
+        return struct.unpack_from("<I", self.data, self.at - 4)[0]
+
+    def u8(self) -> int:
+        self.skip(1)
+        return self.data[self.at - 1]
+
+    def rotation(self, record: str) -> None:
+        """Read a pose's quaternion (w, x, y, z doubles) and refuse one with no direction."""
+        self.skip(32)
+        norm = float(np.linalg.norm(struct.unpack_from("<4d", self.data, self.at - 32)))
+        if not (np.isfinite(norm) and norm > 1e-6):
+            raise _ZeroRotation(record, norm)
 
     def string(self) -> None:
         end = self.data.find(b"\0", self.at)
@@ -301,7 +348,9 @@ def _walk_cameras(records: _Records) -> None:
 
 def _walk_images(records: _Records) -> None:
     for _ in range(records.u64()):
-        records.skip(4 + 32 + 24 + 4)         # image_id, qvec, tvec, camera_id
+        image_id = records.u32()
+        records.rotation(f"image {image_id}")  # qvec
+        records.skip(24 + 4)                  # tvec, camera_id
         records.string()                      # name
         records.skip(24 * records.u64())      # points2D: x, y, point3D_id
 
@@ -312,7 +361,32 @@ def _walk_points(records: _Records) -> None:
         records.skip(8 * records.u64())       # track: image_id, point2D_idx
 
 
-BINARY_LAYOUTS = {"cameras.bin": _walk_cameras, "images.bin": _walk_images, "points3D.bin": _walk_points}
+def _walk_rigs(records: _Records) -> None:
+    """COLMAP 4.x: each rig's reference sensor, then its other sensors with optional poses."""
+    for _ in range(records.u64()):
+        rig_id = records.u32()
+        sensors = records.u32()
+        if sensors > 0:
+            records.skip(8)                   # reference sensor: type, id
+        for _ in range(max(sensors - 1, 0)):
+            records.skip(8)                   # sensor: type, id
+            if records.u8():                  # has sensor_from_rig
+                records.rotation(f"a sensor of rig {rig_id}")
+                records.skip(24)              # translation
+
+
+def _walk_frames(records: _Records) -> None:
+    """COLMAP 4.x: each frame's rig_from_world pose and the data (images) it holds."""
+    for _ in range(records.u64()):
+        frame_id = records.u32()
+        records.skip(4)                       # rig_id
+        records.rotation(f"frame {frame_id}")
+        records.skip(24)                      # translation
+        records.skip(16 * records.u32())      # data ids: sensor type, sensor id, data id
+
+
+BINARY_LAYOUTS = {"rigs.bin": _walk_rigs, "cameras.bin": _walk_cameras, "frames.bin": _walk_frames,
+                  "images.bin": _walk_images, "points3D.bin": _walk_points}
 
 
 def _check_binary_files(model_dir: Path) -> None:
@@ -326,6 +400,12 @@ def _check_binary_files(model_dir: Path) -> None:
             complete = records.at == len(records.data)
         except _Truncated:
             complete = False
+        except _ZeroRotation as bad:
+            raise NeulfError(
+                f"cannot read the COLMAP model in {model_dir}: {name} gives {bad.record} a rotation quaternion of "
+                f"length {bad.norm:g} (COLMAP writes unit quaternions, so the file is corrupted); "
+                "export the model again from COLMAP or rerun reconstruct."
+            ) from None
         if not complete:
             raise NeulfError(
                 f"cannot read the COLMAP model in {model_dir}: {name} is truncated or corrupted (its records do not "
@@ -339,6 +419,7 @@ def _load_colmap(scene_dir: Path, model_dir: Path, images_dir: Path | None) -> S
     registered = sorted((im for im in recon.images.values() if im.has_pose), key=lambda im: im.name)
     if not registered:
         raise NeulfError(f"the COLMAP model in {model_dir} has no registered images.")
+    _refuse_duplicate_names(registered, model_dir)
     if images_dir is None:
         raise NeulfError(f"no images folder next to the model in {scene_dir}; pass --images DIR.")
     paths = resolve_image_paths(images_dir, [im.name for im in registered])
@@ -360,12 +441,67 @@ def _load_colmap(scene_dir: Path, model_dir: Path, images_dir: Path | None) -> S
             )
         keypoints, point_ids = _triangulated_keypoints(image, recon.cameras[image.camera_id], camera)
         views.append(View(image.name, camera, matrix[:, :3].copy(), matrix[:, 3].copy(), path, keypoints, point_ids))
+    _check_camera_centres(views, model_dir)
     points = np.array([p.xyz for p in recon.points3D.values()], dtype=np.float64).reshape(-1, 3)
     return Scene(scene_dir, views, points, "colmap", notes=_dedupe(notes))
 
 
+def _refuse_duplicate_names(registered: list, model_dir: Path) -> None:
+    """Two images of one name would both read the one photo, each with its own pose."""
+    first_id: dict[str, int] = {}
+    for image in registered:
+        if image.name in first_id:
+            ids = sorted((first_id[image.name], image.image_id))
+            raise NeulfError(
+                f"the COLMAP model in {model_dir} names two images {image.name} (ids {ids[0]} and {ids[1]}): both "
+                "would read one photo with two poses; export the model again from COLMAP or rerun reconstruct."
+            )
+        first_id[image.name] = image.image_id
+
+
+# A camera further than this many times the rig's median spread from its median centre is a
+# damaged pose (a digit lost or added in a translation), not a photo of the scene: real captures
+# span a few spreads.  Measured from the median, not the origin, so that georeferenced models
+# (cameras 1e7 units from the origin, tests/test_far_origin.py) stay welcome.
+FARTHEST_CAMERA_SPREADS = 1e6
+
+
+def _check_camera_centres(views: list[View], model_dir: Path) -> None:
+    """Refuse a camera centre that float32 (the training's precision) cannot hold, or that lies
+    absurdly far from the other cameras: training would run on NaN rays and write NaN scores."""
+    centres = np.array([view.center for view in views])
+    with np.errstate(over="ignore"):  # (1e300 in float32, or squared: infinite, far indeed)
+        representable = np.all(np.isfinite(centres.astype(np.float32)), axis=1)
+        median = np.median(centres[representable], axis=0) if representable.any() else np.zeros(3)
+        distances = np.linalg.norm(centres - median, axis=1)
+    spread = float(np.median(distances))
+    too_far = ~representable
+    if spread > 0:  # (cameras all at one point, a panorama's, have no spread to measure by)
+        too_far |= distances > FARTHEST_CAMERA_SPREADS * spread
+    if not too_far.any():
+        return
+    view = views[int(np.argmax(np.where(too_far, distances, -1.0)))]
+    shown = ", ".join(f"{v:.3g}" for v in view.center)
+    raise NeulfError(
+        f"the COLMAP model in {model_dir} puts image {view.name}'s camera at ({shown}), absurdly far from the other "
+        f"cameras (median spread {spread:.3g}): its pose is damaged; export the model again from COLMAP or rerun "
+        "reconstruct, or remove that image from the model."
+    )
+
+
+# No photo is this wide or high (a 400 MP sensor is about 23000 pixels a side); anything more is
+# a damaged size -- often a negative one that pycolmap reads as an unsigned 2**64 - n.
+LARGEST_CAMERA_SIDE = 100_000
+
+
 def _check_colmap_camera(camera: pycolmap.Camera, image_name: str, model_dir: Path) -> None:
     """Refuse a camera whose size or intrinsics are unusable (NaN, infinite, not positive)."""
+    if not (1 <= camera.width <= LARGEST_CAMERA_SIDE and 1 <= camera.height <= LARGEST_CAMERA_SIDE):
+        raise NeulfError(
+            f"the COLMAP model in {model_dir} gives image {image_name} a damaged camera {camera.camera_id}: its size "
+            f"{_signed(camera.width)}x{_signed(camera.height)} is not a photo's (1 to {LARGEST_CAMERA_SIDE} pixels "
+            "a side); export the model again from COLMAP or rerun reconstruct."
+        )
     params = np.asarray(camera.params, dtype=np.float64)
     focal = params[list(camera.focal_length_idxs())]
     if camera.width < 1 or camera.height < 1 or not np.all(np.isfinite(params)) or not np.all(focal > 0):
@@ -375,6 +511,11 @@ def _check_colmap_camera(camera: pycolmap.Camera, image_name: str, model_dir: Pa
             f"({camera.model_name}, {camera.width}x{camera.height}, params {shown}): the size and focal length must be "
             "positive and every parameter finite; export the model again from COLMAP or rerun reconstruct."
         )
+
+
+def _signed(size: int) -> int:
+    """A camera size as written: COLMAP stores sizes unsigned, so -48 reads back as 2**64 - 48."""
+    return size - 2 ** 64 if size >= 2 ** 63 else size
 
 
 def _triangulated_keypoints(image, model_camera: pycolmap.Camera, camera: pycolmap.Camera):

@@ -32,7 +32,8 @@ import pytest
 import torch
 from PIL import Image
 
-from conftest import TINY_HEIGHT, TINY_WIDTH, look_at_rotation, tiny_camera, tiny_poses, write_colmap_model
+from conftest import (TINY_HEIGHT, TINY_WIDTH, look_at_rotation, png_header_only, tiny_camera, tiny_poses,
+                      write_colmap_model)
 from neulf_core.checkpoint import CHECKPOINT_NAME, METADATA_NAME, load_checkpoint
 from neulf_core.cli import main
 
@@ -127,6 +128,34 @@ def break_scene(scene: Path, how: str) -> None:
             (scene / "images" / name).unlink()
     elif how == "unreadable image":
         (scene / "images" / "view_04.png").write_bytes(b"\x89PNG\r\n\x1a\n" + b"not really")
+    elif how == "absurd data count in frames.bin":
+        patch_file(model / "frames.bin", frame_offset(model, 0) + 64, struct.pack("<I", 2 ** 31 - 1))  # its data count
+    elif how == "zero rotation in frames.bin":
+        patch_file(model / "frames.bin", frame_offset(model, 0) + 8, struct.pack("<4d", 0, 0, 0, 0))  # its quaternion
+    elif how == "two images of one name":
+        path = model / "images.bin"
+        path.write_bytes(path.read_bytes().replace(b"view_01.png\0", b"view_00.png\0"))
+    elif how == "camera far off":
+        patch_file(model / "frames.bin", frame_offset(model, 3) + 8 + 32, struct.pack("<d", 1e300))  # translation x
+    elif how.startswith("camera width"):
+        patch_file(model / "cameras.bin", 8 + 4 + 4, struct.pack("<q", int(how.split()[-1])))
+    elif how == "photo header claiming 1200 MP":
+        (scene / "images" / "view_03.png").write_bytes(png_header_only(40000, 30000))
+
+
+def patch_file(path: Path, offset: int, raw: bytes) -> None:
+    data = bytearray(path.read_bytes())
+    data[offset:offset + len(raw)] = raw
+    path.write_bytes(bytes(data))
+
+
+def frame_offset(model: Path, index: int) -> int:
+    """Where frames.bin's frame `index` (from 0) starts: frame id, rig id, 7 pose doubles, then
+    a count of 16-byte data ids (COLMAP 4.x's layout)."""
+    data, at = (model / "frames.bin").read_bytes(), 8
+    for _ in range(index):
+        at += 8 + 56 + 4 + 16 * struct.unpack_from("<I", data, at + 64)[0]
+    return at
 
 
 SCENE_PROBLEMS = {
@@ -141,6 +170,21 @@ SCENE_PROBLEMS = {
     "all images missing": ("9 of 9 images", "--images"),
     "some images missing": ("2 of 9 images", "view_03.png", "--images"),
     "unreadable image": ("cannot read image", "view_04.png", "Replace or remove"),
+    # COLMAP 4.x's rigs.bin and frames.bin: a truncation or an absurd count had pycolmap spin
+    # for one or two minutes before failing; a zero quaternion became the identity rotation.
+    "truncated frames.bin": ("frames.bin is truncated or corrupted", "export the model again"),
+    "truncated rigs.bin": ("rigs.bin is truncated or corrupted", "export the model again"),
+    "absurd data count in frames.bin": ("frames.bin is truncated or corrupted", "export the model again"),
+    "zero rotation in frames.bin": ("frames.bin gives frame 1 a rotation quaternion of length 0", "export the model again"),
+    # Two views had read one photo with two poses, without a word.
+    "two images of one name": ("names two images view_00.png (ids 1 and 2)", "export the model again"),
+    # Trained on NaN rays and wrote NaN scores (a held-out view), or blamed the 3D points (a training view).
+    "camera far off": ("view_03.png's camera", "absurdly far from the other cameras", "export the model again"),
+    # Were called another aspect ratio: "the model's camera is 18446744073709551568x36".
+    "camera width -48": ("damaged camera 1", "-48x36", "export the model again"),
+    "camera width 200000": ("damaged camera 1", "200000x36", "export the model again"),
+    # Pillow's DecompressionBombError escaped as a traceback.
+    "photo header claiming 1200 MP": ("view_03.png claims 40000x30000 pixels (1200 MP)", "downscale it"),
 }
 
 
@@ -150,6 +194,35 @@ def test_broken_scene_folder(how, tiny_scene, tmp_path, capfd, record_property):
     break_scene(scene, how)
     expect_error(["train", scene, "--out", tmp_path / "model", *QUICK_TRAIN], capfd, record_property, *SCENE_PROBLEMS[how])
     assert not (tmp_path / "model" / CHECKPOINT_NAME).exists()
+
+
+def test_images_option_naming_a_file(tiny_scene, tmp_path, capfd, record_property):
+    """--images given a photo, not its folder, had been told the folder 'does not exist'."""
+    photo = tiny_scene / "images" / "view_00.png"
+    expect_error(["train", tiny_scene, "--images", photo, "--out", tmp_path / "model", *QUICK_TRAIN], capfd,
+                 record_property, "view_00.png is a file, not a folder", "--images the folder that holds the photos")
+
+
+@pytest.mark.skipif(sys.platform == "win32", reason="chmod 000 does not make a file unreadable on Windows")
+@pytest.mark.parametrize("name", ["frames.bin", "images.bin"])
+def test_unreadable_model_file_is_a_permission_problem(name, tiny_scene, tmp_path, record_property):
+    """A model file the user may not read had been called truncated or corrupted ('export the
+    model again'), which would not help: it is a permission problem."""
+    scene = copy_scene(tiny_scene, tmp_path / "scene")
+    (scene / "sparse" / "0" / name).chmod(0)
+    run_as = []
+    if os.geteuid() == 0:  # root reads anything: run without the capabilities that let it
+        if shutil.which("setpriv") is None:
+            pytest.skip("running as root without setpriv: cannot make a file unreadable")
+        run_as = ["setpriv", "--bounding-set=-dac_override,-dac_read_search"]
+    argv = [sys.executable, "-m", "neulf_core", "train", scene, "--out", tmp_path / "model", *QUICK_TRAIN]
+    proc = subprocess.run(run_as + [str(a) for a in argv], cwd=tmp_path, env=subprocess_env(), capture_output=True,
+                          text=True, timeout=300)
+    record_property("message", proc.stderr.strip())
+    lines = proc.stderr.splitlines()
+    assert proc.returncode == 2 and "Traceback" not in proc.stderr
+    assert len(lines) == 1 and lines[0].startswith("error: cannot read "), proc.stderr
+    assert f"{name}: permission denied" in lines[0] and "chmod u+r" in lines[0] and "export" not in lines[0]
 
 
 # ----------------------------------------------------------------------------- photos in odd formats

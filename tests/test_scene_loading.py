@@ -232,6 +232,8 @@ def test_scene_folder_errors(tmp_path, tiny_scene):
         load_scene(tmp_path / "empty")
     with pytest.raises(NeulfError, match="images folder .* does not exist"):
         load_scene(tiny_scene, images_dir=tmp_path / "nowhere")
+    with pytest.raises(NeulfError, match="view_00.png is a file, not a folder"):
+        load_scene(tiny_scene, images_dir=tiny_scene / "images" / "view_00.png")
     with pytest.raises(NeulfError, match="is the COLMAP model's folder: give the scene folder above it"):
         load_scene(tiny_scene / "sparse")  # (it read "no camera model" and proposed reconstructing into it)
     no_images = tmp_path / "no_images"
