@@ -58,11 +58,20 @@ CASES = [
         f"{REL}::test_a_scene_folder_given_as_the_model_is_said",
         f"{REL}::test_a_file_that_is_no_model_is_not_called_a_damaged_checkpoint",
         *_ids(f"{CKPT}::test_cli_errors_are_one_line", "folder without a model"),
-        f"{LOADING}::test_scene_folder_errors"]),
+        f"{LOADING}::test_scene_folder_errors", f"{REL}::test_images_option_naming_a_file"]),
     Case("A truncated or corrupted `.bin`", [
         *_ids(f"{REL}::test_broken_scene_folder", "random cameras.bin", "truncated cameras.bin", "truncated images.bin",
-              "truncated points3D.bin"),
+              "truncated points3D.bin", "truncated frames.bin", "truncated rigs.bin", "absurd data count in frames.bin",
+              "zero rotation in frames.bin"),
         *_ids(f"{CKPT}::test_cli_errors_are_one_line", "random cameras.bin", "truncated images.bin")]),
+    Case("A model whose values are damaged: two images of one name, a camera absurdly far off, an absurd camera size", [
+        *_ids(f"{REL}::test_broken_scene_folder", "two images of one name", "camera far off", "camera width -48",
+              "camera width 200000")]),
+    Case("A model file the user may not read", [
+        *_ids(f"{REL}::test_unreadable_model_file_is_a_permission_problem", "frames.bin", "images.bin")]),
+    Case("A photo past Pillow's decompression-bomb limit", [
+        *_ids(f"{REL}::test_broken_scene_folder", "photo header claiming 1200 MP"),
+        f"{LOADING}::test_photos_past_pillows_bomb_limit_are_read_up_to_400_mp"]),
     Case("A model whose images are missing or only partly present", [
         *_ids(f"{REL}::test_broken_scene_folder", "all images missing", "some images missing", "unreadable image"),
         *_ids(f"{CKPT}::test_cli_errors_are_one_line", "missing images", "unreadable image"),
