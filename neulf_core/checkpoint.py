@@ -137,9 +137,18 @@ def saved_scene_record(model_dir) -> dict | None:
 
 def load_checkpoint(model_dir: Path, map_location="cpu") -> dict:
     """The full checkpoint (for resuming)."""
-    payload = _read(checkpoint_path(model_dir), model_dir, map_location)
+    path = checkpoint_path(model_dir)
+    payload = _read(path, model_dir, map_location)
     if payload.get("format") == MODEL_FORMAT:
         raise NeulfError(f"{model_dir} is a render-only model file (no optimizer state); resuming needs its {CHECKPOINT_NAME}.")
+    problem = (what_is_missing(payload, RENDER_FIELDS) or what_is_missing(payload, RESUME_FIELDS)
+               or _slab_problem(payload["slab"]) or _progress_problem(payload["progress"])
+               or (None if isinstance(payload["scene"].get("fingerprint"), str) else "its scene has no fingerprint")
+               or _weights_problem(payload, ("state_dict", TRAINING_STATE_KEY)))
+    if problem:
+        # (deleting checkpoint.pt alone would leave model.pt, which a new training refuses to overwrite)
+        raise NeulfError(f"the checkpoint {path} is damaged ({problem}); restore it from a backup, or train into "
+                         f"another --out folder (or delete {path.name} and {MODEL_NAME} there) to start again.")
     return payload
 
 
@@ -147,24 +156,102 @@ def load_for_render(model_dir: Path, map_location="cpu") -> dict:
     """model.pt or checkpoint.pt (see render_path); either has the metadata and state_dict
     (model.pt's 8-bit grids are decoded here; its float16 tensors load_state_dict converts
     to float32 once)."""
-    payload = _read(render_path(model_dir), model_dir, map_location)
+    path = render_path(model_dir)
+    payload = _read(path, model_dir, map_location)
     grids = payload.pop("grids", None) or {}
-    try:
-        payload["state_dict"].update({name: dequantise_grid(entry) for name, entry in grids.items()})
-    except (KeyError, TypeError, AttributeError, RuntimeError) as exc:
-        raise NeulfError(f"the model file in {model_dir} is damaged ({type(exc).__name__}: {exc}); "
-                         f"delete {MODEL_NAME} to render from {CHECKPOINT_NAME}, or train again.") from None
+    problem = what_is_missing(payload, RENDER_FIELDS) or _slab_problem(payload["slab"])
+    if not problem:
+        try:
+            payload["state_dict"].update({name: dequantise_grid(entry) for name, entry in grids.items()})
+            problem = _weights_problem(payload, ("state_dict",))
+        except (KeyError, TypeError, AttributeError, RuntimeError) as exc:
+            problem = f"{type(exc).__name__}: {exc}"
+    if problem:
+        remedy = (f"delete {MODEL_NAME} to render from {CHECKPOINT_NAME}, or train again" if path.name == MODEL_NAME
+                  and (path.parent / CHECKPOINT_NAME).is_file() else "restore it from a backup, or train again")
+        raise NeulfError(f"the model file {path} is damaged ({problem}); {remedy}.")
     return payload
 
 
+# What a checkpoint must hold, and of which type, for rendering, and on top for resuming: a
+# checkpoint edited or damaged by hand had stopped in a KeyError or TypeError deep inside the
+# renderer or the trainer.
+RENDER_FIELDS = {"field": str, "field_config": dict, "slab": dict, "state_dict": dict, "scene": dict}
+RESUME_FIELDS = {"train_config": dict, "progress": dict, "optimizer": dict}
+# Entries that may be absent, but are read as dicts where present.
+OPTIONAL_DICTS = ("rig", "pose_check", "members_rule", "autosize")
+
+
+def what_is_missing(payload: dict, fields: dict) -> str | None:
+    """Which of `fields` (name: type) `payload` lacks or holds as another type, in words; None if none."""
+    for name, kind in fields.items():
+        if name not in payload:
+            return f"it has no {name!r}"
+        if not isinstance(payload[name], kind):
+            return f"its {name!r} is a {type(payload[name]).__name__}, not a {kind.__name__}"
+    for name in OPTIONAL_DICTS:
+        if payload.get(name) is not None and not isinstance(payload[name], dict):
+            return f"its {name!r} is a {type(payload[name]).__name__}, not a dict"
+    return None
+
+
+def _slab_problem(slab: dict) -> str | None:
+    """Why the checkpoint's light slab cannot be read back, or None."""
+    from .slab import Slab
+
+    try:
+        Slab.from_dict(slab)
+    except (TypeError, ValueError) as exc:
+        return f"its light slab cannot be read ({type(exc).__name__}: {exc})"
+    return None
+
+
+def _progress_problem(progress: dict) -> str | None:
+    """What is wrong with a checkpoint's progress record (the step, time and history a resume goes on from)."""
+    step, elapsed = progress.get("step"), progress.get("elapsed")
+    if isinstance(step, bool) or not isinstance(step, int) or step < 0:
+        return f"its step is {step!r}, not a count of steps"
+    if isinstance(elapsed, bool) or not isinstance(elapsed, (int, float)):
+        return f"its training time is {elapsed!r}, not a number of seconds"
+    if not isinstance(progress.get("history"), list):
+        return "its progress has no history list"
+    return None
+
+
+def _weights_problem(payload: dict, keys: tuple[str, ...]) -> str | None:
+    """Which weights are not tensors, or not finite (NaN or infinite: a diverged training, or a
+    damaged file): rendered, they had made a black picture and NaN depth without a word, and a
+    resume had failed in an IndexError.  A trained field's weights are all finite (the fields
+    hold no infinite parameters or buffers)."""
+    for key in keys:
+        weights = payload.get(key)
+        if weights is None and key != "state_dict":
+            continue  # (a checkpoint without the weights before the fill)
+        if not isinstance(weights, dict):
+            return f"its {key!r} is not a dict of weights"
+        for name, tensor in weights.items():
+            if not isinstance(tensor, torch.Tensor):
+                return f"its weight {name} is a {type(tensor).__name__}, not a tensor"
+            if tensor.is_floating_point() and not bool(torch.isfinite(tensor).all()):
+                return (f"its weight {name} holds NaN or infinite values: the training that wrote it diverged, "
+                        "or the file was damaged")
+    return None
+
+
 def _damaged_member(path: Path) -> str | None:
-    """The name of a member of the checkpoint's zip whose CRC fails: torch.load does not
-    check them, so flipped bytes inside the weights would otherwise load silently."""
+    """What is wrong inside the checkpoint's zip (a member whose CRC fails, or one zipfile cannot
+    read at all), or None: torch.load does not check the CRCs, so flipped bytes inside the
+    weights would otherwise load silently."""
     try:
         with zipfile.ZipFile(path) as archive:
-            return archive.testzip()
+            member = archive.testzip()
     except (zipfile.BadZipFile, OSError, EOFError, ValueError):
         return None  # not a readable zip at all: torch.load reports it below
+    except (NotImplementedError, RuntimeError) as exc:
+        # (flipped bytes in a member's header read as another zip version, a compression or an
+        # encryption: zipfile's NotImplementedError had escaped as a traceback)
+        return f"a member cannot be read ({exc})"
+    return f"{member} fails its checksum" if member else None
 
 
 def _read(path: Path, model_dir: Path, map_location) -> dict:
@@ -191,8 +278,11 @@ def _read(path: Path, model_dir: Path, map_location) -> dict:
     damaged = _damaged_member(path)
     try:
         if damaged:
-            raise ValueError(f"{damaged} fails its checksum")
+            raise ValueError(damaged)
         payload = torch.load(path, map_location=map_location, weights_only=False)
+    except PermissionError:  # (a file we may not read is not a damaged one: deleting it would lose a good model)
+        raise NeulfError(f"cannot read {path}: permission denied; give your account read access to it (for example: "
+                         f"chmod u+r {shlex.quote(str(path))}), or run as the user who trained it.") from None
     except Exception as exc:
         raise NeulfError(
             f"the checkpoint {path} is truncated or corrupted ({type(exc).__name__}{': ' + damaged if damaged else ''}); "

@@ -639,6 +639,130 @@ def test_cli_errors_are_one_line(case, tiny_scene, cli_model, other_scene, tmp_p
         assert not (tmp_path / "new_model" / CHECKPOINT_NAME).exists()
 
 
+# ----------------------------------------------------------------------------- command line: a damaged model folder
+
+
+def garble_zip_version(path: Path) -> None:
+    """Flipped bytes in a zip's central directory that read as "version needed 14.1": zipfile
+    raises NotImplementedError for it (the fuzz audit's model.pt with 20 bytes XORed)."""
+    data = bytearray(path.read_bytes())
+    entry = data.rfind(b"PK\x01\x02")
+    data[entry + 6:entry + 8] = (141).to_bytes(2, "little")
+    path.write_bytes(bytes(data))
+
+
+def edit_checkpoint(change):
+    def damage(model: Path) -> None:
+        payload = weights(model)
+        torch.save(change(payload), model / CHECKPOINT_NAME)
+    return damage
+
+
+def nan_weights(payload: dict) -> dict:
+    """Every float weight NaN (a diverged training, or a damaged file)."""
+    for key in ("state_dict", "state_dict_before_fill"):
+        for tensor in (payload.get(key) or {}).values():
+            if tensor.is_floating_point():
+                tensor.fill_(float("nan"))
+    return payload
+
+
+def without_model_pt(damage):
+    """`damage`, and model.pt deleted: what is rendered is checkpoint.pt."""
+    def both(model: Path) -> None:
+        damage(model)
+        (model / "model.pt").unlink()
+    return both
+
+
+def folder_in_place_of(name: str):
+    def damage(model: Path) -> None:
+        (model / name).unlink()
+        (model / name).mkdir()
+        (model / name / "keep.txt").write_text("the user's")
+    return damage
+
+
+def write_file(name: str, text: str):
+    return lambda model: (model / name).write_text(text)
+
+
+def render_argv(c):
+    return ["render", c["model"], "--scene", str(c["scene"]), "--views", "view_01", "--out", c["out"], "--pixel-samples", "1"]
+
+
+def resume_argv(c):
+    return ["train", str(c["scene"]), "--out", c["model"], "--steps", "6", "--resume", "--progress", "json"]
+
+
+def eval_argv(c):
+    return ["eval", c["model"], "--scene", str(c["scene"]), "--out", c["out"], "--pixel-samples", "1"]
+
+
+DAMAGED_MODEL_CASES = {
+    # name: (damage(model folder), argv builder(ctx), text expected in the one-line message)
+    "model.pt garbled zip": (lambda model: garble_zip_version(model / "model.pt"), render_argv, "truncated or corrupted"),
+    "checkpoint missing keys, resume": (edit_checkpoint(lambda p: {"format": p["format"], "version": p["version"]}),
+                                        resume_argv, "it has no 'field'"),
+    "checkpoint missing keys, render": (without_model_pt(edit_checkpoint(
+        lambda p: {"format": p["format"], "version": p["version"]})), render_argv, "it has no 'field'"),
+    "checkpoint wrong types, resume": (edit_checkpoint(lambda p: {**p, "step": "ten", "progress": [], "scene": 5}),
+                                       resume_argv, "is damaged"),
+    "checkpoint progress wrong types, resume": (edit_checkpoint(
+        lambda p: {**p, "progress": {**p["progress"], "step": "ten"}}), resume_argv, "its step is 'ten'"),
+    "checkpoint wrong types, render": (without_model_pt(edit_checkpoint(
+        lambda p: {**p, "scene": "x", "rig": 5, "slab": [1, 2]})), render_argv, "is damaged"),
+    "checkpoint NaN weights, resume": (without_model_pt(edit_checkpoint(nan_weights)), resume_argv, "NaN or infinite"),
+    "checkpoint NaN weights, render": (without_model_pt(edit_checkpoint(nan_weights)), render_argv, "NaN or infinite"),
+    "checkpoint NaN weights, eval": (without_model_pt(edit_checkpoint(nan_weights)), eval_argv, "NaN or infinite"),
+}
+
+
+@pytest.mark.parametrize("case", list(DAMAGED_MODEL_CASES))
+def test_a_damaged_model_folder_is_one_line(case, tiny_scene, cli_model, tmp_path, capfd):
+    """Each file of a model folder damaged as the fuzz audit damaged it: one line that names
+    the file and what to do, exit status 2, no traceback, no picture or scores of NaN."""
+    model = copy_model(cli_model, tmp_path / "model")
+    damage, build, expected = DAMAGED_MODEL_CASES[case]
+    damage(model)
+    argv = build({"scene": tiny_scene, "model": str(model), "out": str(tmp_path / "out")})
+    capfd.readouterr()
+    code = main(argv)
+    captured = capfd.readouterr()
+    errors = [line for line in captured.err.splitlines() if line.startswith("error: ")]
+    assert code == 2, captured.err
+    assert len(errors) == 1 and captured.err.rstrip().splitlines()[-1] == errors[0], captured.err
+    assert expected in errors[0], errors[0]
+    assert "Traceback" not in captured.err + captured.out
+    assert ".tmp" not in errors[0]  # (a hidden temporary is not what the user knows)
+    assert not list((tmp_path / "out").glob("*.png"))
+    for folder in model.iterdir():  # a folder in the way is the user's: kept
+        if folder.is_dir() and folder.name.endswith((".pt", ".json")):
+            assert (folder / "keep.txt").read_text() == "the user's"
+
+
+def test_an_unreadable_model_file_is_not_called_damaged(cli_model, tiny_scene, tmp_path, capfd, monkeypatch):
+    """A model.pt we may not read is a good file: the message says how to read it, not to delete it."""
+    model = copy_model(cli_model, tmp_path / "model")
+    os.chmod(model / "model.pt", 0)
+    try:
+        with open(model / "model.pt", "rb"):  # (root reads it anyway: the refusal is simulated)
+            import neulf_core.checkpoint as checkpoint
+
+            def refuse(path, *args, **kwargs):
+                raise PermissionError(13, "Permission denied", str(path))
+            monkeypatch.setattr(checkpoint.torch, "load", refuse)
+    except PermissionError:
+        pass
+    code = main(render_argv({"scene": tiny_scene, "model": str(model), "out": str(tmp_path / "out")}))
+    os.chmod(model / "model.pt", 0o644)
+    err = capfd.readouterr().err
+    line = err.rstrip().splitlines()[-1]
+    assert code == 2 and "Traceback" not in err, err
+    assert line.startswith(f"error: cannot read {model / 'model.pt'}: permission denied") and "chmod" in line, line
+    assert "delete" not in line and "corrupted" not in line, line
+
+
 def test_cli_subprocess_exit_status(tmp_path):
     env = dict(os.environ, PYTHONPATH=str(REPO) + os.pathsep + os.environ.get("PYTHONPATH", ""))
     completed = subprocess.run([sys.executable, "-m", "neulf_core", "train", "/nonexistent", "--out", str(tmp_path / "x"),
