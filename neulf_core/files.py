@@ -19,6 +19,7 @@ def atomic_write_bytes(path: str | Path, data: bytes) -> None:
     models and renders unreadable to the user's group, a render farm or a second account."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
+    refuse_a_folder_in_the_way(path)
     temporary = path.with_name(temporary_name(path.name))
     descriptor = os.open(temporary, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666)
     try:
@@ -29,12 +30,22 @@ def atomic_write_bytes(path: str | Path, data: bytes) -> None:
         os.replace(temporary, path)
     except OSError as exc:
         temporary.unlink(missing_ok=True)
+        refuse_a_folder_in_the_way(path)  # (made since the check above)
         if exc.filename is None:  # (a write's error names no file: the message would name none)
             raise OSError(exc.errno, exc.strerror, str(path)) from exc
         raise
     except BaseException:
         temporary.unlink(missing_ok=True)
         raise
+
+
+def refuse_a_folder_in_the_way(path: Path) -> None:
+    """Refuse to write `path` where a folder of that name stands: the replace then failed naming
+    only the hidden temporary (".model.pt.6558.65dbfbca.tmp: Is a directory"), not the file the
+    user knows.  The folder is never deleted: it may hold the user's work."""
+    if path.is_dir():
+        raise NeulfError(f"cannot write {path}: a folder of that name is in the way; move or rename the folder, "
+                         "then try again.")
 
 
 def temporary_name(name: str) -> str:

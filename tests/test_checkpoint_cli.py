@@ -715,6 +715,10 @@ DAMAGED_MODEL_CASES = {
     "checkpoint NaN weights, resume": (without_model_pt(edit_checkpoint(nan_weights)), resume_argv, "NaN or infinite"),
     "checkpoint NaN weights, render": (without_model_pt(edit_checkpoint(nan_weights)), render_argv, "NaN or infinite"),
     "checkpoint NaN weights, eval": (without_model_pt(edit_checkpoint(nan_weights)), eval_argv, "NaN or infinite"),
+    "model.pt a folder, resume": (folder_in_place_of("model.pt"), resume_argv,
+                                  "model.pt: a folder of that name is in the way"),
+    "model.json a folder, resume": (folder_in_place_of("model.json"), resume_argv,
+                                    "model.json: a folder of that name is in the way"),
 }
 
 
@@ -739,6 +743,16 @@ def test_a_damaged_model_folder_is_one_line(case, tiny_scene, cli_model, tmp_pat
     for folder in model.iterdir():  # a folder in the way is the user's: kept
         if folder.is_dir() and folder.name.endswith((".pt", ".json")):
             assert (folder / "keep.txt").read_text() == "the user's"
+
+
+def test_a_render_onto_a_folder_names_it_and_keeps_it(cli_model, tiny_scene, tmp_path, capfd):
+    (tmp_path / "out" / "view_01.png").mkdir(parents=True)
+    (tmp_path / "out" / "view_01.png" / "keep.txt").write_text("keep")
+    code = main(render_argv({"scene": tiny_scene, "model": str(cli_model), "out": str(tmp_path / "out")}))
+    err = capfd.readouterr().err
+    assert code == 2 and err.rstrip().splitlines()[-1].startswith("error: cannot write ") and "Traceback" not in err
+    assert "view_01.png: a folder of that name is in the way" in err and ".tmp" not in err, err
+    assert (tmp_path / "out" / "view_01.png" / "keep.txt").read_text() == "keep"
 
 
 def test_an_unreadable_model_file_is_not_called_damaged(cli_model, tiny_scene, tmp_path, capfd, monkeypatch):
