@@ -83,7 +83,10 @@ def saved_progress_text(path: str, meta: dict) -> str:
     """progress_text of the model folder `path` (its model.json `meta`): the first member's, or,
     where a later member is unfinished (training stopped in it), that member's -- the first's
     "finished" had read as nothing left to train."""
-    state = read_state(Path(path))
+    try:
+        state = read_state(Path(path))
+    except NeulfError as exc:  # (a damaged members.json: the panel says so, as render and Train will)
+        return str(exc)
     if state and state["count"] > 1 and meta.get("progress", {}).get("status") == "finished":
         finished = {int(m) for m in state.get("finished", [])}
         for member in range(2, state["count"] + 1):

@@ -33,7 +33,7 @@ from pathlib import Path
 from typing import Callable
 
 from .errors import NeulfError
-from .model_files import CHECKPOINT_NAME, METADATA_NAME
+from .model_files import CHECKPOINT_NAME, read_metadata
 
 STATE_NAME = "members.json"
 MEMBERS_DIR = "members"
@@ -189,11 +189,46 @@ def member_budget(config, count: int, member: int, split: str = "steps"):
 
 
 def read_state(model_dir: Path) -> dict | None:
+    """members.json, or None where there is none (a model of one member).  One that cannot be
+    read or holds other types is refused in words: read as none it had rendered and resumed the
+    first member alone without a word, and "finished": ["two"] had stopped in a ValueError."""
+    path = Path(model_dir) / STATE_NAME
     try:
-        state = json.loads((Path(model_dir) / STATE_NAME).read_text())
-    except (OSError, ValueError):
+        state = json.loads(path.read_text())
+    except FileNotFoundError:
         return None
-    return state if isinstance(state, dict) and isinstance(state.get("count"), int) else None
+    except (OSError, ValueError) as exc:
+        problem = exc.strerror if isinstance(exc, OSError) else "it is not JSON"
+        raise NeulfError(f"cannot read {path} ({problem}); {_STATE_REMEDY}") from None
+    problem = _state_problem(state)
+    if problem:
+        raise NeulfError(f"{path} is damaged ({problem}); {_STATE_REMEDY}")
+    return state
+
+
+# What to do about a members.json that cannot be read (it lists the members after the first that finished).
+_STATE_REMEDY = ('restore it from a backup, or write it again as {"count": N, "seed": SEED, "split": "batch" or '
+                 '"steps", "finished": [the members after the first that finished, such as 2]}.')
+
+
+def _state_problem(state) -> str | None:
+    """What is wrong with members.json's contents, in words; None if nothing."""
+    if not isinstance(state, dict):
+        return "it is not a JSON object"
+    count, seed, finished = state.get("count"), state.get("seed"), state.get("finished", [])
+    if not _is_int(count) or not 1 <= count <= MAX_MEMBERS:
+        return f'"count" is {count!r}, not a number of members from 1 to {MAX_MEMBERS}'
+    if not _is_int(seed):
+        return f'"seed" is {seed!r}, not a whole number'
+    if state.get("split", "steps") not in SPLITS:
+        return f'"split" is {state.get("split")!r}, not {" or ".join(map(repr, SPLITS))}'
+    if not isinstance(finished, list) or not all(_is_int(m) and 2 <= m <= count for m in finished):
+        return f'"finished" is {finished!r}, not a list of member numbers from 2 to {count}'
+    return None
+
+
+def _is_int(value) -> bool:
+    return isinstance(value, int) and not isinstance(value, bool)
 
 
 def finished_members(model_dir: Path) -> list[int]:
@@ -240,11 +275,14 @@ def members_progress(model_dir: str | Path) -> list[tuple[int, float]]:
     state = read_state(model_dir)
     done = []
     for member in range(1, (state["count"] if state else 1) + 1):
+        meta = read_metadata(member_dir(model_dir, member))
+        if not meta:
+            continue  # (a member not started yet)
+        progress = meta.get("progress") or {}
         try:
-            progress = json.loads((member_dir(model_dir, member) / METADATA_NAME).read_text()).get("progress", {})
-        except (OSError, ValueError):
-            continue
-        done.append((int(progress.get("step", 0)), float(progress.get("elapsed", 0.0))))
+            done.append((int(progress.get("step", 0)), float(progress.get("elapsed", 0.0))))
+        except (AttributeError, TypeError, ValueError):
+            continue  # (no model.json, or one damaged: its member's work is not counted)
     return done
 
 
@@ -274,11 +312,8 @@ def _budget_of(done: list[tuple[int, float]], state: dict | None) -> tuple[int, 
 def _rule_pending(model_dir: Path) -> bool:
     """Whether the model's first member trains under the rule and has not decided it (a
     minutes budget stopped before the step rate was measured)."""
-    try:
-        meta = json.loads((Path(model_dir) / METADATA_NAME).read_text())
-    except (OSError, ValueError):
-        return False
-    return meta.get("train_config", {}).get("members", 1) is None and "members_rule" not in meta
+    meta = read_metadata(model_dir)
+    return bool(meta) and (meta.get("train_config") or {}).get("members", 1) is None and "members_rule" not in meta
 
 
 def training_pixels(scene, config) -> int:
@@ -357,10 +392,7 @@ class _MemberProgress:
 
 def _members_rule(model_dir: Path) -> dict:
     """model.json's `members_rule`: the first member's verdict on a minutes budget ({} for none)."""
-    try:
-        return json.loads((Path(model_dir) / METADATA_NAME).read_text()).get("members_rule") or {}
-    except (OSError, ValueError):
-        return {}
+    return read_metadata(model_dir).get("members_rule") or {}
 
 
 def _state_as_decided(model_dir: Path, seed: int, rule: dict | None = None) -> dict | None:

@@ -47,4 +47,27 @@ def read_metadata(model_dir) -> dict:
         metadata = json.loads((Path(model_dir).expanduser() / METADATA_NAME).read_text())
     except (OSError, ValueError):
         return {}
-    return metadata if isinstance(metadata, dict) else {}
+    return metadata if isinstance(metadata, dict) and well_formed(metadata) else {}
+
+
+# model.json's entries that its readers take as dicts.
+DICT_ENTRIES = ("train_config", "scene", "progress", "members_rule", "pose_check", "starts", "rig", "slab")
+
+
+def well_formed(metadata: dict) -> bool:
+    """Whether model.json's entries have the types its readers expect.  One edited or damaged by
+    hand (a "scene" that is a string, photo sizes that are not pairs) is read as none at all,
+    as an unreadable one is: it is only a copy of the checkpoint's metadata for people and other
+    programs, the checkpoint holds the truth (resuming checks the photos against it), and the
+    next checkpoint writes it again.  (Its readers had stopped in an AttributeError.)"""
+    if any(metadata.get(name) is not None and not isinstance(metadata[name], dict) for name in DICT_ENTRIES):
+        return False
+    scene = metadata.get("scene") or {}
+    sizes = scene.get("photo_sizes")
+    return (isinstance(scene.get("images"), (str, type(None)))
+            and (sizes is None or isinstance(sizes, dict) and all(_is_size(size) for size in sizes.values())))
+
+
+def _is_size(size) -> bool:
+    return (isinstance(size, list) and len(size) == 2
+            and all(isinstance(n, int) and not isinstance(n, bool) and n > 0 for n in size))

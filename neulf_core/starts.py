@@ -46,6 +46,7 @@ from typing import Callable
 
 from .checkpoint import (CHECKPOINT_NAME, METADATA_NAME, MODEL_NAME, checkpoint_path,
                          remove_stale_temporaries)
+from .errors import NeulfError
 from .files import atomic_write_bytes
 from .scene import Scene, load_scene
 
@@ -93,11 +94,44 @@ def chosen_start(first_loss: float, second_loss: float) -> str:
 
 
 def _read_state(model_dir: Path) -> dict | None:
+    """starts.json, or None where there is none (a model of one start).  One that cannot be read,
+    or lacks what its stage needs, is refused in words (a list had stopped in an AttributeError,
+    a missing seed in a KeyError); deleting it continues the model the folder holds as one start."""
     path = model_dir / STATE_NAME
     try:
-        return json.loads(path.read_text())
-    except (OSError, ValueError):
+        state = json.loads(path.read_text())
+    except FileNotFoundError:
         return None
+    except (OSError, ValueError) as exc:
+        problem = exc.strerror if isinstance(exc, OSError) else "it is not JSON"
+    else:
+        problem = _state_problem(state)
+    if problem:
+        raise NeulfError(f"{path} is damaged ({problem}); delete it to train on the start the model folder holds "
+                         "(train --resume), or restore it from a backup.")
+    return state
+
+
+# What each stage of two starts reads from the state (train_two_starts and the functions it calls).
+NEEDED = {"first": {"seed": int, "second_seed": int},
+          "second": {"seed": int, "second_seed": int, "pass_limit": int, "decision_step": int, "first_loss": float},
+          "moving": {"seed": int, "second_seed": int, "pass_limit": int, "kept": str},
+          "decided": {}}
+
+
+def _state_problem(state) -> str | None:
+    """What is wrong with starts.json's contents, in words; None if nothing."""
+    if not isinstance(state, dict):
+        return "it is not a JSON object"
+    if state.get("stage") not in NEEDED:
+        return f'"stage" is {state.get("stage")!r}, not one of {", ".join(NEEDED)}'
+    for key, kind in NEEDED[state["stage"]].items():
+        value = state.get(key)
+        if isinstance(value, bool) or not isinstance(value, (int, float) if kind is float else kind):
+            return f'its stage {state["stage"]!r} needs "{key}", and it is {value!r}'
+    if state["stage"] == "moving" and state["kept"] not in ("first", "second"):
+        return f'"kept" is {state["kept"]!r}, not "first" or "second"'
+    return None
 
 
 def _write_state(model_dir: Path, state: dict) -> None:

@@ -702,6 +702,18 @@ def eval_argv(c):
 DAMAGED_MODEL_CASES = {
     # name: (damage(model folder), argv builder(ctx), text expected in the one-line message)
     "model.pt garbled zip": (lambda model: garble_zip_version(model / "model.pt"), render_argv, "truncated or corrupted"),
+    "members.json finished not numbers": (write_file("members.json", json.dumps(
+        {"count": 2, "seed": 0, "split": "batch", "finished": ["two"]})), render_argv, "members.json is damaged"),
+    "members.json finished null": (write_file("members.json", json.dumps(
+        {"count": 2, "seed": 0, "split": "batch", "finished": None})), render_argv, "members.json is damaged"),
+    "members.json finished dicts": (write_file("members.json", json.dumps(
+        {"count": 2, "seed": 0, "split": "batch", "finished": [{"m": 2}]})), render_argv, "members.json is damaged"),
+    "members.json garbled, resume": (write_file("members.json", json.dumps(
+        {"count": 2, "seed": "zero", "split": 7, "finished": ["x"]})), resume_argv, "members.json is damaged"),
+    "members.json not JSON": (write_file("members.json", '{"count": 2, "se'), render_argv, "members.json"),
+    "starts.json a list, resume": (write_file("starts.json", "[1, 2, 3]"), resume_argv, "starts.json is damaged"),
+    "starts.json missing keys, resume": (write_file("starts.json", '{"stage": "second"}'), resume_argv,
+                                         "starts.json is damaged"),
     "checkpoint missing keys, resume": (edit_checkpoint(lambda p: {"format": p["format"], "version": p["version"]}),
                                         resume_argv, "it has no 'field'"),
     "checkpoint missing keys, render": (without_model_pt(edit_checkpoint(
@@ -775,6 +787,22 @@ def test_an_unreadable_model_file_is_not_called_damaged(cli_model, tiny_scene, t
     assert code == 2 and "Traceback" not in err, err
     assert line.startswith(f"error: cannot read {model / 'model.pt'}: permission denied") and "chmod" in line, line
     assert "delete" not in line and "corrupted" not in line, line
+
+
+@pytest.mark.parametrize("metadata", [
+    {"train_config": {"preset": 5, "scale": "x", "seed": [1]}, "scene": "x", "progress": 5, "rules": []},
+    {"scene": {"images": 5, "photo_sizes": "x"}},
+])
+def test_resume_over_a_damaged_model_json(metadata, cli_model, tiny_scene, tmp_path, capfd):
+    """model.json is only a copy of the checkpoint's metadata: one of other types is read as none
+    (as an unreadable one is), the resume goes on from checkpoint.pt and writes it again."""
+    model = copy_model(cli_model, tmp_path / "model")
+    (model / METADATA_NAME).write_text(json.dumps(metadata))
+    code = main(resume_argv({"scene": tiny_scene, "model": str(model)}))
+    captured = capfd.readouterr()
+    assert code == 0 and "Traceback" not in captured.err, captured.err
+    meta = json.loads((model / METADATA_NAME).read_text())
+    assert meta["progress"]["step"] == 6 and isinstance(meta["scene"], dict)
 
 
 def test_cli_subprocess_exit_status(tmp_path):
