@@ -195,7 +195,7 @@ def read_state(model_dir: Path) -> dict | None:
     path = Path(model_dir) / STATE_NAME
     try:
         state = json.loads(path.read_text())
-    except FileNotFoundError:
+    except (FileNotFoundError, NotADirectoryError):  # (none; or a model file given, not its folder)
         return None
     except (OSError, ValueError) as exc:
         problem = exc.strerror if isinstance(exc, OSError) else "it is not JSON"
