@@ -48,6 +48,17 @@ class Case:
 DAMAGED_RIGS = ("text for centres", "a number for K", "text for a size", "no height", "NaN centres", "not a dict")
 
 
+# (the damaged model folders tests/test_checkpoint_cli.py makes, by name)
+DAMAGED_MODEL_FILES = ("model.pt garbled zip", "members.json finished not numbers", "members.json finished null",
+                       "members.json finished dicts", "members.json garbled, resume", "members.json not JSON",
+                       "starts.json a list, resume", "starts.json missing keys, resume",
+                       "checkpoint missing keys, resume", "checkpoint missing keys, render",
+                       "checkpoint wrong types, resume", "checkpoint progress wrong types, resume",
+                       "checkpoint wrong types, render", "checkpoint NaN weights, resume",
+                       "checkpoint NaN weights, render", "checkpoint NaN weights, eval", "model.pt a folder, resume",
+                       "model.json a folder, resume")
+
+
 def _ids(prefix: str, *params: str) -> list[str]:
     return [f"{prefix}[{p}]" for p in params]
 
@@ -105,6 +116,13 @@ CASES = [
         f"{CKPT}::test_atomic_write_failure_keeps_the_old_file",
         "tests/test_camera_path.py::test_video_of_a_model_whose_rig_is_damaged_ends_in_one_line",
         *_ids("tests/test_camera_path.py::test_a_damaged_rig_is_said_in_one_line", *DAMAGED_RIGS)]),
+    Case("A damaged model folder: a model.pt zipfile cannot read, one we may not read, a checkpoint lacking keys, of "
+         "other types or of NaN weights, a members.json or starts.json of other types, a folder where model.pt, "
+         "model.json or a render's PNG goes, a model.json of other types (read as none: resume rewrites it)", [
+        *_ids(f"{CKPT}::test_a_damaged_model_folder_is_one_line", *DAMAGED_MODEL_FILES),
+        f"{CKPT}::test_a_render_onto_a_folder_names_it_and_keeps_it",
+        f"{CKPT}::test_an_unreadable_model_file_is_not_called_damaged",
+        *_ids(f"{CKPT}::test_resume_over_a_damaged_model_json", "metadata0", "metadata1")]),
     Case("A checkpoint from another scene", [
         f"{REL}::test_checkpoint_of_another_scene", f"{CKPT}::test_resume_with_another_scene",
         f"{REL}::test_a_reconstruction_changed_in_place_is_said_so",

@@ -735,7 +735,7 @@ DAMAGED_MODEL_CASES = {
 
 
 @pytest.mark.parametrize("case", list(DAMAGED_MODEL_CASES))
-def test_a_damaged_model_folder_is_one_line(case, tiny_scene, cli_model, tmp_path, capfd):
+def test_a_damaged_model_folder_is_one_line(case, tiny_scene, cli_model, tmp_path, capfd, record_property):
     """Each file of a model folder damaged as the fuzz audit damaged it: one line that names
     the file and what to do, exit status 2, no traceback, no picture or scores of NaN."""
     model = copy_model(cli_model, tmp_path / "model")
@@ -752,6 +752,7 @@ def test_a_damaged_model_folder_is_one_line(case, tiny_scene, cli_model, tmp_pat
     assert "Traceback" not in captured.err + captured.out
     assert ".tmp" not in errors[0]  # (a hidden temporary is not what the user knows)
     assert not list((tmp_path / "out").glob("*.png"))
+    record_property("message", errors[0])
     for folder in model.iterdir():  # a folder in the way is the user's: kept
         if folder.is_dir() and folder.name.endswith((".pt", ".json")):
             assert (folder / "keep.txt").read_text() == "the user's"
@@ -767,7 +768,8 @@ def test_a_render_onto_a_folder_names_it_and_keeps_it(cli_model, tiny_scene, tmp
     assert (tmp_path / "out" / "view_01.png" / "keep.txt").read_text() == "keep"
 
 
-def test_an_unreadable_model_file_is_not_called_damaged(cli_model, tiny_scene, tmp_path, capfd, monkeypatch):
+def test_an_unreadable_model_file_is_not_called_damaged(cli_model, tiny_scene, tmp_path, capfd, monkeypatch,
+                                                        record_property):
     """A model.pt we may not read is a good file: the message says how to read it, not to delete it."""
     model = copy_model(cli_model, tmp_path / "model")
     os.chmod(model / "model.pt", 0)
@@ -787,6 +789,7 @@ def test_an_unreadable_model_file_is_not_called_damaged(cli_model, tiny_scene, t
     assert code == 2 and "Traceback" not in err, err
     assert line.startswith(f"error: cannot read {model / 'model.pt'}: permission denied") and "chmod" in line, line
     assert "delete" not in line and "corrupted" not in line, line
+    record_property("message", line)
 
 
 @pytest.mark.parametrize("metadata", [
