@@ -78,7 +78,9 @@ def _check_pixel_count(path: Path, image: Image.Image) -> None:
         )
 
 
-def _open(path: Path) -> Image.Image:
+def open_upright(path: Path) -> Image.Image:
+    """The photo at `path`, decoded and turned upright as the camera saw it; past
+    PHOTO_PIXEL_LIMIT, or unreadable, a NeulfError naming it."""
     try:
         with _photo_pixel_limit():
             image = Image.open(path)
@@ -135,7 +137,7 @@ def load_rgb_sizes(path: Path, sizes) -> list[np.ndarray]:
     is what load_rgb gives at that size): a run wants its photos at the training size and the
     depth teacher's sweep at a smaller one, and a 12-megapixel JPEG takes 60-200 ms to decode
     (docs/jpeg_half_decode.csv)."""
-    rgb = _to_rgb_uint8(_open(Path(path)))
+    rgb = _to_rgb_uint8(open_upright(Path(path)))
     return [_resized(rgb, size) for size in sizes]
 
 

@@ -38,11 +38,10 @@ from typing import Callable, Iterator, Sequence
 
 import numpy as np
 import pycolmap
-from PIL import Image, ImageOps, UnidentifiedImageError
 
 from .errors import NeulfError
 from .frames import is_video
-from .images import IMAGE_EXTENSIONS, list_images
+from .images import IMAGE_EXTENSIONS, list_images, open_upright
 from .lock import claim, claim_holder
 
 MIN_PHOTOS = 3
@@ -321,29 +320,17 @@ def _drop_converted_duplicates(photos: list[Path]) -> list[Path]:
     return kept
 
 
-def _read_upright(path: Path) -> Image.Image:
-    image = Image.open(path)
-    image.load()
-    return ImageOps.exif_transpose(image)
-
-
 def _same_pixels(first: Path, second: Path) -> bool:
     try:
-        a, b = _read_upright(first), _read_upright(second)
-    except (UnidentifiedImageError, OSError, ValueError):
+        a, b = open_upright(first), open_upright(second)
+    except NeulfError:
         return False
     return a.size == b.size and a.mode == b.mode and np.array_equal(np.asarray(a), np.asarray(b))
 
 
 def _convert_to_png(photo: Path, target: Path) -> None:
     """Save ``photo`` upright (EXIF orientation applied, as training reads it) as a PNG."""
-    try:
-        image = _read_upright(photo)
-    except (UnidentifiedImageError, OSError, ValueError) as error:
-        raise NeulfError(
-            f"Could not read the photo {photo.name}: {error}; re-export it as PNG or JPEG, "
-            "or remove it from the folder."
-        ) from None
+    image = open_upright(photo)  # (as training reads photos: past Pillow's bomb limit too, up to PHOTO_PIXEL_LIMIT)
     if image.mode not in ("1", "L", "LA", "I", "I;16", "P", "RGB", "RGBA"):
         image = image.convert("RGB")
     image.save(target, format="PNG", compress_level=1)

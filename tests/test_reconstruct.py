@@ -697,3 +697,21 @@ def test_frames_of_a_clip_cut_short_leave_no_photos(capture, tmp_path):
     with pytest.raises(NeulfError, match="gave 2 frame"):
         extract_frames(tmp_path / "short.mp4", tmp_path / "out_short", count=8)
     assert not (tmp_path / "out_short").exists()
+
+
+def test_a_webp_photo_past_pillows_bomb_limit_is_staged(tmp_path, monkeypatch):
+    """WebP photos are converted to PNG when staged; one past Pillow's decompression-bomb limit
+    (179 MP; real stills reach 400) ended reconstruct in Pillow's DecompressionBombError, which
+    training's own reading admits.  Simulated small: Pillow's limit lowered under the photo."""
+    import neulf_core.images as images
+
+    photo = tmp_path / "photos" / "big.webp"
+    photo.parent.mkdir()
+    Image.fromarray(np.full((64, 64, 3), 90, np.uint8)).save(photo, lossless=True)
+    monkeypatch.setattr(Image, "MAX_IMAGE_PIXELS", 1000)  # (Pillow refuses past twice that: 4096 pixels here)
+    staged = stage_photos([photo], tmp_path / "scene" / "images")
+    assert images.load_rgb(staged / "big.png").shape == (64, 64, 3)
+    assert Image.MAX_IMAGE_PIXELS == 1000  # (Pillow's limit put back)
+    monkeypatch.setattr(images, "PHOTO_PIXEL_LIMIT", 1000)  # (past the project's own: one line naming it)
+    with pytest.raises(NeulfError, match="big.webp claims 64x64 pixels"):
+        stage_photos([photo], tmp_path / "other" / "images")
