@@ -1130,8 +1130,9 @@ def test_render_refuses_cameras_it_cannot_use(case, model):
     ((80.7, 24), "whole numbers"),  # rendered 80 wide without a word
     (("80", True), "whole numbers"),
     ((0, 24), "at least 1 pixel"),
-    ((400_000, 400_000), "does not fit in memory"),  # numpy's MemoryError, 2.7 TB
-], ids=["80.7 wide", "True high", "zero wide", "too large"])
+    ((400_000, 400_000), "a side is at most 65535 pixels"),  # (had been numpy's MemoryError, 2.7 TB)
+    ((10**9, 24), "a side is at most 65535 pixels"),  # (numpy's "array is too big" ValueError)
+], ids=["80.7 wide", "True high", "zero wide", "too large", "a billion wide"])
 def test_render_refuses_image_sizes_it_cannot_make(size, expected, model):
     from neulf_core.errors import NeulfError
     from neulf_core.render import LightField
@@ -1139,6 +1140,24 @@ def test_render_refuses_image_sizes_it_cannot_make(size, expected, model):
     K, _, _, R, t = novel_camera()
     with pytest.raises(NeulfError, match=expected):
         LightField.load(model, "cpu").render(K, *size, R, t)
+
+
+def test_a_render_that_does_not_fit_in_memory_is_one_line(model, monkeypatch):
+    """Within the largest side a frame can still be past the memory (65535 x 65535 is 73 GB of
+    colour, depth and mask): numpy's MemoryError becomes a line that says to render a smaller
+    one.  (Simulated: whether such a frame fits depends on the machine.)"""
+    import neulf_core.render as render
+    from neulf_core.errors import NeulfError
+
+    light_field = render.LightField.load(model, "cpu")
+
+    def no_memory(*args, **kwargs):
+        raise MemoryError
+
+    monkeypatch.setattr(render.np, "zeros", no_memory)
+    K, _, _, R, t = novel_camera()
+    with pytest.raises(NeulfError, match=r"a 65535 x 65535 image does not fit in memory \(73 GB .*render a smaller one"):
+        light_field.render(K, 65535, 65535, R, t)
 
 
 def test_running_out_of_memory_anywhere_is_one_line(monkeypatch, capsys):
