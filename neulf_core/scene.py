@@ -244,6 +244,7 @@ def _read_reconstruction(model_dir: Path) -> pycolmap.Reconstruction:
         raise NeulfError(f"COLMAP model in {model_dir} is incomplete: {' and '.join(missing)} file missing.")
     _require_readable(model_dir)
     _check_binary_files(model_dir)
+    _check_text_rotations(model_dir)
     try:
         return pycolmap.Reconstruction(str(model_dir))
     except Exception as exc:  # pycolmap raises plain RuntimeError/ValueError with C++ messages
@@ -412,6 +413,45 @@ def _check_binary_files(model_dir: Path) -> None:
                 "fill the file); "
                 "export the model again from COLMAP or rerun reconstruct."
             )
+
+
+def _text_rotations(path: Path, first_column: int, lines_per_record: int):
+    """(record id, quaternion norm) of each record of a COLMAP text file whose rotation (w, x,
+    y, z) starts at `first_column`; records as COLMAP's reader takes them: a record's first
+    line is the next that is neither empty nor a comment, and images.txt's second line (its
+    points, maybe empty) follows it whatever it holds.  Lines that are not numbers are left
+    for pycolmap to refuse."""
+    lines = iter(path.read_text(errors="replace").splitlines())
+    for line in lines:
+        fields = line.split()
+        if not fields or fields[0].startswith("#"):
+            continue
+        for _ in range(lines_per_record - 1):
+            next(lines, None)
+        try:
+            yield fields[0], float(np.linalg.norm([float(v) for v in fields[first_column:first_column + 4]]))
+        except (ValueError, IndexError):
+            continue
+
+
+# The rotations of a text model: images.txt (legacy, and beside frames.txt in COLMAP 4.x) and
+# frames.txt -- file, column of QW, lines per record, what a record is.
+TEXT_ROTATIONS = (("images.txt", 1, 2, "image"), ("frames.txt", 2, 1, "frame"))
+
+
+def _check_text_rotations(model_dir: Path) -> None:
+    """A text model's rotation quaternion of no direction (zero, NaN or infinite) is refused,
+    as a binary one's is: pycolmap takes a zero one for the identity without a word."""
+    for name, column, lines_per_record, what in TEXT_ROTATIONS:
+        path = model_dir / name
+        if not path.is_file() or all((model_dir / f"{part}.bin").is_file() for part in ("cameras", "images", "points3D")):
+            continue  # (COLMAP reads the binary model where its three files are there)
+        for record, norm in _text_rotations(path, column, lines_per_record):
+            if not (np.isfinite(norm) and norm > 1e-6):
+                raise NeulfError(
+                    f"cannot read the COLMAP model in {model_dir}: {name} gives {what} {record} a rotation quaternion "
+                    f"of length {norm:g} (COLMAP writes unit quaternions, so the file is damaged); export the model "
+                    "again from COLMAP or rerun reconstruct.")
 
 
 def _load_colmap(scene_dir: Path, model_dir: Path, images_dir: Path | None) -> Scene:

@@ -73,7 +73,8 @@ CASES = [
     Case("A truncated or corrupted `.bin`", [
         *_ids(f"{REL}::test_broken_scene_folder", "random cameras.bin", "truncated cameras.bin", "truncated images.bin",
               "truncated points3D.bin", "truncated frames.bin", "truncated rigs.bin", "absurd data count in frames.bin",
-              "zero rotation in frames.bin"),
+              "zero rotation in frames.bin", "zero rotation in images.txt",
+              "zero rotation in frames.txt"),
         *_ids(f"{CKPT}::test_cli_errors_are_one_line", "random cameras.bin", "truncated images.bin")]),
     Case("A model whose values are damaged: two images of one name, a camera absurdly far off, an absurd camera size", [
         *_ids(f"{REL}::test_broken_scene_folder", "two images of one name", "camera far off", "camera width -48",

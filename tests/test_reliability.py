@@ -28,6 +28,7 @@ import zlib
 from pathlib import Path
 
 import numpy as np
+import pycolmap
 import pytest
 import torch
 from PIL import Image
@@ -111,6 +112,17 @@ def ring_scene(folder: Path) -> Path:
     return folder
 
 
+def as_text(model: Path, keep_frames: bool) -> None:
+    """The model rewritten in COLMAP's text format: 4.x's (with rigs.txt and frames.txt), or the
+    legacy one of cameras, images and points alone."""
+    pycolmap.Reconstruction(str(model)).write_text(str(model))
+    for path in model.glob("*.bin"):
+        path.unlink()
+    if not keep_frames:
+        for name in ("rigs.txt", "frames.txt"):
+            (model / name).unlink()
+
+
 def break_scene(scene: Path, how: str) -> None:
     model = scene / "sparse" / "0"
     if how == "no model":
@@ -132,6 +144,15 @@ def break_scene(scene: Path, how: str) -> None:
         patch_file(model / "frames.bin", frame_offset(model, 0) + 64, struct.pack("<I", 2 ** 31 - 1))  # its data count
     elif how == "zero rotation in frames.bin":
         patch_file(model / "frames.bin", frame_offset(model, 0) + 8, struct.pack("<4d", 0, 0, 0, 0))  # its quaternion
+    elif how.startswith("zero rotation in") and how.endswith(".txt"):
+        as_text(model, keep_frames=how.endswith("frames.txt"))
+        name, column = ("frames.txt", 2) if how.endswith("frames.txt") else ("images.txt", 1)
+        lines = (model / name).read_text().splitlines()
+        first = next(i for i, line in enumerate(lines) if line and not line.startswith("#"))
+        fields = lines[first].split()
+        fields[column:column + 4] = ["0", "0", "0", "0"]  # (pycolmap reads it as the identity rotation)
+        lines[first] = " ".join(fields)
+        (model / name).write_text("\n".join(lines) + "\n")
     elif how == "two images of one name":
         path = model / "images.bin"
         path.write_bytes(path.read_bytes().replace(b"view_01.png\0", b"view_00.png\0"))
@@ -176,6 +197,8 @@ SCENE_PROBLEMS = {
     "truncated rigs.bin": ("rigs.bin is truncated or corrupted", "export the model again"),
     "absurd data count in frames.bin": ("frames.bin is truncated or corrupted", "export the model again"),
     "zero rotation in frames.bin": ("frames.bin gives frame 1 a rotation quaternion of length 0", "export the model again"),
+    "zero rotation in images.txt": ("images.txt gives image 1 a rotation quaternion of length 0", "export the model again"),
+    "zero rotation in frames.txt": ("frames.txt gives frame 1 a rotation quaternion of length 0", "export the model again"),
     # Two views had read one photo with two poses, without a word.
     "two images of one name": ("names two images view_00.png (ids 1 and 2)", "export the model again"),
     # Trained on NaN rays and wrote NaN scores (a held-out view), or blamed the 3D points (a training view).
