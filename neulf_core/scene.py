@@ -481,7 +481,8 @@ def _load_colmap(scene_dir: Path, model_dir: Path, images_dir: Path | None) -> S
             )
         keypoints, point_ids = _triangulated_keypoints(image, recon.cameras[image.camera_id], camera)
         views.append(View(image.name, camera, matrix[:, :3].copy(), matrix[:, 3].copy(), path, keypoints, point_ids))
-    _check_camera_centres(views, model_dir)
+    _check_camera_centres(views, f"the COLMAP model in {model_dir}", "export the model again from COLMAP or rerun "
+                          "reconstruct, or remove that image from the model")
     points = np.array([p.xyz for p in recon.points3D.values()], dtype=np.float64).reshape(-1, 3)
     return Scene(scene_dir, views, points, "colmap", notes=_dedupe(notes))
 
@@ -506,9 +507,10 @@ def _refuse_duplicate_names(registered: list, model_dir: Path) -> None:
 FARTHEST_CAMERA_SPREADS = 1e6
 
 
-def _check_camera_centres(views: list[View], model_dir: Path) -> None:
+def _check_camera_centres(views: list[View], source: str, remedy: str) -> None:
     """Refuse a camera centre that float32 (the training's precision) cannot hold, or that lies
-    absurdly far from the other cameras: training would run on NaN rays and write NaN scores."""
+    absurdly far from the other cameras: training would run on NaN rays and write NaN scores.
+    `source` names where the poses came from, `remedy` what to do."""
     centres = np.array([view.center for view in views])
     with np.errstate(over="ignore"):  # (1e300 in float32, or squared: infinite, far indeed)
         representable = np.all(np.isfinite(centres.astype(np.float32)), axis=1)
@@ -523,9 +525,8 @@ def _check_camera_centres(views: list[View], model_dir: Path) -> None:
     view = views[int(np.argmax(np.where(too_far, distances, -1.0)))]
     shown = ", ".join(f"{v:.3g}" for v in view.center)
     raise NeulfError(
-        f"the COLMAP model in {model_dir} puts image {view.name}'s camera at ({shown}), absurdly far from the other "
-        f"cameras (median spread {spread:.3g}): its pose is damaged; export the model again from COLMAP or rerun "
-        "reconstruct, or remove that image from the model."
+        f"{source} puts image {view.name}'s camera at ({shown}), absurdly far from the other cameras (median "
+        f"spread {spread:.3g}): its pose is damaged; {remedy}."
     )
 
 
@@ -631,6 +632,7 @@ def _load_llff(scene_dir: Path, images_dir: Path | None) -> Scene:
         views.append(View(path.name, camera, R, -R @ centre, path))
     order = np.argsort([v.name for v in views])
     views = [views[i] for i in order]
+    _check_camera_centres(views, f"{scene_dir / 'poses_bounds.npy'}", "regenerate poses_bounds.npy (LLFF's imgs2poses)")
     return Scene(scene_dir, views, np.zeros((0, 3)), "llff", depth_bounds=None if bounds is None else bounds[order],
                  notes=_dedupe(notes))
 

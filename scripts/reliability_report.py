@@ -199,7 +199,7 @@ CASES = [
     Case("A damaged LLFF poses_bounds.npy, a COLMAP model with non-finite values, photos of another size than the "
          "others", [
         *_ids(f"{LOADING}::test_damaged_llff_rows_are_named", "nan height", "zero focal", "nan centre",
-              "inf rotation", "not a rotation"),
+              "inf rotation", "not a rotation", "centre 1e300", "centre 1e9 off"),
         *_ids(f"{LOADING}::test_one_llff_row_of_unusable_bounds_is_left_out", "nan far", "near past far",
               "negative near"),
         f"{LOADING}::test_llff_bounds_unusable_in_every_row_need_the_depths_given",

@@ -583,7 +583,10 @@ def test_the_full_resolution_most_llff_copies_are_read(tmp_path):
     (lambda a: a.__setitem__((3, 3), np.nan), r"row 3 .*rotation or centre that is not finite"),
     (lambda a: a.__setitem__((0, 8), np.inf), r"row 0 .*rotation or centre that is not finite"),
     (lambda a: a.__setitem__((1, 0), 3.0), r"row 1 .*not a rotation"),
-], ids=["nan height", "zero focal", "nan centre", "inf rotation", "not a rotation"])
+    # A finite centre past float32, or a billion units off a rig 0.1 wide: training had run on NaN rays.
+    (lambda a: a.__setitem__((2, 3), 1e300), r"img002.png's camera at \(1e\+300, .*absurdly far.*regenerate poses_bounds"),
+    (lambda a: a.__setitem__((2, 3), 1e9), r"img002.png's camera at \(1e\+09, .*absurdly far.*regenerate poses_bounds"),
+], ids=["nan height", "zero focal", "nan centre", "inf rotation", "not a rotation", "centre 1e300", "centre 1e9 off"])
 def test_damaged_llff_rows_are_named(tmp_path, change, message):
     folder = llff_scene(tmp_path)
     damage_llff(folder, change)
