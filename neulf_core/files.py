@@ -21,8 +21,11 @@ def atomic_write_bytes(path: str | Path, data: bytes) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
     refuse_a_folder_in_the_way(path)
     temporary = path.with_name(temporary_name(path.name))
-    descriptor = os.open(temporary, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666)
     try:
+        # (Made inside the try: a Ctrl-C or SIGTERM is raised as soon as os.open returns, and made
+        # before it the temporary was left behind.  Its name is this call's own, so removing it
+        # where os.open failed removes nothing of anyone else's.)
+        descriptor = os.open(temporary, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666)
         with os.fdopen(descriptor, "wb") as handle:
             handle.write(data)
             handle.flush()

@@ -330,6 +330,7 @@ CASES = [
         "tests/test_outputs.py::test_a_rig_s_photo_folder_is_refused_as_out",
         "tests/test_outputs.py::test_renders_and_eval_files_are_replaced_whole",
         "tests/test_outputs.py::test_a_render_stopped_by_sigterm_says_one_line_and_leaves_whole_files",
+        f"{CKPT}::test_a_signal_as_the_temporary_is_made_leaves_none_behind",
         *_ids("tests/test_outputs.py::test_a_video_stopped_part_way_keeps_the_earlier_video", "SIGTERM", "SIGINT"),
         "tests/test_outputs.py::test_tilde_is_the_home_folder_for_every_output",
         *_ids("tests/test_outputs.py::test_eval_of_a_folder_that_is_not_a_model_leaves_nothing_in_it", "scene",

@@ -415,6 +415,25 @@ def test_atomic_write_failure_keeps_the_old_file(tmp_path):
     assert target.read_bytes() == b"new" and [p.name for p in tmp_path.iterdir()] == ["file.bin"]
 
 
+def test_a_signal_as_the_temporary_is_made_leaves_none_behind(tmp_path, monkeypatch):
+    """Ctrl-C or SIGTERM is raised as soon as a system call returns: one landing just as the
+    temporary file was made left it behind (test_outputs' SIGTERM render found one once)."""
+    import neulf_core.files as files
+
+    target = tmp_path / "file.bin"
+    atomic_write_bytes(target, b"old contents")
+    real_open = os.open
+
+    def made_then_interrupted(*args, **kwargs):
+        os.close(real_open(*args, **kwargs))
+        raise KeyboardInterrupt  # (the signal's handler, run as os.open returns)
+
+    monkeypatch.setattr(files.os, "open", made_then_interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        atomic_write_bytes(target, b"new contents")
+    assert [p.name for p in tmp_path.iterdir()] == ["file.bin"] and target.read_bytes() == b"old contents"
+
+
 @pytest.mark.skipif(os.name != "posix", reason="file modes are POSIX")
 def test_written_files_get_the_users_permissions(tmp_path, cli_model):
     """A model, a render's EXR: readable by the user's group and others as any file the user

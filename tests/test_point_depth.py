@@ -183,13 +183,13 @@ def test_training_decodes_each_photo_once(tracked_scene, tmp_path, monkeypatch):
     from neulf_core import images
 
     decoded = []
-    decode = images._open
+    decode = images.open_upright
 
     def counted(path, *args, **kwargs):
         decoded.append(Path(path).name)
         return decode(path, *args, **kwargs)
 
-    monkeypatch.setattr(images, "_open", counted)
+    monkeypatch.setattr(images, "open_upright", counted)
     out = tmp_path / "model"
     train(tracked_scene, out, TrainConfig(steps=3, seed=0, members=1, two_starts=False, validate_seconds=1e9,
                                           checkpoint_seconds=1e9))
