@@ -530,22 +530,20 @@ def _check_camera_centres(views: list[View], source: str, remedy: str) -> None:
     )
 
 
-# No photo is this wide or high (a 400 MP sensor is about 23000 pixels a side); anything more is
-# a damaged size -- often a negative one that pycolmap reads as an unsigned 2**64 - n.
-LARGEST_CAMERA_SIDE = 100_000
-
 
 def _check_colmap_camera(camera: pycolmap.Camera, image_name: str, model_dir: Path) -> None:
-    """Refuse a camera whose size or intrinsics are unusable (NaN, infinite, not positive)."""
-    if not (1 <= camera.width <= LARGEST_CAMERA_SIDE and 1 <= camera.height <= LARGEST_CAMERA_SIDE):
+    """Refuse a camera whose size or intrinsics are unusable (NaN, infinite, not positive).  A side
+    past LARGEST_IMAGE_SIDE is a damaged size (a 400 MP sensor is about 23000 pixels a side) --
+    often a negative one that pycolmap reads as an unsigned 2**64 - n."""
+    if not (1 <= camera.width <= LARGEST_IMAGE_SIDE and 1 <= camera.height <= LARGEST_IMAGE_SIDE):
         raise NeulfError(
             f"the COLMAP model in {model_dir} gives image {image_name} a damaged camera {camera.camera_id}: its size "
-            f"{_signed(camera.width)}x{_signed(camera.height)} is not a photo's (1 to {LARGEST_CAMERA_SIDE} pixels "
+            f"{_signed(camera.width)}x{_signed(camera.height)} is not a photo's (1 to {LARGEST_IMAGE_SIDE} pixels "
             "a side); export the model again from COLMAP or rerun reconstruct."
         )
     params = np.asarray(camera.params, dtype=np.float64)
     focal = params[list(camera.focal_length_idxs())]
-    if camera.width < 1 or camera.height < 1 or not np.all(np.isfinite(params)) or not np.all(focal > 0):
+    if not np.all(np.isfinite(params)) or not np.all(focal > 0):  # (the size was checked above)
         shown = ", ".join(f"{v:g}" for v in params)
         raise NeulfError(
             f"the COLMAP model in {model_dir} gives image {image_name} an unusable camera {camera.camera_id} "
