@@ -146,10 +146,15 @@ def load_checkpoint(model_dir: Path, map_location="cpu") -> dict:
                or (None if isinstance(payload["scene"].get("fingerprint"), str) else "its scene has no fingerprint")
                or _weights_problem(payload, ("state_dict", TRAINING_STATE_KEY)))
     if problem:
-        # (deleting checkpoint.pt alone would leave model.pt, which a new training refuses to overwrite)
-        raise NeulfError(f"the checkpoint {path} is damaged ({problem}); restore it from a backup, or train into "
-                         f"another --out folder (or delete {path.name} and {MODEL_NAME} there) to start again.")
+        raise damaged_checkpoint(path, problem)
     return payload
+
+
+def damaged_checkpoint(path: Path, problem: str) -> NeulfError:
+    """The one-line message for a checkpoint that cannot be resumed, saying what is wrong in it."""
+    # (deleting checkpoint.pt alone would leave model.pt, which a new training refuses to overwrite)
+    return NeulfError(f"the checkpoint {path} is damaged ({problem}); restore it from a backup, or train into "
+                      f"another --out folder (or delete {path.name} and {MODEL_NAME} there) to start again.")
 
 
 def load_for_render(model_dir: Path, map_location="cpu") -> dict:

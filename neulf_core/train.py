@@ -23,8 +23,8 @@ import torch
 from . import __version__
 from .appearance import (ViewAppearance, appearance_by_default, blank_photos, exposure_difference,
                          photo_exposures)
-from .checkpoint import (CHECKPOINT_NAME, MODEL_NAME, TRAINING_STATE_KEY, checkpoint_path, load_checkpoint,
-                         remove_stale_temporaries, save_checkpoint, saved_scene_record)
+from .checkpoint import (CHECKPOINT_NAME, MODEL_NAME, TRAINING_STATE_KEY, checkpoint_path, damaged_checkpoint,
+                         load_checkpoint, remove_stale_temporaries, save_checkpoint, saved_scene_record)
 from .consistency import SlabGeometry, camera_neighbours, multiview_losses
 from .dataset import RaySet, kept_rayset, mean_colour, rows_at
 from .device import describe_device, keep_freed_cpu_memory, pick_device
@@ -43,6 +43,7 @@ from .poses import DEPTH_LIKE_GAUGE, PoseRefinement
 from .progress import emit as _emit
 from .paths import rig_has_baseline
 from .resume_options import fields_set, kept_message, kept_on_resume
+from .saved_config import type_problem
 from .presets import APPEARANCE_ADAM_BETA2, APPEARANCE_GEOMETRY, DEFAULT_PRESET, get_preset
 from .scene import Scene, load_scene, scaled_size, split_views
 from .slab import Slab, fit_slab, wide_views
@@ -416,7 +417,13 @@ def refuse_to_overwrite(model_dir: Path, resume: bool) -> None:
 def _resumed_checkpoint(model_dir: Path, config: TrainConfig, resume: bool) -> dict | None:
     """The checkpoint a resumed run continues (None for a new one); refuses to overwrite a model."""
     refuse_to_overwrite(model_dir, resume)
-    return load_checkpoint(model_dir) if resume and checkpoint_path(model_dir).is_file() else None
+    if not (resume and checkpoint_path(model_dir).is_file()):
+        return None
+    payload = load_checkpoint(model_dir)
+    problem = type_problem(payload["train_config"], TrainConfig)
+    if problem:
+        raise damaged_checkpoint(checkpoint_path(model_dir), problem)
+    return payload
 
 
 class NonFiniteGuard:

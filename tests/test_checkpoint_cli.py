@@ -686,6 +686,15 @@ def nan_weights(payload: dict) -> dict:
     return payload
 
 
+def both_files(change):
+    """`change` made to the checkpoint and to model.json alike (an edit by hand of both)."""
+    def damage(model: Path) -> None:
+        edit_checkpoint(change)(model)
+        meta = json.loads((model / "model.json").read_text())
+        (model / "model.json").write_text(json.dumps(change(meta)))
+    return damage
+
+
 def without_model_pt(damage):
     """`damage`, and model.pt deleted: what is rendered is checkpoint.pt."""
     def both(model: Path) -> None:
@@ -743,6 +752,10 @@ DAMAGED_MODEL_CASES = {
         lambda p: {**p, "progress": {**p["progress"], "step": "ten"}}), resume_argv, "its step is 'ten'"),
     "checkpoint wrong types, render": (without_model_pt(edit_checkpoint(
         lambda p: {**p, "scene": "x", "rig": 5, "slab": [1, 2]})), render_argv, "is damaged"),
+    "checkpoint train_config wrong types, resume": (edit_checkpoint(lambda p: {**p, "train_config": {
+        **p["train_config"], "preset": 5, "scale": "half"}}), resume_argv, "its train_config's 'preset' is an int"),
+    "checkpoint train_config wrong types, model.json too, resume": (both_files(lambda p: {**p, "train_config": {
+        **p["train_config"], "seed": [1], "holdout_every": "8"}}), resume_argv, "its train_config's 'holdout_every' is a str"),
     "checkpoint NaN weights, resume": (without_model_pt(edit_checkpoint(nan_weights)), resume_argv, "NaN or infinite"),
     "checkpoint NaN weights, render": (without_model_pt(edit_checkpoint(nan_weights)), render_argv, "NaN or infinite"),
     "checkpoint NaN weights, eval": (without_model_pt(edit_checkpoint(nan_weights)), eval_argv, "NaN or infinite"),
@@ -965,3 +978,24 @@ def test_cli_sigint_during_the_auto_size_search_says_nothing_was_saved(tiny_scen
     assert code == 130, err
     assert "nothing was saved" in err and "Traceback" not in err, err
     assert not (model / CHECKPOINT_NAME).exists()
+
+
+def test_a_saved_config_of_the_declared_types_passes_and_others_are_named():
+    """What training saves (asdict of a TrainConfig, numpy scalars and tuples included) passes the
+    resume's type check; a value of another type is named with its field."""
+    from dataclasses import asdict
+
+    import numpy as np
+
+    from neulf_core.saved_config import type_problem
+    from neulf_core.rules import LOSSES_UNTIL_POSES_RIGHT
+    from neulf_core.train import TrainConfig
+
+    saved = asdict(TrainConfig(steps=np.int64(10), minutes=None, scale=np.float64(0.5), exclude=("a.png",),
+                               consistency=LOSSES_UNTIL_POSES_RIGHT, max_passes=100, field_overrides={"x": 1}))
+    assert type_problem(saved, TrainConfig) is None
+    assert type_problem({**saved, "unknown_field": object()}, TrainConfig) is None  # (another version's: dropped)
+    assert "'seed' is a bool" in type_problem({**saved, "seed": True}, TrainConfig)
+    assert "'exclude' is a list" in type_problem({**saved, "exclude": ["a.png", 3]}, TrainConfig)
+    assert "not a number or None" in type_problem({**saved, "scale": "half"}, TrainConfig)
+    assert "'appearance' is an int (1), not true or false or None" in type_problem({**saved, "appearance": 1}, TrainConfig)
