@@ -24,7 +24,7 @@ import subprocess
 import sys
 import tempfile
 import xml.etree.ElementTree as ElementTree
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
@@ -44,23 +44,25 @@ class Case:
     gap: str = ""  # what of the case no test covers
 
 
-# (the damaged rigs tests/test_camera_path.py gives a model, by name)
-DAMAGED_RIGS = ("text for centres", "a number for K", "text for a size", "no height", "NaN centres", "not a dict")
-
-
-# (the damaged model folders tests/test_checkpoint_cli.py makes, by name)
-DAMAGED_MODEL_FILES = ("model.pt garbled zip", "members.json finished not numbers", "members.json finished null",
-                       "members.json finished dicts", "members.json garbled, resume", "members.json not JSON",
-                       "starts.json a list, resume", "starts.json missing keys, resume",
-                       "checkpoint missing keys, resume", "checkpoint missing keys, render",
-                       "checkpoint wrong types, resume", "checkpoint progress wrong types, resume",
-                       "checkpoint wrong types, render", "checkpoint NaN weights, resume",
-                       "checkpoint NaN weights, render", "checkpoint NaN weights, eval", "model.pt a folder, resume",
-                       "model.json a folder, resume")
-
-
 def _ids(prefix: str, *params: str) -> list[str]:
     return [f"{prefix}[{p}]" for p in params]
+
+
+EVERY_PARAMETER = "[*]"  # a test's id ending so stands for each of its parametrized ids, as collected
+
+
+def expanded(tests: list[str], existing: list[str]) -> list[str]:
+    """`tests` with each "test[*]" replaced by the ids of its parametrized cases among `existing`
+    (collected order), so a case added to a test's parameters joins its row without being copied
+    here; a "test[*]" with none left stands, and shows as 'not found'."""
+    out = []
+    for test in tests:
+        if test.endswith(EVERY_PARAMETER):
+            prefix = test[: -len(EVERY_PARAMETER)] + "["
+            out.extend([found for found in existing if found.startswith(prefix)] or [test])
+        else:
+            out.append(test)
+    return out
 
 
 CASES = [
@@ -116,11 +118,11 @@ CASES = [
         f"{CKPT}::test_truncated_checkpoint", f"{CKPT}::test_leftover_temp_file",
         f"{CKPT}::test_atomic_write_failure_keeps_the_old_file",
         "tests/test_camera_path.py::test_video_of_a_model_whose_rig_is_damaged_ends_in_one_line",
-        *_ids("tests/test_camera_path.py::test_a_damaged_rig_is_said_in_one_line", *DAMAGED_RIGS)]),
+        "tests/test_camera_path.py::test_a_damaged_rig_is_said_in_one_line[*]"]),
     Case("A damaged model folder: a model.pt zipfile cannot read, one we may not read, a checkpoint lacking keys, of "
          "other types or of NaN weights, a members.json or starts.json of other types, a folder where model.pt, "
          "model.json or a render's PNG goes, a model.json of other types (read as none: resume rewrites it)", [
-        *_ids(f"{CKPT}::test_a_damaged_model_folder_is_one_line", *DAMAGED_MODEL_FILES),
+        f"{CKPT}::test_a_damaged_model_folder_is_one_line[*]",
         f"{CKPT}::test_a_render_onto_a_folder_names_it_and_keeps_it",
         f"{CKPT}::test_an_unreadable_model_file_is_not_called_damaged",
         *_ids(f"{CKPT}::test_resume_over_a_damaged_model_json", "metadata0", "metadata1")]),
@@ -375,11 +377,11 @@ def pytest_command(*args: str) -> list[str]:
     return [sys.executable, "-m", "pytest", "-p", "no:cacheprovider", *args]
 
 
-def collect(files: list[str]) -> set[str]:
-    """Node ids that exist now (a renamed test shows as 'not found', not as a pass)."""
+def collect(files: list[str]) -> list[str]:
+    """Node ids that exist now, in pytest's order (a renamed test shows as 'not found', not as a pass)."""
     run = subprocess.run(pytest_command("--collect-only", "-q", *files), cwd=REPO, capture_output=True, text=True,
                          env=test_environment())
-    return {line.strip() for line in run.stdout.splitlines() if "::" in line}
+    return [line.strip() for line in run.stdout.splitlines() if "::" in line]
 
 
 def test_environment() -> dict:
@@ -483,7 +485,7 @@ def message_cell(case: Case, results: dict[str, Result]) -> str:
     return "<br>".join(unique) if unique else "(no message recorded by these tests)"
 
 
-def document(results: dict[str, Result], *, with_blender: bool, exit_code: int, started: datetime.datetime) -> str:
+def document(cases: list[Case], results: dict[str, Result], *, with_blender: bool, exit_code: int, started: datetime.datetime) -> str:
     commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=REPO, capture_output=True, text=True).stdout.strip()
     dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=REPO, capture_output=True,
                            text=True).stdout.strip()
@@ -502,14 +504,14 @@ def document(results: dict[str, Result], *, with_blender: bool, exit_code: int, 
         "| # | Case | Tests | Outcome | What the user sees |",
         "|---|------|-------|---------|--------------------|",
     ]
-    for number, case in enumerate(CASES, 1):
+    for number, case in enumerate(cases, 1):
         tests = "<br>".join(test_cell(t, results[t]) for t in case.tests) or "none"
         out.append(f"| {number} | {case.name} | {tests} | {case_outcome(case, results)} | {message_cell(case, results)} |")
-    gaps = [(n, c) for n, c in enumerate(CASES, 1) if c.gap or not c.tests]
+    gaps = [(n, c) for n, c in enumerate(cases, 1) if c.gap or not c.tests]
     out += ["", "## Gaps", ""]
     out += [f"- {n}. {c.name}: {c.gap or 'not covered'}." for n, c in gaps] or ["- none"]
     out += ["", "## Measured", ""]
-    measured = [(t, name, value) for t in dict.fromkeys(t for c in CASES for t in c.tests)
+    measured = [(t, name, value) for t in dict.fromkeys(t for c in cases for t in c.tests)
                 for name, value in results[t].measured]
     out += [f"- `{t.replace('tests/', '')}`: {name} = {value}" for t, name, value in measured] or ["- nothing measured"]
     out.append("")
@@ -523,18 +525,20 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     started = datetime.datetime.now(datetime.timezone.utc)
 
-    wanted = list(dict.fromkeys(t for case in CASES for t in case.tests))
-    existing = collect(sorted({t.split("::")[0] for t in wanted}))
-    to_run = [t for t in wanted if t in existing and (args.with_blender or not t.startswith(BLENDER_FILE))]
+    existing = collect(sorted({t.split("::")[0] for case in CASES for t in case.tests}))
+    cases = [replace(case, tests=expanded(case.tests, existing)) for case in CASES]
+    wanted = list(dict.fromkeys(t for case in cases for t in case.tests))
+    present = set(existing)
+    to_run = [t for t in wanted if t in present and (args.with_blender or not t.startswith(BLENDER_FILE))]
     with tempfile.TemporaryDirectory() as tmp:
         junit = Path(tmp) / "junit.xml"
         exit_code = run_tests(to_run, junit)
         results = read_junit(junit) if junit.is_file() else {}
     for test in wanted:
         if test not in results:
-            results[test] = Result("not found" if test not in existing else "not run")
+            results[test] = Result("not found" if test not in present else "not run")
     args.output.parent.mkdir(parents=True, exist_ok=True)
-    args.output.write_text(document(results, with_blender=args.with_blender, exit_code=exit_code, started=started))
+    args.output.write_text(document(cases, results, with_blender=args.with_blender, exit_code=exit_code, started=started))
     print(f"wrote {args.output}")
     failed = [t for t in to_run if results[t].outcome in ("failed", "error")]
     return 1 if failed else 0

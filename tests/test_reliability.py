@@ -1633,3 +1633,24 @@ def test_blender_import_with_a_model_reads_its_photos(half_size_model):
     assert description["images_dir_from_model"].endswith("images_2")
     assert {(v["width"], v["height"]) for v in description["views"]} == {(TINY_WIDTH // 2, TINY_HEIGHT // 2)}
     assert Service().describe_scene(str(scene))["images_dir_from_model"] is None
+
+
+def _reliability_report():
+    import importlib.util
+
+    path = Path(__file__).resolve().parents[1] / "scripts" / "reliability_report.py"
+    spec = importlib.util.spec_from_file_location("reliability_report", path)
+    report = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = report  # (its dataclasses look their module up)
+    spec.loader.exec_module(report)
+    return report
+
+
+def test_the_reliability_report_expands_every_parameter_of_a_test():
+    """"test[*]" in docs/RELIABILITY.md's case list stands for each parametrized case pytest
+    collects, so a damaged file added to a test's cases joins its row; one with none stays as
+    itself, and shows as not found."""
+    report = _reliability_report()
+    existing = ["a.py::t[1]", "a.py::tt[2]", "a.py::t[x, y]", "a.py::u"]
+    assert report.expanded(["a.py::t[*]", "a.py::u"], existing) == ["a.py::t[1]", "a.py::t[x, y]", "a.py::u"]
+    assert report.expanded(["a.py::gone[*]"], existing) == ["a.py::gone[*]"]
