@@ -251,6 +251,10 @@ def camera_request(scene, camera_obj, matrix_world=None, root_matrix=None, shift
     matrix_world = camera_obj.matrix_world if matrix_world is None else matrix_world
     render = scene.render
     width, height = convert.render_size(render.resolution_x, render.resolution_y, render.resolution_percentage)
+    if width < 1 or height < 1:
+        raise NeulfError(f"the render size {render.resolution_x}x{render.resolution_y} at "
+                         f"{render.resolution_percentage}% is {width}x{height} pixels: raise Output > Format > "
+                         "Resolution %.")
     cam = camera_obj.data
     if cam.type != "PERSP":
         raise NeulfError(f"camera {camera_obj.name} is {cam.type.lower()}; NeuLF renders perspective cameras only.")

@@ -133,6 +133,11 @@ def matrix_from_pose(R, t) -> np.ndarray:
     return C @ FLIP
 
 
+# How far a camera's normalised axes may be from perpendicular (their dot products) before its
+# matrix counts as sheared: float32 matrices of turned, evenly scaled parents stay below 1e-6.
+SHEAR_TOLERANCE = 1e-4
+
+
 def pose_from_matrix(matrix) -> tuple[np.ndarray, np.ndarray]:
     """World-to-camera (R, t) from a camera's 4x4 matrix in the COLMAP world frame.
 
@@ -140,6 +145,13 @@ def pose_from_matrix(matrix) -> tuple[np.ndarray, np.ndarray]:
     position is kept as it is, in model units."""
     M = np.asarray(matrix, dtype=np.float64).reshape(4, 4)
     C = M @ FLIP
+    axes = C[:3, :3] / np.linalg.norm(C[:3, :3], axis=0)
+    if np.abs(axes.T @ axes - np.eye(3)).max() > SHEAR_TOLERANCE:
+        # Blender renders such a camera through its normalised, non-orthogonal axes, which no
+        # pinhole's rotation is: the nearest rotation had rendered 23 px off Cycles, without a word.
+        raise ValueError("the camera's matrix is sheared (a parent scaled unevenly and turned): no pinhole sees what "
+                         "Blender's camera does; apply the parent's scale (Ctrl+A > Scale) or clear its parent keeping "
+                         "the transform (Alt+P).")
     u, _, vt = np.linalg.svd(C[:3, :3])
     rotation = u @ vt  # nearest rotation: drops scale (and numerical shear)
     if np.linalg.det(rotation) < 0:

@@ -12,6 +12,7 @@ from mathutils import Matrix
 
 from . import capture, compositing, convert, viewport
 from .model_folder import model_dir
+from .wording import panel_words
 from ..neulf_core.errors import OUT_OF_MEMORY, NeulfError, is_out_of_memory
 
 _RENDERERS = weakref.WeakSet()  # the viewports' PreviewRenderers, for the redraw timer
@@ -80,7 +81,7 @@ class NeulfRenderEngine(bpy.types.RenderEngine):
         except InterruptedError:
             return False
         except NeulfError as exc:
-            self.report({"ERROR"}, str(exc))
+            self.report({"ERROR"}, panel_words(str(exc)))
             return False
         width, height = request["width"], request["height"]
         rgb = convert.srgb_to_linear(result["rgb"])  # the Combined pass is scene-linear
@@ -111,7 +112,7 @@ class NeulfRenderEngine(bpy.types.RenderEngine):
         try:
             request, key = _viewport_view(original, depsgraph, context.region, context.region_data)
         except NeulfError as exc:
-            self.update_stats("", f"NeuLF: {exc}")
+            self.update_stats("", f"NeuLF: {panel_words(str(exc))}")
             return
         renderer = self._preview_renderer()
         renderer.want(key, request)

@@ -16,6 +16,7 @@ from . import capture, convert
 from .model_folder import model_dir
 from .operators import _Reporting
 from .preferences import get_core
+from .wording import panel_words
 from ..neulf_core.errors import NeulfError
 
 HINT = "Click on what should be sharp (camera view); Esc / right click cancels"
@@ -103,7 +104,7 @@ def pick_event(context, event_type: str, event_value: str, mouse_x: int, mouse_y
     try:
         distance = focus_from_click(context, mouse_x, mouse_y)
     except NeulfError as exc:
-        return "CANCELLED", ("ERROR", str(exc))
+        return "CANCELLED", ("ERROR", panel_words(str(exc)))
     return "FINISHED", ("INFO", f"focus distance {distance:.4g}")
 
 
@@ -135,7 +136,7 @@ class NEULF_OT_pick_focus(bpy.types.Operator):
             capture.camera_request(context.scene, context.scene.camera)
             model_dir(context.scene)
         except NeulfError as exc:
-            self.report({"ERROR"}, str(exc))
+            self.report({"ERROR"}, panel_words(str(exc)))
             return {"CANCELLED"}
         context.window.cursor_modal_set("EYEDROPPER")
         context.window_manager.modal_handler_add(self)

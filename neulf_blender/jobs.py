@@ -15,6 +15,7 @@ import time
 from collections import deque
 from pathlib import Path
 
+from .wording import panel_words
 from ..neulf_core.errors import NeulfError, missing_module_message
 
 ADDON_ROOT = Path(__file__).resolve().parent.parent  # the folder holding neulf_core/
@@ -55,7 +56,7 @@ def explain_failure(stderr_lines) -> str:
     lines = [line.strip() for line in stderr_lines if line.strip()]
     for line in reversed(lines):
         if line.lower().startswith("error:"):  # neulf_core's "error: ...", pip's "ERROR: ..."
-            return line[len("error:"):].strip()
+            return panel_words(line[len("error:"):].strip())
     for line in reversed(lines):
         if "No module named" in line:
             return missing_module_message(line.split("No module named", 1)[1].strip(" '\""))

@@ -12,10 +12,11 @@ import bpy
 
 from . import capture, tasks
 from .jobs import pose_text
+from .preferences import get_core
 from ..neulf_core.errors import NeulfError
 from ..neulf_core.lock import training_holder
 from ..neulf_core.members import member_dir, read_state
-from ..neulf_core.model_files import METADATA_NAME, can_resume, has_render_model, read_metadata
+from ..neulf_core.model_files import METADATA_NAME, can_resume, foreign_metadata, has_render_model, read_metadata
 
 
 RENDER_ONLY = "a render-only model (model.pt without its checkpoint.pt): it renders; to train, choose another folder"
@@ -25,6 +26,17 @@ def abspath(path: str, library=None) -> str:
     """A '//' path made absolute: relative to the open .blend, or to `library`'s file for data
     linked from it (a linked scene's model sits beside the file it was saved in)."""
     return os.path.normpath(bpy.path.abspath(path, library=library)) if path else ""
+
+
+def chosen_path(path: str) -> str:
+    """abspath for a path an operator is given: a '//' path in a .blend never saved has no folder
+    to be relative to (Blender leaves it relative to its working folder, where a model had been
+    trained and then lost its link), so it is refused."""
+    full = abspath(path)
+    if path.startswith("//") and not os.path.isabs(full):
+        raise NeulfError(f"'{path}' is relative to the .blend, which is not saved yet: save the .blend first, or "
+                         "choose the folder in the file browser.")
+    return full
 
 
 def scene_model_dir(scene) -> str:
@@ -52,6 +64,9 @@ def model_dir(scene) -> str:
         raise NeulfError(f"the model folder {path} does not exist: move a .blend together with its model folder, "
                          "or point Load Model at the model.")
     if not has_render_model(path):
+        if training_holder(path) is not None:  # (this Blender's Train, or another process's)
+            raise NeulfError(f"the training of {path} has not saved its first checkpoint yet (it saves every minute): "
+                             "render once it has, or press Cancel, which saves it now.")
         raise NeulfError(f"{path} holds no trained model (neither checkpoint.pt nor model.pt); train it or load "
                          "another folder.")
     return path
@@ -152,16 +167,42 @@ def refresh_model_status(scene) -> str:
     return props.last_status
 
 
+def restore_metadata(context, path: str) -> str:
+    """Where the model's model.json (or a member's) is missing or damaged beside its checkpoint,
+    the core writes it again from checkpoint.pt: Blender's Python, which cannot read the
+    checkpoint (no torch), takes the model's progress from it -- Train had read a damaged one
+    as step 0 and trained only what was left of the new budget.  A line saying so, or ""."""
+    if not path.strip() or training_holder(path) is not None or not _metadata_lost(path):
+        return ""  # (a training writes it at its next checkpoint)
+    written = get_core(context).call("restore_metadata", model_dir=path)
+    return (f"model.json was missing or damaged: written again from checkpoint.pt in {', '.join(written)}"
+            if written else "")
+
+
+def _metadata_lost(path: str) -> bool:
+    try:
+        state = read_state(Path(path))
+    except NeulfError:
+        return False  # (members.json damaged: rendering and Train say so)
+    folders = [member_dir(Path(path), member) for member in range(1, (state["count"] if state else 1) + 1)]
+    return any(can_resume(folder) and not read_metadata(folder) for folder in folders)
+
+
 def readable_model(context, path: str) -> dict:
     """model.json of the model folder `path`, which the scene can take; else a NeulfError."""
     refuse_linked(context.scene, "load its model")
     if not path.strip():
         raise NeulfError("choose the model folder (the one training wrote, holding model.json).")
     meta = read_metadata(path)
+    if not can_resume(path) and foreign_metadata(path):  # (another program's model.json: Train would replace it)
+        meta = {}
     if not meta:
         if (Path(path) / METADATA_NAME).is_file():
             raise NeulfError(f"{path}/model.json cannot be read (damaged or not a NeuLF model's): copy the model "
                              "folder again from where it came, or train a new model into another folder.")
+        if training_holder(path) is not None:
+            raise NeulfError(f"the training of {path} has not saved its first checkpoint yet (it saves every minute): "
+                             "load it once it has.")
         raise NeulfError(f"{path} holds no NeuLF model (model.json missing).")
     return meta
 

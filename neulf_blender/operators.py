@@ -12,12 +12,14 @@ from bpy.props import FloatProperty, IntProperty, StringProperty
 
 from . import capture, compositing, jobs, tasks
 from .jobs import job_status_text
-from .model_folder import (abspath, attach_model, model_dir, model_not_found, saved_progress_text,
-                           readable_model, refuse_linked, scenes_of_model, store_path)
+from .model_folder import (attach_model, chosen_path, model_dir, model_not_found, saved_progress_text,
+                           readable_model, refuse_linked, restore_metadata, scenes_of_model,
+                           store_path)
 from .preferences import get_core, get_prefs, worker_python
 from .properties import CHOICE_OPTION
-from .video_settings import (configure_video, refuse_odd_video_size, restore_after_render, restore_render_settings,
-                             saved_render_settings, video_path)
+from .video_settings import (configure_video, refuse_odd_video_size, refuse_unwritable_video, restore_after_render,
+                             restore_render_settings, saved_render_settings, video_path)
+from .wording import panel_words
 from ..neulf_core.errors import NeulfError
 from ..neulf_core.lock import being_trained_message, training_holder
 from ..neulf_core.members import budget_done
@@ -35,7 +37,12 @@ class _Reporting:
         try:
             return self.run(context)
         except NeulfError as exc:
-            self.report({"ERROR"}, str(exc))
+            self.report({"ERROR"}, panel_words(str(exc)))
+            return {"CANCELLED"}
+        except OSError as exc:  # (a file or folder the operator met that cannot be read or written: one line)
+            where = f" {exc.filename}" if exc.filename else ""
+            self.report({"ERROR"}, f"cannot read or write{where}: {exc.strerror or exc}. Check the path, its "
+                                   "permissions and the free disk space.")
             return {"CANCELLED"}
 
 
@@ -46,7 +53,7 @@ def import_scene(context, scene_dir: str, images_dir: str = "", import_points: b
                  model_path: str = "") -> dict:
     """`model_path`: the model the capture is for, where it is not (yet) the scene's."""
     props = context.scene.neulf
-    existing_model = model_path or abspath(props.model_dir)
+    existing_model = model_path or chosen_path(props.model_dir)
     description = get_core(context).call("describe_scene", scene_dir=scene_dir, images_dir=images_dir or None,
                                          model_dir=existing_model or None)
     capture.build_capture(context, description, import_points=import_points)
@@ -75,7 +82,7 @@ class NEULF_OT_import_colmap(_Reporting, bpy.types.Operator):
     def run(self, context):
         if not self.directory.strip():
             raise NeulfError("choose the scene folder (the one holding sparse/0 and images/, or poses_bounds.npy).")
-        description = import_scene(context, abspath(self.directory), abspath(self.images_dir), self.import_points)
+        description = import_scene(context, chosen_path(self.directory), chosen_path(self.images_dir), self.import_points)
         notes = "; ".join(description.get("notes", []))
         self.report({"INFO"}, f"imported {len(description['views'])} cameras" + (f" ({notes})" if notes else ""))
         return {"FINISHED"}
@@ -105,10 +112,10 @@ class NEULF_OT_reconstruct(_CaptureJob, bpy.types.Operator):
     filter_folder: bpy.props.BoolProperty(default=True, options={"HIDDEN"})
 
     def run(self, context):
-        photos = abspath(self.directory)
+        photos = chosen_path(self.directory)
         if not photos or not Path(photos).is_dir():
             raise NeulfError("choose the folder that holds the photos.")
-        out = abspath(self.scene_dir) or str(Path(photos).parent / f"{Path(photos).name}_neulf")
+        out = chosen_path(self.scene_dir) or str(Path(photos).parent / f"{Path(photos).name}_neulf")
         start_reconstruction(context, photos, out)
         if not bpy.app.background:
             self.report({"INFO"}, f"reconstructing {photos} into {out} in the background")
@@ -161,11 +168,11 @@ class NEULF_OT_reconstruct_video(_CaptureJob, bpy.types.Operator):
                               description="Where to write the COLMAP scene (default: next to the video)")
 
     def run(self, context):
-        video = abspath(self.filepath)
+        video = chosen_path(self.filepath)
         if not video or not Path(video).is_file():
             raise NeulfError("choose the video file of the capture.")
         stem = Path(video).stem
-        out = abspath(self.scene_dir) or str(Path(video).parent / f"{stem}_neulf")
+        out = chosen_path(self.scene_dir) or str(Path(video).parent / f"{stem}_neulf")
         photos = str(Path(out).parent / f"{Path(out).name}_frames")  # (beside the scene: reconstruct links them)
         python, extra = worker_python(get_prefs(context))
         job = jobs.FramesJob(python, video, photos, self.count, env=jobs.core_environment(extra))
@@ -204,7 +211,11 @@ class NEULF_OT_load_model(_Reporting, bpy.types.Operator):
         return {"RUNNING_MODAL"}
 
     def run(self, context):
-        path = abspath(self.directory)
+        path = chosen_path(self.directory)
+        refuse_linked(context.scene, "load its model")
+        restored = restore_metadata(context, path)
+        if restored:
+            self.report({"WARNING"}, restored)
         scene_meta = readable_model(context, path).get("scene", {})
         fingerprint = scene_meta.get("fingerprint")
         if context.scene.neulf.fingerprint and fingerprint not in (None, context.scene.neulf.fingerprint):
@@ -214,8 +225,8 @@ class NEULF_OT_load_model(_Reporting, bpy.types.Operator):
             try:  # (first, through the model's photos; a capture that fails to import leaves nothing half-built)
                 import_scene(context, scene_meta["root"], model_path=path)
             except NeulfError as exc:  # (rendering needs only the model: photos moved or not copied along)
-                self.report({"WARNING"}, f"the capture it trained on could not be imported ({exc}); the model renders "
-                                         "without it (Import COLMAP / LLFF takes an Images folder)")
+                self.report({"WARNING"}, f"the capture it trained on could not be imported ({panel_words(str(exc))}); the "
+                                         "model renders without it (Import COLMAP / LLFF takes an Images folder)")
         attach_model(context, path)
         self.report({"INFO"}, f"model loaded: {path}")
         return {"FINISHED"}
@@ -241,10 +252,10 @@ def start_training(context, *, minutes=None, steps=None):
     """Start (or continue) training the scene's model in a separate process."""
     refuse_linked(context.scene, "train its model")
     props = context.scene.neulf
-    scene_dir = abspath(props.scene_dir)
+    scene_dir = chosen_path(props.scene_dir)
     if not scene_dir:
         raise NeulfError("import a capture first (NeuLF > Import), then train.")
-    out = abspath(props.model_dir) or str(Path(scene_dir) / "neulf_model")
+    out = chosen_path(props.model_dir) or str(Path(scene_dir) / "neulf_model")
     if not Path(out).is_dir() and props.last_status.startswith(model_not_found(out)):
         # (a .blend opened away from its model: start over only where the user names a new folder)
         raise NeulfError(f"the model folder {out} does not exist: move the .blend together with its model folder or "
@@ -259,6 +270,9 @@ def start_training(context, *, minutes=None, steps=None):
     resume = can_resume(out)
     resumed_from = None
     if resume:  # budgets count from the start of training: add to what is done (as the budget counts it)
+        restored = restore_metadata(context, out)
+        if restored:
+            print(f"NeuLF: {restored}")
         done_steps, done_seconds = budget_done(out)
         resumed_from = done_steps
         if steps:
@@ -270,7 +284,7 @@ def start_training(context, *, minutes=None, steps=None):
     device = None if prefs is None or prefs.device == "AUTO" else prefs.device.lower()
     fast_field = get_preset(props.preset).field == "disparity"  # (its options mean nothing to the other fields)
     job = jobs.TrainJob(python, scene_dir, out, minutes=minutes, steps=steps, resume=resume, preset=props.preset,
-                        scale=props.train_scale or None, images_dir=abspath(props.images_dir) or None, device=device,
+                        scale=props.train_scale or None, images_dir=chosen_path(props.images_dir) or None, device=device,
                         env=jobs.core_environment(extra), sweep_teacher=CHOICE_OPTION[props.sweep_teacher],
                         depth_layers=props.depth_layers if fast_field else -1, appearance=CHOICE_OPTION[props.appearance],
                         refine_poses=CHOICE_OPTION[props.refine_poses],
@@ -435,7 +449,7 @@ class NEULF_OT_render_camera(_Reporting, bpy.types.Operator):
         try:
             render, self._request = active_camera_render(context)
         except NeulfError as exc:
-            self.report({"ERROR"}, str(exc))
+            self.report({"ERROR"}, panel_words(str(exc)))
             return {"CANCELLED"}
         self._call = jobs.ThreadCall(render)
         self._timer = context.window_manager.event_timer_add(0.2, window=context.window)
@@ -459,7 +473,7 @@ class NEULF_OT_render_camera(_Reporting, bpy.types.Operator):
             self.report({"INFO"}, "Render Camera cancelled")
             return {"CANCELLED"}
         if self._call.error is not None:
-            self.report({"ERROR"}, self._call.error)
+            self.report({"ERROR"}, panel_words(self._call.error))
             return {"CANCELLED"}
         return self._show(self._call.result, self._request)
 
@@ -598,7 +612,7 @@ class NEULF_OT_render_video(_Reporting, bpy.types.Operator):
         capture.camera_request(scene, scene.camera)  # (an orthographic or panoramic camera: said before the render)
         refuse_odd_video_size(scene.render)
         path = video_path(self.filepath)
-        Path(path).parent.mkdir(parents=True, exist_ok=True)
+        refuse_unwritable_video(path)
         saved = saved_render_settings(scene)
         scene.render.engine = "NEULF"
         configure_video(scene, path)

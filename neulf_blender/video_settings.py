@@ -5,6 +5,7 @@ interactive render (which runs on after the operator) ends."""
 from __future__ import annotations
 
 import os
+import tempfile
 from pathlib import Path
 
 import bpy
@@ -110,3 +111,17 @@ def video_path(filepath: str) -> str:
     if not path.lower().endswith(".mp4"):
         path += ".mp4"
     return path
+
+
+def refuse_unwritable_video(path: str) -> None:
+    """Said before the render starts: a folder that cannot be made or written (a file in the way,
+    a read-only place) had ended in a traceback, or in Blender's "Could not open file for
+    writing", which names no file, after the first frame's render."""
+    folder = Path(path).parent
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        with tempfile.TemporaryFile(dir=folder):
+            pass
+    except OSError as exc:
+        raise NeulfError(f"cannot write the video {path} ({exc.strerror or exc}): choose another file or folder for "
+                         "Render Video.") from None

@@ -22,9 +22,10 @@ import torch
 from .errors import NeulfError
 from .files import atomic_write_bytes
 # (the names and readers live in the torch-free model_files; they are imported from here too)
-from .model_files import CHECKPOINT_NAME, METADATA_NAME, MODEL_NAME, read_metadata, render_path  # noqa: F401
+from .model_files import (CHECKPOINT_FORMAT, CHECKPOINT_NAME, METADATA_NAME, MODEL_NAME,  # noqa: F401
+                          read_metadata, render_path)
 
-FORMAT = "neulf-checkpoint"
+FORMAT = CHECKPOINT_FORMAT
 VERSION = 1
 MODEL_FORMAT = "neulf-model"
 # Tensors smaller than this stay float32 in model.pt: the decoders are a few kB, and their
@@ -55,9 +56,24 @@ def save_checkpoint(model_dir: Path, payload: dict) -> Path:
     path = Path(model_dir) / CHECKPOINT_NAME
     atomic_write_bytes(path, _torch_bytes(payload))
     save_render_model(model_dir, payload)
+    _write_metadata(model_dir, payload)
+    return path
+
+
+def _write_metadata(model_dir: Path, payload: dict) -> None:
     metadata = {k: v for k, v in payload.items() if k not in NOT_FOR_RENDERING}
     atomic_write_bytes(Path(model_dir) / METADATA_NAME, json.dumps(metadata, indent=2, default=_json_value).encode())
-    return path
+
+
+def restore_metadata(model_dir: Path) -> bool:
+    """model.json written again from checkpoint.pt where it is missing or cannot be read (deleted,
+    damaged, edited); True if it was.  Its readers without torch (Blender's Python) take a model's
+    progress from it: Train had read a damaged one as step 0, and added its budget to that."""
+    model_dir = Path(model_dir).expanduser()
+    if read_metadata(model_dir) or not (model_dir / CHECKPOINT_NAME).is_file():
+        return False
+    _write_metadata(model_dir, load_checkpoint(model_dir))
+    return True
 
 
 def _json_value(value) -> str:

@@ -17,6 +17,7 @@ from pathlib import Path
 CHECKPOINT_NAME = "checkpoint.pt"
 METADATA_NAME = "model.json"
 MODEL_NAME = "model.pt"
+CHECKPOINT_FORMAT = "neulf-checkpoint"  # the "format" of checkpoint.pt, and of model.json beside it
 
 
 def render_path(model_dir) -> Path:
@@ -48,6 +49,21 @@ def read_metadata(model_dir) -> dict:
     except (OSError, ValueError):
         return {}
     return metadata if isinstance(metadata, dict) and well_formed(metadata) else {}
+
+
+def foreign_metadata(model_dir) -> bool:
+    """Whether the folder holds a model.json no NeuLF training wrote (another program's -- a
+    TensorFlow.js model, say -- or one damaged past reading).  A new training into the folder
+    would replace it: the file is the user's, so the folder is refused instead.  (Our own
+    model.json is rewritten from the checkpoint beside it; this asks of a folder without one.)"""
+    path = Path(model_dir).expanduser() / METADATA_NAME
+    if not path.is_file():
+        return False
+    try:
+        metadata = json.loads(path.read_text())
+    except (OSError, ValueError):
+        return True
+    return not (isinstance(metadata, dict) and metadata.get("format") == CHECKPOINT_FORMAT)
 
 
 # model.json's entries that its readers take as dicts.

@@ -14,6 +14,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from .checkpoint import METADATA_NAME
+from .errors import NeulfError
 from .fields.disparity import DisparityConfig
 from .memo import kept
 from .presets import get_preset
@@ -208,6 +209,7 @@ def with_default_scale(scene: Scene, config: TrainConfig, model_dir: Path | None
     default_scale of the scene's largest photo, which the user is told."""
     if config.scale is not None:
         if not resume:
+            _refuse_tiny_scale(scene, config.scale)
             _warn_large_scale(scene, config.scale, progress)
         return config
     saved = _saved_scale(model_dir) if resume and model_dir is not None else None
@@ -221,6 +223,21 @@ def with_default_scale(scene: Scene, config: TrainConfig, model_dir: Path | None
               message=f"training at 1/{round(1 / scale)} of the photos' size ({width}x{height}; their full "
                       f"{largest[0]}x{largest[1]} with --scale 1: slower, for detail the model's texture cannot keep)")
     return replace(config, scale=scale)
+
+
+# The fewest pixels a side a training photo may be scaled to: at --scale 1e-6 the photos had
+# become 1x1 pixels, and a model of one texel "finished" with a PSNR as if it had learned
+# something (the Blender audit's Image Scale 1e-06).
+SMALLEST_TRAINING_SIDE = 8
+
+
+def _refuse_tiny_scale(scene: Scene, scale: float) -> None:
+    smallest = min((view.size for view in scene.views), key=min)
+    width, height = scaled_size(smallest, scale)
+    if min(width, height) < SMALLEST_TRAINING_SIDE:
+        raise NeulfError(f"scale {scale:g} makes the {smallest[0]}x{smallest[1]} photos {width}x{height} pixels, too "
+                         f"small to learn from (at least {SMALLEST_TRAINING_SIDE} pixels a side): give a larger --scale, "
+                         "or leave it out for the default.")
 
 
 def _warn_large_scale(scene: Scene, scale: float, progress) -> None:

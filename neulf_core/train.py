@@ -43,6 +43,7 @@ from .poses import DEPTH_LIKE_GAUGE, PoseRefinement
 from .progress import emit as _emit
 from .paths import rig_has_baseline
 from .resume_options import fields_set, kept_message, kept_on_resume
+from .model_files import METADATA_NAME, foreign_metadata
 from .saved_config import type_problem
 from .presets import APPEARANCE_ADAM_BETA2, APPEARANCE_GEOMETRY, DEFAULT_PRESET, get_preset
 from .scene import Scene, load_scene, scaled_size, split_views
@@ -397,9 +398,16 @@ def refuse_a_model_without_its_checkpoint(model_dir: Path, resume: bool) -> None
     """A folder with model.pt but no checkpoint.pt holds a trained model whose training state was
     deleted (model.pt is all rendering needs): it can be neither resumed nor trained over.  (A
     new training had replaced it without a word, keeping its old second member beside the new
-    first one.)"""
+    first one.)  Nor is a folder whose model.json is another program's, which training would
+    replace."""
     model_dir = Path(model_dir)
-    if checkpoint_path(model_dir).is_file() or not (model_dir / MODEL_NAME).is_file():
+    if checkpoint_path(model_dir).is_file():
+        return
+    if foreign_metadata(model_dir):
+        raise NeulfError(f"{model_dir} holds a {METADATA_NAME} that no NeuLF training wrote (another program's, or "
+                         "damaged), which training would replace: train into another --out folder, or move that file "
+                         "away.")
+    if not (model_dir / MODEL_NAME).is_file():
         return
     raise NeulfError(f"{model_dir} holds a trained model ({MODEL_NAME}) without its {CHECKPOINT_NAME}, which "
                      f"{'resuming needs' if resume else 'a new training would replace'}: train into another --out "

@@ -102,6 +102,17 @@ class Service:
                 "notes": notes}
 
     # ------------------------------------------------------------------ models
+    def restore_metadata(self, model_dir: str) -> list[str]:
+        """model.json written again from the checkpoint, in the model folder and each member's,
+        where it is missing or damaged; the folders it was written in."""
+        from .checkpoint import restore_metadata
+        from .members import member_dir, read_state
+
+        path = Path(model_dir).expanduser()
+        state = read_state(path)  # (a damaged members.json: its own one-line error)
+        folders = [member_dir(path, member) for member in range(1, (state["count"] if state else 1) + 1)]
+        return [str(folder) for folder in folders if restore_metadata(folder)]
+
     def model_info(self, model_dir: str) -> dict:
         """The model's metadata (slab, scene, rig, training progress) without loading weights."""
         path = Path(model_dir).expanduser()

@@ -1916,6 +1916,77 @@ def run_story(setup: dict) -> None:  # noqa: C901 - one story, told in order
         return (f"{len(cams)} cameras, focal {focal:.1f} px, {seconds:.1f} s; {message.strip()}; a video: "
                 f"{len(picked)} frames picked, reconstructed and imported")
 
+    def audited_errors(props) -> list[str]:
+        """What the Blender audit (seventy-eighth session) found wrong, each now one line: another
+        program's model.json (Load Model had said "model loaded", and Train replaced the file), a
+        model.json damaged beside its checkpoint (Train had counted its budget from step 0), a video
+        under a file (a traceback), '//' in a .blend never saved (the model went to Blender's
+        working folder), a camera under a turned, unevenly scaled parent (rendered 23 px off), a
+        render size of 0 pixels, Image Scale 1e-06 (trained on 1x1 photos), and a render before a
+        training's first checkpoint ("train it")."""
+        found = []
+        theirs = work / "tfjs_model"
+        theirs.mkdir(exist_ok=True)
+        (theirs / "model.json").write_text('{"format": "layers-model", "modelTopology": {}}')
+        found.append(error_of(lambda: bpy.ops.neulf.load_model(directory=str(theirs))))
+        assert "cannot be read (damaged or not a NeuLF model's)" in found[-1], found[-1]
+        props.model_dir = str(theirs)
+        found.append(error_of(lambda: bpy.ops.neulf.train(steps=5)))
+        assert "no NeuLF training wrote" in found[-1], found[-1]
+        assert (theirs / "model.json").read_text() == '{"format": "layers-model", "modelTopology": {}}'
+        assert sorted(p.name for p in theirs.iterdir()) == ["model.json"]
+        copy = work / "model_json_damaged"
+        shutil.rmtree(copy, ignore_errors=True)
+        shutil.copytree(model, copy)
+        step = json.loads((copy / "model.json").read_text())["progress"]["step"]
+        (copy / "model.json").write_text('{"progress": {"st')
+        restored = reports_of(lambda: bpy.ops.neulf.load_model(directory=str(copy)))
+        assert "written again from checkpoint.pt" in restored, restored
+        assert json.loads((copy / "model.json").read_text())["progress"]["step"] == step
+        found.append(restored.strip().splitlines()[0])
+        props.model_dir = str(model)
+        found.append(error_of(lambda: bpy.ops.neulf.render_video(filepath=str(work / "a_file" / "x.mp4"))))
+        assert "cannot write the video" in found[-1] and "a_file" in found[-1], found[-1]
+        assert not bpy.data.filepath  # (reconstruct_photos opened a new file, never saved)
+        props.model_dir = "//relative_model"
+        found.append(error_of(lambda: bpy.ops.neulf.train(steps=5)))
+        assert "is not saved yet" in found[-1] and not Path("relative_model").exists(), found[-1]
+        props.model_dir = str(model)
+        camera = bpy.context.scene.camera
+        parent = bpy.data.objects.new("StorySkewedParent", None)
+        bpy.context.scene.collection.objects.link(parent)
+        parent.rotation_euler, parent.scale = (0.4, 0.2, 0.7), (1.0, 2.5, 0.6)
+        bpy.context.view_layer.update()
+        kept_matrix, camera.parent = camera.matrix_world.copy(), parent
+        camera.matrix_world = kept_matrix
+        try:
+            found.append(error_of(lambda: bpy.ops.neulf.render_camera()))
+            assert "sheared" in found[-1] and "Alt+P" in found[-1], found[-1]
+        finally:
+            camera.parent = None
+            camera.matrix_world = kept_matrix
+            bpy.data.objects.remove(parent)
+        render = bpy.context.scene.render
+        percentage, render.resolution_percentage = render.resolution_percentage, 1
+        try:
+            found.append(error_of(lambda: bpy.ops.neulf.render_camera()))
+        finally:
+            render.resolution_percentage = percentage
+        assert "pixels: raise Output > Format > Resolution %" in found[-1], found[-1]
+        scale, props.train_scale, props.model_dir = props.train_scale, 1e-6, str(work / "tiny_scale_model")
+        try:
+            found.append(error_of(lambda: bpy.ops.neulf.train(steps=5)))
+        finally:
+            props.train_scale = scale
+        assert "too small to learn from" in found[-1] and "a larger Image Scale, or 0" in found[-1], found[-1]
+        first = work / "before_first_checkpoint"
+        first.mkdir(exist_ok=True)
+        props.model_dir = str(first)
+        with sys.modules[f"{PACKAGE}.neulf_core.lock"].training_lock(first):
+            found.append(error_of(lambda: bpy.ops.neulf.render_camera()))
+        assert "has not saved its first checkpoint yet" in found[-1], found[-1]
+        return found
+
     @story.step("user_errors", "install", "train_blocking")
     def _():
         props = bpy.context.scene.neulf
@@ -1934,7 +2005,7 @@ def run_story(setup: dict) -> None:  # noqa: C901 - one story, told in order
         elsewhere, not_a_capture = work / "model_of_no_capture", work / "not_a_capture"
         elsewhere.mkdir(exist_ok=True)
         not_a_capture.mkdir(exist_ok=True)
-        (elsewhere / "model.json").write_text(json.dumps({"scene": {"root": str(not_a_capture)},
+        (elsewhere / "model.json").write_text(json.dumps({"format": "neulf-checkpoint", "scene": {"root": str(not_a_capture)},
                                                           "progress": {"status": "finished", "step": 5}}))
         empty = bpy.data.scenes.new("StoryEmpty")
         try:
@@ -1960,6 +2031,7 @@ def run_story(setup: dict) -> None:  # noqa: C901 - one story, told in order
         finally:
             render.resolution_x, render.resolution_y, render.resolution_percentage = size
         assert "even width and height" in messages[-1] and "240x135" in messages[-1], messages[-1]
+        messages.extend(audited_errors(props))
         props.model_dir = str(work / "no_such_model")
         p, chosen = prefs(), prefs().python_path  # a "Python" that is not one: Train must not say it finished
         p.python_path = shutil.which("true") or "/bin/true"

@@ -90,6 +90,26 @@ def test_pose_round_trip_and_root_scale(ext):
         assert ext.convert.uniform_scale(root) == pytest.approx(3.0)
 
 
+def test_a_sheared_camera_is_refused_and_an_unevenly_scaled_one_is_not(ext):
+    """A camera under a turned parent scaled unevenly has a sheared matrix, which Blender renders
+    through its normalised, non-orthogonal axes: no pinhole does (the nearest rotation had rendered
+    23 px off Cycles in the Blender audit).  The camera's own uneven scale, without a turn between,
+    leaves its axes perpendicular: Blender normalises them, and so does the pose."""
+    rng = np.random.default_rng(2)
+    R, t = _random_rotation(rng), rng.normal(size=3)
+    M = ext.convert.matrix_from_pose(R, t)
+    parent = np.eye(4)
+    parent[:3, :3] = _random_rotation(rng) @ np.diag([1.0, 2.5, 0.6])
+    with pytest.raises(ValueError, match="sheared"):
+        ext.convert.pose_from_matrix(parent @ M)
+    own_scale = M @ np.diag([1.0, 1.0, 3.0, 1.0])
+    R2, t2 = ext.convert.pose_from_matrix(own_scale)
+    assert np.allclose(R2, R)
+    evenly = np.eye(4)
+    evenly[:3, :3] = _random_rotation(rng) * 2.0
+    ext.convert.pose_from_matrix((evenly @ M).astype(np.float32))  # (float32, as Blender's matrices)
+
+
 def test_image_rows_and_colour(ext):
     rgb = np.zeros((2, 3, 3), np.float32)
     rgb[0] = 1.0  # top row white
@@ -538,3 +558,25 @@ def test_the_first_scene_camera_is_of_the_photos_most_common_size(ext):
     centres = [[1.0, 0, 0], [0.0, 0, 0], [-1.0, 0, 0], [0.5, 0, 0]]
     assert ext.convert.first_scene_camera(sizes, centres) == 3  # (the portrait photo stands in the middle)
     assert ext.convert.first_scene_camera([(64, 48)] * 3, [[1.0, 0, 0], [0.1, 0, 0], [-1.0, 0, 0]]) == 1
+
+
+def test_the_cores_advice_in_blenders_words(extension_module):
+    """Each phrase Blender rewords is one the core says (its string literals, joined where a
+    message runs over several lines), so a core message reworded cannot leave its Blender form
+    behind unnoticed; and the rewording names what to do in Blender, not a command-line flag."""
+    import re
+
+    wording = extension_module("wording")
+    core = Path(__file__).resolve().parents[1] / "neulf_core"
+    source = "".join(path.read_text() for path in sorted(core.rglob("*.py")))
+    source = re.sub(r'"\s*\n\s*f?"', "", source)
+    for pattern, _words in wording.PHRASES:
+        assert re.search(pattern, source), pattern
+    said = wording.panel_words("view a.png has no image file; pass --images with the folder that holds it.")
+    assert said == "view a.png has no image file; choose the folder that holds it as Images in Import COLMAP / LLFF."
+    said = wording.panel_words("no camera model in /s: ... To make one from photos run: python -m neulf_core "
+                               "reconstruct PHOTOS --out /s")
+    assert said.endswith("To make one from photos, use Reconstruct Photos in the NeuLF panel"), said
+    said = wording.panel_words("scale 1e-06 makes the 48x36 photos 1x1 pixels, too small to learn from (at least 8 "
+                               "pixels a side): give a larger --scale, or leave it out for the default.")
+    assert "--" not in said and "a larger Image Scale, or 0 for the default" in said, said

@@ -1654,3 +1654,26 @@ def test_the_reliability_report_expands_every_parameter_of_a_test():
     existing = ["a.py::t[1]", "a.py::tt[2]", "a.py::t[x, y]", "a.py::u"]
     assert report.expanded(["a.py::t[*]", "a.py::u"], existing) == ["a.py::t[1]", "a.py::t[x, y]", "a.py::u"]
     assert report.expanded(["a.py::gone[*]"], existing) == ["a.py::gone[*]"]
+
+
+@pytest.mark.parametrize("text", ['{"format": "layers-model", "modelTopology": {}}', "not json {", "[1, 2]"])
+def test_another_programs_model_json_is_not_trained_over(text, tiny_scene, tmp_path, capfd, record_property):
+    """A folder holding a model.json that no NeuLF training wrote (a TensorFlow.js model, a
+    damaged file): a new training, or a --resume that finds no checkpoint, had replaced it without
+    a word (the Blender audit's lost work); it is refused, the file kept."""
+    folder = tmp_path / "their_model"
+    folder.mkdir()
+    (folder / METADATA_NAME).write_text(text)
+    for extra in ([], ["--resume"]):
+        expect_error(["train", tiny_scene, "--out", folder, "--steps", "2", *extra], capfd, record_property,
+                     "model.json that no NeuLF training wrote", "another --out folder")
+    assert (folder / METADATA_NAME).read_text() == text and sorted(p.name for p in folder.iterdir()) == [METADATA_NAME]
+
+
+@pytest.mark.parametrize("preset", ["fast", "auto"])
+def test_a_scale_that_leaves_photos_of_a_few_pixels_is_refused(preset, tiny_scene, tmp_path, capfd, record_property):
+    """--scale 1e-6 (Blender's Image Scale typed wrong) had trained on 1x1 photos and "finished"
+    with a validation PSNR; now one line before anything is written."""
+    expect_error(["train", tiny_scene, "--out", tmp_path / "model", "--steps", "4", "--scale", "1e-6", "--preset",
+                  preset], capfd, record_property, "photos 1x1 pixels, too small to learn from", "larger --scale")
+    assert not (tmp_path / "model" / CHECKPOINT_NAME).exists()
