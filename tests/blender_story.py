@@ -1943,7 +1943,6 @@ def run_story(setup: dict) -> None:  # noqa: C901 - one story, told in order
         restored = reports_of(lambda: bpy.ops.neulf.load_model(directory=str(copy)))
         assert "written again from checkpoint.pt" in restored, restored
         assert json.loads((copy / "model.json").read_text())["progress"]["step"] == step
-        found.append(restored.strip().splitlines()[0])
         props.model_dir = str(model)
         found.append(error_of(lambda: bpy.ops.neulf.render_video(filepath=str(work / "a_file" / "x.mp4"))))
         assert "cannot write the video" in found[-1] and "a_file" in found[-1], found[-1]
@@ -1967,11 +1966,12 @@ def run_story(setup: dict) -> None:  # noqa: C901 - one story, told in order
             camera.matrix_world = kept_matrix
             bpy.data.objects.remove(parent)
         render = bpy.context.scene.render
-        percentage, render.resolution_percentage = render.resolution_percentage, 1
+        size = (render.resolution_x, render.resolution_y, render.resolution_percentage)
+        render.resolution_x, render.resolution_y, render.resolution_percentage = 64, 48, 1
         try:
             found.append(error_of(lambda: bpy.ops.neulf.render_camera()))
         finally:
-            render.resolution_percentage = percentage
+            render.resolution_x, render.resolution_y, render.resolution_percentage = size
         assert "pixels: raise Output > Format > Resolution %" in found[-1], found[-1]
         scale, props.train_scale, props.model_dir = props.train_scale, 1e-6, str(work / "tiny_scale_model")
         try:
