@@ -259,6 +259,12 @@ def _weights_problem(payload: dict, keys: tuple[str, ...]) -> str | None:
     return None
 
 
+def _beside_its_checkpoint(path: Path) -> bool:
+    """Whether `path` is a model.pt with a checkpoint.pt beside it (the training state survives:
+    model.pt is only its render copy, so starting again would throw the training away)."""
+    return path.name == MODEL_NAME and (path.parent / CHECKPOINT_NAME).is_file()
+
+
 def _damaged_member(path: Path) -> str | None:
     """What is wrong inside the checkpoint's zip (a member whose CRC fails, or one zipfile cannot
     read at all), or None: torch.load does not check the CRCs, so flipped bytes inside the
@@ -305,9 +311,13 @@ def _read(path: Path, model_dir: Path, map_location) -> dict:
         raise NeulfError(f"cannot read {path}: permission denied; give your account read access to it (for example: "
                          f"chmod u+r {shlex.quote(str(path))}), or run as the user who trained it.") from None
     except Exception as exc:
+        remedy = (f"restore it from a backup, or delete {path.name} (or train into another --out) to start again"
+                  if not _beside_its_checkpoint(path) else
+                  f"delete it: rendering then reads {CHECKPOINT_NAME} beside it, and training writes it again")
+        what = "model file" if path.name == MODEL_NAME else "checkpoint"
         raise NeulfError(
-            f"the checkpoint {path} is truncated or corrupted ({type(exc).__name__}{': ' + damaged if damaged else ''}); "
-            f"restore it from a backup, or delete {path.name} (or train into another --out) to start again."
+            f"the {what} {path} is truncated or corrupted ({type(exc).__name__}{': ' + damaged if damaged else ''}); "
+            f"{remedy}."
         ) from None
     if not isinstance(payload, dict) or payload.get("format") not in (FORMAT, MODEL_FORMAT):
         raise NeulfError(f"{path} is not a NeuLF checkpoint.")

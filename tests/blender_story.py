@@ -386,6 +386,8 @@ def run_story(setup: dict) -> None:  # noqa: C901 - one story, told in order
             greyed = {name for kind, name, enabled in drawn if kind == "prop" and not enabled}
             assert greyed == ({"depth_layers", "back_surface"} if preset == "authors" else set()), (preset, greyed)
         buttons = sorted({name for kind, name, _ in drawn if kind == "operator"})
+        shown = {name for kind, name, _ in drawn if kind == "prop"}
+        assert {"pixel_samples", "chunk", "model_dir", "train_scale", "members"} <= shown, shown  # (the README's)
         kept = tasks.ACTIVE.get("reconstruct")
         picking = mod("jobs").FramesJob(worker_python or sys.executable, str(work / "no_such_clip.mp4"),
                                         str(work / "no_frames"), 10, env=mod("jobs").core_environment())

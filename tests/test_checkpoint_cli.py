@@ -729,7 +729,9 @@ def eval_argv(c):
 
 DAMAGED_MODEL_CASES = {
     # name: (damage(model folder), argv builder(ctx), text expected in the one-line message)
-    "model.pt garbled zip": (lambda model: garble_zip_version(model / "model.pt"), render_argv, "truncated or corrupted"),
+    "model.pt garbled zip": (lambda model: garble_zip_version(model / "model.pt"), render_argv,
+                             "is truncated or corrupted (ValueError: a member cannot be read (zip file version "
+                             "14.1)); delete it: rendering then reads checkpoint.pt beside it"),
     "members.json finished not numbers": (write_file("members.json", json.dumps(
         {"count": 2, "seed": 0, "split": "batch", "finished": ["two"]})), render_argv, "members.json is damaged"),
     "members.json finished null": (write_file("members.json", json.dumps(
