@@ -41,7 +41,8 @@ def _popen(argv, env, cwd=None):
         return subprocess.Popen(argv, stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=env,
                                 cwd=cwd, text=True, encoding="utf-8", errors="replace", bufsize=1, **kwargs)
     except OSError as exc:
-        raise NeulfError(f"cannot start {argv[0]} ({exc.strerror}); check the Python interpreter in the NeuLF "
+        why = "a folder, not a program" if os.path.isdir(argv[0]) else exc.strerror
+        raise NeulfError(f"cannot start {argv[0]} ({why}); check the Python interpreter in the NeuLF "
                          "preferences.") from None
 
 

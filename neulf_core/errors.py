@@ -26,7 +26,7 @@ def missing_module_message(module: str) -> str:
     """What to do about a package the NeuLF Python lacks (or cannot load)."""
     if any(part in module for part in COMPILED_PARTS):
         return OTHER_PYTHONS_PACKAGES
-    return (f"the NeuLF Python has no '{module}': set a Python with torch, pycolmap, Pillow and av (PyAV) in the "
+    return (f"the NeuLF Python has no '{module}': set a Python with torch, numpy, pycolmap, Pillow and av (PyAV) in the "
             "NeuLF preferences, or click Install dependencies there.")
 
 

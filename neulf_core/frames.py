@@ -37,6 +37,13 @@ def sharpness(grey: np.ndarray) -> float:
     return float(laplacian.var()) if laplacian.size else 0.0
 
 
+# FFmpeg's demuxers for single images (a PNG or JPEG given as the video: "gave 1 frame(s) ...
+# film a longer, slower pass" had followed).
+STILL_IMAGE_FORMATS = {"image2", "png_pipe", "jpeg_pipe", "webp_pipe", "bmp_pipe", "tiff_pipe", "gif", "gif_pipe",
+                       "exr_pipe", "dpx_pipe", "j2k_pipe", "pgm_pipe", "ppm_pipe", "qoi_pipe", "svg_pipe",
+                       "jpegxl_pipe", "hdr_pipe"}
+
+
 def _judged(frame) -> np.ndarray:
     """The frame's grayscale at most SHARPNESS_WIDTH wide, from the decoder's own scaler: every
     frame is judged, and a full-size RGB copy of each (6 MB at 1080p) would be work thrown away
@@ -72,6 +79,9 @@ def extract_frames(video: Path, out_dir: Path, count: int = DEFAULT_FRAME_COUNT,
         with container, _decoding_errors_said(video):
             if not container.streams.video:
                 raise NeulfError(f"{video} holds no video stream.")
+            if container.format.name in STILL_IMAGE_FORMATS:  # (FFmpeg reads a photo as a one-frame video)
+                raise NeulfError(f"{video} is a still image, not a video: give a video file (MP4, MOV, ...), or "
+                                 "reconstruct a folder of photos.")
             stream = container.streams.video[0]
             stream.thread_type = "AUTO"
             total = _frame_estimate(stream, container)

@@ -212,7 +212,8 @@ def load_scene(scene_dir: str | Path, images_dir: str | Path | None = None) -> S
     """Read a scene folder: a COLMAP model (sparse/0 or sparse/) or an LLFF poses_bounds.npy."""
     scene_dir = Path(scene_dir).expanduser()
     if not scene_dir.exists():
-        raise NeulfError(f"scene folder {scene_dir} does not exist.")
+        raise NeulfError(f"scene folder {scene_dir} does not exist: check the path (a capture moved or renamed since "
+                         "it was imported: import it again from where it is now).")
     if not scene_dir.is_dir():
         raise NeulfError(f"{scene_dir} is not a folder; give the scene folder that holds sparse/0 and images/.")
     if images_dir is not None:

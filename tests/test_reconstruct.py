@@ -634,6 +634,9 @@ def test_frames_refuses_what_it_cannot_use(capture, tmp_path):
         extract_frames(not_video, capture[0])
     with pytest.raises(NeulfError, match="is a video: pick its sharpest frames"):  # reconstruct given the video
         reconstruct(not_video, tmp_path / "scene")
+    photo = next(Path(capture[0]).iterdir())  # a photo given as the video (Blender's Reconstruct Video on a PNG)
+    with pytest.raises(NeulfError, match="is a still image, not a video"):
+        extract_frames(photo, tmp_path / "out")
     assert not (tmp_path / "out").exists()
     # A phone's portrait clip is stored sideways with a turn to apply (PyAV's rotation: counter-
     # clockwise degrees): -90 turns the stored frame a quarter clockwise.
