@@ -120,7 +120,7 @@ CASES = [
         "tests/test_camera_path.py::test_video_of_a_model_whose_rig_is_damaged_ends_in_one_line",
         "tests/test_camera_path.py::test_a_damaged_rig_is_said_in_one_line[*]"]),
     Case("A damaged model folder: a model.pt zipfile cannot read, one we may not read, a checkpoint lacking keys, of "
-         "other types or of NaN weights, a members.json or starts.json of other types, a folder where model.pt, "
+         "other types (its train_config's values too) or of NaN weights, a members.json or starts.json of other types, a folder where model.pt, "
          "model.json or a render's PNG goes, a model.json of other types (read as none: resume rewrites it)", [
         f"{CKPT}::test_a_damaged_model_folder_is_one_line[*]",
         f"{CKPT}::test_a_render_onto_a_folder_names_it_and_keeps_it",
@@ -357,6 +357,19 @@ CASES = [
               "half")],
          gap="nothing here has run on a Mac: the float64 check runs on a CPU stand-in, and the probe and MPS's "
              "out-of-memory words on faked devices"),
+    Case("A second reader's Blender audit (2026-12-02): another program's model.json in the model folder is neither "
+         "loaded nor trained over; a model.json damaged beside its checkpoint is written again from it (Train had "
+         "counted from step 0); a video path under a file; '//' paths in a .blend never saved; a camera under a "
+         "turned, unevenly scaled parent; a render size of 0 pixels; an Image Scale (--scale) that leaves photos of "
+         "a few pixels; a render before a training's first checkpoint; a photo given as the video; the core's "
+         "command-line advice said in Blender's words", [
+        f"{REL}::test_another_programs_model_json_is_not_trained_over[*]",
+        f"{REL}::test_a_scale_that_leaves_photos_of_a_few_pixels_is_refused[*]",
+        f"{CKPT}::test_a_lost_model_json_is_written_again_from_its_checkpoint",
+        f"{CKPT}::test_a_saved_config_of_the_declared_types_passes_and_others_are_named",
+        "tests/test_blender_convert.py::test_a_sheared_camera_is_refused_and_an_unevenly_scaled_one_is_not",
+        "tests/test_blender_convert.py::test_the_cores_advice_in_blenders_words",
+        "tests/test_reconstruct.py::test_frames_refuses_what_it_cannot_use", f"{STORY}[user_errors]"]),
     Case("No network access unless the user asks for the dependency install, with the declared permission", [
         f"{REL}::test_no_network_unless_the_user_installs", f"{STORY}[install_dependencies]"]),
 ]

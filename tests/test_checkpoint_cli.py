@@ -1001,3 +1001,25 @@ def test_a_saved_config_of_the_declared_types_passes_and_others_are_named():
     assert "'exclude' is a list" in type_problem({**saved, "exclude": ["a.png", 3]}, TrainConfig)
     assert "not a number or None" in type_problem({**saved, "scale": "half"}, TrainConfig)
     assert "'appearance' is an int (1), not true or false or None" in type_problem({**saved, "appearance": 1}, TrainConfig)
+
+
+def test_a_lost_model_json_is_written_again_from_its_checkpoint(cli_model, tmp_path):
+    """Blender's Python reads a model's progress from model.json (it has no torch for the
+    checkpoint): a damaged one had been read as step 0, and Train added its budget to that.  The
+    core writes it again from checkpoint.pt, in the model folder and each member's, and leaves a
+    readable one alone."""
+    from neulf_core.worker import Service
+
+    model = copy_model(cli_model, tmp_path / "model")
+    shutil.copytree(cli_model, model / "members" / "2")
+    (model / "members.json").write_text(json.dumps({"count": 2, "seed": 1, "split": "batch", "finished": [2]}))
+    original = json.loads((model / METADATA_NAME).read_text())
+    (model / METADATA_NAME).write_text('{"progress": {"st')
+    (model / "members" / "2" / METADATA_NAME).unlink()
+    assert Service().restore_metadata(str(model)) == [str(model), str(model / "members" / "2")]
+    for folder in (model, model / "members" / "2"):
+        again = json.loads((folder / METADATA_NAME).read_text())
+        assert again["progress"] == original["progress"] and again["scene"] == original["scene"]
+        assert again["format"] == "neulf-checkpoint"
+    stamp = (model / METADATA_NAME).stat().st_mtime_ns
+    assert Service().restore_metadata(str(model)) == [] and (model / METADATA_NAME).stat().st_mtime_ns == stamp
