@@ -31,11 +31,14 @@ def abspath(path: str, library=None) -> str:
 def chosen_path(path: str) -> str:
     """abspath for a path an operator is given: a '//' path in a .blend never saved has no folder
     to be relative to (Blender leaves it relative to its working folder, where a model had been
-    trained and then lost its link), so it is refused."""
+    trained and then lost its link), so it is refused, as is any other relative path."""
     full = abspath(path)
-    if path.startswith("//") and not os.path.isabs(full):
-        raise NeulfError(f"'{path}' is relative to the .blend, which is not saved yet: save the .blend first, or "
-                         "choose the folder in the file browser.")
+    if full and not os.path.isabs(full):
+        if path.startswith("//"):
+            raise NeulfError(f"'{path}' is relative to the .blend, which is not saved yet: save the .blend first, or "
+                             "choose the folder in the file browser.")
+        raise NeulfError(f"'{path}' is not a full path (it would be read from Blender's working folder): choose the "
+                         "folder in the file browser.")
     return full
 
 

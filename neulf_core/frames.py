@@ -37,11 +37,11 @@ def sharpness(grey: np.ndarray) -> float:
     return float(laplacian.var()) if laplacian.size else 0.0
 
 
-# FFmpeg's demuxers for single images (a PNG or JPEG given as the video: "gave 1 frame(s) ...
-# film a longer, slower pass" had followed).
-STILL_IMAGE_FORMATS = {"image2", "png_pipe", "jpeg_pipe", "webp_pipe", "bmp_pipe", "tiff_pipe", "gif", "gif_pipe",
-                       "exr_pipe", "dpx_pipe", "j2k_pipe", "pgm_pipe", "ppm_pipe", "qoi_pipe", "svg_pipe",
-                       "jpegxl_pipe", "hdr_pipe"}
+# FFmpeg's demuxers for a single image file (a PNG or JPEG given as the video: "gave 1 frame(s)
+# ... film a longer, slower pass" had followed).  Not GIF's, nor image2 (an image sequence):
+# those may hold many frames.
+STILL_IMAGE_FORMATS = {"png_pipe", "jpeg_pipe", "webp_pipe", "bmp_pipe", "tiff_pipe", "exr_pipe", "dpx_pipe",
+                       "j2k_pipe", "pgm_pipe", "ppm_pipe", "qoi_pipe", "svg_pipe", "jpegxl_pipe", "hdr_pipe"}
 
 
 def _judged(frame) -> np.ndarray:

@@ -13,7 +13,7 @@ from dataclasses import replace
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from .checkpoint import METADATA_NAME
+from .checkpoint import CHECKPOINT_NAME, METADATA_NAME
 from .errors import NeulfError
 from .fields.disparity import DisparityConfig
 from .memo import kept
@@ -208,7 +208,7 @@ def with_default_scale(scene: Scene, config: TrainConfig, model_dir: Path | None
     than the default's); where it has none, a resumed model's (model.json in `model_dir`), else
     default_scale of the scene's largest photo, which the user is told."""
     if config.scale is not None:
-        if not resume:
+        if not resume or model_dir is None or not (Path(model_dir) / CHECKPOINT_NAME).is_file():  # (a new model)
             _refuse_tiny_scale(scene, config.scale)
             _warn_large_scale(scene, config.scale, progress)
         return config

@@ -11,6 +11,22 @@ import types
 import typing
 from dataclasses import fields
 
+import numpy as np
+
+
+# Fields whose type changed between versions, with what an older checkpoint's value means now:
+# pixel_jitter was a switch (on: anywhere in the pixel) before it took a width in pixels.
+UPGRADES = {"pixel_jitter": (bool, float)}
+
+
+def upgraded(values: dict) -> dict:
+    """`values` with each field an older version saved as another type turned into today's."""
+    out = dict(values)
+    for name, (old, new) in UPGRADES.items():
+        if isinstance(out.get(name), old):
+            out[name] = new(out[name])
+    return out
+
 
 def type_problem(values: dict, config_class: type) -> str | None:
     """The first value in `values` whose type `config_class` does not declare for its field, in
@@ -39,8 +55,8 @@ def _fits_one(value, kind) -> bool:
     if kind is typing.Any:
         return True
     if origin is bool:
-        return isinstance(value, bool)
-    if isinstance(value, bool):
+        return isinstance(value, (bool, np.bool_))
+    if isinstance(value, (bool, np.bool_)):
         return False  # (a bool is an int to Python, not a count or a scale)
     if origin is int:
         return isinstance(value, numbers.Integral)

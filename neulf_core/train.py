@@ -44,7 +44,7 @@ from .progress import emit as _emit
 from .paths import rig_has_baseline
 from .resume_options import fields_set, kept_message, kept_on_resume
 from .model_files import METADATA_NAME, foreign_metadata
-from .saved_config import type_problem
+from .saved_config import type_problem, upgraded
 from .presets import APPEARANCE_ADAM_BETA2, APPEARANCE_GEOMETRY, DEFAULT_PRESET, get_preset
 from .scene import Scene, load_scene, scaled_size, split_views
 from .slab import Slab, fit_slab, wide_views
@@ -428,6 +428,7 @@ def _resumed_checkpoint(model_dir: Path, config: TrainConfig, resume: bool) -> d
     if not (resume and checkpoint_path(model_dir).is_file()):
         return None
     payload = load_checkpoint(model_dir)
+    payload["train_config"] = upgraded(payload["train_config"])
     problem = type_problem(payload["train_config"], TrainConfig)
     if problem:
         raise damaged_checkpoint(checkpoint_path(model_dir), problem)

@@ -236,7 +236,7 @@ def _encode(value, scratch: Path):
     return value
 
 
-OPS = {"info", "describe_scene", "model_info", "render", "depth_at", "spiral"}
+OPS = {"info", "describe_scene", "model_info", "restore_metadata", "render", "depth_at", "spiral"}
 
 
 def serve(stdin, stdout, scratch: Path, device: str | None = None) -> None:

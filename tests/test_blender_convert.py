@@ -577,6 +577,24 @@ def test_the_cores_advice_in_blenders_words(extension_module):
     said = wording.panel_words("no camera model in /s: ... To make one from photos run: python -m neulf_core "
                                "reconstruct PHOTOS --out /s")
     assert said.endswith("To make one from photos, use Reconstruct Photos in the NeuLF panel"), said
+    said = wording.panel_words("no camera model in /s: ... To make one from photos run: python -m neulf_core "
+                               "reconstruct PHOTOS --out '/home/u/My Scans/cap'")
+    assert said.endswith("To make one from photos, use Reconstruct Photos in the NeuLF panel"), said
     said = wording.panel_words("scale 1e-06 makes the 48x36 photos 1x1 pixels, too small to learn from (at least 8 "
                                "pixels a side): give a larger --scale, or leave it out for the default.")
     assert "--" not in said and "a larger Image Scale, or 0 for the default" in said, said
+
+
+def test_every_core_call_the_extension_makes_is_a_worker_operation():
+    """Blender calls the core in its own Python or through the worker process (a chosen Python,
+    Render In: Worker): an operation the worker does not serve had worked in the first and ended
+    in "the worker has no operation" in the second (restore_metadata, in the session that added it)."""
+    import re
+
+    from neulf_core.worker import OPS, Service
+
+    extension = Path(__file__).resolve().parents[1] / "neulf_blender"
+    called = {op for path in extension.glob("*.py") for op in re.findall(r'\.call\(\s*"(\w+)"', path.read_text())}
+    assert {"render", "restore_metadata", "describe_scene"} <= called, called
+    assert called <= OPS, called - OPS
+    assert all(callable(getattr(Service, op, None)) for op in OPS)

@@ -989,7 +989,7 @@ def test_a_saved_config_of_the_declared_types_passes_and_others_are_named():
 
     import numpy as np
 
-    from neulf_core.saved_config import type_problem
+    from neulf_core.saved_config import type_problem, upgraded
     from neulf_core.rules import LOSSES_UNTIL_POSES_RIGHT
     from neulf_core.train import TrainConfig
 
@@ -1001,6 +1001,10 @@ def test_a_saved_config_of_the_declared_types_passes_and_others_are_named():
     assert "'exclude' is a list" in type_problem({**saved, "exclude": ["a.png", 3]}, TrainConfig)
     assert "not a number or None" in type_problem({**saved, "scale": "half"}, TrainConfig)
     assert "'appearance' is an int (1), not true or false or None" in type_problem({**saved, "appearance": 1}, TrainConfig)
+    assert type_problem({**saved, "appearance": np.bool_(True)}, TrainConfig) is None
+    # pixel_jitter was a switch in the version of 2026-11-27 (on: anywhere in the pixel): read as its width
+    assert upgraded({**saved, "pixel_jitter": True})["pixel_jitter"] == 1.0
+    assert type_problem(upgraded({**saved, "pixel_jitter": False}), TrainConfig) is None
 
 
 def test_a_lost_model_json_is_written_again_from_its_checkpoint(cli_model, tmp_path):

@@ -1674,6 +1674,8 @@ def test_another_programs_model_json_is_not_trained_over(text, tiny_scene, tmp_p
 def test_a_scale_that_leaves_photos_of_a_few_pixels_is_refused(preset, tiny_scene, tmp_path, capfd, record_property):
     """--scale 1e-6 (Blender's Image Scale typed wrong) had trained on 1x1 photos and "finished"
     with a validation PSNR; now one line before anything is written."""
-    expect_error(["train", tiny_scene, "--out", tmp_path / "model", "--steps", "4", "--scale", "1e-6", "--preset",
-                  preset], capfd, record_property, "photos 1x1 pixels, too small to learn from", "larger --scale")
+    argv = ["train", tiny_scene, "--out", tmp_path / "model", "--steps", "4", "--scale", "1e-6", "--preset", preset]
+    expect_error(argv, capfd, record_property, "photos 1x1 pixels, too small to learn from", "larger --scale")
+    code, _, err = run_cli([*argv, "--resume"], capfd)  # (nothing to resume: a new model, said in a warning first)
+    assert code == 2 and err.splitlines()[-1].startswith("error: scale 1e-06 makes the 48x36 photos 1x1"), err
     assert not (tmp_path / "model" / CHECKPOINT_NAME).exists()
