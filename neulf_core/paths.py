@@ -86,6 +86,9 @@ def saved_rig(meta: dict) -> tuple[np.ndarray, np.ndarray, int, int]:
 # Frames are checked on an image this many pixels wide: a coarse grid is enough to count the
 # share of a frame's rays that leave the captured region, and 60 frames take milliseconds.
 PATH_CHECK_WIDTH = 64
+# A longer path is checked at this many frames spread evenly along it (a spiral turns smoothly;
+# `video --frames 100000` had spent minutes on the check before its first frame).
+PATH_CHECK_FRAMES = 240
 # The longest lens (times the given focal length) looked for to keep a path inside the capture.
 LONGEST_LENS_FACTOR = 16.0
 
@@ -112,6 +115,13 @@ def share_past_capture(slab: Slab, K, width: int, height: int, poses) -> np.ndar
         past = (uvst.abs() > 1 + EXTRAPOLATION_MARGIN).any(dim=1) & valid
         shares.append(float(past.sum()) / max(1, int(valid.sum())))
     return np.array(shares)
+
+
+def _spread_along(poses: list, count: int) -> list:
+    """At most `count` of `poses`, evenly spaced along the path, the first and last included."""
+    if len(poses) <= count:
+        return poses
+    return [poses[i] for i in np.linspace(0, len(poses) - 1, count).round().astype(int)]
 
 
 def lens_keeping_inside(slab: Slab, K, width: int, height: int, poses, share: float) -> float | None:
@@ -142,15 +152,19 @@ def past_capture_warning(slab: Slab, K, width: int, height: int, poses, lens_mm:
     camera's focal length in mm (Blender's lens), it names the lens that keeps every frame inside."""
     from .render import PAST_CAPTURE_FRACTION
 
-    shares = share_past_capture(slab, K, width, height, poses)
+    poses = list(poses)
+    checked = _spread_along(poses, PATH_CHECK_FRAMES)
+    shares = share_past_capture(slab, K, width, height, checked)
     past = shares > PAST_CAPTURE_FRACTION
     if not past.any():
         return None
-    note = (f"{int(past.sum())} of {len(shares)} frames look past the region the photos captured (up to "
+    count = (f"{int(past.sum())}" if len(checked) == len(poses) else
+             f"about {max(1, round(float(past.mean()) * len(poses)))}")
+    note = (f"{count} of {len(poses)} frames look past the region the photos captured (up to "
             f"{shares.max():.0%} of a frame): what they show there is the light field's guess")
     if lens_mm is None:
         return note
-    factor = lens_keeping_inside(slab, K, width, height, poses, PAST_CAPTURE_FRACTION)
+    factor = lens_keeping_inside(slab, K, width, height, checked, PAST_CAPTURE_FRACTION)
     if factor is None:
         return note + (f"; not even a lens {LONGEST_LENS_FACTOR:g} times as long keeps them inside: the path "
                        "passes places the photos did not see")

@@ -78,6 +78,29 @@ def test_the_lens_that_keeps_the_path_inside_is_the_shortest(tiny_model):
     assert f"not even a lens {LONGEST_LENS_FACTOR:g} times as long" in note, note
 
 
+def test_a_long_path_is_checked_at_frames_spread_along_it(tiny_model):
+    """`video --frames 100000` had checked every frame before its first one (minutes); a path
+    longer than PATH_CHECK_FRAMES is checked at that many frames spread along it, its count said
+    as about so many, and agrees with the whole path's share."""
+    import time
+
+    from neulf_core.paths import PATH_CHECK_FRAMES
+
+    light_field = LightField.load(tiny_model, "cpu")
+    slab = light_field.slab
+    centres, K, width, height = rig(light_field)
+    long_path = spiral_path(slab, centres, frames=20 * PATH_CHECK_FRAMES)
+    wide = wider(K, 3.0)
+    started = time.perf_counter()
+    note = past_capture_warning(slab, wide, width, height, long_path)
+    assert time.perf_counter() - started < 20  # (every frame: 20 times as many checks)
+    whole = int((share_past_capture(slab, wide, width, height, long_path) > PAST_CAPTURE_FRACTION).sum())
+    said = int(re.match(r"about (\d+) of (\d+) frames", note).group(1))
+    assert abs(said - whole) <= 0.02 * len(long_path), (said, whole)
+    assert re.match(r"\d+ of 12 frames", past_capture_warning(slab, wide, width, height,
+                                                              spiral_path(slab, centres, frames=12)))
+
+
 def test_spiral_for_blender_names_the_lens(tiny_model, record_property):
     """Blender's Spiral Camera Path sends the camera that will fly it: a wide one is told which
     frames see past the capture and the lens (mm) that keeps them inside."""
