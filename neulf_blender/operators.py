@@ -82,7 +82,8 @@ class NEULF_OT_import_colmap(_Reporting, bpy.types.Operator):
     def run(self, context):
         if not self.directory.strip():
             raise NeulfError("choose the scene folder (the one holding sparse/0 and images/, or poses_bounds.npy).")
-        description = import_scene(context, chosen_path(self.directory), chosen_path(self.images_dir), self.import_points)
+        description = import_scene(context, chosen_path(self.directory), chosen_path(self.images_dir),
+                                   self.import_points)
         notes = "; ".join(description.get("notes", []))
         self.report({"INFO"}, f"imported {len(description['views'])} cameras" + (f" ({notes})" if notes else ""))
         return {"FINISHED"}
@@ -225,8 +226,9 @@ class NEULF_OT_load_model(_Reporting, bpy.types.Operator):
             try:  # (first, through the model's photos; a capture that fails to import leaves nothing half-built)
                 import_scene(context, scene_meta["root"], model_path=path)
             except NeulfError as exc:  # (rendering needs only the model: photos moved or not copied along)
-                self.report({"WARNING"}, f"the capture it trained on could not be imported ({panel_words(str(exc))}); the "
-                                         "model renders without it (Import COLMAP / LLFF takes an Images folder)")
+                why = panel_words(str(exc))
+                self.report({"WARNING"}, f"the capture it trained on could not be imported ({why}); the model renders "
+                                         "without it (Import COLMAP / LLFF takes an Images folder)")
         attach_model(context, path)
         self.report({"INFO"}, f"model loaded: {path}")
         return {"FINISHED"}

@@ -36,7 +36,8 @@ def type_problem(values: dict, config_class: type) -> str | None:
     for field in fields(config_class):
         if field.name in values and not _fits(values[field.name], hints[field.name]):
             value = values[field.name]
-            return f"its train_config's {field.name!r} is {_a(type(value).__name__)} ({value!r:.40}), not {_said(hints[field.name])}"
+            return (f"its train_config's {field.name!r} is {_a(type(value).__name__)} ({value!r:.40}), "
+                    f"not {_said(hints[field.name])}")
     return None
 
 

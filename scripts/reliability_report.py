@@ -498,7 +498,8 @@ def message_cell(case: Case, results: dict[str, Result]) -> str:
     return "<br>".join(unique) if unique else "(no message recorded by these tests)"
 
 
-def document(cases: list[Case], results: dict[str, Result], *, with_blender: bool, exit_code: int, started: datetime.datetime) -> str:
+def document(cases: list[Case], results: dict[str, Result], *, with_blender: bool, exit_code: int,
+             started: datetime.datetime) -> str:
     commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=REPO, capture_output=True, text=True).stdout.strip()
     dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=REPO, capture_output=True,
                            text=True).stdout.strip()
@@ -551,7 +552,8 @@ def main(argv: list[str] | None = None) -> int:
         if test not in results:
             results[test] = Result("not found" if test not in present else "not run")
     args.output.parent.mkdir(parents=True, exist_ok=True)
-    args.output.write_text(document(cases, results, with_blender=args.with_blender, exit_code=exit_code, started=started))
+    args.output.write_text(document(cases, results, with_blender=args.with_blender, exit_code=exit_code,
+                                    started=started))
     print(f"wrote {args.output}")
     failed = [t for t in to_run if results[t].outcome in ("failed", "error")]
     return 1 if failed else 0
