@@ -15,7 +15,7 @@ from .jobs import pose_text
 from .preferences import get_core
 from ..neulf_core.errors import NeulfError
 from ..neulf_core.lock import training_holder
-from ..neulf_core.members import member_dir, read_state
+from ..neulf_core.members import member_dir, member_folders, read_state
 from ..neulf_core.model_files import METADATA_NAME, can_resume, foreign_metadata, has_render_model, read_metadata
 
 
@@ -187,8 +187,7 @@ def _metadata_lost(path: str) -> bool:
         state = read_state(Path(path))
     except NeulfError:
         return False  # (members.json damaged: rendering and Train say so)
-    folders = [member_dir(Path(path), member) for member in range(1, (state["count"] if state else 1) + 1)]
-    return any(can_resume(folder) and not read_metadata(folder) for folder in folders)
+    return any(can_resume(folder) and not read_metadata(folder) for folder in member_folders(Path(path), state))
 
 
 def readable_model(context, path: str) -> dict:

@@ -163,6 +163,11 @@ def member_dir(model_dir: Path, member: int) -> Path:
     return Path(model_dir) if member == 1 else Path(model_dir) / MEMBERS_DIR / str(member)
 
 
+def member_folders(model_dir: Path, state: dict | None) -> list[Path]:
+    """The folder of each member members.json (`state`, None for one member) counts, the first first."""
+    return [member_dir(model_dir, member) for member in range(1, (state["count"] if state else 1) + 1)]
+
+
 def member_seed(seed: int, member: int) -> int:
     return seed + (member - 1) * MEMBER_SEED_OFFSET
 
@@ -274,8 +279,8 @@ def members_progress(model_dir: str | Path) -> list[tuple[int, float]]:
     model_dir = Path(model_dir)
     state = read_state(model_dir)
     done = []
-    for member in range(1, (state["count"] if state else 1) + 1):
-        meta = read_metadata(member_dir(model_dir, member))
+    for folder in member_folders(model_dir, state):
+        meta = read_metadata(folder)
         if not meta:
             continue  # (a member not started yet)
         progress = meta.get("progress") or {}

@@ -106,12 +106,11 @@ class Service:
         """model.json written again from the checkpoint, in the model folder and each member's,
         where it is missing or damaged; the folders it was written in."""
         from .checkpoint import restore_metadata
-        from .members import member_dir, read_state
+        from .members import member_folders, read_state
 
         path = Path(model_dir).expanduser()
         state = read_state(path)  # (a damaged members.json: its own one-line error)
-        folders = [member_dir(path, member) for member in range(1, (state["count"] if state else 1) + 1)]
-        return [str(folder) for folder in folders if restore_metadata(folder)]
+        return [str(folder) for folder in member_folders(path, state) if restore_metadata(folder)]
 
     def model_info(self, model_dir: str) -> dict:
         """The model's metadata (slab, scene, rig, training progress) without loading weights."""
