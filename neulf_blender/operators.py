@@ -433,6 +433,30 @@ def render_active_camera(context, *, depth=True):
     return render(), request
 
 
+def show_render(result: dict, request: dict) -> list[tuple[str, str]]:
+    """A finished render into the images 'NeuLF Render' and 'NeuLF Depth'; the reports to make."""
+    capture.show_image(RENDER_IMAGE, result["rgb"])  # byte image: sRGB, stored as computed
+    depth = np.nan_to_num(result["depth"], nan=0.0)
+    capture.show_image(DEPTH_IMAGE, np.repeat(depth[..., None], 3, axis=2), float_buffer=True, non_color=True)
+    notes = [("WARNING", note) for note in result.get("warnings", [])]
+    return [*notes, ("INFO", f"rendered {request['width']}x{request['height']} into '{RENDER_IMAGE}'")]
+
+
+def threaded_render_tick(call: jobs.ThreadCall, request: dict):
+    """What the UI's threaded Render Camera does at a timer tick: `(status, status_text, reports)`,
+    status 'RUNNING' while the thread works, else the operator's ending ('FINISHED' with the
+    images shown, or 'CANCELLED'); status_text the status bar's line (None: Blender's own).
+    A plain function, so scripts and headless tests run what the modal operator runs."""
+    if call.running:
+        return ("RUNNING", f"NeuLF: rendering {request['width']}x{request['height']}, {call.fraction:.0%} "
+                           "(Esc cancels)", [])
+    if call.cancelled:
+        return "CANCELLED", None, [("INFO", "Render Camera cancelled")]
+    if call.error is not None:
+        return "CANCELLED", None, [("ERROR", panel_words(call.error))]
+    return "FINISHED", None, show_render(call.result, request)
+
+
 class NEULF_OT_render_camera(_Reporting, bpy.types.Operator):
     """Render the active camera through the light field into the images 'NeuLF Render' and 'NeuLF Depth'"""
 
@@ -441,7 +465,7 @@ class NEULF_OT_render_camera(_Reporting, bpy.types.Operator):
 
     def run(self, context):  # (blocking: scripts and background mode)
         result, request = render_active_camera(context)
-        return self._show(result, request)
+        return self._report(show_render(result, request), "FINISHED")
 
     def invoke(self, context, event):
         """In the UI: rendered on a thread, with progress in the status bar and Esc to cancel (a
@@ -464,29 +488,17 @@ class NEULF_OT_render_camera(_Reporting, bpy.types.Operator):
             return {"RUNNING_MODAL"}
         if event.type != "TIMER":
             return {"PASS_THROUGH"}
-        if self._call.running:
-            context.workspace.status_text_set(
-                f"NeuLF: rendering {self._request['width']}x{self._request['height']}, {self._call.fraction:.0%} "
-                "(Esc cancels)")
+        status, text, reports = threaded_render_tick(self._call, self._request)
+        context.workspace.status_text_set(text)
+        if status == "RUNNING":
             return {"PASS_THROUGH"}
         context.window_manager.event_timer_remove(self._timer)
-        context.workspace.status_text_set(None)
-        if self._call.cancelled:
-            self.report({"INFO"}, "Render Camera cancelled")
-            return {"CANCELLED"}
-        if self._call.error is not None:
-            self.report({"ERROR"}, panel_words(self._call.error))
-            return {"CANCELLED"}
-        return self._show(self._call.result, self._request)
+        return self._report(reports, status)
 
-    def _show(self, result: dict, request: dict):
-        capture.show_image(RENDER_IMAGE, result["rgb"])  # byte image: sRGB, stored as computed
-        depth = np.nan_to_num(result["depth"], nan=0.0)
-        capture.show_image(DEPTH_IMAGE, np.repeat(depth[..., None], 3, axis=2), float_buffer=True, non_color=True)
-        for note in result.get("warnings", []):
-            self.report({"WARNING"}, note)
-        self.report({"INFO"}, f"rendered {request['width']}x{request['height']} into '{RENDER_IMAGE}'")
-        return {"FINISHED"}
+    def _report(self, reports, status: str):
+        for level, line in reports:
+            self.report({level}, line)
+        return {status}
 
 
 # ----------------------------------------------------------------------------- camera paths and video

@@ -304,7 +304,8 @@ CASES = [
         "tests/test_blender_convert.py::test_explain_failure",
         "tests/test_blender_convert.py::test_an_older_python_is_told_before_any_import_fails",
         "tests/test_blender_convert.py::test_a_killed_process_is_said_to_be_killed",
-        "tests/test_blender_convert.py::test_thread_call_ends_with_result_error_or_cancel"]),
+        "tests/test_blender_convert.py::test_thread_call_ends_with_result_error_or_cancel",
+        f"{STORY}[render_camera_thread]"]),
     Case("Two trainings of one folder at once (processes racing for a new or a stale lock, a training started during "
          "the auto preset's size search): one trains, the others are refused; a model folder whose path leaves no "
          "room for a checkpoint is refused before training", [

@@ -34,9 +34,9 @@ PLANE_NORMAL = np.array([0.25, -0.15, -1.0]) / np.linalg.norm([0.25, -0.15, -1.0
 GRID = [(x, y) for y in (-0.3, 0.0, 0.3) for x in (-0.3, 0.0, 0.3)]
 
 STEPS = ["install", "import", "cameras_match_pycolmap", "slab_planes", "reimport_no_duplicates", "train_blocking",
-         "train_options", "train_timer_resume", "panel_draws", "train_cancel", "train_cancel_resume", "train_killed", "members", "render_camera", "render_only_model", "pixel_samples",
+         "train_options", "train_timer_resume", "panel_draws", "train_cancel", "train_cancel_resume", "train_killed", "members", "render_camera", "render_camera_thread", "render_only_model", "pixel_samples",
          "render_worker_process", "focus_at", "pick_focus_frame", "pick_focus_click", "root_scale", "engine_f12", "composite_cg", "viewport_preview", "spiral_video", "video_cut_short", "artist_settings", "capture_identity", "save_reload",
-         "blend_moved", "linked_scene", "quit_while_training", "open_other_while_training", "reconstruct_photos", "user_errors", "dependencies_status",
+         "blend_moved", "linked_scene", "quit_while_training", "open_other_while_training", "reconstruct_photos", "user_errors", "real_captures", "dependencies_status",
          "install_dependencies"]
 
 
@@ -506,6 +506,54 @@ def run_story(setup: dict) -> None:  # noqa: C901 - one story, told in order
         ctx["render"], ctx["depth"] = rendered, depth
         return f"PSNR {model_psnr:.2f} dB vs mean colour {mean_psnr:.2f} dB; depth median {np.median(depth):.3f} " \
                f"(true {np.median(true_depth):.3f})"
+
+    @story.step("render_camera_thread", "render_camera")
+    def _():
+        """Render Camera as the UI runs it: on a thread, a timer tick at a time (the modal operator,
+        which needs a window, only forwards Esc and timer events to threaded_render_tick)."""
+        import threading
+
+        operators, jobs = mod("operators"), mod("jobs")
+        NeulfError = sys.modules[f"{PACKAGE}.neulf_core.errors"].NeulfError
+        bpy.data.images.remove(bpy.data.images["NeuLF Render"])
+        render, request = operators.active_camera_render(bpy.context)
+        call, lines = jobs.ThreadCall(render), []
+        while (tick := operators.threaded_render_tick(call, request))[0] == "RUNNING":
+            lines.append(tick[1])
+            time.sleep(0.02)
+        status, text, reports = tick
+        assert (status, text) == ("FINISHED", None) and reports[-1] == (
+            "INFO", f"rendered {WIDTH}x{HEIGHT} into 'NeuLF Render'"), tick
+        assert all(re.fullmatch(rf"NeuLF: rendering {WIDTH}x{HEIGHT}, \d+% \(Esc cancels\)", line) for line in lines), lines
+        np.testing.assert_array_equal(image_array("NeuLF Render"), ctx["render"])  # the blocking render's image
+
+        # Esc: the thread stops at its next band of rows (here before its first), nothing is shown.
+        gate = threading.Event()
+
+        def after_esc(on_progress, should_stop):
+            gate.wait(60)
+            return render(on_progress=on_progress, should_stop=should_stop)
+
+        bpy.data.images.remove(bpy.data.images["NeuLF Render"])
+        call = jobs.ThreadCall(after_esc)
+        call.cancel()
+        gate.set()
+        call.wait(120)
+        cancelled = operators.threaded_render_tick(call, request)
+        assert cancelled == ("CANCELLED", None, [("INFO", "Render Camera cancelled")]), cancelled
+        assert "NeuLF Render" not in bpy.data.images
+
+        # The core's error on the thread: one line, in the panel's words.
+        def failing(on_progress, should_stop):
+            raise NeulfError("no photos found: pass --images DIR.")
+
+        call = jobs.ThreadCall(failing)
+        call.wait(60)
+        failed = operators.threaded_render_tick(call, request)
+        assert failed[:2] == ("CANCELLED", None) and failed[2][0][0] == "ERROR", failed
+        assert "--images" not in failed[2][0][1], failed
+        return f"{len(lines)} progress ticks, then the blocking render's image; Esc: {cancelled[2][0][1]}; " \
+               f"an error: {failed[2][0][1]}"
 
     @story.step("members", "train_blocking")
     def _():
@@ -2044,6 +2092,77 @@ def run_story(setup: dict) -> None:  # noqa: C901 - one story, told in order
         assert "ended without training" in messages[-1] and "Python with torch" in messages[-1], messages[-1]
         assert all("Traceback" not in m and m.startswith("Error:") for m in messages), messages
         return " | ".join(m.strip() for m in messages)
+
+    def render_like_the_cli(scene, capture_cameras: dict, hci: dict) -> str:
+        """A model the CLI trained, loaded into the scene: Render Camera through a capture camera at
+        50 % (the trained size) gives the image `render --views` gave for that photo."""
+        assert bpy.ops.neulf.load_model(directory=hci["model_dir"]) == {"FINISHED"}
+        worst = []
+        for view_name, png in hci["renders"].items():
+            scene.camera = capture_cameras[view_name]
+            mod("capture").apply_capture_camera(scene, scene.camera)
+            scene.render.resolution_percentage = 50
+            assert bpy.ops.neulf.render_camera() == {"FINISHED"}
+            rendered, expected = image_array("NeuLF Render"), load_png(png)
+            assert rendered.shape == expected.shape, (view_name, rendered.shape, expected.shape)
+            difference = np.abs(rendered - expected) * 255
+            assert difference.max() <= 2.01 and difference.mean() < 0.05, (view_name, difference.max(),
+                                                                           difference.mean())
+            worst.append(f"{difference.max():.0f}/255")
+        return f"its Render Camera of {', '.join(hci['renders'])} as the CLI's render (at most {max(worst)} apart)"
+
+    @story.step("real_captures", "install")
+    def _():
+        """The reference scenes (real captures: COLMAP 4.x with rigs, a portrait capture, fern's
+        model of 4032x3024 photos read from images_8/, HCI's shifted-sensor grid), each imported
+        into a scene of its own: every Blender camera projects the scene's points where pycolmap's
+        pinhole does on the photo files (computed by the pytest side without neulf_core)."""
+        lines = []
+        for reference in setup["real_captures"]:
+            scene = bpy.data.scenes.new(f"NeuLF real {reference['name']}")
+            view_layer = scene.view_layers[0]
+            try:
+                with bpy.context.temp_override(scene=scene, view_layer=view_layer):
+                    result = bpy.ops.neulf.import_colmap(directory=reference["scene_dir"],
+                                                         images_dir=reference["images_dir"])
+                    assert result == {"FINISHED"}, (reference["name"], result)
+                    capture_cameras = {obj["neulf_view"]: obj for obj in scene.neulf.capture_collection.objects
+                                       if obj.type == "CAMERA"}
+                    assert sorted(capture_cameras) == sorted(reference["views"]), reference["name"]
+                    view_layer.update()
+                    world = np.array(scene.neulf.root.matrix_world) @ np.c_[reference["points"],
+                                                                           np.ones(len(reference["points"]))].T
+                    worst = 0.0
+                    for view_name, obj in capture_cameras.items():
+                        expected = reference["views"][view_name]
+                        width, height = expected["width"], expected["height"]
+                        mod("capture").apply_capture_camera(scene, obj)
+                        render = scene.render
+                        assert (render.resolution_x, render.resolution_y) == (width, height), view_name
+                        view_layer.update()
+                        P = np.array(obj.calc_matrix_camera(bpy.context.evaluated_depsgraph_get(), x=width,
+                                                            y=height, scale_x=render.pixel_aspect_x,
+                                                            scale_y=render.pixel_aspect_y))
+                        clip = P @ np.array(obj.matrix_world.inverted()) @ world
+                        ndc = clip[:2] / clip[3]
+                        px = np.stack([(ndc[0] + 1) / 2 * width, (1 - ndc[1]) / 2 * height], 1)
+                        colmap_px = np.array(expected["px"], dtype=float)
+                        near_frame = np.all(np.abs(colmap_px - [width / 2, height / 2]) < [width, height], axis=1)
+                        assert near_frame.sum() >= 10, (view_name, int(near_frame.sum()))
+                        worst = max(worst, float(np.abs(px - colmap_px)[near_frame].max()))
+                    assert worst < 0.01, (reference["name"], worst)
+                    lines.append(f"{reference['name']} {len(capture_cameras)} cameras at {width}x{height}, "
+                                 f"{worst:.1e} px")
+                    if reference["name"] == "hci_antinous" and setup.get("hci"):
+                        lines.append(render_like_the_cli(scene, capture_cameras, setup["hci"]))
+            finally:
+                collection = scene.neulf.capture_collection
+                if collection is not None:
+                    for obj in list(collection.objects):
+                        bpy.data.objects.remove(obj)
+                    bpy.data.collections.remove(collection)
+                bpy.data.scenes.remove(scene)
+        return "; ".join(lines) or "no reference scenes"
 
     @story.step("dependencies_status", "install")
     def _():

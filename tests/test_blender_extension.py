@@ -8,7 +8,9 @@ against pycolmap, train through the operator (blocking and timer paths, cancel, 
 after Cancel), render, focus (by image point and by a click in the camera view), F12, a
 spiral video, save and reload, the .blend and its model moved elsewhere and opened by a new
 Blender, Blender quit or killed while training and a new Blender reopening the .blend and
-continuing the model, reconstruct a folder of photos, dependency status and install.  The
+continuing the model, reconstruct a folder of photos, dependency status and install; where
+the reference scenes (../shared/data) are present, each is imported and its cameras checked
+against pycolmap, and HCI's is rendered through a model the CLI trained.  The
 steps that need Blender started again run blender_story.py's sessions in new bpy processes
 (same user folder, so the installed extension).  Each step's outcome is written to a JSON
 file and checked by its own test below.
@@ -83,6 +85,67 @@ def reference_values(scene_dir: Path) -> dict:
             "slab_corners": {plane: np.asarray(slab.plane_corners(plane)).tolist() for plane in ("uv", "st")}}
 
 
+# The reference scenes (../shared/data) the story imports where they are present: the folder, the
+# photos' folder, and at most this many of the scene's points projected into each view.
+REAL_CAPTURES = {"canclip": "images", "statue": "images", "fern": "images_8", "hci_antinous": "images"}
+REAL_POINTS = 150
+
+
+def real_capture_references() -> list[dict]:
+    """Each reference scene present, with each photo's pinhole projection of some of its points,
+    computed here with pycolmap alone (not neulf_core): its camera's K scaled to the photo files
+    (fern's model is of the 4032x3024 originals, its images_8/ 504x378), its R and t.  A Blender
+    camera has no lens distortion, so the distortion-free projection is what it must match."""
+    import pycolmap
+    from PIL import Image
+
+    from conftest import shared_data_dir
+
+    references = []
+    for name, images in REAL_CAPTURES.items():
+        scene_dir = shared_data_dir() / name
+        if not (scene_dir / images).is_dir():
+            continue
+        recon = pycolmap.Reconstruction(str(scene_dir / "sparse" / "0"))
+        points = np.array([p.xyz for p in recon.points3D.values()])
+        points = points[np.random.default_rng(0).permutation(len(points))[:REAL_POINTS]]
+        file_width, file_height = Image.open(sorted((scene_dir / images).iterdir())[0]).size
+        views = {}
+        for image in recon.images.values():
+            camera = recon.cameras[image.camera_id]
+            K = np.diag([file_width / camera.width, file_height / camera.height, 1.0]) @ camera.calibration_matrix()
+            pose = image.cam_from_world()
+            cam = points @ pose.rotation.matrix().T + pose.translation
+            px = np.where(cam[:, 2:] > 0, (cam @ K.T)[:, :2] / cam[:, 2:], np.nan)
+            views[image.name] = {"width": file_width, "height": file_height, "px": px.tolist()}
+        references.append({"name": name, "scene_dir": str(scene_dir), "images_dir": str(scene_dir / images),
+                           "points": points.tolist(), "views": views})
+    return references
+
+
+def hci_setup(folder: Path) -> dict:
+    from conftest import shared_data_dir
+
+    hci = shared_data_dir() / "hci_antinous"
+    return {"hci": hci_renders(hci, folder / "hci")} if (hci / "images").is_dir() else {}
+
+
+# HCI's grid (PINHOLE, each camera's sensor shifted) trained briefly by the CLI, and two of its views
+# rendered by the CLI: Blender's Render Camera through its imported cameras must give the same images.
+HCI_RENDER_VIEWS = ("input_Cam000.png", "input_Cam013.png")  # held out (every 8th), trained on
+
+
+def hci_renders(scene_dir: Path, out: Path) -> dict:
+    model = out / "hci_model"
+    for argv in (["train", str(scene_dir), "--out", str(model), "--steps", "150", "--progress", "json"],
+                 ["render", str(model), "--scene", str(scene_dir), "--views", ",".join(HCI_RENDER_VIEWS),
+                  "--out", str(out / "hci_renders")]):
+        run = subprocess.run([sys.executable, "-m", "neulf_core", *argv], capture_output=True, text=True, timeout=900)
+        assert run.returncode == 0, run.stderr[-3000:]
+    return {"model_dir": str(model),
+            "renders": {view: str(out / "hci_renders" / f"{Path(view).stem}.png") for view in HCI_RENDER_VIEWS}}
+
+
 @pytest.fixture(scope="module")
 def capture(tmp_path_factory) -> dict:
     """The story's inputs, shared by the bpy 5.0 and 4.2 runs (read-only for them)."""
@@ -100,7 +163,8 @@ def capture(tmp_path_factory) -> dict:
     frames = [np.asarray(Image.open(photo).convert("RGB")) for photo in sorted((folder / "photos").iterdir())]
     write_video([frame for frame in frames for _ in range(2)], folder / "walk.mp4", fps=4)
     return {"scene_dir": str(scene_dir), "reference": reference_values(scene_dir), "photos": str(folder / "photos"),
-            "photos_focal": FOCAL_PX, "video": str(folder / "walk.mp4"), "video_photos": len(frames)}
+            "photos_focal": FOCAL_PX, "video": str(folder / "walk.mp4"), "video_photos": len(frames),
+            "real_captures": real_capture_references()} | hci_setup(folder)
 
 
 # ----------------------------------------------------------------------------- pytest side
@@ -193,6 +257,7 @@ def run_story(python: str, extension_zip: Path, capture: dict, work: Path, worke
     data = json.loads(results.read_text())
     data["_log"] = run.stdout[-4000:] + run.stderr[-4000:]
     data["_seconds"] = time.monotonic() - started
+    data["_real_captures"] = [reference["name"] for reference in capture["real_captures"]]
     return data
 
 
@@ -202,6 +267,10 @@ def story(extension_zip, capture, tmp_path_factory):
 
 
 def check_step(story: dict, step: str) -> None:
+    if step == "real_captures" and not story.get("_real_captures"):
+        from conftest import shared_data_dir
+
+        pytest.skip(f"reference scenes not found in {shared_data_dir()} (set NEULF_SHARED_DATA)")
     outcome = story.get(step)
     assert outcome is not None, f"step {step} did not run; log:\n{story['_log']}"
     assert outcome["ok"], f"{step}: {outcome['detail']}"
