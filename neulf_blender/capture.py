@@ -285,8 +285,13 @@ def lens_request(camera_obj, scale: float) -> dict:
         forward = -np.array(camera_obj.matrix_world.to_3x3().col[2])
         offset = np.array(focus_point(dof) - camera_obj.matrix_world.translation)
         distance = abs(float(offset @ forward / np.linalg.norm(forward)))
-    radius = camera_obj.data.lens * 1e-3 / (2.0 * dof.aperture_fstop)
-    return {"focus_distance": max(distance, 1e-5) / scale, "aperture": radius / scale}
+    return {"focus_distance": max(distance, 1e-5) / scale, "aperture": aperture_radius(camera_obj.data) / scale}
+
+
+def aperture_radius(camera_data) -> float:
+    """The thin lens's radius in Blender units, as Blender's: the focal length (mm, 1 mm =
+    1e-3 units) over twice the f-stop."""
+    return camera_data.lens * 1e-3 / (2.0 * camera_data.dof.aperture_fstop)
 
 
 def focus_point(dof):

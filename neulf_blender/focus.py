@@ -22,9 +22,9 @@ from ..neulf_core.errors import NeulfError
 HINT = "Click on what should be sharp (camera view); Esc / right click cancels"
 
 
-def focus_at(context, x: float, y: float) -> float:
+def focus_at(context, x: float, y: float) -> tuple[str, str]:
     """Set the active camera's focus distance to the light field's depth at image point (x, y)
-    (pixels from the image's top-left corner); returns the distance in Blender units."""
+    (pixels from the image's top-left corner); returns the report (level, line): focus_report's."""
     scene = context.scene
     camera = scene.camera
     request = capture.camera_request(scene, camera)
@@ -39,7 +39,25 @@ def focus_at(context, x: float, y: float) -> float:
     dof.use_dof = True
     dof.focus_object = None  # it would override the distance
     dof.focus_distance = distance
-    return distance
+    return focus_report(camera.data, request["K"][0][0], distance)
+
+
+def focus_report(camera_data, focal_px: float, distance: float) -> tuple[str, str]:
+    """The focus distance set, and how much the camera's f-stop blurs a surface twice as far
+    (the circle's diameter in render pixels, thin lens: 2 A f |1/D - 1/2D| = A f / D).  A
+    reconstruction's units are its own, not metres: CanClip's subject stands 33 units away,
+    where f/2.8 blurs 0.06 px and an artist's f/1.4 shows no depth of field at all; scaling
+    the root to the scene's real size makes the lens behave as a real one (an audit, 2026-12-02)."""
+    fstop = camera_data.dof.aperture_fstop
+    if fstop <= 0:
+        return "INFO", f"focus distance {distance:.4g}"
+    blur = capture.aperture_radius(camera_data) * focal_px / distance
+    said = f"focus distance {distance:.4g}; at f/{fstop:.3g} a surface twice as far blurs {blur:.2g} px"
+    if blur >= 1.0:
+        return "INFO", said
+    return "WARNING", (f"{said}: hardly any depth of field, as the capture's units are its reconstruction's, not "
+                       f"metres. Scale the NeuLF Root by (the subject's real distance in metres) / {distance:.4g}, "
+                       "or lower the F-Stop")
 
 
 def viewport_under(screen, mouse_x: int, mouse_y: int):
@@ -85,7 +103,7 @@ def click_pixel(scene, space, region, x: float, y: float) -> tuple[float, float]
     return point
 
 
-def focus_from_click(context, mouse_x: int, mouse_y: int) -> float:
+def focus_from_click(context, mouse_x: int, mouse_y: int) -> tuple[str, str]:
     """Focus the active camera on what is under a window point (an event's mouse_x, mouse_y)."""
     area, region = viewport_under(context.screen, mouse_x, mouse_y)
     if region is None:
@@ -102,10 +120,10 @@ def pick_event(context, event_type: str, event_value: str, mouse_x: int, mouse_y
     if event_type != "LEFTMOUSE" or event_value != "PRESS":
         return "RUNNING_MODAL", None
     try:
-        distance = focus_from_click(context, mouse_x, mouse_y)
+        report = focus_from_click(context, mouse_x, mouse_y)
     except NeulfError as exc:
         return "CANCELLED", ("ERROR", panel_words(str(exc)))
-    return "FINISHED", ("INFO", f"focus distance {distance:.4g}")
+    return "FINISHED", report
 
 
 class NEULF_OT_focus_at(_Reporting, bpy.types.Operator):
@@ -119,8 +137,8 @@ class NEULF_OT_focus_at(_Reporting, bpy.types.Operator):
     y: FloatProperty(name="Y", description="Pixels from the top edge (pixel j's centre is j + 0.5)")
 
     def run(self, context):
-        distance = focus_at(context, self.x, self.y)
-        self.report({"INFO"}, f"focus distance {distance:.4g}")
+        level, line = focus_at(context, self.x, self.y)
+        self.report({level}, line)
         return {"FINISHED"}
 
 

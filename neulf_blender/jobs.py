@@ -220,6 +220,8 @@ class TrainJob(ProcessJob):
                 state["val_psnr"] = event["val_psnr"]
         elif kind == "warning":
             state["warnings"].append(event.get("message", ""))
+            if event.get("barely_trained"):  # (a busy machine's minutes spent before many steps)
+                state["barely_trained"] = True
         elif kind == "losses":  # few photos: the multi-view losses are on by default
             state["losses"] = True
         elif kind == "appearance":  # the photos' exposures differ: a colour transform per photo
@@ -510,6 +512,8 @@ def job_status_text(state: dict) -> str:
         text += f" (continued from step {state['resumed_from']})"
     if state["status"] == "cancelled":
         text += "; Train continues it"
+    if state.get("barely_trained") and state["status"] == "finished":
+        text += "; barely trained: the budget ended before a light field is more than a blur (Train trains it further)"
     if state.get("losses"):
         text += "; with the multi-view losses (few photos)"
     if state.get("appearance") is not None:

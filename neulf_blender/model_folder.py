@@ -19,6 +19,7 @@ from ..neulf_core.members import member_dir, member_folders, read_state
 from ..neulf_core.model_files import METADATA_NAME, can_resume, foreign_metadata, has_render_model, read_metadata
 
 
+DEFAULT_MODEL_NAME = "neulf_model"  # (Train's folder inside the capture's where the Model field is empty)
 RENDER_ONLY = "a render-only model (model.pt without its checkpoint.pt): it renders; to train, choose another folder"
 
 
@@ -62,6 +63,10 @@ def refuse_linked(scene, what: str) -> None:
 def model_dir(scene) -> str:
     path = scene_model_dir(scene)
     if not path:
+        default = default_model_dir(scene)
+        if default and has_render_model(default):  # (the capture imported into a second scene: Train continues it)
+            raise NeulfError(f"no NeuLF model in this scene; the capture's folder holds one, {default}: Load Model "
+                             "it to render here (Train would continue it).")
         raise NeulfError("no NeuLF model: train one (Train NeuLF) or load a model folder (Load Model).")
     if not Path(path).is_dir():
         raise NeulfError(f"the model folder {path} does not exist: move a .blend together with its model folder, "
@@ -73,6 +78,13 @@ def model_dir(scene) -> str:
         raise NeulfError(f"{path} holds no trained model (neither checkpoint.pt nor model.pt); train it or load "
                          "another folder.")
     return path
+
+
+def default_model_dir(scene) -> str:
+    """Where Train puts a scene's model when its Model field is empty: inside the capture's folder
+    ("" for a scene with no capture)."""
+    scene_dir = abspath(scene.neulf.scene_dir, scene.library)
+    return str(Path(scene_dir) / DEFAULT_MODEL_NAME) if scene_dir else ""
 
 
 def store_path(path: str) -> str:

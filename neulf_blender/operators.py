@@ -12,7 +12,7 @@ from bpy.props import FloatProperty, IntProperty, StringProperty
 
 from . import capture, compositing, jobs, tasks
 from .jobs import job_status_text
-from .model_folder import (attach_model, chosen_path, model_dir, model_not_found, saved_progress_text,
+from .model_folder import (DEFAULT_MODEL_NAME, attach_model, chosen_path, model_dir, model_not_found, saved_progress_text,
                            readable_model, refuse_linked, restore_metadata, scenes_of_model,
                            store_path)
 from .preferences import get_core, get_prefs, worker_python
@@ -218,19 +218,21 @@ class NEULF_OT_load_model(_Reporting, bpy.types.Operator):
         if restored:
             self.report({"WARNING"}, restored)
         scene_meta = readable_model(context, path).get("scene", {})
+        loaded = f"model loaded: {path}"
         fingerprint = scene_meta.get("fingerprint")
         if context.scene.neulf.fingerprint and fingerprint not in (None, context.scene.neulf.fingerprint):
             self.report({"WARNING"}, "the model was trained on another reconstruction than the imported cameras; "
                                      "its renders will not line up with them.")
         elif not context.scene.neulf.scene_dir and scene_meta.get("root") and Path(scene_meta["root"]).is_dir():
             try:  # (first, through the model's photos; a capture that fails to import leaves nothing half-built)
-                import_scene(context, scene_meta["root"], model_path=path)
+                imported = import_scene(context, scene_meta["root"], model_path=path)
+                loaded += f"; its capture imported: {len(imported['views'])} cameras from {scene_meta['root']}"
             except NeulfError as exc:  # (rendering needs only the model: photos moved or not copied along)
                 why = panel_words(str(exc))
                 self.report({"WARNING"}, f"the capture it trained on could not be imported ({why}); the model renders "
                                          "without it (Import COLMAP / LLFF takes an Images folder)")
         attach_model(context, path)
-        self.report({"INFO"}, f"model loaded: {path}")
+        self.report({"INFO"}, loaded)
         return {"FINISHED"}
 
 
@@ -257,7 +259,7 @@ def start_training(context, *, minutes=None, steps=None):
     scene_dir = chosen_path(props.scene_dir)
     if not scene_dir:
         raise NeulfError("import a capture first (NeuLF > Import), then train.")
-    out = chosen_path(props.model_dir) or str(Path(scene_dir) / "neulf_model")
+    out = chosen_path(props.model_dir) or str(Path(scene_dir) / DEFAULT_MODEL_NAME)
     if not Path(out).is_dir() and props.last_status.startswith(model_not_found(out)):
         # (a .blend opened away from its model: start over only where the user names a new folder)
         raise NeulfError(f"the model folder {out} does not exist: move the .blend together with its model folder or "

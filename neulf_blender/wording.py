@@ -24,6 +24,7 @@ PHRASES = [
     (r"\(or train into another --out\)", "(or choose another Model folder in the NeuLF panel)"),
     (r"train into another --out folder", "choose another Model folder in the NeuLF panel"),
     (r"train a new model into another --out folder", "train a new model into another Model folder"),
+    (r"Train it further: --resume with a larger --minutes", "Press Train to train it further (it adds its Minutes)"),
     (r"a larger --scale, or leave it out for the default", "a larger Image Scale, or 0 for the default"),
     (r"a larger --scale", "a larger Image Scale"),
     (r"a smaller --scale", "a smaller Image Scale"),

@@ -98,9 +98,11 @@ def view_psnrs(model_dir: Path, views, scale: float, device: str | None = None) 
 def _rescaled(progress, offset: float, share: float, label: str | None):
     """Forward a run's progress events into the whole auto run's [0, 1].  A candidate's own
     start/checkpoint/finished events are not the model's and are dropped, and so is its
-    held-out PSNR (train() pools the test views with the validation views it excluded)."""
+    held-out PSNR (train() pools the test views with the validation views it excluded), and the
+    warning that its budget left it barely trained (a candidate's is short by design)."""
     def report(event: dict) -> None:
-        if progress is None or (label and event.get("event") in ("start", "checkpoint", "finished", "cancelled")):
+        if progress is None or (label and (event.get("event") in ("start", "checkpoint", "finished", "cancelled")
+                                           or event.get("barely_trained"))):
             return
         if "fraction" in event:
             event = {**event, "fraction": offset + share * event["fraction"]}

@@ -43,7 +43,7 @@ from .poses import DEPTH_LIKE_GAUGE, PoseRefinement
 from .progress import emit as _emit
 from .paths import rig_has_baseline
 from .resume_options import fields_set, kept_message, kept_on_resume
-from .model_files import METADATA_NAME, foreign_metadata
+from .model_files import METADATA_NAME, foreign_metadata, read_metadata
 from .saved_config import type_problem, upgraded
 from .presets import APPEARANCE_ADAM_BETA2, APPEARANCE_GEOMETRY, DEFAULT_PRESET, get_preset
 from .scene import Scene, load_scene, scaled_size, split_views
@@ -290,9 +290,30 @@ def train(scene: Scene | str | Path, model_dir: str | Path, config: TrainConfig,
         scene = scene if isinstance(scene, Scene) else load_scene(scene, images_dir)
         config = rules.with_default_scale(scene, config, model_dir, resume, progress)
         result = train_members(train_one, scene, model_dir, config, images_dir, resume, progress, stop)
+        warning = barely_trained_warning(result, config, model_dir)
+        if warning:
+            _emit(progress, event="warning", message=warning, barely_trained=True)
     if ctrl_c():
         raise KeyboardInterrupt  # (saved: the caller's Ctrl-C passed on)
     return result
+
+
+# A minutes budget that ends this early leaves a blur: on a busy machine the plane sweep before
+# the first step had taken a whole minute's budget, and CanClip "finished" at 0 steps, or at 30
+# steps at 17.9 dB where the same minute trains 853 steps to 35.2 dB (a Blender audit, 2026-12-02).
+FEW_STEPS = 200
+
+
+def barely_trained_warning(result: TrainResult, config: TrainConfig, model_dir: Path) -> str | None:
+    """What to say where a minutes budget finished with fewer than FEW_STEPS steps, else None."""
+    if result.status != "finished" or config.minutes is None or result.step >= FEW_STEPS:
+        return None
+    sweep = read_metadata(model_dir).get("sweep_seconds") or 0.0
+    spent = (f" ({sweep:.0f} s of it went to the plane sweep of the photos, before the first step)"
+             if sweep >= 0.25 * config.minutes * 60 else "")
+    return (f"the {config.minutes:g}-minute budget ended after only {result.step} steps{spent}: a light field this "
+            "early renders a blur. Train it further: --resume with a larger --minutes (a busy machine makes each "
+            "step slower).")
 
 
 def longest_path_written(config: TrainConfig) -> Path:
@@ -520,6 +541,7 @@ class TrainingRun:
         self.teacher, teacher_seconds = _teacher_inputs(self.train_views, self.slab, config, self.preset, self.device,
                                                         resumed, progress, masks, sweep_photos)
         self.elapsed += teacher_seconds  # the sweep is part of the training time it saves
+        self.sweep_seconds = teacher_seconds or (resumed or {}).get("sweep_seconds", 0.0)
         self.strong = strong_pull(len(self.train_views), config.appearance)
         self.point_depth = _point_depth_inputs(self.train_views, self.slab, config, self.preset, self.device,
                                                self.fixed_poses is not None, masks)
@@ -677,6 +699,8 @@ class TrainingRun:
             "appearance_default": self.exposures_differ,
             "rig": _rig(self.train_views, config.scale),
         }
+        if self.sweep_seconds:
+            meta["sweep_seconds"] = round(self.sweep_seconds, 2)  # (of the budget: barely_trained_warning says it)
         if self.point_depth is not None:
             meta["point_depth"] = {"rays": int(self.point_depth[1].sum())}
             _emit(self.progress, event="stage", message=f"depth from the model's points: {meta['point_depth']['rays']} "

@@ -306,6 +306,13 @@ CASES = [
         "tests/test_blender_convert.py::test_a_killed_process_is_said_to_be_killed",
         "tests/test_blender_convert.py::test_thread_call_ends_with_result_error_or_cancel",
         f"{STORY}[render_camera_thread]"]),
+    Case("A real-size capture in Blender (audit, 2026-12-02): a minutes budget spent before 200 steps (a busy "
+         "machine's plane sweep had taken the whole minute: \"finished\" at 0 steps); an f-stop that hardly blurs at "
+         "the reconstruction's units; a second scene's import of a capture whose folder holds a model; Load Model "
+         "importing the capture", [
+        f"{CKPT}::test_a_minutes_budget_that_ends_before_training_is_said",
+        f"{CKPT}::test_a_size_search_candidate_short_by_design_is_not_said_barely_trained",
+        "tests/test_blender_convert.py::test_train_job_parses_events", f"{STORY}[focus_at]", f"{STORY}[user_errors]"]),
     Case("Two trainings of one folder at once (processes racing for a new or a stale lock, a training started during "
          "the auto preset's size search): one trains, the others are refused; a model folder whose path leaves no "
          "room for a checkpoint is refused before training", [

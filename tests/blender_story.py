@@ -654,13 +654,32 @@ def run_story(setup: dict) -> None:  # noqa: C901 - one story, told in order
         scene = bpy.context.scene
         result, _request = mod("operators").render_active_camera(bpy.context)
         i, j = 40, 20
-        assert bpy.ops.neulf.focus_at(x=i + 0.5, y=j + 0.5) == {"FINISHED"}
         dof = scene.camera.data.dof
+
+        def focus_on_it():
+            finished = []
+            said = reports_of(lambda: finished.append(bpy.ops.neulf.focus_at(x=i + 0.5, y=j + 0.5)))
+            assert finished == [{"FINISHED"}], finished
+            return said
+
+        said = focus_on_it()
         expected = float(result["depth"][j, i])
         assert dof.use_dof and dof.focus_object is None
         assert abs(dof.focus_distance - expected) < 1e-4 * expected, (dof.focus_distance, expected)
+        # The report says how much the f-stop blurs a surface twice as far (thin lens: A f / D, in
+        # render pixels): at this capture's size f/2.8 hardly blurs, which is said with what to do.
+        blur = scene.camera.data.lens * 1e-3 / (2 * dof.aperture_fstop) * _request["K"][0][0] / dof.focus_distance
+        assert blur < 1 and f"blurs {blur:.2g} px: hardly any depth of field" in said, (blur, said)
+        assert "Scale the NeuLF Root by (the subject's real distance in metres) / " in said, said
+        saved_fstop, dof.aperture_fstop = dof.aperture_fstop, dof.aperture_fstop * blur / 3  # three pixels
+        try:
+            shallow = focus_on_it()
+        finally:
+            dof.aperture_fstop = saved_fstop
+        assert "blurs 3 px" in shallow and "hardly" not in shallow and "Warning" not in shallow, shallow
         ctx["focus"] = dof.focus_distance
-        return f"focus {dof.focus_distance:.4f} = model depth {expected:.4f}"
+        return (f"focus {dof.focus_distance:.4f} = model depth {expected:.4f}; said: "
+                f"{said.strip().splitlines()[-1]}")
 
     # The eyedropper.  Headless Blender sends no mouse events and never draws, so the
     # viewport's matrices are never computed; but view3d.render_border maps a region box to
@@ -753,7 +772,7 @@ def run_story(setup: dict) -> None:  # noqa: C901 - one story, told in order
             assert not dof.use_dof and dof.focus_distance == 123.0
 
             status, report = focus.pick_event(bpy.context, "LEFTMOUSE", "PRESS", wx, wy)
-            assert status == "FINISHED" and report[0] == "INFO", (status, report)
+            assert status == "FINISHED" and report[1].startswith("focus distance "), (status, report)
             picked = dof.focus_distance
             assert dof.use_dof and dof.focus_object is None
             assert bpy.ops.neulf.focus_at(x=target[0], y=target[1]) == {"FINISHED"}
@@ -2065,6 +2084,41 @@ def run_story(setup: dict) -> None:  # noqa: C901 - one story, told in order
             assert empty.neulf.model_dir and not empty.neulf.scene_dir and empty.neulf.root is None, loaded
         finally:
             bpy.data.scenes.remove(empty)
+        # Load Model into an empty scene imports the capture it trained on, and says so (it had said
+        # only "model loaded" while 9 cameras appeared).
+        empty = bpy.data.scenes.new("StoryLoadInto")
+        try:
+            with bpy.context.temp_override(scene=empty, view_layer=empty.view_layers[0]):
+                loaded = reports_of(lambda: bpy.ops.neulf.load_model(directory=str(model)))
+            assert f"its capture imported: {len(scene_views())} cameras from " in loaded, loaded
+        finally:
+            collection = empty.neulf.capture_collection
+            for obj in list(collection.objects if collection is not None else []):
+                bpy.data.objects.remove(obj)
+            if collection is not None:
+                bpy.data.collections.remove(collection)
+            bpy.data.scenes.remove(empty)
+        # The capture imported into a second scene, whose default model folder (inside the capture's)
+        # holds a model: Render names it and Load Model (it had said only "train one", while Train
+        # there continues that model).
+        copied = work / "capture_with_its_model"
+        shutil.copytree(scene_dir, copied)
+        shutil.copytree(model, copied / "neulf_model")
+        second = bpy.data.scenes.new("StorySecondImport")
+        try:
+            with bpy.context.temp_override(scene=second, view_layer=second.view_layers[0]):
+                assert bpy.ops.neulf.import_colmap(directory=str(copied)) == {"FINISHED"}
+                second.camera = next(o for o in second.neulf.capture_collection.objects if o.type == "CAMERA")
+                messages.append(error_of(lambda: bpy.ops.neulf.render_camera()))
+            assert messages[-1].startswith("no NeuLF model in this scene; the capture's folder holds one, ") and \
+                str(copied / "neulf_model") in messages[-1] and "Load Model" in messages[-1], messages[-1]
+        finally:
+            collection = second.neulf.capture_collection
+            for obj in list(collection.objects if collection is not None else []):
+                bpy.data.objects.remove(obj)
+            if collection is not None:
+                bpy.data.collections.remove(collection)
+            bpy.data.scenes.remove(second)
         # A model folder that cannot be written (here: inside a file): said before training starts,
         # naming the panel's field; and a video size H.264 cannot take, before its render.
         in_a_file = work / "a_file"

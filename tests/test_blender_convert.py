@@ -357,8 +357,13 @@ def test_train_job_parses_events(ext):
     job.on_stdout(json.dumps({"event": "step", "step": 20, "elapsed": 4.0, "loss": 0.01, "fraction": 0.5}))
     job.on_stdout("not json")
     assert "camera poses checked, not refined" in ext.jobs.job_status_text({**job.state, "status": "finished"})
+    assert "barely trained" not in ext.jobs.job_status_text({**job.state, "status": "finished"})
     assert job.state["step"] == 20 and job.state["fraction"] == 0.5 and job.state["val_psnr"] == 21.5
     assert job.state["device"].startswith("cpu") and job.state["warnings"] == ["careful"]
+    job.on_stdout(json.dumps({"event": "warning", "message": "the 1-minute budget ended after only 30 steps ...",
+                              "barely_trained": True}))
+    assert "; barely trained: the budget ended before a light field is more than a blur (Train trains it further)" in \
+        ext.jobs.job_status_text({**job.state, "status": "finished"})
     assert job.state["poses"]["max_degrees"] == 0.13
     assert job.state["losses"] is True and job.state["pass_limit"] == 20
     job.state["status"] = "finished"  # at the limit, before the panel's minutes were up: the panel says why

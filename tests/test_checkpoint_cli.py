@@ -1027,3 +1027,37 @@ def test_a_lost_model_json_is_written_again_from_its_checkpoint(cli_model, tmp_p
         assert again["format"] == "neulf-checkpoint"
     stamp = (model / METADATA_NAME).stat().st_mtime_ns
     assert Service().restore_metadata(str(model)) == [] and (model / METADATA_NAME).stat().st_mtime_ns == stamp
+
+
+def test_a_minutes_budget_that_ends_before_training_is_said(tiny_scene, tmp_path, capsys, record_property):
+    """A minutes budget spent before many steps (a busy machine's plane sweep had taken a whole
+    minute, and the model "finished" at 0 steps) ends with a warning that says what to do; a
+    steps budget asked that small does not."""
+    out = tmp_path / "short"
+    assert main(["train", str(tiny_scene), "--out", str(out), "--minutes", "0.0005", "--batch-size", "256",
+                 "--progress", "json"]) == 0
+    events = [json.loads(line) for line in capsys.readouterr().out.splitlines() if line.startswith("{")]
+    said = [e for e in events if e.get("barely_trained")]
+    meta = json.loads((out / METADATA_NAME).read_text())
+    steps = meta["progress"]["step"]
+    assert steps < 200 and meta["sweep_seconds"] > 0, meta["progress"]
+    assert len(said) == 1 and said[0]["event"] == "warning", said
+    message = said[0]["message"]
+    record_property("message", f"warning: {message}")
+    assert message.startswith(f"the 0.0005-minute budget ended after only {steps} steps ("), message
+    assert "s of it went to the plane sweep of the photos" in message
+    assert "Train it further: --resume with a larger --minutes" in message
+
+    assert main(["train", str(tiny_scene), "--out", str(tmp_path / "steps"), "--steps", "2", "--batch-size", "256",
+                 "--progress", "json"]) == 0
+    assert "barely_trained" not in capsys.readouterr().out
+
+
+def test_a_size_search_candidate_short_by_design_is_not_said_barely_trained():
+    from neulf_core.autosize import _rescaled
+
+    seen = []
+    warning = {"event": "warning", "message": "the 0.1-minute budget ended after only 9 steps", "barely_trained": True}
+    _rescaled(seen.append, 0.0, 0.5, "x0.5")(warning)  # a candidate's
+    _rescaled(seen.append, 0.5, 0.5, None)(warning)    # the model's own run
+    assert seen == [warning]
