@@ -46,8 +46,9 @@ def focus_report(camera_data, focal_px: float, distance: float) -> tuple[str, st
     """The focus distance set, and how much the camera's f-stop blurs a surface twice as far
     (the circle's diameter in render pixels, thin lens: 2 A f |1/D - 1/2D| = A f / D).  A
     reconstruction's units are its own, not metres: CanClip's subject stands 33 units away,
-    where f/2.8 blurs 0.06 px and an artist's f/1.4 shows no depth of field at all; scaling
-    the root to the scene's real size makes the lens behave as a real one (an audit, 2026-12-02)."""
+    where its 48 mm lens at f/2.8 blurs 0.34 px at 960x540 and f/0.5 rendered within 52 dB of
+    the pinhole; scaling the root to the scene's real size makes the lens behave as a real one
+    (an audit, 2026-12-02)."""
     fstop = camera_data.dof.aperture_fstop
     if fstop <= 0:
         return "INFO", f"focus distance {distance:.4g}"
