@@ -165,6 +165,15 @@ def run_story(setup: dict) -> None:  # noqa: C901 - one story, told in order
     def root():
         return bpy.context.scene.neulf.root
 
+    def remove_scene_and_capture(scene):
+        """A scene made by a step, with the capture imported into it (its objects and collection)."""
+        collection = scene.neulf.capture_collection
+        for obj in list(collection.objects if collection is not None else []):
+            bpy.data.objects.remove(obj)
+        if collection is not None:
+            bpy.data.collections.remove(collection)
+        bpy.data.scenes.remove(scene)
+
     def image_array(name):
         image = bpy.data.images[name]
         width, height = image.size
@@ -2092,12 +2101,7 @@ def run_story(setup: dict) -> None:  # noqa: C901 - one story, told in order
                 loaded = reports_of(lambda: bpy.ops.neulf.load_model(directory=str(model)))
             assert f"its capture imported: {len(scene_views())} cameras from " in loaded, loaded
         finally:
-            collection = empty.neulf.capture_collection
-            for obj in list(collection.objects if collection is not None else []):
-                bpy.data.objects.remove(obj)
-            if collection is not None:
-                bpy.data.collections.remove(collection)
-            bpy.data.scenes.remove(empty)
+            remove_scene_and_capture(empty)
         # The capture imported into a second scene, whose default model folder (inside the capture's)
         # holds a model: Render names it and Load Model (it had said only "train one", while Train
         # there continues that model).
@@ -2113,12 +2117,7 @@ def run_story(setup: dict) -> None:  # noqa: C901 - one story, told in order
             assert "no NeuLF model in this scene; the capture's folder holds one, " in messages[-1] and \
                 str(copied / "neulf_model") in messages[-1] and "Load Model" in messages[-1], messages[-1]
         finally:
-            collection = second.neulf.capture_collection
-            for obj in list(collection.objects if collection is not None else []):
-                bpy.data.objects.remove(obj)
-            if collection is not None:
-                bpy.data.collections.remove(collection)
-            bpy.data.scenes.remove(second)
+            remove_scene_and_capture(second)
         # A model folder that cannot be written (here: inside a file): said before training starts,
         # naming the panel's field; and a video size H.264 cannot take, before its render.
         in_a_file = work / "a_file"
@@ -2210,12 +2209,7 @@ def run_story(setup: dict) -> None:  # noqa: C901 - one story, told in order
                     if reference["name"] == "hci_antinous" and setup.get("hci"):
                         lines.append(render_like_the_cli(scene, capture_cameras, setup["hci"]))
             finally:
-                collection = scene.neulf.capture_collection
-                if collection is not None:
-                    for obj in list(collection.objects):
-                        bpy.data.objects.remove(obj)
-                    bpy.data.collections.remove(collection)
-                bpy.data.scenes.remove(scene)
+                remove_scene_and_capture(scene)
         return "; ".join(lines) or "no reference scenes"
 
     @story.step("dependencies_status", "install")
