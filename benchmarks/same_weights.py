@@ -33,7 +33,7 @@ from dataclasses import replace
 from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
-TIMINGS = ("elapsed", "seconds", "wall_seconds", "path", "root", "model_dir", "poses_from", "model")
+TIMINGS = ("elapsed", "seconds", "sweep_seconds", "wall_seconds", "path", "root", "model_dir", "poses_from", "model")
 
 
 def fingerprint(value, out: dict, key: str = "") -> dict:

@@ -126,7 +126,8 @@ def test_study_runs_end_to_end(stability, tiny_scene, tmp_path, monkeypatch):
     assert len(written) == len(jobs)
     for row in written:
         assert row["steps_done"] == "3" or row["minutes"] == "0.05"
-        assert row["warnings"] == "0"
+        # (a 3-second budget ends before 200 steps: its one warning says so, train.barely_trained_warning)
+        assert row["warnings"] == ("1" if row["minutes"] == "0.05" else "0"), row
         for column in ("psnr", "ssim", "psnr_matched", "train_seconds"):
             assert math.isfinite(float(row[column])), (column, row)
     assert (tmp_path / "docs" / "stability.png").stat().st_size > 0
