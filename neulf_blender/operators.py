@@ -12,7 +12,8 @@ from bpy.props import FloatProperty, IntProperty, StringProperty
 
 from . import capture, compositing, jobs, tasks
 from .jobs import job_status_text
-from .model_folder import (DEFAULT_MODEL_NAME, attach_model, chosen_path, model_dir, model_not_found, saved_progress_text,
+from .model_folder import (attach_model, chosen_path, default_model_dir, model_dir, model_not_found,
+                           saved_progress_text,
                            readable_model, refuse_linked, restore_metadata, scenes_of_model,
                            store_path)
 from .preferences import get_core, get_prefs, worker_python
@@ -259,7 +260,7 @@ def start_training(context, *, minutes=None, steps=None):
     scene_dir = chosen_path(props.scene_dir)
     if not scene_dir:
         raise NeulfError("import a capture first (NeuLF > Import), then train.")
-    out = chosen_path(props.model_dir) or str(Path(scene_dir) / DEFAULT_MODEL_NAME)
+    out = chosen_path(props.model_dir) or default_model_dir(context.scene)  # (scene_dir: checked above)
     if not Path(out).is_dir() and props.last_status.startswith(model_not_found(out)):
         # (a .blend opened away from its model: start over only where the user names a new folder)
         raise NeulfError(f"the model folder {out} does not exist: move the .blend together with its model folder or "
