@@ -193,6 +193,22 @@ def member_budget(config, count: int, member: int, split: str = "steps"):
     return steps, minutes, config.batch_size
 
 
+def _first_members_options(model_dir: Path, config, scene, count: int) -> tuple:
+    """(options, batch size) of a later member that a resume starts: the first member's
+    options (split, scale, preset, ...) with this run's budget, as the first member itself
+    resumes, and the batch the first member ended with (its whole batch before a minutes
+    budget's switch to its share).  Started from the options the resume was given, a second
+    member had trained on the first one's held-out photos (--holdout-every 0) and the ensemble
+    failed at render ("another light slab")."""
+    from .checkpoint import load_checkpoint
+    from .train import config_for_resume
+
+    saved = load_checkpoint(model_dir)
+    first = config_for_resume(saved, config, scene)
+    switch = (saved.get("members_rule") or {}).get("batch_switch")
+    return first, int(switch["before"]) // count if switch else first.batch_size
+
+
 def read_state(model_dir: Path) -> dict | None:
     """members.json, or None where there is none (a model of one member).  One that cannot be
     read or holds other types is refused in words: read as none it had rendered and resumed the
@@ -462,6 +478,9 @@ def train_members(train_one: Callable, scene, model_dir: Path, config, images_di
         folder.mkdir(parents=True, exist_ok=True)
         remove_stale_temporaries(folder)
         steps, minutes, batch = member_budget(config, count, member, split)
+        options = config
+        if member > 1 and resume and not checkpoint_path(folder).is_file():
+            options, batch = _first_members_options(model_dir, config, scene, count)
         # A member after the first follows the first one's verdict on the poses
         # (pose_check.first_members_poses): the corrections it refined, fixed, or none and no check
         # of its own.  Each refining its own settles the scene in a frame of its own (the
@@ -471,7 +490,7 @@ def train_members(train_one: Callable, scene, model_dir: Path, config, images_di
         # corrections -> the first's at 0.25 degrees 34.77 +- 0.12 -> 35.29 +- 0.11 dB, at 1
         # degree 30.23 -> 31.35, at 2 degrees 23.46 -> 23.76; refining on from the first's
         # corrections instead (1 degree, seed 0) 31.20 against 32.06 with them fixed.
-        member_config = replace(config, seed=member_seed(state["seed"], member), steps=steps, minutes=minutes,
+        member_config = replace(options, seed=member_seed(state["seed"], member), steps=steps, minutes=minutes,
                                 batch_size=batch, members=count, members_split=split,  # (a resume may not say it)
                                 poses_from=str(model_dir) if member > 1 else None)
         # Member 1 is the folder the user named: resumed only when asked; the others whenever

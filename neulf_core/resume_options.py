@@ -1,6 +1,6 @@
 """The options a resumed training keeps as the model has them.
 
-Resuming continues the model as it was trained (train._config_for_resume: its preset, held-out
+Resuming continues the model as it was trained (train.config_for_resume: its preset, held-out
 views, seed, batch, scale, slab and the rules' choices), so an option asked for otherwise is
 said, not dropped without a word.  The command line asks with the options written on it;
 train() from Python with the TrainConfig fields set away from their defaults.

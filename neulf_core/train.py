@@ -497,7 +497,7 @@ class TrainingRun:
             config = rules.with_default_scale(scene, config)
         asked = config
         if resumed is not None:
-            config = _config_for_resume(resumed, config, scene)
+            config = config_for_resume(resumed, config, scene)
         self.train_views, self.held_views = split_views(scene, config.holdout_every, config.exclude)
         self.device = pick_device(config.device)
         if self.device.type == "cpu":
@@ -1166,7 +1166,7 @@ def path_camera_view(views):
     return alike[(len(alike) - 1) // 2]
 
 
-def _config_for_resume(payload: dict, config: TrainConfig, scene: Scene) -> TrainConfig:
+def config_for_resume(payload: dict, config: TrainConfig, scene: Scene) -> TrainConfig:
     """Resuming keeps what defines the model (preset, split, scale, slab); the budget and the
     checkpoint interval may change."""
     saved = payload["scene"]

@@ -249,9 +249,11 @@ CASES = [
         f"{STORY}[capture_identity]",
         "tests/test_blender_convert.py::test_a_root_scaled_unevenly_is_refused",
         "tests/test_blender_convert.py::test_the_first_scene_camera_is_of_the_photos_most_common_size"]),
-    Case("--resume (and train(resume=True) from Python) with options other than the model's: said, the model kept", [
+    Case("--resume (and train(resume=True) from Python) with options other than the model's: said, the model kept "
+         "(a second member the resume starts included: it trains on the first one's views, not its held-out ones)", [
         f"{REL}::test_resume_says_which_asked_options_the_model_keeps",
-        f"{REL}::test_resume_from_python_says_which_options_the_model_keeps"]),
+        f"{REL}::test_resume_from_python_says_which_options_the_model_keeps",
+        f"{REL}::test_a_member_started_by_a_resume_trains_on_the_first_members_views"]),
     Case("A model trained on another images folder than the scene's default (LLFF's images_N): eval, render and "
          "--resume read its own photos, or say so; views named twice, or among held-out, scored once; photos "
          "replaced since training (same names and sizes) said by eval and resume", [

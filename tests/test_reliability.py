@@ -1679,3 +1679,33 @@ def test_a_scale_that_leaves_photos_of_a_few_pixels_is_refused(preset, tiny_scen
     code, _, err = run_cli([*argv, "--resume"], capfd)  # (nothing to resume: a new model, said in a warning first)
     assert code == 2 and err.splitlines()[-1].startswith("error: scale 1e-06 makes the 48x36 photos 1x1"), err
     assert not (tmp_path / "model" / CHECKPOINT_NAME).exists()
+
+
+def test_a_member_started_by_a_resume_trains_on_the_first_members_views(tiny_scene, tmp_path, record_property):
+    """A second member that a resume starts (the run stopped before its first checkpoint) took
+    the options the resume was given: with --holdout-every 0 it trained on the first member's
+    held-out photos, and the ensemble then failed at render ("another light slab").  It now
+    trains with the first member's split, scale and preset, and this run's budget."""
+    from neulf_core.render import LightField
+    from neulf_core.train import TrainConfig, train
+
+    model = tmp_path / "model"
+    config = TrainConfig(steps=8, batch_size=256, validate_seconds=1e9, members=2, members_split="steps")
+    train(tiny_scene, model, config)
+    first = json.loads((model / METADATA_NAME).read_text())["scene"]
+    assert first["held_out"], first  # (every 8th view held out)
+    # As if stopped before the second member's first checkpoint.
+    shutil.rmtree(model / "members" / "2")
+    state = json.loads((model / "members.json").read_text())
+    (model / "members.json").write_text(json.dumps({**state, "finished": []}))
+    events = []
+    train(tiny_scene, model, TrainConfig(steps=8, batch_size=256, validate_seconds=1e9, holdout_every=0, scale=0.5),
+          resume=True, progress=events.append)
+    second = json.loads((model / "members" / "2" / METADATA_NAME).read_text())
+    assert second["scene"]["train"] == first["train"] and second["scene"]["held_out"] == first["held_out"], second
+    assert second["scene"]["scale"] == first["scale"] and second["slab"] == json.loads(
+        (model / METADATA_NAME).read_text())["slab"]
+    warning = next(e["message"] for e in events if e["event"] == "warning")
+    record_property("message", warning)
+    assert "holdout_every (the model's: 8)" in warning, warning
+    LightField.load(model)  # (the ensemble of one slab renders)
