@@ -83,14 +83,18 @@ def one_run(scene: str, images: str | None, scale: float, budget: dict, seed: in
             # the members trained, and the passes the members rule counted ("" where it did not run)
             "members": 1 + len(finished_members(out)), "members_passes": rule.get("passes", ""),
             # the auto preset's chosen texture size, as a factor of the default's ("" for the other presets)
-            "texture_factor": ((meta.get("autosize") or {}).get("chosen") or {}).get("factor", "")}
+            "texture_factor": ((meta.get("autosize") or {}).get("chosen") or {}).get("factor", ""),
+            # what the rules chose for the field
+            "back_surface": bool(meta["field_config"].get("back_surface")),
+            "depth_layers": meta["field_config"].get("geometry_layers", 0)}
 
 
 def pair(name: str, budget: dict, seed: int, settings: list[tuple[str, dict]], device: str | None,
-         data: Path) -> list[dict]:
-    """Both settings of one scene and seed at once, each pinned to its own core (on the CPU)."""
-    scale, images = SCENES[name]
-    path = data / name
+         data: Path, where: tuple | None = None) -> list[dict]:
+    """Both settings of one scene and seed at once, each pinned to its own core (on the CPU).
+    `where`: (folder, scale, photo folder) of a scene not in SCENES (benchmarks/untuned_scene.py)."""
+    scale, images = SCENES[name] if where is None else where[1:]
+    path = data / name if where is None else Path(where[0])
     cores = sorted(os.sched_getaffinity(0))
     pinned = device is None or device == "cpu"
     children = []

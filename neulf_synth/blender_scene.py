@@ -134,10 +134,10 @@ def add_sun(scene) -> None:
     scene.collection.objects.link(sun)
 
 
-def add_objects(scene, variant: str, texture_factor: float) -> dict[str, bpy.types.Object]:
+def add_objects(scene, variant: str, texture_factor: float, arrangement: int = 0) -> dict[str, bpy.types.Object]:
     materials = create_materials(variant, texture_factor)
     objects = {}
-    for spec in layout.scene_objects():
+    for spec in layout.scene_objects(arrangement):
         obj = bpy.data.objects.new(spec.name, _build_mesh(spec))
         obj.location = spec.location
         obj.rotation_euler = spec.rotation
@@ -239,11 +239,11 @@ def add_ground_truth_outputs(scene) -> bpy.types.Node:
 
 
 def build_scene(variant: str, size: tuple[int, int], samples: int, seed: int,
-                texture_factor: float) -> tuple[bpy.types.Scene, dict]:
+                texture_factor: float, arrangement: int = 0) -> tuple[bpy.types.Scene, dict]:
     scene = reset_to_empty_scene()
     configure_render(scene, size, samples, seed, variant)
     add_world(scene)
     add_sun(scene)
-    objects = add_objects(scene, variant, texture_factor)
+    objects = add_objects(scene, variant, texture_factor, arrangement)
     add_ground_truth_outputs(scene)
     return scene, objects

@@ -50,7 +50,7 @@ class ViewOutput:
 
 
 def generate_scene(out_dir, *, variant: str = "lambertian", grid=(4, 4), size=(320, 240),
-                   samples: int = 32, exposure_jitter_stops: float = 0.0, seed: int = 0,
+                   samples: int = 32, exposure_jitter_stops: float = 0.0, seed: int = 0, arrangement: int = 0,
                    write_gt_model: bool = True,
                    progress: Callable[[str], None] | None = None) -> dict:
     """Render the scene into `out_dir` and return a summary (also written as summary.json).
@@ -60,14 +60,16 @@ def generate_scene(out_dir, *, variant: str = "lambertian", grid=(4, 4), size=(3
     height), `samples` the most Cycles samples per pixel (adaptive sampling stops earlier
     where a pixel has converged). Each view's exposure is drawn uniformly in
     [-exposure_jitter_stops, exposure_jitter_stops]. `seed` fixes camera jitter, exposures and
-    Cycles' noise. `progress`, if given, receives one line per rendered view.
+    Cycles' noise. `arrangement`: 0 the documented layout, another number the objects placed by
+    a draw of their own (layout.arranged_objects). `progress`, if given, receives one line per
+    rendered view.
     """
     _validate(variant, grid, size, samples, exposure_jitter_stops)
     started = time.perf_counter()
     out = Path(out_dir).resolve()
     _remove_previous_outputs(out)
     texture_factor = layout.FINE_TEXTURE_FACTOR if variant == "fine" else 1.0
-    scene, objects = build_scene(variant, tuple(size), samples, seed, texture_factor)
+    scene, objects = build_scene(variant, tuple(size), samples, seed, texture_factor, arrangement)
     views = layout.camera_views(tuple(grid), seed, exposure_jitter_stops)
     build_seconds = time.perf_counter() - started
 
@@ -75,7 +77,7 @@ def generate_scene(out_dir, *, variant: str = "lambertian", grid=(4, 4), size=(3
     truth_dir = out / "ground_truth"
     _write_json(truth_dir / "cameras.json", {"views": [o.record for o in outputs],
                                              "units": UNITS, "variant": variant, "seed": seed})
-    _write_json(truth_dir / "scene.json", _scene_record(objects, variant))
+    _write_json(truth_dir / "scene.json", _scene_record(objects, variant, arrangement))
     model_started = time.perf_counter()
     model_dir = out / "sparse_gt" / "0" if write_gt_model else None
     if model_dir is not None:
@@ -93,7 +95,7 @@ def generate_scene(out_dir, *, variant: str = "lambertian", grid=(4, 4), size=(3
     summary = {
         "out_dir": str(out),
         "variant": variant, "grid": list(grid), "size": list(size), "samples": samples,
-        "exposure_jitter_stops": exposure_jitter_stops, "seed": seed,
+        "exposure_jitter_stops": exposure_jitter_stops, "seed": seed, "arrangement": arrangement,
         "blender_version": bpy.app.version_string,
         "images": [str(o.image) for o in outputs],
         "depth": [str(o.depth) for o in outputs],
@@ -161,9 +163,9 @@ def _view_record(scene, camera, image_name: str, exposure_stops: float) -> dict:
             "R": R.tolist(), "t": t.tolist(), "exposure_stops": exposure_stops}
 
 
-def _scene_record(objects: dict, variant: str) -> dict:
+def _scene_record(objects: dict, variant: str, arrangement: int = 0) -> dict:
     """What tests need to check geometry: every object's transform, size and pass index."""
-    specs = {spec.name: spec for spec in layout.scene_objects()}
+    specs = {spec.name: spec for spec in layout.scene_objects(arrangement)}
     return {
         "variant": variant,
         "units": UNITS,

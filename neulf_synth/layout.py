@@ -54,8 +54,12 @@ class ObjectSpec:
     pass_index: int = 0  # Cycles object index, also written to the ground truth
 
 
-def scene_objects() -> list[ObjectSpec]:
-    """The objects of the scene, the same for every variant (only materials change)."""
+def scene_objects(arrangement: int = 0) -> list[ObjectSpec]:
+    """The objects of the scene, the same for every variant (only materials change).
+    `arrangement` 0 is the layout drawn above; another number places, sizes and turns the four
+    objects by a draw of its own (arranged_objects): a scene no default was tuned on."""
+    if arrangement:
+        return scene_objects()[:2] + arranged_objects(arrangement)
     return [
         # The wall faces the cameras (-Y); it is far wider and taller than any view sees.
         ObjectSpec("BackWall", "quad", (0.0, WALL_Y, 3.0), "wall",
@@ -75,6 +79,47 @@ def scene_objects() -> list[ObjectSpec]:
                    rotation=(0.0, 0.0, math.radians(35.0)), size={"size": 0.7},
                    pass_index=6),
     ]
+
+
+# Where arranged_objects may stand: the depth band of the objects above, and a share of the
+# half-width the lens sees at each depth (HALF_FOV_TAN: tan of half the 39.6 degree view).
+ARRANGED_DEPTHS = (2.6, 5.4)
+ARRANGED_WIDTH_SHARE = 0.65
+HALF_FOV_TAN = SENSOR_WIDTH_MM / 2.0 / LENS_MM
+ARRANGED_SCALES = (0.75, 1.3)
+ARRANGED_GAP = 0.12  # floor space kept between two objects' footprints
+
+
+def arranged_objects(arrangement: int) -> list[ObjectSpec]:
+    """The sphere, the monkey, the cylinder and the cube at places, sizes and turns drawn from
+    `arrangement` (seeded): each resting on the floor, inside the view, their footprints apart,
+    so the occlusions and the depth order are the draw's.  Used to check the defaults on a
+    scene they were not chosen on (benchmarks/untuned_scene.py)."""
+    rng = np.random.default_rng([arrangement, 11])
+    placed: list[tuple[float, float, float]] = []  # (x, y, footprint radius)
+    specs = []
+    for name, kind, material, pass_index in (("NearSphere", "sphere", "sphere", 3), ("MidMonkey", "monkey", "monkey", 4),
+                                             ("FarCylinder", "cylinder", "cylinder", 5), ("FarCube", "cube", "cube", 6)):
+        scale = float(rng.uniform(*ARRANGED_SCALES))
+        size, height, footprint = {
+            "sphere": ({"radius": 0.33 * scale}, 0.33 * scale, 0.33 * scale),
+            "monkey": ({"scale": 0.42 * scale}, 0.45 * scale, 0.55 * scale),
+            "cylinder": ({"radius": 0.32 * scale, "depth": 1.1 * scale}, 0.55 * scale, 0.32 * scale),
+            "cube": ({"size": 0.7 * scale}, 0.35 * scale, 0.5 * scale),
+        }[kind]
+        for _ in range(1000):  # rejection: a place whose footprint keeps clear of the others
+            y = float(rng.uniform(*ARRANGED_DEPTHS))
+            half_width = (y - RIG_CENTER[1]) * HALF_FOV_TAN * ARRANGED_WIDTH_SHARE
+            x = float(rng.uniform(-half_width, half_width))
+            if all(math.hypot(x - px, y - py) >= footprint + pr + ARRANGED_GAP for px, py, pr in placed):
+                break
+        else:
+            raise ValueError(f"arrangement {arrangement}: no room found for {name}")
+        placed.append((x, y, footprint))
+        turn = float(rng.uniform(-math.pi, math.pi))
+        specs.append(ObjectSpec(name, kind, (x, y, height), material, rotation=(0.0, 0.0, turn), size=size,
+                                pass_index=pass_index))
+    return specs
 
 
 @dataclass(frozen=True)
