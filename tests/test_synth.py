@@ -324,3 +324,38 @@ def test_rerun_into_the_same_folder_leaves_no_stale_views(tmp_path):
     assert not list((tmp_path / "sparse_gt" / "0").glob("*.bin"))
     views = json.loads((tmp_path / "ground_truth" / "cameras.json").read_text())["views"]
     assert [v["name"] for v in views] == ["view_00_00.png"]
+
+
+# --- arrangements: scenes the defaults were not chosen on -----------------------------------
+
+def test_an_arrangement_places_every_object_apart_on_the_floor_and_in_view(tmp_path):
+    """`--arrangement N` (benchmarks/untuned_scene.py) draws the four objects' places, sizes and
+    turns: the tuned layout is arrangement 0, unchanged; another number gives other places,
+    the same for the same number, each object resting on the floor, its footprint apart from
+    the others', and seen by the rig (its pass in the centre views' object index)."""
+    tuned = {spec.name: spec.location for spec in layout.scene_objects()}
+    assert tuned == {spec.name: spec.location for spec in layout.scene_objects(0)}
+    for arrangement in (1, 2, 3):
+        specs = layout.arranged_objects(arrangement)
+        assert [s.location for s in specs] == [s.location for s in layout.arranged_objects(arrangement)]
+        assert all(s.location != tuned[s.name] for s in specs)
+        for spec in specs:
+            bottom = {"sphere": spec.size.get("radius"), "cylinder": spec.size.get("depth", 0) / 2,
+                      "cube": spec.size.get("size", 0) / 2}.get(spec.kind)
+            if bottom is not None:
+                assert abs(spec.location[2] - bottom) < 1e-9, spec  # resting on the floor
+            assert layout.ARRANGED_DEPTHS[0] <= spec.location[1] <= layout.ARRANGED_DEPTHS[1]
+        centres = np.array([s.location[:2] for s in specs])
+        gaps = np.linalg.norm(centres[:, None] - centres[None], axis=2) + np.eye(len(specs)) * 9
+        assert gaps.min() > 0.5, gaps
+    summary = generate_scene(tmp_path / "arranged", grid=GRID, size=SIZE, samples=SAMPLES, arrangement=1)
+    assert summary["arrangement"] == 1
+    recorded = {o["name"]: np.array(o["matrix_world"])[:3, 3] for o in
+                json.loads((tmp_path / "arranged" / "ground_truth" / "scene.json").read_text())["objects"]}
+    for spec in layout.scene_objects(1):
+        np.testing.assert_allclose(recorded[spec.name], spec.location, atol=1e-5)
+    seen = set()
+    for view in json.loads((tmp_path / "arranged" / "ground_truth" / "cameras.json").read_text())["views"]:
+        seen |= set(np.unique(np.load(tmp_path / "arranged" / "ground_truth"
+                                      / f"object_index_{Path(view['name']).stem}.npy")).astype(int))
+    assert {3, 4, 5, 6} <= seen, seen
