@@ -35,6 +35,10 @@ if TYPE_CHECKING:
 # layers: 26 views +0.15 dB, 20 views -0.03, 13 views -0.47, 6 views -1.03 (docs/STABILITY.md).
 # From 18 views on they help again where the rig is dense: 18 views, with / without, HCI at
 # 256x256 +1.42 dB (3 seeds), CanClip +0.08 dB (2 seeds); nothing was measured from 14 to 17.
+# Where this rule misses (2026-12-07, 1.5 minutes, two seeds, docs/BENCHMARKS.md, first
+# section): the synthetic scene (14 views, deep) gains from 8 layers at today's code, +0.56 dB
+# on its tuned layout and +0.60 +- 0.36 on two rearranged ones, while fern still loses 0.16.
+# Left as it is until real captures no rule was chosen on part the two.
 DEFAULT_DEPTH_LAYERS = 8
 DEPTH_LAYERS_MIN_VIEWS = 18
 
