@@ -184,9 +184,12 @@ def main(argv: list[str] | None = None, description: str = __doc__, baseline: st
 
 
 def write_rows(path: Path, rows: list[dict]) -> None:
+    """Every row, under the columns any of them has (a run with another checkout's code may
+    report fewer: its cells stay empty)."""
     path.parent.mkdir(parents=True, exist_ok=True)
+    columns = list(dict.fromkeys(key for row in rows for key in row))
     with open(path, "w", newline="") as handle:
-        writer = csv.DictWriter(handle, fieldnames=list(rows[0]))
+        writer = csv.DictWriter(handle, fieldnames=columns, restval="")
         writer.writeheader()
         writer.writerows(rows)
 

@@ -17,6 +17,16 @@ def _pair(text: str) -> tuple[int, int]:
     return first, second
 
 
+def _arrangement(text: str) -> int:
+    try:
+        number = int(text)
+    except ValueError:
+        number = -1
+    if number < 0:
+        raise argparse.ArgumentTypeError(f"expected a whole number from 0 on, got {text!r}")
+    return number
+
+
 def parse_args(argv=None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(
         prog="python -m neulf_synth",
@@ -29,7 +39,7 @@ def parse_args(argv=None) -> argparse.Namespace:
     parser.add_argument("--exposure-jitter", type=float, default=0.0, metavar="STOPS",
                         help="each view's exposure is drawn uniformly in [-STOPS, STOPS]")
     parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--arrangement", type=int, default=0, metavar="N",
+    parser.add_argument("--arrangement", type=_arrangement, default=0, metavar="N",
                         help="0: the documented layout; another number: the objects placed, sized and turned "
                              "by a draw of their own (a scene no default was tuned on)")
     parser.add_argument("--no-gt-model", action="store_true",

@@ -270,3 +270,21 @@ def test_same_weights_tells_the_same_training_from_another(tiny_scene, tmp_path,
 
     a, c = (json.loads(runs[name].read_text())["scene"] for name in ("a", "c"))
     assert any(".state_dict." in key and a[key] != c[key] for key in a)  # the weights themselves
+
+
+def test_untuned_scene_compares_each_alternative_with_the_default_beside_it():
+    """benchmarks/untuned_scene.py's table: each alternative against the default that trained
+    beside it (not another pair's), the mean change and how many pairs it won."""
+    untuned = load("untuned_scene")
+    rows = []
+    for scene, seed, label, default, other in (("1", 0, "one member", 30.0, 29.5), ("1", 1, "one member", 29.0, 28.9),
+                                               ("1", 0, "no sweep teacher", 31.0, 31.2)):
+        common = {"scene": scene, "seed": seed, "paired_with": label, "steps": 100, "members": 2,
+                  "back_surface": True, "depth_layers": 0}
+        rows += [{**common, "setting": "default", "psnr": default}, {**common, "setting": label, "psnr": other}]
+    lines = untuned.table(rows)
+    member = next(line for line in lines if line.startswith("| one member"))
+    assert "| -0.50 | -0.10 |" in member and "-0.30 ± 0.20 dB" in member and "0 of 2" in member, member
+    teacher = next(line for line in lines if line.startswith("| no sweep teacher"))
+    assert "| +0.20 |  |" in teacher and "1 of 1" in teacher, teacher
+    assert any("arrangement 1, seed 0: 30.50 dB (30.00-31.00 over 2 runs)" in line for line in lines), lines
