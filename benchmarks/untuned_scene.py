@@ -31,6 +31,7 @@ sys.path.insert(0, str(REPO / "benchmarks"))
 
 from side_by_side import machine_name, pair, write_rows  # noqa: E402
 from seed_scatter import parse_seeds  # noqa: E402
+from stability import SYNTH  # noqa: E402  (the stability study's rig, size and samples)
 
 # Each a choice of the default turned the other way, or the authors' network: (label, TrainConfig
 # fields, or a function of the scene's rule inputs giving them).  The rules' own choice on each
@@ -39,13 +40,12 @@ from seed_scatter import parse_seeds  # noqa: E402
 # passes a minutes budget makes); "one member" is the same as the default where it trained one.
 ALTERNATIVES = [
     ("one member", {"members": 1}),
-    ("back surface turned", lambda deep, layers: {"back_surface": not deep}),
-    ("depth layers turned", lambda deep, layers: {"field_overrides": {"geometry_layers": 0 if layers else 8}}),
+    ("back surface turned", lambda back_surface, layers: {"back_surface": not back_surface}),
+    ("depth layers turned", lambda back_surface, layers: {"field_overrides": {"geometry_layers": 0 if layers else 8}}),
     ("no SfM point pull", {"point_depth": False}),
     ("no sweep teacher", {"teacher": False}),
     ("authors' network", {"preset": "authors"}),
 ]
-SYNTH = ["--grid", "4x4", "--size", "320x240", "--samples", "32", "--seed", "0"]  # as the stability study's
 
 
 def render_arrangement(cache: Path, arrangement: int) -> Path:
@@ -53,7 +53,8 @@ def render_arrangement(cache: Path, arrangement: int) -> Path:
     cache, as a scene folder (its exact model, sparse_gt/0, copied to sparse/0)."""
     out = cache / f"arrangement_{arrangement}"
     if not (out / "sparse" / "0").is_dir():
-        command = [sys.executable, "-m", "neulf_synth", str(out), "--arrangement", str(arrangement), *SYNTH]
+        command = [sys.executable, "-m", "neulf_synth", str(out), "--arrangement", str(arrangement),
+                   *(part for key, value in SYNTH.items() for part in (f"--{key}", value))]
         print("rendering:", " ".join(command[1:]), flush=True)
         subprocess.run(command, check=True, cwd=REPO, stdout=subprocess.DEVNULL)
         shutil.copytree(out / "sparse_gt" / "0", out / "sparse" / "0")
@@ -61,7 +62,7 @@ def render_arrangement(cache: Path, arrangement: int) -> Path:
 
 
 def rule_inputs(scene: Path) -> tuple[bool, int]:
-    """(deep, depth layers) as the default's rules decide them for this scene's training views."""
+    """(back surface, depth layers) as the default's rules decide them for this scene's training views."""
     from neulf_core import rules
     from neulf_core.scene import load_scene, split_views
     from neulf_core.slab import fit_slab
@@ -69,7 +70,7 @@ def rule_inputs(scene: Path) -> tuple[bool, int]:
     loaded = load_scene(scene)
     train_views, _ = split_views(loaded)
     slab = fit_slab(loaded, train_views)
-    return slab.is_deep, rules.default_depth_layers(slab, len(train_views))
+    return rules.default_back_surface(slab), rules.default_depth_layers(slab, len(train_views))
 
 
 def table(rows: list[dict]) -> list[str]:
@@ -116,10 +117,10 @@ def main(argv: list[str] | None = None) -> None:
     rows: list[dict] = []
     for arrangement in (int(a) for a in args.arrangements.split(",")):
         scene = render_arrangement(Path(args.cache), arrangement)
-        deep, layers = rule_inputs(scene)
+        back_surface, layers = rule_inputs(scene)
         for seed in parse_seeds(args.seeds):
             for label, options in chosen:
-                options = options(deep, layers) if callable(options) else options
+                options = options(back_surface, layers) if callable(options) else options
                 settings = [("default", {}), (label, options)]
                 ran = pair(str(arrangement), {"minutes": args.minutes}, seed, settings, None, Path(args.cache),
                            where=(scene, 1.0, None))
