@@ -69,34 +69,42 @@ def model_folder(cache: Path, label: str, job) -> Path:
     return cache / "models" / f"{label}_seed{job.seed}_{job.steps}"
 
 
-def train_and_score(label: str, job, cache: Path) -> list[dict]:
-    """Train `job` into the cache (unless done) and score its held-out views every way."""
-    import torch
-
-    from neulf_core.metrics import psnr, ssim
+def trained_model(label: str, job, cache: Path):
+    """The model of `job`, trained into the cache unless it is there, and its held-out views."""
     from neulf_core.render import LightField
     from neulf_core.train import train
 
-    torch.set_num_threads(1)
     scene, _, held = stability.prepare(job)
     folder = model_folder(cache, label, job)
     done = folder / "trained.json"
     if not done.is_file():
         result = train(scene, folder, stability.train_config(job, held))
         done.write_text(json.dumps({"status": result.status, "steps": result.step, "job": asdict(job)}))
-    light_field = LightField.load(folder, "cpu", precision="full")
+    return LightField.load(folder, "cpu", precision="full"), held
+
+
+def train_and_score(label: str, job, cache: Path) -> list[dict]:
+    """Train `job` into the cache (unless done) and score its held-out views every way."""
+    import torch
+
+    from neulf_core.metrics import psnr, ssim
+
+    torch.set_num_threads(1)
+    light_field, held = trained_model(label, job, cache)
     rows = []
     for view in held:
         target = view.load_image(job.scale).astype(np.float32) / 255.0
         images = {}
-        for samples in SAMPLES:
+        for samples in SAMPLES:  # (the points in every pixel: docs/PIXEL_SAMPLES.md's table predates sample_contrast)
             started = time.perf_counter()
-            images[samples] = light_field.render_view(view, job.scale, depth=False, pixel_samples=samples).rgb
+            images[samples] = light_field.render_view(view, job.scale, depth=False, pixel_samples=samples,
+                                                      sample_contrast=0.0).rgb
             seconds = time.perf_counter() - started
             rows.append(_row(label, job, view, str(samples), samples, images[samples], target, seconds, psnr, ssim))
         for rendering, footprint in FOOTPRINTS.items():
             started = time.perf_counter()
-            image = light_field.render_view(view, job.scale, depth=False, pixel_samples=4, pixel_footprint=footprint).rgb
+            image = light_field.render_view(view, job.scale, depth=False, pixel_samples=4, pixel_footprint=footprint,
+                                            sample_contrast=0.0).rgb
             rows.append(_row(label, job, view, rendering, 4, image, target, time.perf_counter() - started, psnr, ssim))
         rows.append(_row(label, job, view, BLURRED, 1, blurred(images[1]), target, float("nan"), psnr, ssim))
     return rows

@@ -16,7 +16,7 @@ from .images import save_rgb
 from .lpips import load_lpips, lpips_distance
 from .metrics import psnr, ssim
 from .outputs import refuse_clashing_names, refuse_writing_over_photos, view_file_stems
-from .render import DEFAULT_PIXEL_SAMPLES, LightField
+from .render import DEFAULT_PIXEL_SAMPLES, SAMPLE_CONTRAST, LightField
 from .poses import fit_view_pose
 from .scene import camera_spacing, load_scene, select_views
 from .trained_scene import (changed_cameras_note, changed_photos_note, images_dir_as_trained, other_photos_note,
@@ -24,9 +24,10 @@ from .trained_scene import (changed_cameras_note, changed_photos_note, images_di
 
 
 def evaluate_model(model_dir, scene_dir, *, images_dir=None, out_dir=None, views=None, device=None,
-                   save_images: bool = True, fit_poses: bool = False, pixel_samples: int = DEFAULT_PIXEL_SAMPLES) -> dict:
-    """Scores per held-out view, each rendered with `pixel_samples` points per pixel (what
-    `render` writes); with `fit_poses` also after fitting each view's pose to its photo
+                   save_images: bool = True, fit_poses: bool = False, pixel_samples: int = DEFAULT_PIXEL_SAMPLES,
+                   sample_contrast: float = SAMPLE_CONTRAST) -> dict:
+    """Scores per held-out view, each rendered with `pixel_samples` points per pixel in the
+    pixels of more contrast than `sample_contrast` (what `render` writes); with `fit_poses` also after fitting each view's pose to its photo
     (poses.fit_view_pose), the fairer score where the reconstruction's poses carry error."""
     light_field = LightField.load(model_dir, device, precision="full")  # scores are float32's
     saved = light_field.meta["scene"]
@@ -52,7 +53,8 @@ def evaluate_model(model_dir, scene_dir, *, images_dir=None, out_dir=None, views
         scale = scale_as_trained(view, saved, light_field.trained_scale)  # (photos of another folder: note)
         photo = view.load_image(scale)
         started = time.perf_counter()
-        rendering = light_field.render_view(view, scale, depth=False, pixel_samples=pixel_samples)
+        rendering = light_field.render_view(view, scale, depth=False, pixel_samples=pixel_samples,
+                                            sample_contrast=sample_contrast)
         seconds = time.perf_counter() - started
         notes += [f"{view.name}: {warning}" for warning in rendering.warnings]  # (rays past the capture: a low score)
         target = photo.astype(np.float32) / 255.0
@@ -63,7 +65,8 @@ def evaluate_model(model_dir, scene_dir, *, images_dir=None, out_dir=None, views
         if fit_poses:
             spacing = camera_spacing(np.asarray(light_field.meta["rig"]["centres"]))  # the training rig's
             fitted, degrees, moved = fit_view_pose(light_field, view, scale, spacing)
-            fitted_render = light_field.render_view(fitted, scale, depth=False, pixel_samples=pixel_samples)
+            fitted_render = light_field.render_view(fitted, scale, depth=False, pixel_samples=pixel_samples,
+                                                    sample_contrast=sample_contrast)
             rows[-1].update(psnr_pose_fitted=psnr(fitted_render.rgb, target),
                             pose_fit_degrees=degrees, pose_fit_shift=moved)
         baseline.append(psnr(np.broadcast_to(mean_colour, target.shape), target))
@@ -73,7 +76,7 @@ def evaluate_model(model_dir, scene_dir, *, images_dir=None, out_dir=None, views
         "model": str(model_dir), "scene": str(scene_dir), "scale": light_field.trained_scale, "views": rows,
         "images": str(scene.images_dir) if scene.images_dir else None, "warnings": notes,
         "mean_psnr": float(np.mean([r["psnr"] for r in rows])), "mean_ssim": float(np.mean([r["ssim"] for r in rows])),
-        "mean_colour_psnr": float(np.mean(baseline)), "device": str(light_field.device), "pixel_samples": pixel_samples,
+        "mean_colour_psnr": float(np.mean(baseline)), "device": str(light_field.device), "pixel_samples": pixel_samples, "sample_contrast": sample_contrast,
         # (which state of the model was scored: an eval run while training goes on is tied to its step)
         "model_step": light_field.meta.get("progress", {}).get("step"),
         "model_status": light_field.meta.get("progress", {}).get("status"),

@@ -70,6 +70,14 @@ PRECISIONS = ("auto", "half", "full")
 PIXEL_SAMPLES = (1, 4, 9, 16)
 DEFAULT_PIXEL_SAMPLES = 4
 PIXEL_FOOTPRINT = 0.5
+# Which pixels take the points (`sample_contrast`): only those whose centre-ray colour differs
+# from a neighbour's (left, right, above, below) by more than this in some channel (colours 0-1;
+# 0.02 is 5 of 255 levels); the others keep the centre ray's colour.  The gain of the points is
+# at edges and fine texture: where the picture is flat, the mean of the points is the centre's.
+# 0 gives every pixel the points.  Measured on held-out views (docs/PIXEL_SAMPLES.md,
+# "Points where the picture has contrast"): the points go to about a quarter of the pixels, a
+# frame takes about half the time, and the held-out PSNR stays within 0.01 dB of every pixel's.
+SAMPLE_CONTRAST = 0.02
 
 
 def half_precision(precision: str, device: torch.device) -> bool:
@@ -111,6 +119,7 @@ class Rendering:
     valid: np.ndarray               # (H, W) bool: the ray crosses the slab forwards, its surface ahead of the camera
     warnings: list[str] = field(default_factory=list)
     complete: bool = True           # False where `on_chunk` stopped it: the rows below hold no picture
+    refined: float = 0.0            # the share of its pixels that took the points (pixel_samples above 1)
 
 
 def image_size(width, height) -> tuple[int, int]:
@@ -247,15 +256,17 @@ class LightField:
     def render(self, K, width: int, height: int, R, t, *, depth: bool = True, chunk: int | None = None,
                on_chunk=None, focus_distance: float | None = None, aperture: float = 0.0,
                max_samples: int = MAX_SAMPLES, pixel_samples: int = 1,
-               pixel_footprint: float = PIXEL_FOOTPRINT) -> Rendering:
+               pixel_footprint: float = PIXEL_FOOTPRINT, sample_contrast: float = SAMPLE_CONTRAST) -> Rendering:
         """Render a pinhole camera (K, world-to-camera R, t in the scene's COLMAP frame).
 
         With `aperture` > 0 (lens radius, scene units) and `focus_distance` (depth along the
         optical axis), the image is refocused by synthetic aperture (see refocus.py); depth
         stays the pinhole ray's.  `pixel_samples` (PIXEL_SAMPLES): each pixel's colour the mean
-        over that many points of its central `pixel_footprint` square (pixel_offsets); depth
-        stays the centre ray's (a refocused render's lens samples already spread over the
-        pixel's light, so it takes them alone).  A pixel whose surface lies behind the camera (a
+        over that many points of its central `pixel_footprint` square (pixel_offsets), in the
+        pixels whose centre-ray colour differs from a neighbour's by more than `sample_contrast`
+        (SAMPLE_CONTRAST; 0: in every pixel), the others the centre ray's; depth stays the centre
+        ray's (a refocused render's lens samples already spread over the pixel's light, so it
+        takes them alone).  A pixel whose surface lies behind the camera (a
         camera inside the scene's depth range) is not valid: the background colour, depth NaN
         (its centre ray decides; a refocused or multi-point pixel's other rays that meet a surface
         behind it count as the background in its mean).
@@ -268,6 +279,7 @@ class LightField:
         if lens is not None:
             offsets = pixel_offsets(1)
         spread = len(offsets) > 1
+        contrast = contrast_threshold(sample_contrast) if spread else 0.0
         rows_per_chunk = max(1, (chunk or self.default_chunk()) // width)
         forward = torch.as_tensor(R[2], device=self.device, dtype=self.geometry_dtype)
         t_local = self.slab.origin_relative_t(R, t)
@@ -284,23 +296,50 @@ class LightField:
                              "for its colour, depth and mask): render a smaller one.") from None
         outside = np.zeros(height, np.int64)  # per row: a band retried after running out of memory counts once
         behind = np.zeros(height, np.int64)  # per row: pixels whose surface lies behind the camera
+        refined = np.zeros(height, np.int64)  # per row: pixels that took the points (pixel_samples)
 
         def render_rows(top: int, bottom: int):
             rows = slice(top, bottom)
-            origin, directions = pinhole_rays(K, R, t_local, width, height, self.device, self.geometry_dtype, rows)
-            rgb, slab_depth, valid, uvst = self.query(origin, directions, need_depth,
-                                                      want_colour=not spread and lens is None)  # (else not used)
+            # With the points only where the picture has contrast, the centre rays of the rows
+            # above and below the band are taken too: a pixel's contrast is with all four of its
+            # neighbours, so a band's edge rows are judged as in one whole-frame band.
+            halo = slice(max(0, top - 1), min(height, bottom + 1)) if contrast > 0 else rows
+            origin, directions = pinhole_rays(K, R, t_local, width, height, self.device, self.geometry_dtype, halo)
+            centre_colour = lens is None and (not spread or contrast > 0)  # (else not used)
+            rgb, slab_depth, valid, uvst = self.query(origin, directions, need_depth, want_colour=centre_colour)
             axis = self._axis_depth(origin, directions, slab_depth, forward) if need_depth else None
+            behind_rays = None
             if inside_scene:
                 ahead = axis > 0  # (else the surface this ray's line meets lies behind the camera)
-                behind[rows] = (valid & ~ahead).reshape(bottom - top, width).sum(1).cpu().numpy()
-                valid = valid & ahead
+                behind_rays, valid = valid & ~ahead, valid & ahead
+            if contrast > 0:
+                if inside_scene:
+                    rgb = torch.where(valid[:, None], rgb, self.background)
+                edges = contrasted_pixels(rgb.reshape(halo.stop - halo.start, width, 3), contrast)
+                edges = edges[top - halo.start:bottom - halo.start].reshape(-1)
+                band_rays = slice((top - halo.start) * width, (bottom - halo.start) * width)
+                directions, uvst, valid, rgb = directions[band_rays], uvst[band_rays], valid[band_rays], rgb[band_rays]
+                axis = axis[band_rays] if axis is not None else None
+                behind_rays = behind_rays[band_rays] if behind_rays is not None else None
+            if inside_scene:
+                behind[rows] = behind_rays.reshape(bottom - top, width).sum(1).cpu().numpy()
             facing = forward if inside_scene else None  # (only there can a pixel's other rays meet surfaces behind it)
             if lens is not None:
                 rgb = self._refocused_colour(origin, directions, R, focus_distance, aperture, lens, facing)
             elif spread:
-                rgb = self._mean_colour((pinhole_rays(shifted_K(K, offset), R, t_local, width, height, self.device,
-                                                      self.geometry_dtype, rows) for offset in offsets), facing)
+                def points(chosen=None):
+                    for offset in offsets:
+                        point_origin, point_directions = pinhole_rays(shifted_K(K, offset), R, t_local, width, height,
+                                                                      self.device, self.geometry_dtype, rows)
+                        yield point_origin, point_directions if chosen is None else point_directions[chosen]
+                if contrast > 0:
+                    chosen = edges.nonzero()[:, 0]
+                    if len(chosen):
+                        rgb = rgb.index_put((chosen,), self._mean_colour(points(chosen), facing))
+                    refined[rows] = edges.reshape(bottom - top, width).sum(1).cpu().numpy()
+                else:
+                    rgb = self._mean_colour(points(), facing)
+                    refined[rows] = width
             if inside_scene:
                 rgb = torch.where(valid[:, None], rgb, self.background)
             band = bottom - top
@@ -317,7 +356,8 @@ class LightField:
         if rows_done < height:
             warnings.append(f"rendering stopped after {rows_done} of {height} rows (on_chunk returned False): the rows "
                             "below hold no picture")
-        return Rendering(rgb_out, depth_out, valid_out, warnings, complete=rows_done == height)
+        return Rendering(rgb_out, depth_out, valid_out, warnings, complete=rows_done == height,
+                         refined=float(refined[:rows_done].sum()) / max(1, rows_done * width))
 
     def _camera_slab_z(self, R, t) -> float:
         """The camera centre's depth along the slab axis (the uv plane at the rig)."""
@@ -393,10 +433,11 @@ class LightField:
 
     def render_view(self, view: View, scale: float | None = None, *, depth: bool = True, chunk: int | None = None,
                     pixel_samples: int = 1, pixel_footprint: float = PIXEL_FOOTPRINT,
-                    focus_distance: float | None = None, aperture: float = 0.0,
-                    max_samples: int = MAX_SAMPLES) -> Rendering:
+                    sample_contrast: float = SAMPLE_CONTRAST, focus_distance: float | None = None,
+                    aperture: float = 0.0, max_samples: int = MAX_SAMPLES) -> Rendering:
         """Render a registered view through its own camera model (distortion included), so
-        the result lines up pixel for pixel with its photo (`pixel_samples` as in `render`).
+        the result lines up pixel for pixel with its photo (`pixel_samples` and `sample_contrast`
+        as in `render`).
         With `aperture` and `focus_distance` it is refocused as `render` refocuses, each lens
         sample's rays through the same distorted pixels (a refocus through the view's pinhole
         part had moved CanClip's corners 10 pixels).  The view must be of the scene the model
@@ -419,10 +460,11 @@ class LightField:
         if lens is not None:  # (the lens samples spread over each pixel's light: as render)
             offsets = pixel_offsets(1)
         spread = len(offsets) > 1
+        contrast = contrast_threshold(sample_contrast) if spread else 0.0
 
-        def moved_rays(start: int, stop: int):
+        def moved_rays(chosen):
             for offset in offsets:
-                moved = view_rays(camera, view.R, t_local, pixels[start:stop] + offset)[1]
+                moved = view_rays(camera, view.R, t_local, pixels[chosen] + offset)[1]
                 yield origin_t, torch.as_tensor(moved, device=self.device, dtype=self.geometry_dtype)
 
         inside_scene = self.camera_inside_scene(view.R, view.t)  # (a view moved into the scene: as render does)
@@ -434,17 +476,17 @@ class LightField:
 
         def render_rays(start: int, stop: int):
             d = torch.as_tensor(directions[start:stop], device=self.device, dtype=self.geometry_dtype)
-            rgb, slab_depth, ok, uvst = self.query(origin_t, d, need_depth, want_colour=not spread and lens is None)
+            centre_colour = lens is None and (not spread or contrast > 0)  # (else not used)
+            rgb, slab_depth, ok, uvst = self.query(origin_t, d, need_depth, want_colour=centre_colour)
             axis = self._axis_depth(origin_t, d, slab_depth, forward) if need_depth else None
             if inside_scene:
                 behind[start:stop] = (ok & (axis <= 0)).cpu().numpy()
                 ok = ok & (axis > 0)
             outside[start:stop] = ((uvst.abs() > 1 + EXTRAPOLATION_MARGIN).any(dim=1) & ok).cpu().numpy()
-            facing = forward if inside_scene else None
             if lens is not None:
                 rgb = self._refocused_colour(origin_t, d, view.R, focus_distance, aperture, lens, facing)
-            elif spread:
-                rgb = self._mean_colour(moved_rays(start, stop), facing)
+            elif spread and contrast == 0:
+                rgb = self._mean_colour(moved_rays(slice(start, stop)), facing)
             if inside_scene:
                 rgb = torch.where(ok[:, None], rgb, self.background)
             rgb_out[start:stop] = rgb.cpu().numpy()
@@ -452,13 +494,26 @@ class LightField:
             if depth:
                 depth_map[start:stop] = axis.float().cpu().numpy()
 
+        def render_points(start: int, stop: int):  # (the pixels with contrast, after the whole frame's centres)
+            chosen = edges[start:stop]
+            rgb_out[chosen] = np.where(valid[chosen, None], self._mean_colour(moved_rays(chosen), facing).cpu().numpy(),
+                                       self.background.cpu().numpy())
+
+        facing = forward if inside_scene else None
         in_chunks(len(directions), chunk, render_rays)
+        refined = 1.0 if spread and contrast == 0 else 0.0
+        if contrast > 0:
+            centre = torch.as_tensor(rgb_out.reshape(height, width, 3))
+            edges = contrasted_pixels(centre, contrast).reshape(-1).nonzero()[:, 0].numpy()
+            in_chunks(len(edges), max(1, chunk // len(offsets)), render_points)
+            refined = len(edges) / max(1, len(directions))
         valid = valid.reshape(height, width)
         if depth_map is not None:
             depth_map = depth_map.reshape(height, width)
             depth_map[~valid] = np.nan
         return Rendering(rgb_out.reshape(height, width, 3), depth_map, valid,
-                         self._camera_warnings(view.R, view.t, valid, int(outside.sum()), int(behind.sum())))
+                         self._camera_warnings(view.R, view.t, valid, int(outside.sum()), int(behind.sum())),
+                         refined=refined)
 
     def view_depth_at(self, view: View, scale: float | None, x: float, y: float) -> float:
         """Depth along the optical axis under image point (x, y) of a registered view, through its
@@ -515,6 +570,26 @@ def _field_and_slab(payload: dict, model_dir) -> tuple[torch.nn.Module, Slab]:
         return module, Slab.from_dict(payload["slab"])
     except (KeyError, RuntimeError, TypeError, ValueError) as exc:
         raise NeulfError(f"the checkpoint in {model_dir} is damaged or incomplete ({type(exc).__name__}: {exc}); train again.") from None
+
+
+def contrast_threshold(value) -> float:
+    """`sample_contrast` checked: a colour difference from 0 (every pixel takes the points) to 1."""
+    if not isinstance(value, numbers.Real) or isinstance(value, bool) or not 0.0 <= value <= 1.0:
+        raise NeulfError(f"the sample contrast is a colour difference from 0 (points in every pixel) to 1, not {value!r}.")
+    return float(value)
+
+
+def contrasted_pixels(colour: torch.Tensor, threshold: float) -> torch.Tensor:
+    """(H, W) True where a pixel of `colour` (H, W, 3) differs from its left, right, upper or lower
+    neighbour by more than `threshold` in some channel."""
+    across = (colour[:, 1:] - colour[:, :-1]).abs().amax(dim=-1) > threshold
+    down = (colour[1:] - colour[:-1]).abs().amax(dim=-1) > threshold
+    edges = torch.zeros(colour.shape[:2], dtype=torch.bool, device=colour.device)
+    edges[:, 1:] |= across
+    edges[:, :-1] |= across
+    edges[1:] |= down
+    edges[:-1] |= down
+    return edges
 
 
 def pixel_offsets(samples: int, footprint: float = PIXEL_FOOTPRINT) -> np.ndarray:

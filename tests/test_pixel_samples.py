@@ -11,7 +11,8 @@ import pytest
 
 from neulf_core.errors import NeulfError
 from neulf_core.rays import shifted_K, single_pixel_K
-from neulf_core.render import LightField, pixel_offsets
+from neulf_core.render import (DEFAULT_PIXEL_SAMPLES, PIXEL_SAMPLES, SAMPLE_CONTRAST, LightField,
+                               pixel_offsets)
 from neulf_core.scene import load_scene
 from neulf_core.train import TrainConfig, train
 
@@ -62,10 +63,11 @@ def _registered(tiny_scene):
 def test_render_takes_the_mean_over_the_pixel_and_keeps_the_centre_depth(light_field, tiny_scene):
     view, K, width, height = _registered(tiny_scene)
     centre = light_field.render(K, width, height, view.R, view.t, depth=True)
-    four = light_field.render(K, width, height, view.R, view.t, depth=True, pixel_samples=4)
+    four = light_field.render(K, width, height, view.R, view.t, depth=True, pixel_samples=4, sample_contrast=0)
     by_hand = np.mean([light_field.render(shifted_K(K, offset), width, height, view.R, view.t, depth=False).rgb
                        for offset in pixel_offsets(4)], axis=0)
     assert np.allclose(four.rgb, by_hand, atol=1e-6)
+    assert four.refined == 1.0 and centre.refined == 0.0
     assert np.abs(four.rgb - centre.rgb).max() > 1e-4  # the points do differ
     assert np.array_equal(four.depth, centre.depth, equal_nan=True) and np.array_equal(four.valid, centre.valid)
     assert four.warnings == centre.warnings
@@ -73,7 +75,7 @@ def test_render_takes_the_mean_over_the_pixel_and_keeps_the_centre_depth(light_f
     turn = np.array([[np.cos(1.3), 0.0, np.sin(1.3)], [0.0, 1.0, 0.0], [-np.sin(1.3), 0.0, np.cos(1.3)]])
     R = turn @ view.R
     centre = light_field.render(K, width, height, R, view.t, depth=True)
-    four = light_field.render(K, width, height, R, view.t, depth=True, pixel_samples=4)
+    four = light_field.render(K, width, height, R, view.t, depth=True, pixel_samples=4, sample_contrast=0)
     assert 0 < centre.valid.sum() < centre.valid.size and centre.warnings
     assert np.array_equal(four.valid, centre.valid) and four.warnings == centre.warnings
     # The pixels whose rays miss the slab show the background colour, not what the field extrapolates
@@ -82,6 +84,40 @@ def test_render_takes_the_mean_over_the_pixel_and_keeps_the_centre_depth(light_f
     assert np.allclose(centre.rgb[~centre.valid], background)
     assert not np.allclose(centre.rgb[centre.valid], background)
     assert np.array_equal(four.depth, centre.depth, equal_nan=True)
+
+
+def _contrast_by_hand(image: np.ndarray) -> np.ndarray:
+    """Per pixel, the largest colour difference (over channels) from its four neighbours."""
+    padded = np.pad(image, ((1, 1), (1, 1), (0, 0)), mode="edge")
+    shifted = [padded[:-2, 1:-1], padded[2:, 1:-1], padded[1:-1, :-2], padded[1:-1, 2:]]
+    return np.max([np.abs(image - other).max(axis=2) for other in shifted], axis=0)
+
+
+def test_the_points_go_only_to_pixels_whose_centre_colour_has_contrast(light_field, tiny_scene):
+    view, K, width, height = _registered(tiny_scene)
+    centre = light_field.render(K, width, height, view.R, view.t, depth=True)
+    every = light_field.render(K, width, height, view.R, view.t, depth=True, pixel_samples=4, sample_contrast=0)
+    contrast = _contrast_by_hand(centre.rgb)
+    threshold = float(np.quantile(contrast, 0.6))  # (some pixels above it, some not)
+    edges = contrast > threshold
+    assert 0.2 < edges.mean() < 0.6
+    renders = {"render": lambda chunk: light_field.render(K, width, height, view.R, view.t, depth=True, pixel_samples=4,
+                                                          sample_contrast=threshold, chunk=chunk),
+               "render_view": lambda chunk: light_field.render_view(view, depth=True, pixel_samples=4,
+                                                                    sample_contrast=threshold, chunk=chunk)}
+    for name, render in renders.items():
+        for chunk in (None, 3 * width + 5):  # one band, and bands of 3 rows whose edge rows need the next band's
+            some = render(chunk)
+            assert np.allclose(some.rgb[edges], every.rgb[edges], atol=1e-5), name
+            assert np.allclose(some.rgb[~edges], centre.rgb[~edges], atol=1e-5), name
+            assert np.isclose(some.refined, edges.mean()), name
+            assert np.allclose(some.depth, centre.depth, atol=1e-5, equal_nan=True) and np.array_equal(some.valid, centre.valid)
+    # At the largest contrast no pixel takes the points: the one-point render.
+    flat = light_field.render(K, width, height, view.R, view.t, depth=False, pixel_samples=4, sample_contrast=1.0)
+    assert flat.refined == 0.0 and np.allclose(flat.rgb, centre.rgb, atol=1e-6)
+    for wrong in (-0.1, 1.5, float("nan"), "0.02", True):
+        with pytest.raises(NeulfError, match="sample contrast is a colour difference from 0"):
+            light_field.render(K, width, height, view.R, view.t, pixel_samples=4, sample_contrast=wrong)
 
 
 def test_a_registered_view_renders_the_same_points_through_its_own_camera(light_field, tiny_scene):
@@ -121,20 +157,31 @@ def test_the_commands_render_and_score_four_points_by_default(light_field, tiny_
         save_rgb(tmp_path / f"{folder}_expected.png", expected)  # the same 8-bit rounding
         assert np.array_equal(np.asarray(Image.open(tmp_path / folder / "view_00.png")),
                               np.asarray(Image.open(tmp_path / f"{folder}_expected.png")))
+    # --sample-contrast 0: the points in every pixel.
+    assert main(["render", model, "--scene", str(tiny_scene), "--views", "view_00", "--out", str(tmp_path / "every"),
+                 "--sample-contrast", "0"]) == 0
+    save_rgb(tmp_path / "every_expected.png", light_field.render_view(view, depth=False, pixel_samples=4,
+                                                                      sample_contrast=0).rgb)
+    assert np.array_equal(np.asarray(Image.open(tmp_path / "every" / "view_00.png")),
+                          np.asarray(Image.open(tmp_path / "every_expected.png")))
     assert main(["eval", model, "--scene", str(tiny_scene), "--out", str(tmp_path / "eval")]) == 0
     report = json.loads((tmp_path / "eval" / "eval.json").read_text())
-    assert report["pixel_samples"] == 4
+    assert report["pixel_samples"] == 4 and report["sample_contrast"] == SAMPLE_CONTRAST
     capfd.readouterr()
     from neulf_core.cli import build_parser
-    from neulf_core.render import DEFAULT_PIXEL_SAMPLES, PIXEL_SAMPLES
 
     for command in ("render", "eval", "video"):  # the CLI spells the choices out (no torch import there)
-        action = next(a for a in build_parser()._subparsers._group_actions[0].choices[command]._actions
-                      if a.dest == "pixel_samples")
+        actions = {a.dest: a for a in build_parser()._subparsers._group_actions[0].choices[command]._actions}
+        action = actions["pixel_samples"]
         assert tuple(action.choices) == PIXEL_SAMPLES and action.default == DEFAULT_PIXEL_SAMPLES
+        assert actions["sample_contrast"].default == SAMPLE_CONTRAST
     assert main(["eval", model, "--scene", str(tiny_scene), "--pixel-samples", "3"]) != 0
     message = capfd.readouterr().err.strip().splitlines()
     assert len(message) == 1 and "--pixel-samples" in message[0] and "choose from 1, 4, 9, 16" in message[0]
+    for wrong in ("-0.5", "2", "nan", "edges"):
+        assert main(["eval", model, "--scene", str(tiny_scene), "--sample-contrast", wrong]) == 2
+        message = capfd.readouterr().err.strip().splitlines()
+        assert len(message) == 1 and "--sample-contrast" in message[0], message
 
 
 def test_the_benchmark_blurs_as_it_says_and_tables_gains_per_seed(benchmark_script):
