@@ -226,6 +226,16 @@ def outputs_for(steps: int) -> tuple[str, str, str]:
             f"benchmarks/pixel_samples.py) -->", f"<!-- pixel samples at {steps} steps ends -->")
 
 
+def planned_jobs(args: argparse.Namespace) -> dict[str, list]:
+    """label -> the default's jobs (one per seed) of --configurations that are present here."""
+    labels = seed_scatter.labels_present([label for label in args.configurations.split(",") if label], args,
+                                         others={label: folder for label, (folder, _) in OTHER_SCENES.items()})
+    args.two_starts, args.pixel_jitter = "rule", 0.0  # the default, as seed_scatter.plan_for reads it
+    jobs = seed_scatter.plan_for([label for label in labels if label not in OTHER_SCENES], args)
+    jobs.update(other_scene_jobs([label for label in labels if label in OTHER_SCENES], args))
+    return jobs
+
+
 def parse_args(argv=None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--configurations", default=",".join(CONFIGURATIONS),
@@ -249,11 +259,7 @@ def main(argv=None) -> None:
         rows = read_csv(csv_path)
     else:
         # The CSV keeps the rows of the configurations a run leaves out (a capture not here among them).
-        labels = seed_scatter.labels_present([label for label in args.configurations.split(",") if label], args,
-                                             others={label: folder for label, (folder, _) in OTHER_SCENES.items()})
-        args.two_starts, args.pixel_jitter = "rule", 0.0  # the default, as seed_scatter.plan_for reads it
-        jobs = seed_scatter.plan_for([label for label in labels if label not in OTHER_SCENES], args)
-        jobs.update(other_scene_jobs([label for label in labels if label in OTHER_SCENES], args))
+        jobs = planned_jobs(args)
         work = [(label, job) for label, runs in jobs.items() for job in runs]
         with ProcessPoolExecutor(max_workers=args.workers) as pool:
             futures = [pool.submit(train_and_score, label, job, args.cache) for label, job in work]

@@ -164,13 +164,7 @@ def main(argv=None) -> None:
     if args.report_only:
         rows = pixel_samples.read_csv(csv_path)
     else:
-        labels = seed_scatter.labels_present([label for label in args.configurations.split(",") if label], args,
-                                             others={label: folder for label, (folder, _) in
-                                                     pixel_samples.OTHER_SCENES.items()})
-        args.two_starts, args.pixel_jitter = "rule", 0.0  # the default, as seed_scatter.plan_for reads it
-        jobs = seed_scatter.plan_for([label for label in labels if label not in pixel_samples.OTHER_SCENES], args)
-        jobs.update(pixel_samples.other_scene_jobs([label for label in labels if label in pixel_samples.OTHER_SCENES],
-                                                   args))
+        jobs = pixel_samples.planned_jobs(args)
         rows = []
         for label, runs in jobs.items():  # (one at a time: the times are compared)
             for job in runs:

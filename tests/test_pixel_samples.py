@@ -216,3 +216,27 @@ def test_the_benchmark_plans_the_other_real_scenes_and_names_a_missing_one(bench
     monkeypatch.setitem(bench.OTHER_SCENES, "fern", (tmp_path / "missing", 0.5))
     with pytest.raises(SystemExit, match="fern is not at"):
         bench.other_scene_jobs(["fern"], args)
+
+
+def test_the_contrast_benchmark_tables_each_way_against_one_point_and_every_pixel(benchmark_script, tmp_path):
+    bench = benchmark_script("sample_contrast")
+    ways = bench.renderings()
+    assert ways["1"] == (1, 0.0) and ways[bench.EVERY_PIXEL] == (4, 0.0)
+    assert [ways[f"4, contrast {c:g}"] for c in bench.CONTRASTS] == [(4, c) for c in bench.CONTRASTS]
+
+    def row(seed, rendering, value, seconds, refined):
+        return {"configuration": "scene", "seed": seed, "view": "v", "rendering": rendering,
+                "contrast": ways[rendering][1], "psnr": value, "ssim": 0.9, "render_seconds": seconds,
+                "refined": refined, "width": 4, "height": 3}
+
+    rows = []
+    for seed, shift in ((0, 0.0), (1, 1.0)):
+        rows += [row(seed, "1", 30.0 + shift, 1.0, 0.0), row(seed, bench.EVERY_PIXEL, 30.2 + shift, 4.0, 1.0)]
+        rows += [row(seed, f"4, contrast {c:g}", 30.2 + shift - 0.01 * i, 2.0 - 0.2 * i, 0.3 - 0.05 * i)
+                 for i, c in enumerate(bench.CONTRASTS)]
+    text = bench.table(rows)
+    assert "| scene | 1 | 31.00 dB, 1.00 s | +0.200 dB, x4.00 time, 100 % of pixels | +0.200 dB, x2.00 time, 30 % of pixels" in text
+    assert f"- 4, contrast {bench.CONTRASTS[1]:g}: against the points in every pixel -0.010 dB on average" in text
+    assert "at x0.45 the time (median); every pixel's points gain +0.200 dB over one." in text
+    bench.chart(rows, tmp_path / "chart.png")
+    assert (tmp_path / "chart.png").stat().st_size > 0
