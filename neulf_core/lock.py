@@ -224,7 +224,8 @@ def training_lock(model_dir: Path):
             _release(path, record)
     finally:
         if created and model_dir.is_dir() and not any(model_dir.iterdir()):
-            model_dir.rmdir()  # a training that failed before its first checkpoint leaves nothing behind
+            with contextlib.suppress(OSError):  # (as the lock's own deletion)
+                model_dir.rmdir()  # a training that failed before its first checkpoint leaves nothing behind
 
 
 def _take(path: Path, model_dir: Path) -> dict:
@@ -304,5 +305,8 @@ def _release(path: Path, record: dict) -> None:
     """Delete the lock `path` if it is still this process's own (`record`): one taken over
     meanwhile as stale (a clock or process number misjudged) is another training's now."""
     if _read_owner(path) == record:
-        with contextlib.suppress(FileNotFoundError):
+        # (a lock that cannot be deleted -- the folder turned read-only, the disk gone -- is left:
+        # its process ends, so the next training takes it over as stale; raised here, its error
+        # had hidden the one that ended the training, "cannot write training.lock" for the checkpoint's)
+        with contextlib.suppress(OSError):
             path.unlink()

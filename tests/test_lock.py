@@ -108,6 +108,39 @@ def test_a_lock_is_released_only_while_it_is_still_this_process(tmp_path):
         sleeper.wait()
 
 
+def test_a_lock_that_cannot_be_deleted_leaves_the_error_that_ended_the_training(tmp_path, monkeypatch, record_property):
+    """The model folder turned read-only while training (a remounted disk): the checkpoint's
+    write failed, and then the lock's deletion did, whose error ("cannot read or write
+    training.lock") hid the checkpoint's.  The lock is left, and the next training takes it over
+    as stale (its process has ended)."""
+    import errno
+
+    real_unlink = Path.unlink
+
+    def read_only(path, *args, **kwargs):
+        if path.name == LOCK_NAME:
+            raise OSError(errno.EROFS, "Read-only file system", str(path))
+        return real_unlink(path, *args, **kwargs)
+
+    monkeypatch.setattr(Path, "unlink", read_only)
+    failed = OSError(errno.EROFS, "Read-only file system", str(tmp_path / "checkpoint.pt"))
+    with pytest.raises(OSError) as raised:
+        with training_lock(tmp_path / "new"):
+            raise failed
+    assert raised.value is failed
+    with pytest.raises(OSError) as raised:
+        with training_lock(tmp_path):
+            raise failed
+    assert raised.value is failed and (tmp_path / LOCK_NAME).is_file()
+    monkeypatch.setattr(Path, "unlink", real_unlink)
+    dead = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True, text=True)
+    (tmp_path / LOCK_NAME).write_text(json.dumps({"pid": int(dead.stdout), "host": platform.node(),
+                                                  "started": time.time() - 5}))  # (as the ended process left it)
+    with training_lock(tmp_path):  # taken over as stale
+        assert training_holder(tmp_path)["pid"] == os.getpid()
+    record_property("message", "the checkpoint's own error (the lock a read-only folder keeps is taken over later)")
+
+
 def test_a_lock_being_written_is_not_taken_for_a_stale_one(tmp_path):
     """Where a lock cannot be linked into place whole (a drive without hard links), it is made
     empty and written just after: one found empty and new is waited for, not deleted."""
