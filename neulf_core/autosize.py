@@ -21,7 +21,7 @@ import numpy as np
 from .checkpoint import METADATA_NAME, MODEL_NAME, checkpoint_path, load_checkpoint, save_checkpoint
 from .errors import NeulfError
 from .fields.disparity import texture_size_for
-from .files import refuse_a_path_too_long
+from .files import atomic_write_bytes, refuse_a_path_too_long
 from .lock import training_lock
 from .memo import kept_while_training
 from .metrics import psnr
@@ -40,6 +40,12 @@ FACTORS = (1.0, 0.7, 0.5)    # finest texture size / the default (~1 texel per p
 TOLERANCE_DB = 0.3
 VALIDATION_EVERY = 8          # every 8th training view validates the candidates
 SEARCH_SHARE = 0.4            # of the budget spent on the candidates together
+# The search as it goes (each candidate scored, then the choice and the final model's options),
+# in the model folder until the model's checkpoint holds the record: a run stopped or killed
+# during the search resumes after its last scored candidate, one stopped before the final
+# model's first checkpoint trains the chosen size at once, and a resumed model trains to its
+# share of the new budget (the whole of it, search included, before).
+SEARCH_FILE = "autosize.json"
 
 
 @dataclass
@@ -125,39 +131,80 @@ def train_auto(scene: Scene | str | Path, model_dir: str | Path, config: TrainCo
     with training_lock(model_dir):
         refuse_a_path_too_long(model_dir, longest_path_written(config))
         if resume and checkpoint_path(model_dir).is_file():  # the size was chosen before: continue it
-            record = load_checkpoint(model_dir).get("autosize")
-            result = train(scene, model_dir, config, images_dir=images_dir, resume=True, progress=progress,
-                           should_stop=should_stop, asked=asked)
+            record = load_checkpoint(model_dir).get("autosize") or (saved_search(model_dir) or {}).get("record")
+            result = train(scene, model_dir, final_budget(config, record), images_dir=images_dir, resume=True,
+                           progress=progress, should_stop=should_stop, asked=asked)
             return _record(model_dir, record, result)
         refuse_to_overwrite(model_dir, resume)  # (said before the search spends its share of the budget)
-        if resume:  # (and nothing to resume: the search starts)
+        saved = saved_search(model_dir) if resume else None
+        if resume and saved is None:  # (and nothing to resume: the search starts)
             say_nothing_to_resume(model_dir, progress)
-        started = time.monotonic()  # a minutes budget is the whole run's: the photos' loading and the rules' probe too
+        elif saved is not None:
+            _emit(progress, event="stage", message=f"auto: {len(saved['candidates'])} texture size(s) scored before "
+                                                     "are kept" + ("; the size chosen trains" if "record" in saved else ""))
+        if saved is None:  # (a new run's search is its own)
+            (model_dir / SEARCH_FILE).unlink(missing_ok=True)
+        # A minutes budget is the whole run's: the photos' loading and the rules' probe too, and the search's
+        # time before a stop.
+        started = time.monotonic() - (saved or {}).get("search_seconds", 0.0)
         if not isinstance(scene, Scene):
             scene = load_scene(scene, images_dir)
         # One training call (memo.py): the candidates read the photos and build their rays once, and
         # a warning about the scale is said once.
         with kept_while_training():
             return _search_and_train(scene, model_dir, replace(config, preset=PRESET), progress, should_stop, factors,
-                                     tolerance_db, started)
+                                     tolerance_db, started, saved)
+
+
+def saved_search(model_dir: Path) -> dict | None:
+    """The search's SEARCH_FILE where a run left one that can be read, else None (searched again)."""
+    try:
+        saved = json.loads((Path(model_dir) / SEARCH_FILE).read_text())
+        [Candidate(**c) for c in saved["candidates"]], float(saved["search_seconds"])
+        if "record" in saved:
+            TrainConfig(**saved["final_config"])
+    except (OSError, ValueError, KeyError, TypeError):
+        return None
+    return saved
+
+
+def _save_search(model_dir: Path, search: dict) -> None:
+    atomic_write_bytes(model_dir / SEARCH_FILE, json.dumps(search, indent=2).encode())
+
+
+def final_budget(config: TrainConfig, record: dict | None) -> TrainConfig:
+    """`config`'s budget less the search's (its candidates' steps, or its seconds): the final
+    model's share, as the run that searched gave it."""
+    if not record:  # (a model the search's record was lost from: its whole budget, as before)
+        return config
+    if config.steps:
+        return replace(config, steps=max(1, config.steps - sum(int(c["steps"]) for c in record["candidates"])))
+    return replace(config, minutes=max(config.minutes * 0.05, config.minutes - float(record["search_seconds"]) / 60))
 
 
 def _search_and_train(scene: Scene, model_dir: Path, config: TrainConfig, progress, should_stop, factors,
-                      tolerance_db: float, started: float) -> TrainResult:
-    config = with_default_scale(scene, config, progress=progress)
-    config = final_model_defaults(scene, config, progress)
-    searched = _search(scene, config, factors, progress, should_stop, started)
-    if searched is None:  # cancelled; nothing saved yet: the search starts again next time
-        return TrainResult(model_dir, "cancelled", 0, time.monotonic() - started, None, [])
-    candidates, validation = searched
-    chosen = choose(candidates, tolerance_db)
-    record = {"candidates": [asdict(c) for c in candidates], "chosen": asdict(chosen), "tolerance_db": tolerance_db,
-              "validation_views": [v.name for v in validation], "search_seconds": round(time.monotonic() - started, 1)}
-    _emit(progress, event="autosize", stage="chosen", **record)
-    _emit(progress, event="stage", message=f"auto: chose texture x{chosen.factor:g} {chosen.overrides['texture_size']}")
-    final = replace(config, field_overrides=chosen.overrides,
-                    steps=max(1, config.steps - sum(c.steps for c in candidates)) if config.steps else None,
-                    minutes=max(config.minutes * 0.05, config.minutes - (time.monotonic() - started) / 60) if config.minutes else None)
+                      tolerance_db: float, started: float, saved: dict | None = None) -> TrainResult:
+    if saved is not None and "record" in saved:  # the size was chosen before the stop: it trains
+        record = saved["record"]
+        final = final_budget(replace(TrainConfig(**saved["final_config"]), steps=config.steps, minutes=config.minutes,
+                                     checkpoint_seconds=config.checkpoint_seconds,
+                                     validate_seconds=config.validate_seconds, device=config.device), record)
+    else:
+        config = with_default_scale(scene, config, progress=progress)
+        config = final_model_defaults(scene, config, progress)
+        done = [Candidate(**c) for c in saved["candidates"]] if saved is not None else []
+        searched = _search(scene, config, factors, progress, should_stop, started, model_dir, done)
+        if searched is None:  # cancelled: the candidates scored are kept (SEARCH_FILE), --resume goes on from them
+            return TrainResult(model_dir, "cancelled", 0, time.monotonic() - started, None, [])
+        candidates, validation = searched
+        chosen = choose(candidates, tolerance_db)
+        record = {"candidates": [asdict(c) for c in candidates], "chosen": asdict(chosen), "tolerance_db": tolerance_db,
+                  "validation_views": [v.name for v in validation], "search_seconds": round(time.monotonic() - started, 1)}
+        final = final_budget(replace(config, field_overrides=chosen.overrides), record)
+        _save_search(model_dir, {"candidates": record["candidates"], "search_seconds": record["search_seconds"],
+                                 "record": record, "final_config": asdict(final)})
+        _emit(progress, event="autosize", stage="chosen", **record)
+        _emit(progress, event="stage", message=f"auto: chose texture x{chosen.factor:g} {chosen.overrides['texture_size']}")
     result = train(scene, model_dir, final, progress=_rescaled(progress, SEARCH_SHARE, 1 - SEARCH_SHARE, None),
                    should_stop=should_stop)
     return _record(model_dir, record, result)
@@ -203,16 +250,23 @@ def _steps_per_minute(scene: Scene, config: TrainConfig) -> float:
         return float(json.loads((Path(folder) / METADATA_NAME).read_text()).get("losses_steps_per_minute", 0.0))
 
 
-def _search(scene: Scene, config: TrainConfig, factors, progress, should_stop, started: float):
+def _search(scene: Scene, config: TrainConfig, factors, progress, should_stop, started: float, model_dir: Path,
+            done: list[Candidate] = ()):
     """Train and score every candidate size: (candidates, validation views), None if cancelled.
-    `started`: when the auto run began (time.monotonic())."""
+    `started`: when the auto run began (time.monotonic()); `done`: candidates a stopped run
+    scored (SEARCH_FILE), kept as they are; each one scored here is added to the file."""
     fit, validation, held = validation_split(scene, config)
     _emit(progress, event="stage", message=f"auto: {len(factors)} texture sizes, validated on "
                                              f"{', '.join(v.name for v in validation)}")
     candidates = [Candidate(f, {**config.field_overrides, **texture_overrides(fit, config.scale, f)})
                   for f in sorted(factors, reverse=True)]
     steps, share = _candidate_steps(config, len(candidates)), SEARCH_SHARE / len(candidates)
+    scored = {c.factor: c for c in done}
     for i, candidate in enumerate(candidates):
+        if candidate.factor in scored:
+            candidates[i] = scored[candidate.factor]
+            steps = steps or candidates[i].steps
+            continue
         budget = {"steps": steps, "minutes": None} if steps else {"steps": None,
                                                                    "minutes": _first_candidate_minutes(config, len(candidates), started)}
         run = candidate_config(config, candidate, budget, held + validation)
@@ -220,6 +274,8 @@ def _search(scene: Scene, config: TrainConfig, factors, progress, should_stop, s
         if not score_candidate(scene, run, candidate, validation, report, should_stop):
             return None
         steps = steps or candidate.steps  # a minutes budget: the largest candidate sets the steps for the rest
+        _save_search(model_dir, {"candidates": [asdict(c) for c in candidates[:i + 1]],
+                                 "search_seconds": round(time.monotonic() - started, 1)})
         _emit(progress, event="autosize", stage="candidate", **asdict(candidate))
         _emit(progress, event="stage", message=f"auto: texture x{candidate.factor:g} {candidate.overrides['texture_size']}: "
                                                  f"{candidate.val_psnr:.2f} dB, {candidate.model_bytes / 1e6:.2f} MB")
@@ -266,8 +322,9 @@ def _candidate_steps(config: TrainConfig, count: int) -> int | None:
 
 def _record(model_dir: Path, record: dict | None, result: TrainResult) -> TrainResult:
     """The search's candidates and choice into the saved model's metadata (all three files)."""
-    if record is not None:
+    if record is not None and checkpoint_path(model_dir).is_file():
         payload = load_checkpoint(model_dir)
         payload["autosize"] = record
         save_checkpoint(model_dir, payload)
+        (Path(model_dir) / SEARCH_FILE).unlink(missing_ok=True)  # (the checkpoint holds it now)
     return result

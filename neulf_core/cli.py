@@ -247,7 +247,12 @@ def cmd_train(args) -> int:
     if result.status == "cancelled":
         from .checkpoint import checkpoint_path
 
-        if not checkpoint_path(Path(args.out)).is_file():  # cancelled before a model existed (auto's size search)
+        from .autosize import SEARCH_FILE
+
+        if (Path(args.out).expanduser() / SEARCH_FILE).is_file() and not checkpoint_path(Path(args.out)).is_file():
+            message = (f"cancelled during the auto preset's size search; the sizes scored so far are kept in "
+                       f"{Path(args.out) / SEARCH_FILE}. Continue with the same command and --resume.")
+        elif not checkpoint_path(Path(args.out)).is_file():  # cancelled before a model existed
             message = "cancelled before the first checkpoint; nothing was saved. Start again with the same command."
         else:
             message = (f"cancelled at step {result.step}{_of_member(Path(args.out))}; checkpoint saved. Continue with: "
