@@ -3,13 +3,15 @@ render speed-up (its DisparityField.forward, kept here as `reference_forward`, w
 chunks and ReLUs not in place), interleaved in one process, median of repeats.
 
     python benchmarks/render_speed.py --scene ../shared/data/canclip --scale 0.5 \
-        --model c8=MODEL_DIR --model c4=MODEL_DIR [--threads 2] [--repeats 7] [--no-depth] [--pixel-samples 1,4]
+        --model c8=MODEL_DIR --model c4=MODEL_DIR [--threads 2] [--repeats 7] [--no-depth] [--pixel-samples 1,4] \
+        [--sample-contrasts 0,0.02]
 
 The camera is the first held-out view's, at the models' training scale.  Models with depth
 layers (which the reference code cannot evaluate) are timed with the current code only.
 `--blends colour,features` times models with a back surface with each way of blending their
 two surfaces (DisparityConfig.back_surface_blend: two decodes or one), current code.
-`--default-allocator` times the same with glibc's default malloc thresholds (a process-wide
+`--sample-contrasts` times the points per pixel above 1 given only to the pixels of more contrast
+than each (render.SAMPLE_CONTRAST; 0: every pixel).  `--default-allocator` times the same with glibc's default malloc thresholds (a process-wide
 setting, so that comparison takes two runs).  Timings on a shared machine are noisy: compare
 the ratios (each repeat renders every variant once, in turn).
 """
@@ -31,7 +33,7 @@ import torch.nn.functional as F
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from neulf_core.fields.disparity import DisparityField  # noqa: E402
-from neulf_core.render import LightField  # noqa: E402
+from neulf_core.render import SAMPLE_CONTRAST, LightField  # noqa: E402
 from neulf_core.scene import load_scene, split_views  # noqa: E402
 
 CURRENT_FORWARD = DisparityField.forward
@@ -94,6 +96,9 @@ def main() -> None:
     parser.add_argument("--no-depth", action="store_true")
     parser.add_argument("--pixel-samples", default="1",
                         help="comma-separated points per pixel to time with the current code (render.PIXEL_SAMPLES)")
+    parser.add_argument("--sample-contrasts", default=str(SAMPLE_CONTRAST),
+                        help="comma-separated sample contrasts to time the points per pixel above 1 with "
+                             f"(render.SAMPLE_CONTRAST: the default {SAMPLE_CONTRAST}; 0: the points in every pixel)")
     parser.add_argument("--blends", help="comma-separated back-surface blends to time (colour, features) for models "
                                          "with a back surface (default: each model's own)")
     parser.add_argument("--out", type=Path, help="also write the timings to this CSV (one row a variant: the date, "
@@ -111,8 +116,11 @@ def main() -> None:
     K, width, height = camera.calibration_matrix(), int(camera.width), int(camera.height)
     # Layered models, members and more points per pixel: the current code only.
     samples = [int(n) for n in args.pixel_samples.split(",")]
-    variants = [(f"{code}, {name}" + (f", {n} points a pixel" if n != 1 else ""), name, code == "current", n, None)
+    contrasts = [float(c) for c in args.sample_contrasts.split(",")]
+    variants = [(f"{code}, {name}" + (f", {n} points a pixel{where(c)}" if n != 1 else ""), name, code == "current",
+                 (n, c), None)
                 for name in models for code in ("reference", "current") for n in samples
+                for c in (contrasts if n != 1 else [0.0])
                 if code == "current" or (n == 1 and reference_can_render(models[name]))]
     if args.blends:
         variants = [variant for variant in variants if not variant[2] or not has_back_surface(models[variant[1]])] + [
@@ -129,7 +137,7 @@ def main() -> None:
                 field_module.config.back_surface_blend = blend or own_blend[id(field_module)]
             started = time.perf_counter()
             models[name].render(K, width, height, view.R, view.t, depth=not args.no_depth, chunk=chunk,
-                                pixel_samples=points)
+                                pixel_samples=points[0], sample_contrast=points[1])
             times[label].append(time.perf_counter() - started)
     use_code(models.values(), True)
     first = variants[0][0]
@@ -152,6 +160,11 @@ def main() -> None:
             writer.writeheader()
             writer.writerows(rows)
         print(f"written {args.out}")
+
+
+def where(contrast: float) -> str:
+    """Which pixels take the points, for a variant's label."""
+    return " in every pixel" if contrast == 0 else f" where the contrast is above {contrast:g}"
 
 
 def machine() -> str:

@@ -73,16 +73,23 @@ def pinhole_rays(K, R, t, width: int, height: int, device="cpu", dtype=torch.flo
 
     `rows` limits the rays to a band of image rows (chunked rendering of huge frames).
     """
-    K = torch.as_tensor(np.asarray(K, dtype=np.float64), dtype=dtype, device=device)
-    R = torch.as_tensor(np.asarray(R, dtype=np.float64), dtype=dtype, device=device)
-    t = torch.as_tensor(np.asarray(t, dtype=np.float64), dtype=dtype, device=device)
     row_range = range(height)[rows] if rows is not None else range(height)
     ys = torch.arange(row_range.start, row_range.stop, device=device, dtype=dtype) + 0.5
     xs = torch.arange(width, device=device, dtype=dtype) + 0.5
     grid_y, grid_x = torch.meshgrid(ys, xs, indexing="ij")
-    x = (grid_x - K[0, 2] - K[0, 1] * (grid_y - K[1, 2]) / K[1, 1]) / K[0, 0]  # K[0,1]: skew
-    y = (grid_y - K[1, 2]) / K[1, 1]
-    bearings = torch.stack([x, y, torch.ones_like(x)], dim=-1).reshape(-1, 3)
+    return pinhole_rays_at(K, R, t, grid_x.reshape(-1), grid_y.reshape(-1))
+
+
+def pinhole_rays_at(K, R, t, xs: torch.Tensor, ys: torch.Tensor):
+    """Origin (3,) and unit world directions (N, 3) of a pinhole camera's rays through the image
+    points (xs, ys) (top-left origin: x = 10.5 is the centre of column 10), on their device."""
+    device, dtype = xs.device, xs.dtype
+    K = torch.as_tensor(np.asarray(K, dtype=np.float64), dtype=dtype, device=device)
+    R = torch.as_tensor(np.asarray(R, dtype=np.float64), dtype=dtype, device=device)
+    t = torch.as_tensor(np.asarray(t, dtype=np.float64), dtype=dtype, device=device)
+    x = (xs - K[0, 2] - K[0, 1] * (ys - K[1, 2]) / K[1, 1]) / K[0, 0]  # K[0,1]: skew
+    y = (ys - K[1, 2]) / K[1, 1]
+    bearings = torch.stack([x, y, torch.ones_like(x)], dim=-1)
     directions = bearings @ R
     directions = directions / directions.norm(dim=1, keepdim=True)
     return -R.T @ t, directions
