@@ -48,6 +48,7 @@ from .checkpoint import (CHECKPOINT_NAME, METADATA_NAME, MODEL_NAME, checkpoint_
                          remove_stale_temporaries)
 from .errors import NeulfError
 from .files import atomic_write_bytes
+from .model_files import read_metadata
 from .scene import Scene, load_scene
 
 STATE_NAME = "starts.json"
@@ -152,6 +153,7 @@ class _Watch:
         self.losses: list[float] = []
         self.refining_poses = refining_poses  # the pose check's verdict: the poses are off and being refined
         self.members = 1  # members by rule on a minutes budget (members.py): this run trains 1/members of it
+        self.on_checkpoint = None  # (step, the loss window) at each checkpoint of this start: _keep_losses
 
     def overall(self, fraction: float) -> float:
         if not (self.pass_limit and self.two_starts):
@@ -171,6 +173,8 @@ class _Watch:
             self.refining_poses = bool(event.get("refining"))
         if kind == "members":
             self.members = max(1, int(event["count"]))
+        if kind == "checkpoint" and self.on_checkpoint is not None:
+            self.on_checkpoint(int(event["step"]), list(self.losses))
         if kind in ("step", "validate"):
             self.step = int(event["step"])
             self.elapsed = float(event.get("elapsed", self.elapsed))
@@ -239,11 +243,28 @@ def train_two_starts(train_one: Callable, scene, model_dir: Path, config, images
                      should_stop, _record(state))
 
 
+def _keep_losses(watch: _Watch, stage: str, model_dir: Path, folder: Path, state: dict, written) -> None:
+    """The start's loss window goes into the state with each of its checkpoints (while `written()`:
+    the state file exists), and comes back when the start resumes from that checkpoint: a start
+    stopped or killed had compared the mean of only the steps after its resumption, lower losses
+    than a whole window's, so the choice leant to the start that was resumed."""
+    saved = state.get(f"{stage}_losses")
+    if saved and checkpoint_path(folder).is_file() and read_metadata(folder).get("progress", {}).get("step") == saved["step"]:
+        watch.losses = [float(loss) for loss in saved["losses"]]
+
+    def keep(step: int, losses: list[float]) -> None:
+        if written():
+            state[f"{stage}_losses"] = {"step": step, "losses": losses}
+            _write_state(model_dir, state)
+    watch.on_checkpoint = keep
+
+
 def _first_start(train_one, scene, model_dir: Path, config, images_dir, resume: bool, progress, user_stop, state: dict):
     """The first start, in the model folder: to the decision step where two starts are
     planned (the state then says what the second needs), else to the end (its result)."""
     watch = _Watch(progress, "first", state.get("pass_limit"), user_stop, steps=config.steps,
                    refining_poses=bool(state.get("refining_poses")))  # (a resumed run may not hear it again)
+    _keep_losses(watch, "first", model_dir, model_dir, state, lambda: "pass_limit" in state)
 
     def stop_first() -> bool:
         if watch.refining_poses and "pass_limit" in state and not state.get("refining_poses"):
@@ -287,6 +308,7 @@ def _second_start(train_one, scene, second_dir: Path, config, images_dir, progre
     watch = _Watch(progress, "second", state["pass_limit"], user_stop, decision=state["decision_step"])
     second_dir.mkdir(exist_ok=True)
     remove_stale_temporaries(second_dir)
+    _keep_losses(watch, "second", second_dir.parent, second_dir, state, lambda: True)
     result = train_one(scene, second_dir, replace(config, seed=state["second_seed"]), images_dir,
                        checkpoint_path(second_dir).is_file(), watch,
                        lambda: user_stop() or watch.step >= state["decision_step"], None)

@@ -135,6 +135,14 @@ CASES = [
     Case("Training killed with SIGKILL part-way: resuming loses at most one checkpoint interval", [
         f"{REL}::test_sigkill_during_training_loses_at_most_one_checkpoint_interval",
         f"{CKPT}::test_cli_sigint_cancels_and_saves", f"{STORY}[train_killed]"]),
+    Case("The auto preset stopped or killed during its size search or before its model's first checkpoint: it "
+         "resumes after its last scored size, trains a size chosen before at once, and a resumed model trains to its "
+         "share of the budget with the search's record kept", [
+        "tests/test_auto_resume.py::test_a_search_killed_after_scored_candidates_goes_on_from_them[1]",
+        "tests/test_auto_resume.py::test_a_search_killed_after_scored_candidates_goes_on_from_them[2]",
+        "tests/test_auto_resume.py::test_a_size_chosen_before_the_final_models_first_checkpoint_trains_at_once",
+        "tests/test_auto_resume.py::test_a_final_model_killed_after_a_checkpoint_resumes_to_its_share_of_the_budget",
+        "tests/test_auto_resume.py::test_a_new_training_does_not_take_a_stopped_runs_search"]),
     Case("Cancel in Blender during training, then Train again", [
         f"{STORY}[train_cancel]", f"{STORY}[train_cancel_resume]",
         f"{CKPT}::test_cancel_then_resume_equals_straight_training",
@@ -321,6 +329,7 @@ CASES = [
         "tests/test_lock.py::test_processes_racing_for_a_lock_never_hold_it_together[nobody]",
         "tests/test_lock.py::test_processes_racing_for_a_lock_never_hold_it_together[a process that is gone]",
         "tests/test_lock.py::test_a_lock_is_released_only_while_it_is_still_this_process",
+        "tests/test_lock.py::test_a_lock_that_cannot_be_deleted_leaves_the_error_that_ended_the_training",
         "tests/test_lock.py::test_a_lock_being_written_is_not_taken_for_a_stale_one",
         "tests/test_lock.py::test_the_thread_holding_a_lock_takes_it_again_and_others_are_refused",
         "tests/test_lock.py::test_the_auto_presets_search_holds_the_lock",

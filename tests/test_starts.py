@@ -178,6 +178,12 @@ def test_a_stop_before_the_choice_resumes_where_it_was(tiny_scene, tmp_path, sto
     meta = json.loads((tmp_path / "m" / "model.json").read_text())
     assert meta["starts"]["decision_step"] == decision and meta["starts"]["kept"] in ("first", "second")
     assert not (tmp_path / "m" / SECOND_START_DIR).exists()
+    # Both starts compared over the same window of losses as a run never stopped: the resumed start's
+    # mean had covered only its steps after the stop (a fault audit: 0.0023 against 0.0064).
+    run(tiny_scene, tmp_path / "straight", config)
+    straight = json.loads((tmp_path / "straight" / "model.json").read_text())["starts"]
+    assert (meta["starts"]["first_loss"], meta["starts"]["second_loss"]) == (straight["first_loss"],
+                                                                             straight["second_loss"])
 
 
 def test_one_start_while_the_poses_are_refined(tiny_scene, tmp_path, monkeypatch):
