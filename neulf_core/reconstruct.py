@@ -186,8 +186,19 @@ def _other_runs(out_dir: Path, own: Path | None = None) -> list[tuple[Path, dict
         if owner is not None:
             running.append((folder, owner))
         elif (folder / WORK_OWNER).is_file() or _age_seconds(folder) > UNCLAIMED_WORK_SECONDS:
-            shutil.rmtree(folder, ignore_errors=True)  # its process is gone: nothing in it is wanted
+            _finish_install(folder, out_dir)
+            shutil.rmtree(folder, ignore_errors=True)  # its process is gone: nothing else in it is wanted
     return running
+
+
+def _finish_install(work: Path, out_dir: Path) -> None:
+    """A run killed between _install_results' two renames left the scene without sparse/0, its
+    old model and its new, complete one (the database already the new one's) in its work folder:
+    the new model is put in place, not deleted with the folder."""
+    model_dir = out_dir / "sparse" / "0"
+    if not (model_dir.exists() or model_dir.is_symlink()) and (work / "sparse").is_dir() and (work / "old-model").exists():
+        with contextlib.suppress(OSError):
+            os.replace(work / "sparse", model_dir)
 
 
 def _age_seconds(folder: Path) -> float:

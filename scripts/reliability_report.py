@@ -200,8 +200,9 @@ CASES = [
         "tests/test_reconstruct.py::test_failed_run_into_new_folder_leaves_nothing",
         "tests/test_reconstruct.py::test_failed_run_with_webp_leaves_no_photos"]),
     Case("Reconstruct killed outright (SIGKILL), or run twice into one folder at once: the next run clears what the "
-         "killed one left; the second is refused", [
+         "killed one left (a model it had completed put in place first); the second is refused", [
         "tests/test_reconstruct.py::test_a_run_killed_outright_leaves_nothing_after_the_next",
+        "tests/test_reconstruct.py::test_a_run_killed_between_its_two_renames_leaves_its_new_model_in_place",
         "tests/test_reconstruct.py::test_a_run_into_a_folder_another_run_reconstructs_is_refused",
         "tests/test_reconstruct.py::test_unclaimed_work_folders_are_removed_only_when_old",
         "tests/test_reconstruct.py::test_a_relative_scene_folder",

@@ -577,6 +577,34 @@ def test_unclaimed_work_folders_are_removed_only_when_old(capture, tmp_path):
     assert work_folders(scene) == [young]
 
 
+def test_a_run_killed_between_its_two_renames_leaves_its_new_model_in_place(capture, tmp_path, record_property):
+    """Killed after moving the old sparse/0 into its work folder and before moving the new one in
+    (two renames apart): the next run found no sparse/0 and deleted the dead work folder holding
+    both models.  The new, complete one is put in place first."""
+    import json
+    import platform
+    import shutil
+    import subprocess
+    import sys
+    import time
+
+    scene = tmp_path / "scene"
+    reconstruct(capture[0], scene)
+    model = scene / "sparse" / "0"
+    registered = pycolmap.Reconstruction(model).num_reg_images()
+    work = scene / (reconstruct_module.WORK_PREFIX + "killed")
+    work.mkdir()
+    dead = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True, text=True)
+    (work / reconstruct_module.WORK_OWNER).write_text(json.dumps({"pid": int(dead.stdout), "host": platform.node(),
+                                                                   "started": time.time() - 5}))
+    shutil.copytree(model, work / "old-model")  # (the first rename done)
+    model.rename(work / "sparse")  # (a work folder's sparse/ is the new model itself; the second rename not done)
+    assert not model.exists()
+    assert reconstruct_module._other_runs(scene) == []
+    assert pycolmap.Reconstruction(model).num_reg_images() == registered and work_folders(scene) == []
+    record_property("message", "the new model put in place, then the dead run's folder removed")
+
+
 def test_a_relative_scene_folder(capture, tmp_path, monkeypatch):
     """From Python 3.12 tempfile.mkdtemp returns an absolute path where the folder given is
     relative, and the run took its own work folder for another run's and refused itself."""
