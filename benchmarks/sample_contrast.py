@@ -26,7 +26,6 @@ docs/sample_contrast_x<F>.csv / .png and a table of its own.
 from __future__ import annotations
 
 import argparse
-import csv
 import statistics
 import sys
 import time
