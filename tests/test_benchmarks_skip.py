@@ -34,6 +34,8 @@ SCRIPTS = {
                      "--cache", f"{TMP}/cache"],
     "pixel_samples": ["--canclip", MISSING, "--configurations", "canclip", "--seeds", "0", "--steps", "1",
                       "--cache", f"{TMP}/cache"],
+    "sample_contrast": ["--canclip", MISSING, "--configurations", "canclip", "--seeds", "0",
+                        "--cache", f"{TMP}/cache"],
     "members": ["--canclip", MISSING, "--configurations", "canclip", "--seeds", "0", "--budgets", "1",
                 "--cache", f"{TMP}/cache"],
     "seed_disagreement": ["--canclip", MISSING, "--configurations", "canclip-6-photos", "--seeds", "0", "--steps", "1",
