@@ -244,11 +244,17 @@ def parse_args(argv=None) -> argparse.Namespace:
     parser.add_argument("--seeds", default="0-3")
     parser.add_argument("--steps", type=int, default=seed_scatter.STUDY_STEPS)
     parser.add_argument("--workers", type=int, default=2)
+    add_model_arguments(parser)
+    return parser.parse_args(argv)
+
+
+def add_model_arguments(parser: argparse.ArgumentParser) -> None:
+    """Where the trained models and scenes are, the machine's line and --report-only; also
+    benchmarks/sample_contrast.py's."""
     parser.add_argument("--cache", type=Path, default=DEFAULT_CACHE, help="trained models (reused)")
     seed_scatter.add_scene_arguments(parser)
     parser.add_argument("--machine", help="hardware line for the table (default: this machine's)")
     parser.add_argument("--report-only", action="store_true")
-    return parser.parse_args(argv)
 
 
 def main(argv=None) -> None:

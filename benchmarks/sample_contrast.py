@@ -165,10 +165,7 @@ def parse_args(argv=None) -> argparse.Namespace:
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--render-scale", type=float, default=1.0,
                         help="render the views at this multiple of the trained size (default 1)")
-    parser.add_argument("--cache", type=Path, default=pixel_samples.DEFAULT_CACHE, help="trained models (reused)")
-    seed_scatter.add_scene_arguments(parser)
-    parser.add_argument("--machine", help="hardware line for the table (default: this machine's)")
-    parser.add_argument("--report-only", action="store_true")
+    pixel_samples.add_model_arguments(parser)
     return parser.parse_args(argv)
 
 
