@@ -179,7 +179,8 @@ def cmd_reconstruct(args) -> int:
         total = f" ({event['registered']}/{event['total']})" if event.get("stage") == "mapping" else ""
         print(f"[{event['stage']}] {event['message']}{total}", file=sys.stderr, flush=True)
 
-    def on_signal(_signum, _frame):  # (Blender's Cancel sends SIGTERM: the run's hidden folder is removed)
+    def on_signal(signum, _frame):  # (Blender's Cancel sends SIGTERM: the run's hidden folder is removed)
+        _stopped_by.append(signum)  # (main says which signal, and exits 128 + its number: 143, not Ctrl-C's 130)
         raise KeyboardInterrupt
 
     signals = [signal.SIGTERM] + ([signal.SIGBREAK] if hasattr(signal, "SIGBREAK") else [])

@@ -537,6 +537,37 @@ def test_a_run_killed_outright_leaves_nothing_after_the_next(capture, tmp_path):
     assert pycolmap.Reconstruction(model_dir).num_reg_images() == len(capture[1])
 
 
+def test_a_run_stopped_by_sigterm_says_so_and_exits_143(capture, tmp_path, record_property):
+    """SIGTERM (kill, a scheduler's limit, Blender's Cancel) ends a reconstruction with one line
+    naming it and exit 128 + 15, as train, render and video end; its work folder is removed.
+    (It had said "interrupted" and exited 130, Ctrl-C's code: a script could not tell them apart.)"""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    scene = tmp_path / "scene"
+    env = dict(os.environ, PYTHONPATH=str(Path(__file__).resolve().parent.parent))
+    process = subprocess.Popen([sys.executable, "-m", "neulf_core", "reconstruct", str(capture[0]), "--out", str(scene)],
+                               env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        deadline = time.monotonic() + 120
+        while not any((folder / "database.db").is_file() for folder in work_folders(scene)):
+            assert process.poll() is None and time.monotonic() < deadline, "the run ended before it was stopped"
+            time.sleep(0.05)
+        process.send_signal(signal.SIGTERM)
+        _, err = process.communicate(timeout=120)
+    finally:
+        if process.poll() is None:
+            process.kill()
+    last = err.strip().splitlines()[-1]
+    record_property("message", last)
+    assert process.returncode == 128 + signal.SIGTERM, err
+    assert last == "stopped by SIGTERM" and "Traceback" not in err, err
+    assert work_folders(scene) == [] and not (scene / "sparse").exists()
+
+
 def test_a_run_into_a_folder_another_run_reconstructs_is_refused(capture, tmp_path):
     """Two runs into one folder would install their models over each other: the second is
     refused, naming the first's process, and leaves the first's work alone."""
