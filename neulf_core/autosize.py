@@ -22,6 +22,7 @@ from .checkpoint import METADATA_NAME, MODEL_NAME, checkpoint_path, load_checkpo
 from .errors import NeulfError
 from .fields.disparity import texture_size_for
 from .files import atomic_write_bytes, refuse_a_path_too_long
+from .interrupt import stops_at_once
 from .lock import training_lock
 from .memo import kept_while_training
 from .metrics import psnr
@@ -148,7 +149,8 @@ def train_auto(scene: Scene | str | Path, model_dir: str | Path, config: TrainCo
         # time before a stop.
         started = time.monotonic() - (saved or {}).get("search_seconds", 0.0)
         if not isinstance(scene, Scene):
-            scene = load_scene(scene, images_dir)
+            with stops_at_once():  # (nothing is training yet: a stop need not wait for a step)
+                scene = load_scene(scene, images_dir)
         # One training call (memo.py): the candidates read the photos and build their rays once, and
         # a warning about the scale is said once.
         with kept_while_training():
@@ -190,8 +192,9 @@ def _search_and_train(scene: Scene, model_dir: Path, config: TrainConfig, progre
                                      checkpoint_seconds=config.checkpoint_seconds,
                                      validate_seconds=config.validate_seconds, device=config.device), record)
     else:
-        config = with_default_scale(scene, config, progress=progress)
-        config = final_model_defaults(scene, config, progress)
+        with stops_at_once():  # (the rules' decisions: nothing a stop could lose)
+            config = with_default_scale(scene, config, progress=progress)
+            config = final_model_defaults(scene, config, progress)
         done = [Candidate(**c) for c in saved["candidates"]] if saved is not None else []
         searched = _search(scene, config, factors, progress, should_stop, started, model_dir, done)
         if searched is None:  # cancelled: the candidates scored are kept (SEARCH_FILE), --resume goes on from them

@@ -21,6 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from .errors import OUT_OF_MEMORY, NeulfError, is_out_of_memory
+from .interrupt import stop_interrupts_at_once
 from .presets import MAX_DEPTH_LAYERS
 
 EXIT_USAGE = 2
@@ -225,6 +226,8 @@ def cmd_train(args) -> int:
 
     def on_signal(signum, _frame):
         stop["signal"] = signum
+        if stop_interrupts_at_once():  # setting up: nothing is training, nothing to save first
+            raise KeyboardInterrupt
 
     def on_reader_gone():
         stop["reader_gone"] = True
@@ -235,26 +238,37 @@ def cmd_train(args) -> int:
     signals = [signal.SIGINT, signal.SIGTERM] + [getattr(signal, name) for name in ("SIGBREAK", "SIGHUP")
                                                  if hasattr(signal, name)]
     previous = {s: signal.signal(s, on_signal) for s in signals}
+    progress = _Reporter(make_reporter(args.progress), on_reader_gone)
     try:
         run = train_auto if args.preset == AUTO_PRESET else train  # auto: a size search, then train()
         result = run(args.scene_dir, args.out, config, images_dir=args.images, resume=args.resume, asked=_options_asked(args),
-                       progress=_Reporter(make_reporter(args.progress), on_reader_gone),
-                       should_stop=lambda: stop["signal"] is not None or stop["reader_gone"])
+                     progress=progress, should_stop=lambda: stop["signal"] is not None or stop["reader_gone"])
+    except KeyboardInterrupt:  # stopped while setting up (interrupt.stops_at_once): no step was taken
+        if stop["signal"] is None:
+            raise
+        result = None
     finally:
         for s, handler in previous.items():
             signal.signal(s, handler)
     if stop["reader_gone"]:  # nobody is left to read a message; the checkpoint is what matters
         return 128 + int(getattr(signal, "SIGPIPE", 13))
-    if result.status == "cancelled":
+    if result is None or result.status == "cancelled":
         from .checkpoint import checkpoint_path
 
         from .autosize import SEARCH_FILE
 
+        saved_step = _saved_step(Path(args.out).expanduser())
+        if result is None:
+            progress({"event": "cancelled", "step": saved_step or 0, "setting_up": True})
         if (Path(args.out).expanduser() / SEARCH_FILE).is_file() and not checkpoint_path(Path(args.out)).is_file():
             message = (f"cancelled during the auto preset's size search; the sizes scored so far are kept in "
                        f"{Path(args.out) / SEARCH_FILE}. Continue with the same command and --resume.")
         elif not checkpoint_path(Path(args.out)).is_file():  # cancelled before a model existed
             message = "cancelled before the first checkpoint; nothing was saved. Start again with the same command."
+        elif result is None:
+            message = ("cancelled while setting up, before a step; the model is as it was last saved. Continue with: "
+                       "python -m neulf_core train "
+                       f"{shlex.quote(str(args.scene_dir))} --out {shlex.quote(str(args.out))} --resume --minutes/--steps ...")
         else:
             message = (f"cancelled at step {result.step}{_of_member(Path(args.out))}; checkpoint saved. Continue with: "
                        f"python -m neulf_core train {shlex.quote(str(args.scene_dir))} --out "
@@ -263,6 +277,14 @@ def cmd_train(args) -> int:
             print(message, file=sys.stderr)
         return 128 + int(stop["signal"] or signal.SIGINT)
     return 0
+
+
+def _saved_step(model_dir: Path) -> int | None:
+    """The step of the model saved in `model_dir` (its model.json), None where none was saved."""
+    from .checkpoint import read_metadata
+
+    step = read_metadata(model_dir).get("progress", {}).get("step")
+    return step if isinstance(step, int) else None
 
 
 def _of_member(model_dir: Path) -> str:

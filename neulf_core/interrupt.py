@@ -5,6 +5,11 @@ The CLI and Blender stop a training through `should_stop` (their own signal hand
 so what is saved is a run paused between steps, which resumes to the very weights of one never
 stopped.  A script's Ctrl-C is a KeyboardInterrupt, which can land anywhere, an optimiser step
 half taken included; `ctrl_c_stops` turns the first one into the same stop.
+
+Setting a run up (reading the photos, building the rays, the plane sweep) saves nothing a stop
+could lose, and takes up to minutes on a large capture: there a stop need not wait for the first
+step.  `stops_at_once` marks those spans; the signal handlers then interrupt at once (a SIGTERM
+had waited 12-18 s for the first step: a fault audit, 2026-12-07).
 """
 
 from __future__ import annotations
@@ -12,6 +17,29 @@ from __future__ import annotations
 import contextlib
 import signal
 import threading
+
+
+# Whether a stop signal interrupts at once, innermost span last (the main thread's: signals reach no other).
+_at_once: list[bool] = []
+
+
+@contextlib.contextmanager
+def stops_at_once(at_once: bool = True):
+    """A span where a stop signal interrupts at once (`at_once`), or, nested inside one, a span
+    where it waits for the step in progress (a training's steps and its last checkpoint)."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    _at_once.append(at_once)
+    try:
+        yield
+    finally:
+        _at_once.pop()
+
+
+def stop_interrupts_at_once() -> bool:
+    """True inside a stops_at_once span (of the main thread): nothing a stop could lose is running."""
+    return bool(_at_once) and _at_once[-1] and threading.current_thread() is threading.main_thread()
 
 
 @contextlib.contextmanager
@@ -28,7 +56,7 @@ def ctrl_c_stops(should_stop):
     asked = []
 
     def on_ctrl_c(signum, frame):
-        if asked:
+        if asked or stop_interrupts_at_once():
             raise KeyboardInterrupt
         asked.append(True)
 

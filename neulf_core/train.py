@@ -32,7 +32,7 @@ from .errors import NeulfError
 from .files import refuse_a_path_too_long, temporary_name
 from .fields import build_field, count_parameters, make_config
 from .fields.disparity import slab_geometry, texture_size_for
-from .interrupt import ctrl_c_stops
+from .interrupt import ctrl_c_stops, stops_at_once
 from .lock import training_lock
 from .memo import kept, kept_while_training
 from .members import RATE_DECISION_STEP as MEMBERS_RATE_DECISION_STEP, RATE_FROM_STEP as MEMBERS_RATE_FROM_STEP, \
@@ -278,17 +278,18 @@ def train(scene: Scene | str | Path, model_dir: str | Path, config: TrainConfig,
         return train_two_starts(_train, scene, folder, config, images_dir, resume, progress, should_stop)
 
     with training_lock(model_dir), kept_while_training(), ctrl_c_stops(should_stop) as (stop, ctrl_c):
-        refuse_a_path_too_long(model_dir, longest_path_written(config))
-        remove_stale_temporaries(model_dir)
-        refuse_a_model_without_its_checkpoint(model_dir, resume)
-        if resume and not checkpoint_path(model_dir).is_file():
-            say_nothing_to_resume(model_dir, progress)
-        elif resume:
-            say_what_resume_keeps(model_dir, config, asked, progress)
-        if resume and not isinstance(scene, Scene):  # the photos it trained on (LLFF: images_N/)
-            images_dir = images_dir_as_trained(scene, images_dir, saved_scene_record(model_dir))
-        scene = scene if isinstance(scene, Scene) else load_scene(scene, images_dir)
-        config = rules.with_default_scale(scene, config, model_dir, resume, progress)
+        with stops_at_once():  # (nothing is training yet: a stop need not wait for a step)
+            refuse_a_path_too_long(model_dir, longest_path_written(config))
+            remove_stale_temporaries(model_dir)
+            refuse_a_model_without_its_checkpoint(model_dir, resume)
+            if resume and not checkpoint_path(model_dir).is_file():
+                say_nothing_to_resume(model_dir, progress)
+            elif resume:
+                say_what_resume_keeps(model_dir, config, asked, progress)
+            if resume and not isinstance(scene, Scene):  # the photos it trained on (LLFF: images_N/)
+                images_dir = images_dir_as_trained(scene, images_dir, saved_scene_record(model_dir))
+            scene = scene if isinstance(scene, Scene) else load_scene(scene, images_dir)
+            config = rules.with_default_scale(scene, config, model_dir, resume, progress)
         result = train_members(train_one, scene, model_dir, config, images_dir, resume, progress, stop)
         warning = barely_trained_warning(result, config, model_dir)
         if warning:
@@ -350,14 +351,16 @@ def _train(scene, model_dir: Path, config: TrainConfig, images_dir, resume: bool
            record: dict | None = None) -> TrainResult:
     """One training run into `model_dir`; `record`: entries for the model's metadata (how its
     start was chosen)."""
-    run = TrainingRun(scene, model_dir, config, images_dir, resume, progress, record)
-    try:
-        run.train_until_done(should_stop)
-    except KeyboardInterrupt:  # a Python caller's Ctrl-C (the CLI and Blender stop through should_stop):
-        run.status = "cancelled"  # saved as a cancel is, so resuming loses nothing, then passed on
-        run.finish()
-        raise
-    return run.finish()
+    with stops_at_once():  # setting up (the photos' rays, the plane sweep) writes nothing: a stop ends it at once
+        run = TrainingRun(scene, model_dir, config, images_dir, resume, progress, record)
+    with stops_at_once(False):  # ... while the steps and the last checkpoint finish what they do
+        try:
+            run.train_until_done(should_stop)
+        except KeyboardInterrupt:  # a Python caller's Ctrl-C (the CLI and Blender stop through should_stop):
+            run.status = "cancelled"  # saved as a cancel is, so resuming loses nothing, then passed on
+            run.finish()
+            raise
+        return run.finish()
 
 
 # Options of the fast field alone (the disparity field of the fast and auto presets), by their

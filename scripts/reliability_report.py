@@ -143,6 +143,11 @@ CASES = [
         "tests/test_auto_resume.py::test_a_size_chosen_before_the_final_models_first_checkpoint_trains_at_once",
         "tests/test_auto_resume.py::test_a_final_model_killed_after_a_checkpoint_resumes_to_its_share_of_the_budget",
         "tests/test_auto_resume.py::test_a_new_training_does_not_take_a_stopped_runs_search"]),
+    Case("A training stopped (SIGTERM, Ctrl-C) while it sets up (its photos read, the plane sweep): it ends at once, "
+         "not after its first step, and says what was kept", [
+        f"{REL}::test_a_stop_while_setting_up_ends_the_training_at_once",
+        f"{REL}::test_a_stop_while_a_resumed_training_sets_up_keeps_the_model_as_it_was",
+        f"{REL}::test_ctrl_c_while_a_python_train_call_sets_up_stops_it_at_once"]),
     Case("Cancel in Blender during training, then Train again", [
         f"{STORY}[train_cancel]", f"{STORY}[train_cancel_resume]",
         f"{CKPT}::test_cancel_then_resume_equals_straight_training",
@@ -199,9 +204,11 @@ CASES = [
         "tests/test_reconstruct.py::test_failed_run_leaves_existing_scene_untouched",
         "tests/test_reconstruct.py::test_failed_run_into_new_folder_leaves_nothing",
         "tests/test_reconstruct.py::test_failed_run_with_webp_leaves_no_photos"]),
-    Case("Reconstruct killed outright (SIGKILL), or run twice into one folder at once: the next run clears what the "
-         "killed one left (a model it had completed put in place first); the second is refused", [
+    Case("Reconstruct killed outright (SIGKILL), stopped (SIGTERM), or run twice into one folder at once: the next "
+         "run clears what the killed one left (a model it had completed put in place first); a stopped one names "
+         "its signal and exits 143; the second is refused", [
         "tests/test_reconstruct.py::test_a_run_killed_outright_leaves_nothing_after_the_next",
+        "tests/test_reconstruct.py::test_a_run_stopped_by_sigterm_says_so_and_exits_143",
         "tests/test_reconstruct.py::test_a_run_killed_between_its_two_renames_leaves_its_new_model_in_place",
         "tests/test_reconstruct.py::test_a_run_into_a_folder_another_run_reconstructs_is_refused",
         "tests/test_reconstruct.py::test_unclaimed_work_folders_are_removed_only_when_old",

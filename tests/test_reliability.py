@@ -1034,6 +1034,30 @@ def test_ctrl_c_stops_a_python_train_call_between_steps(tiny_scene, tmp_path):
     assert_same_weights(tmp_path / "whole", tmp_path / "stopped")
 
 
+def test_ctrl_c_while_a_python_train_call_sets_up_stops_it_at_once(tiny_scene, tmp_path, monkeypatch):
+    """A script's Ctrl-C while the run sets up (nothing trained yet) interrupts there, not after
+    the first step; the folder is left without a model or a lock."""
+    from neulf_core.train import TrainConfig, TrainingRun, train
+
+    if signal.getsignal(signal.SIGINT) is not signal.default_int_handler:
+        pytest.skip("Python's own Ctrl-C handler is not in place here")
+    slept = []
+
+    def ctrl_c_while_reading_the_photos(self, *args, **kwargs):
+        slept.append("reading")
+        os.kill(os.getpid(), signal.SIGINT)  # (its handler runs as os.kill returns)
+        time.sleep(30)  # (a large capture's photos: never reached)
+        slept.append("read")
+
+    monkeypatch.setattr(TrainingRun, "_load_rays", ctrl_c_while_reading_the_photos)
+    started = time.monotonic()
+    with pytest.raises(KeyboardInterrupt):
+        train(tiny_scene, tmp_path / "model", TrainConfig(steps=12, batch_size=256))
+    assert time.monotonic() - started < 20 and slept == ["reading"]
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # (put back)
+    assert not (tmp_path / "model" / CHECKPOINT_NAME).exists() and not (tmp_path / "model" / "training.lock").exists()
+
+
 def test_numpy_numbers_in_a_train_config(tiny_scene, tmp_path):
     """A sweep's numbers are often numpy's: np.int64 steps were refused as "not 100"."""
     from neulf_core.train import TrainConfig, train
@@ -1578,6 +1602,72 @@ def test_a_closed_terminal_saves_the_training(tiny_scene, tmp_path):
     assert code == 128 + signal.SIGHUP, err
     saved = load_checkpoint(model)
     assert saved["progress"]["status"] == "cancelled" and saved["progress"]["step"] >= 1
+
+
+# A training whose setting up takes long (a large capture's photos, the plane sweep): the child
+# says SETTING_UP from inside it, then waits there until the signal comes.
+SLOW_SETUP = """
+import sys, time
+import neulf_core.train as train
+def slow_rays(self, *args, **kwargs):
+    print("SETTING_UP", flush=True)
+    time.sleep(120)
+train.TrainingRun._load_rays = slow_rays
+from neulf_core.cli import main
+sys.exit(main(sys.argv[1:]))
+"""
+
+
+def stop_while_setting_up(scene, model: Path, signal_number: int, *options: str):
+    """`train` stopped by `signal_number` while it sets up: (exit code, stdout, stderr, seconds
+    from the signal to the end)."""
+    env = dict(os.environ, PYTHONPATH=str(REPO) + os.pathsep + os.environ.get("PYTHONPATH", ""))
+    process = subprocess.Popen([sys.executable, "-c", SLOW_SETUP, "train", str(scene), "--out", str(model),
+                                "--steps", "100000", "--batch-size", "64", "--progress", "json", *options],
+                               cwd=model.parent, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        for line in process.stdout:
+            if line.strip() == "SETTING_UP":
+                break
+        process.send_signal(signal_number)
+        sent = time.monotonic()
+        out, err = process.communicate(timeout=60)
+        return process.returncode, out, err, time.monotonic() - sent
+    finally:
+        if process.poll() is None:
+            process.kill()
+
+
+def test_a_stop_while_setting_up_ends_the_training_at_once(tiny_scene, tmp_path, record_property):
+    """SIGTERM while a new training sets up (its photos read, the plane sweep): it ends at once,
+    not after the first step (12-18 s on a busy machine in the fault audit of 2026-12-07), says
+    nothing was saved, and leaves no lock behind."""
+    model = tmp_path / "model"
+    code, out, err, seconds = stop_while_setting_up(tiny_scene, model, signal.SIGTERM)
+    record_property("message", err.strip().splitlines()[-1])
+    assert code == 128 + signal.SIGTERM, err
+    assert seconds < 20 and "Traceback" not in err, err  # (the sleep it was in lasts 120 s)
+    assert err.strip().splitlines()[-1] == ("cancelled before the first checkpoint; nothing was saved. Start again "
+                                            "with the same command.")
+    assert json.loads(out.strip().splitlines()[-1])["event"] == "cancelled"
+    assert not (model / CHECKPOINT_NAME).exists() and not (model / "training.lock").exists()
+
+
+def test_a_stop_while_a_resumed_training_sets_up_keeps_the_model_as_it_was(model, tiny_scene, tmp_path,
+                                                                           record_property):
+    """Ctrl-C while a resumed training sets up: the saved model is left as it was, and the
+    message says so and how to go on."""
+    resumed = shutil.copytree(model, tmp_path / "model")
+    before = (resumed / CHECKPOINT_NAME).read_bytes()
+    code, out, err, seconds = stop_while_setting_up(tiny_scene, resumed, signal.SIGINT, "--resume")
+    last = err.strip().splitlines()[-1]
+    record_property("message", last)
+    assert code == 128 + signal.SIGINT and seconds < 20 and "Traceback" not in err, err
+    assert last.startswith("cancelled while setting up, before a step; the model is as it was last saved. "
+                           "Continue with: python -m neulf_core train ") and "--resume" in last, last
+    assert (resumed / CHECKPOINT_NAME).read_bytes() == before and not (resumed / "training.lock").exists()
+    assert json.loads(out.strip().splitlines()[-1]) == {"event": "cancelled", "step": load_checkpoint(resumed)["progress"]["step"],
+                                                       "setting_up": True}
 
 
 def test_a_camera_edited_with_its_centre_kept_is_said(model, tiny_scene, tmp_path, capfd, record_property):
