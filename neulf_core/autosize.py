@@ -12,13 +12,13 @@ from __future__ import annotations
 
 import json
 import tempfile
-import time
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
 import numpy as np
 
 from .checkpoint import METADATA_NAME, MODEL_NAME, checkpoint_path, load_checkpoint, save_checkpoint
+from .clock import running_time
 from .errors import NeulfError
 from .fields.disparity import texture_size_for
 from .files import atomic_write_bytes, refuse_a_path_too_long
@@ -147,7 +147,7 @@ def train_auto(scene: Scene | str | Path, model_dir: str | Path, config: TrainCo
             (model_dir / SEARCH_FILE).unlink(missing_ok=True)
         # A minutes budget is the whole run's: the photos' loading and the rules' probe too, and the search's
         # time before a stop.
-        started = time.monotonic() - (saved or {}).get("search_seconds", 0.0)
+        started = running_time() - (saved or {}).get("search_seconds", 0.0)
         if not isinstance(scene, Scene):
             with stops_at_once():  # (nothing is training yet: a stop need not wait for a step)
                 scene = load_scene(scene, images_dir)
@@ -198,11 +198,11 @@ def _search_and_train(scene: Scene, model_dir: Path, config: TrainConfig, progre
         done = [Candidate(**c) for c in saved["candidates"]] if saved is not None else []
         searched = _search(scene, config, factors, progress, should_stop, started, model_dir, done)
         if searched is None:  # cancelled: the candidates scored are kept (SEARCH_FILE), --resume goes on from them
-            return TrainResult(model_dir, "cancelled", 0, time.monotonic() - started, None, [])
+            return TrainResult(model_dir, "cancelled", 0, running_time() - started, None, [])
         candidates, validation = searched
         chosen = choose(candidates, tolerance_db)
         record = {"candidates": [asdict(c) for c in candidates], "chosen": asdict(chosen), "tolerance_db": tolerance_db,
-                  "validation_views": [v.name for v in validation], "search_seconds": round(time.monotonic() - started, 1)}
+                  "validation_views": [v.name for v in validation], "search_seconds": round(running_time() - started, 1)}
         final = final_budget(replace(config, field_overrides=chosen.overrides), record)
         _save_search(model_dir, {"candidates": record["candidates"], "search_seconds": record["search_seconds"],
                                  "record": record, "final_config": asdict(final)})
@@ -256,7 +256,7 @@ def _steps_per_minute(scene: Scene, config: TrainConfig) -> float:
 def _search(scene: Scene, config: TrainConfig, factors, progress, should_stop, started: float, model_dir: Path,
             done: list[Candidate] = ()):
     """Train and score every candidate size: (candidates, validation views), None if cancelled.
-    `started`: when the auto run began (time.monotonic()); `done`: candidates a stopped run
+    `started`: when the auto run began (running_time()); `done`: candidates a stopped run
     scored (SEARCH_FILE), kept as they are; each one scored here is added to the file."""
     fit, validation, held = validation_split(scene, config)
     _emit(progress, event="stage", message=f"auto: {len(factors)} texture sizes, validated on "
@@ -278,7 +278,7 @@ def _search(scene: Scene, config: TrainConfig, factors, progress, should_stop, s
             return None
         steps = steps or candidate.steps  # a minutes budget: the largest candidate sets the steps for the rest
         _save_search(model_dir, {"candidates": [asdict(c) for c in candidates[:i + 1]],
-                                 "search_seconds": round(time.monotonic() - started, 1)})
+                                 "search_seconds": round(running_time() - started, 1)})
         _emit(progress, event="autosize", stage="candidate", **asdict(candidate))
         _emit(progress, event="stage", message=f"auto: texture x{candidate.factor:g} {candidate.overrides['texture_size']}: "
                                                  f"{candidate.val_psnr:.2f} dB, {candidate.model_bytes / 1e6:.2f} MB")
@@ -314,7 +314,7 @@ def _first_candidate_minutes(config: TrainConfig, count: int, started: float) ->
     (fern at 1.5 minutes: 5 of the search's 36 seconds), so the model keeps its share; a quarter
     of the even part at least."""
     even = config.minutes * SEARCH_SHARE / count
-    left = config.minutes * SEARCH_SHARE - (time.monotonic() - started) / 60
+    left = config.minutes * SEARCH_SHARE - (running_time() - started) / 60
     return max(even / 4, left / count)
 
 

@@ -25,6 +25,7 @@ from .appearance import (ViewAppearance, appearance_by_default, blank_photos, ex
                          photo_exposures)
 from .checkpoint import (CHECKPOINT_NAME, MODEL_NAME, TRAINING_STATE_KEY, checkpoint_path, damaged_checkpoint,
                          load_checkpoint, remove_stale_temporaries, save_checkpoint, saved_scene_record)
+from .clock import StepClock, running_time, watching_for_continue
 from .consistency import SlabGeometry, camera_neighbours, multiview_losses
 from .dataset import RaySet, kept_rayset, mean_colour, rows_at
 from .device import describe_device, keep_freed_cpu_memory, pick_device
@@ -277,7 +278,8 @@ def train(scene: Scene | str | Path, model_dir: str | Path, config: TrainConfig,
     def train_one(scene, folder, config, images_dir, resume, progress, should_stop):
         return train_two_starts(_train, scene, folder, config, images_dir, resume, progress, should_stop)
 
-    with training_lock(model_dir), kept_while_training(), ctrl_c_stops(should_stop) as (stop, ctrl_c):
+    with training_lock(model_dir), kept_while_training(), watching_for_continue(), \
+            ctrl_c_stops(should_stop) as (stop, ctrl_c):
         with stops_at_once():  # (nothing is training yet: a stop need not wait for a step)
             refuse_a_path_too_long(model_dir, longest_path_written(config))
             remove_stale_temporaries(model_dir)
@@ -746,7 +748,8 @@ class TrainingRun:
 
     def train_until_done(self, should_stop) -> None:
         """Steps until the budget is spent or `should_stop()` says so (then status "cancelled")."""
-        start_time = time.monotonic()
+        step_clock = StepClock()  # (time the process stood stopped, Ctrl-Z, is left out: clock.py)
+        start_time = running_time()
         last_checkpoint = last_validation = start_time
         elapsed_before = self.elapsed
         self.first_step, self.rate_mark = self.step, self.elapsed
@@ -757,12 +760,13 @@ class TrainingRun:
                 break
             if not self._take_step():
                 continue
-            now = time.monotonic()
+            step_clock.tick()
+            now = running_time()
             self.elapsed = elapsed_before + (now - start_time)
             self._decide_at_measured_rate()
             if now - last_validation >= self.config.validate_seconds or self.budget_fraction() >= 1.0:
                 self._validate()
-                last_validation = time.monotonic()
+                last_validation = running_time()
                 start_time += last_validation - now  # validation time does not count against the budget
                 now = last_validation
             else:
@@ -770,7 +774,7 @@ class TrainingRun:
                       fraction=self.budget_fraction(), lr=self.lr)
             if now - last_checkpoint >= self.config.checkpoint_seconds:
                 self.save("training")
-                last_checkpoint = time.monotonic()
+                last_checkpoint = running_time()
 
     def _take_step(self) -> bool:
         """One optimiser step on a random batch of rays; False where its loss was not finite

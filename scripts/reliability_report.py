@@ -148,6 +148,10 @@ CASES = [
         f"{REL}::test_a_stop_while_setting_up_ends_the_training_at_once",
         f"{REL}::test_a_stop_while_a_resumed_training_sets_up_keeps_the_model_as_it_was",
         f"{REL}::test_ctrl_c_while_a_python_train_call_sets_up_stops_it_at_once"]),
+    Case("A training stopped (Ctrl-Z, `kill -STOP`, a scheduler's suspend) and continued: the time it stood still "
+         "does not count against its minutes budget", [
+        f"{REL}::test_time_stopped_does_not_count_against_a_minutes_budget",
+        f"{REL}::test_the_step_clock_leaves_a_stop_out"]),
     Case("Cancel in Blender during training, then Train again", [
         f"{STORY}[train_cancel]", f"{STORY}[train_cancel_resume]",
         f"{CKPT}::test_cancel_then_resume_equals_straight_training",

@@ -1670,6 +1670,60 @@ def test_a_stop_while_a_resumed_training_sets_up_keeps_the_model_as_it_was(model
                                                        "setting_up": True}
 
 
+@pytest.mark.skipif(not hasattr(signal, "SIGSTOP"), reason="no job control on this system")
+def test_time_stopped_does_not_count_against_a_minutes_budget(tiny_scene, tmp_path, record_property):
+    """A training stopped part-way (Ctrl-Z, `kill -STOP`, a scheduler's suspend) and continued
+    trains its budget's minutes after all: the time it stood still is not training time (a run
+    stopped longer than its budget ended the moment it was continued)."""
+    budget, pause = 10.0, 6.0
+    env = dict(os.environ, PYTHONPATH=str(REPO) + os.pathsep + os.environ.get("PYTHONPATH", ""))
+    model = tmp_path / "model"
+    process = subprocess.Popen([sys.executable, "-m", "neulf_core", "train", str(tiny_scene), "--out", str(model),
+                                "--minutes", str(budget / 60), "--batch-size", "64", "--progress", "json"],
+                               cwd=tmp_path, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        for line in process.stdout:
+            event = json.loads(line)
+            if event["event"] == "step":
+                break
+        process.send_signal(signal.SIGSTOP)
+        stopped_at = time.monotonic()
+        time.sleep(pause)
+        process.send_signal(signal.SIGCONT)
+        out, err = process.communicate(timeout=120)
+        wall = time.monotonic() - stopped_at
+    finally:
+        if process.poll() is None:
+            process.kill()
+    assert process.returncode == 0, err
+    finished = json.loads(out.strip().splitlines()[-1])
+    record_property("message", f"stopped {pause:g} s at {event['elapsed']:.1f} s of a {budget:g} s budget: "
+                               f"{wall:.1f} s from the stop to the end, {finished['elapsed']:.1f} s trained")
+    left = budget - event["elapsed"]  # (the budget left when it was stopped)
+    assert wall >= pause + left - 1.0, (wall, left)  # (it had ended as soon as it was continued: wall ~ pause)
+    assert finished["event"] == "finished" and budget - 0.5 <= finished["elapsed"] < budget + 3.0, finished
+
+
+def test_the_step_clock_leaves_a_stop_out(monkeypatch):
+    """The step in which a SIGCONT came: what lasted beyond the step before counts as stopped,
+    and the budgets' clock leaves it out; a step without one counts whole."""
+    from neulf_core import clock
+
+    now = [100.0]
+    monkeypatch.setattr(clock.time, "monotonic", lambda: now[0])
+    monkeypatch.setattr(clock, "_stopped_seconds", [0.0])
+    steps = clock.StepClock()
+    now[0] += 0.5
+    steps.tick()
+    now[0] += 60.5  # a step of 0.5 s, and a minute stopped
+    clock._continued[0] = True
+    steps.tick()
+    assert clock.stopped_seconds() == pytest.approx(60.0) and clock.running_time() == pytest.approx(101.0)
+    now[0] += 2.0  # a slow step, with no SIGCONT: it counts whole
+    steps.tick()
+    assert clock.stopped_seconds() == pytest.approx(60.0)
+
+
 def test_a_camera_edited_with_its_centre_kept_is_said(model, tiny_scene, tmp_path, capfd, record_property):
     """A focal length changed in the scene's model, the camera centres kept: the scene check
     (view names and centres) let --resume and render go on without a word."""
