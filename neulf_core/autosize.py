@@ -10,7 +10,9 @@ TrainConfig with more views excluded and a texture-size override.
 
 from __future__ import annotations
 
+import contextlib
 import json
+import shutil
 import tempfile
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
@@ -47,6 +49,11 @@ SEARCH_SHARE = 0.4            # of the budget spent on the candidates together
 # model's first checkpoint trains the chosen size at once, and a resumed model trains to its
 # share of the new budget (the whole of it, search included, before).
 SEARCH_FILE = "autosize.json"
+# The candidates' and the rate probe's training folders, inside the model folder: a run killed
+# outright (SIGKILL) had left them in the system's temporary folder, where nothing removed them;
+# here the next run into the folder does (train_auto).
+SCRATCH_DIR = ".autosize-scratch"
+SCRATCH_PREFIX = "neulf-auto-"
 
 
 @dataclass
@@ -130,7 +137,8 @@ def train_auto(scene: Scene | str | Path, model_dir: str | Path, config: TrainCo
     # of the folder started meanwhile trained to its end, and this run, its search spent, was then
     # refused as overwriting a model.  The final train() takes the lock again (training_lock).
     with training_lock(model_dir):
-        refuse_a_path_too_long(model_dir, longest_path_written(config))
+        refuse_a_path_too_long(model_dir, Path(SCRATCH_DIR) / f"{SCRATCH_PREFIX}12345678" / longest_path_written(config))
+        shutil.rmtree(model_dir / SCRATCH_DIR, ignore_errors=True)  # a killed run's (the lock says none is running)
         if resume and checkpoint_path(model_dir).is_file():  # the size was chosen before: continue it
             record = load_checkpoint(model_dir).get("autosize") or (saved_search(model_dir) or {}).get("record")
             result = train(scene, model_dir, final_budget(config, record), images_dir=images_dir, resume=True,
@@ -192,11 +200,12 @@ def _search_and_train(scene: Scene, model_dir: Path, config: TrainConfig, progre
                                      checkpoint_seconds=config.checkpoint_seconds,
                                      validate_seconds=config.validate_seconds, device=config.device), record)
     else:
-        with stops_at_once():  # (the rules' decisions: nothing a stop could lose)
-            config = with_default_scale(scene, config, progress=progress)
-            config = final_model_defaults(scene, config, progress)
-        done = [Candidate(**c) for c in saved["candidates"]] if saved is not None else []
-        searched = _search(scene, config, factors, progress, should_stop, started, model_dir, done)
+        with search_scratch(model_dir) as scratch:
+            with stops_at_once():  # (the rules' decisions: nothing a stop could lose)
+                config = with_default_scale(scene, config, progress=progress)
+                config = final_model_defaults(scene, config, progress, scratch)
+            done = [Candidate(**c) for c in saved["candidates"]] if saved is not None else []
+            searched = _search(scene, config, factors, progress, should_stop, started, model_dir, done, scratch)
         if searched is None:  # cancelled: the candidates scored are kept (SEARCH_FILE), --resume goes on from them
             return TrainResult(model_dir, "cancelled", 0, running_time() - started, None, [])
         candidates, validation = searched
@@ -213,12 +222,24 @@ def _search_and_train(scene: Scene, model_dir: Path, config: TrainConfig, progre
     return _record(model_dir, record, result)
 
 
-def final_model_defaults(scene: Scene, config: TrainConfig, progress) -> TrainConfig:
+@contextlib.contextmanager
+def search_scratch(model_dir: Path):
+    """SCRATCH_DIR of `model_dir` while the search runs, removed after it (and after a failure)."""
+    folder = Path(model_dir) / SCRATCH_DIR
+    folder.mkdir(parents=True, exist_ok=True)
+    try:
+        yield folder
+    finally:
+        shutil.rmtree(folder, ignore_errors=True)
+
+
+def final_model_defaults(scene: Scene, config: TrainConfig, progress, scratch: Path | None = None) -> TrainConfig:
     """`config` with the view-count rules left to the default (rules.default_consistency,
     rules.default_coarse_to_fine, rules.default_depth_detail_reads, rules.default_geometry_tv,
     rules.default_max_passes, rules.default_back_surface) decided once, for the final
     model's training views: the search runs (fewer views: the validation views are carved
-    out) train as the model will."""
+    out) train as the model will.  `scratch`: where a rate probe trains (None: the system's
+    temporary folder)."""
     train_views, _ = split_views(scene, config.holdout_every, config.exclude)
     if config.coarse_to_fine is None:
         config = replace(config, coarse_to_fine=default_coarse_to_fine(len(train_views)))
@@ -234,27 +255,27 @@ def final_model_defaults(scene: Scene, config: TrainConfig, progress) -> TrainCo
     if config.consistency is None:
         decided = default_consistency(slab, train_views, config)
         if decided is None:  # a minutes budget: how many steps it buys is measured, as train() does
-            decided = default_consistency(slab, train_views, config, _steps_per_minute(scene, config))
+            decided = default_consistency(slab, train_views, config, _steps_per_minute(scene, config, scratch))
         config = replace(config, consistency=decided)  # (LOSSES_UNTIL_POSES_RIGHT: each run's pose check ends them)
         if config.consistency:
             announce_default_losses(progress, len(train_views))
     return config
 
 
-def _steps_per_minute(scene: Scene, config: TrainConfig) -> float:
+def _steps_per_minute(scene: Scene, config: TrainConfig, scratch: Path | None = None) -> float:
     """The step rate with the multi-view losses on that train() counts a minutes budget at
     (rules.measured_steps_per_minute), from a run of its first steps in a scratch folder (its
     steps end it; a minute at least, so that a short budget on a busy machine still gets
     there, and 0 if it did not)."""
     probe = replace(config, steps=LOSSES_DECISION_STEP + 1, minutes=max(config.minutes, 1.0), consistency=None,
                     teacher=False, refine_poses=False, checkpoint_seconds=1e9, validate_seconds=1e9, two_starts=False)
-    with tempfile.TemporaryDirectory(prefix="neulf-auto-rate-") as folder:
+    with tempfile.TemporaryDirectory(prefix=f"{SCRATCH_PREFIX}rate-", dir=scratch) as folder:
         train(scene, folder, probe)
         return float(json.loads((Path(folder) / METADATA_NAME).read_text()).get("losses_steps_per_minute", 0.0))
 
 
 def _search(scene: Scene, config: TrainConfig, factors, progress, should_stop, started: float, model_dir: Path,
-            done: list[Candidate] = ()):
+            done: list[Candidate] = (), scratch: Path | None = None):
     """Train and score every candidate size: (candidates, validation views), None if cancelled.
     `started`: when the auto run began (running_time()); `done`: candidates a stopped run
     scored (SEARCH_FILE), kept as they are; each one scored here is added to the file."""
@@ -274,7 +295,7 @@ def _search(scene: Scene, config: TrainConfig, factors, progress, should_stop, s
                                                                    "minutes": _first_candidate_minutes(config, len(candidates), started)}
         run = candidate_config(config, candidate, budget, held + validation)
         report = _rescaled(progress, i * share, share, f"x{candidate.factor:g}")
-        if not score_candidate(scene, run, candidate, validation, report, should_stop):
+        if not score_candidate(scene, run, candidate, validation, report, should_stop, scratch=scratch):
             return None
         steps = steps or candidate.steps  # a minutes budget: the largest candidate sets the steps for the rest
         _save_search(model_dir, {"candidates": [asdict(c) for c in candidates[:i + 1]],
@@ -296,9 +317,11 @@ def candidate_config(config: TrainConfig, candidate: Candidate, budget: dict, ex
                    checkpoint_seconds=1e9, validate_seconds=1e9, two_starts=False, teacher=False)
 
 
-def score_candidate(scene: Scene, run: TrainConfig, candidate: Candidate, validation, progress, should_stop) -> bool:
-    """Train one candidate in a scratch folder and fill in its steps, PSNR and file size."""
-    with tempfile.TemporaryDirectory(prefix="neulf-auto-") as folder:
+def score_candidate(scene: Scene, run: TrainConfig, candidate: Candidate, validation, progress, should_stop, *,
+                    scratch: Path | None = None) -> bool:
+    """Train one candidate in a folder of its own in `scratch` (None: the system's temporary
+    folder) and fill in its steps, PSNR and file size."""
+    with tempfile.TemporaryDirectory(prefix=SCRATCH_PREFIX, dir=scratch) as folder:
         result = train(scene, folder, run, progress=progress, should_stop=should_stop)
         if result.status == "cancelled":
             return False

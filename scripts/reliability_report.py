@@ -137,12 +137,13 @@ CASES = [
         f"{CKPT}::test_cli_sigint_cancels_and_saves", f"{STORY}[train_killed]"]),
     Case("The auto preset stopped or killed during its size search or before its model's first checkpoint: it "
          "resumes after its last scored size, trains a size chosen before at once, and a resumed model trains to its "
-         "share of the budget with the search's record kept", [
+         "share of the budget with the search's record kept; the folders its candidates trained in are cleared", [
         "tests/test_auto_resume.py::test_a_search_killed_after_scored_candidates_goes_on_from_them[1]",
         "tests/test_auto_resume.py::test_a_search_killed_after_scored_candidates_goes_on_from_them[2]",
         "tests/test_auto_resume.py::test_a_size_chosen_before_the_final_models_first_checkpoint_trains_at_once",
         "tests/test_auto_resume.py::test_a_final_model_killed_after_a_checkpoint_resumes_to_its_share_of_the_budget",
-        "tests/test_auto_resume.py::test_a_new_training_does_not_take_a_stopped_runs_search"]),
+        "tests/test_auto_resume.py::test_a_new_training_does_not_take_a_stopped_runs_search",
+        "tests/test_auto_resume.py::test_the_search_trains_inside_the_model_folder_and_clears_a_killed_runs_folders"]),
     Case("A training stopped (SIGTERM, Ctrl-C) while it sets up (its photos read, the plane sweep): it ends at once, "
          "not after its first step, and says what was kept", [
         f"{REL}::test_a_stop_while_setting_up_ends_the_training_at_once",

@@ -9,6 +9,7 @@ A kill is an exception raised from the progress callback: nothing after it runs 
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import pytest
 
@@ -123,3 +124,29 @@ def test_a_new_training_does_not_take_a_stopped_runs_search(tiny_scene, tmp_path
     (tmp_path / "other").mkdir()
     (tmp_path / "other" / SEARCH_FILE).write_text("{not json")
     assert autosize.saved_search(tmp_path / "other") is None
+
+
+def test_the_search_trains_inside_the_model_folder_and_clears_a_killed_runs_folders(tiny_scene, tmp_path, monkeypatch):
+    """The candidates (and the rate probe) train in the model folder's SCRATCH_DIR, which the
+    search removes; one a run killed outright left (SIGKILL runs no `finally`) is removed by the
+    next run.  They had trained in the system's temporary folder, where a kill left them for good."""
+    import tempfile
+
+    import neulf_core.autosize as autosize
+
+    system_temp = tmp_path / "system_temp"
+    system_temp.mkdir()
+    monkeypatch.setattr(tempfile, "tempdir", str(system_temp))
+    model = tmp_path / "model"
+    left_by_a_kill = model / autosize.SCRATCH_DIR / (autosize.SCRATCH_PREFIX + "killed")
+    left_by_a_kill.mkdir(parents=True)
+    (left_by_a_kill / "checkpoint.pt").write_bytes(b"a candidate's checkpoint")
+    folders, real_train = [], autosize.train
+    monkeypatch.setattr(autosize, "train", lambda scene, folder, *a, **k: folders.append(Path(folder)) or
+                        real_train(scene, folder, *a, **k))
+
+    assert train_auto(tiny_scene, model, _config(steps=60)).status == "finished"
+
+    candidates = [f for f in folders if f != model]
+    assert len(candidates) == 3 and all(f.parent == model / autosize.SCRATCH_DIR for f in candidates), folders
+    assert not (model / autosize.SCRATCH_DIR).exists() and list(system_temp.iterdir()) == []
