@@ -85,13 +85,16 @@ def evaluate_model(model_dir, scene_dir, *, images_dir=None, out_dir=None, views
         report["mean_lpips"] = float(np.mean([r["lpips"] for r in rows]))
     if fit_poses:
         report["mean_psnr_pose_fitted"] = float(np.mean([r["psnr_pose_fitted"] for r in rows]))
-    # (written whole or not at all, as the renders: files.atomic_write_bytes)
-    atomic_write_bytes(out / "eval.json", json.dumps(report, indent=2).encode())
+    # Each written whole or not at all, as the renders (files.atomic_write_bytes), and eval.json
+    # last: a run stopped between the two had left a new eval.json beside an older eval.csv.  Now
+    # an eval.json is there only when the eval.csv beside it is of the same run.
     table = io.StringIO(newline="")
     writer = csv.DictWriter(table, fieldnames=list(rows[0]))
     writer.writeheader()
     writer.writerows(rows)
+    (out / "eval.json").unlink(missing_ok=True)
     atomic_write_bytes(out / "eval.csv", table.getvalue().encode())
+    atomic_write_bytes(out / "eval.json", json.dumps(report, indent=2).encode())
     report["written"] = str(out / "eval.json")
     return report
 

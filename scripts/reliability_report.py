@@ -363,6 +363,7 @@ CASES = [
         "tests/test_outputs.py::test_a_rig_s_views_that_share_a_stem_each_get_their_own_render",
         "tests/test_outputs.py::test_a_rig_s_photo_folder_is_refused_as_out",
         "tests/test_outputs.py::test_renders_and_eval_files_are_replaced_whole",
+        f"{REL}::test_an_eval_stopped_between_its_two_tables_leaves_no_eval_json_of_another_run",
         "tests/test_outputs.py::test_a_render_stopped_by_sigterm_says_one_line_and_leaves_whole_files",
         f"{CKPT}::test_a_signal_as_the_temporary_is_made_leaves_none_behind",
         *_ids("tests/test_outputs.py::test_a_video_stopped_part_way_keeps_the_earlier_video", "SIGTERM", "SIGINT"),

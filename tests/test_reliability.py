@@ -1724,6 +1724,30 @@ def test_the_step_clock_leaves_a_stop_out(monkeypatch):
     assert clock.stopped_seconds() == pytest.approx(60.0)
 
 
+def test_an_eval_stopped_between_its_two_tables_leaves_no_eval_json_of_another_run(model, tiny_scene, tmp_path,
+                                                                                   monkeypatch):
+    """eval.json is written last, and an older one is removed first: a run stopped between the two
+    tables had left a new eval.json beside the eval.csv of an earlier run."""
+    import neulf_core.evaluate as evaluate
+
+    out = tmp_path / "eval"
+    evaluate.evaluate_model(model, tiny_scene, out_dir=out, views=["view_00"], save_images=False, pixel_samples=1)
+    real_write = evaluate.atomic_write_bytes
+
+    def stopped_before_eval_json(path, data):
+        if Path(path).name == "eval.json":
+            raise KeyboardInterrupt
+        real_write(path, data)
+
+    monkeypatch.setattr(evaluate, "atomic_write_bytes", stopped_before_eval_json)
+    with pytest.raises(KeyboardInterrupt):
+        evaluate.evaluate_model(model, tiny_scene, out_dir=out, views=["view_03"], save_images=False, pixel_samples=1)
+    assert not (out / "eval.json").exists() and "view_03" in (out / "eval.csv").read_text()
+    monkeypatch.setattr(evaluate, "atomic_write_bytes", real_write)
+    evaluate.evaluate_model(model, tiny_scene, out_dir=out, views=["view_03"], save_images=False, pixel_samples=1)
+    assert [r["view"] for r in json.loads((out / "eval.json").read_text())["views"]] == ["view_03.png"]
+
+
 def test_a_camera_edited_with_its_centre_kept_is_said(model, tiny_scene, tmp_path, capfd, record_property):
     """A focal length changed in the scene's model, the camera centres kept: the scene check
     (view names and centres) let --resume and render go on without a word."""
