@@ -11,6 +11,7 @@ import bpy
 from mathutils import Matrix
 
 from . import capture, compositing, convert, viewport
+from .properties import pixel_samples_request
 from .model_folder import model_dir
 from .wording import panel_words
 from ..neulf_core.errors import OUT_OF_MEMORY, NeulfError, is_out_of_memory
@@ -76,7 +77,7 @@ class NeulfRenderEngine(bpy.types.RenderEngine):
             request = _region_only(request, scene.render)
             self.update_stats("", f"NeuLF: rendering {view}".rstrip())
             result = get_core().call("render", model_dir=model_dir(original), depth=want_depth, chunk=scene.neulf.chunk,
-                                     pixel_samples=int(scene.neulf.pixel_samples),
+                                     pixel_samples=pixel_samples_request(scene.neulf),
                                      on_progress=self.update_progress, should_stop=self.test_break, **request)
         except InterruptedError:
             return False

@@ -17,7 +17,7 @@ from .model_folder import (attach_model, chosen_path, default_model_dir, model_d
                            readable_model, refuse_linked, restore_metadata, scenes_of_model,
                            store_path)
 from .preferences import get_core, get_prefs, worker_python
-from .properties import CHOICE_OPTION
+from .properties import CHOICE_OPTION, pixel_samples_request
 from .video_settings import (configure_video, refuse_odd_video_size, refuse_unwritable_video, restore_after_render,
                              restore_render_settings, saved_render_settings, video_path)
 from .wording import panel_words
@@ -420,7 +420,7 @@ def active_camera_render(context, *, depth=True):
     scale = request.pop("scale")
     core = get_core(context)
     args = dict(model_dir=model_dir(scene), depth=depth, chunk=scene.neulf.chunk,
-                pixel_samples=int(scene.neulf.pixel_samples), **request, **capture.lens_request(scene.camera, scale))
+                pixel_samples=pixel_samples_request(scene.neulf), **request, **capture.lens_request(scene.camera, scale))
 
     def render(on_progress=None, should_stop=None) -> dict:
         result = core.call("render", on_progress=on_progress, should_stop=should_stop, **args)

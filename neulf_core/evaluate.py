@@ -16,7 +16,7 @@ from .images import save_rgb
 from .lpips import load_lpips, lpips_distance
 from .metrics import psnr, ssim
 from .outputs import refuse_clashing_names, refuse_writing_over_photos, view_file_stems
-from .render import DEFAULT_PIXEL_SAMPLES, SAMPLE_CONTRAST, LightField
+from .render import SAMPLE_CONTRAST, LightField
 from .poses import fit_view_pose
 from .scene import camera_spacing, load_scene, select_views
 from .trained_scene import (changed_cameras_note, changed_photos_note, images_dir_as_trained, other_photos_note,
@@ -24,10 +24,11 @@ from .trained_scene import (changed_cameras_note, changed_photos_note, images_di
 
 
 def evaluate_model(model_dir, scene_dir, *, images_dir=None, out_dir=None, views=None, device=None,
-                   save_images: bool = True, fit_poses: bool = False, pixel_samples: int = DEFAULT_PIXEL_SAMPLES,
+                   save_images: bool = True, fit_poses: bool = False, pixel_samples: int | None = None,
                    sample_contrast: float = SAMPLE_CONTRAST) -> dict:
-    """Scores per held-out view, each rendered with `pixel_samples` points per pixel in the
-    pixels of more contrast than `sample_contrast` (what `render` writes); with `fit_poses` also after fitting each view's pose to its photo
+    """Scores per held-out view, each rendered with `pixel_samples` points per pixel (None: the
+    render's default, LightField.default_pixel_samples) in the pixels of more contrast than
+    `sample_contrast` (what `render` writes); with `fit_poses` also after fitting each view's pose to its photo
     (poses.fit_view_pose), the fairer score where the reconstruction's poses carry error."""
     light_field = LightField.load(model_dir, device, precision="full")  # scores are float32's
     saved = light_field.meta["scene"]
@@ -47,7 +48,7 @@ def evaluate_model(model_dir, scene_dir, *, images_dir=None, out_dir=None, views
                                changed_photos_note(chosen, saved, "their scores compare the model with other photos "
                                                                    "than it learnt.")) if note]
     mean_colour = np.asarray(light_field.meta["scene"]["mean_colour"], dtype=np.float32)
-    rows, baseline = [], []
+    rows, baseline, used_samples = [], [], set()
     perceptual = load_lpips()  # None until the user fetched its weights (python -m neulf_core fetch-lpips)
     for view in chosen:
         scale = scale_as_trained(view, saved, light_field.trained_scale)  # (photos of another folder: note)
@@ -56,6 +57,7 @@ def evaluate_model(model_dir, scene_dir, *, images_dir=None, out_dir=None, views
         rendering = light_field.render_view(view, scale, depth=False, pixel_samples=pixel_samples,
                                             sample_contrast=sample_contrast)
         seconds = time.perf_counter() - started
+        used_samples.add(rendering.pixel_samples)
         notes += [f"{view.name}: {warning}" for warning in rendering.warnings]  # (rays past the capture: a low score)
         target = photo.astype(np.float32) / 255.0
         rows.append({"view": view.name, "psnr": psnr(rendering.rgb, target), "ssim": ssim(rendering.rgb, target),
@@ -76,7 +78,9 @@ def evaluate_model(model_dir, scene_dir, *, images_dir=None, out_dir=None, views
         "model": str(model_dir), "scene": str(scene_dir), "scale": light_field.trained_scale, "views": rows,
         "images": str(scene.images_dir) if scene.images_dir else None, "warnings": notes,
         "mean_psnr": float(np.mean([r["psnr"] for r in rows])), "mean_ssim": float(np.mean([r["ssim"] for r in rows])),
-        "mean_colour_psnr": float(np.mean(baseline)), "device": str(light_field.device), "pixel_samples": pixel_samples, "sample_contrast": sample_contrast,
+        "mean_colour_psnr": float(np.mean(baseline)), "device": str(light_field.device), "sample_contrast": sample_contrast,
+        # (the points each view took: None asked takes the default, render.default_pixel_samples)
+        "pixel_samples": used_samples.pop() if len(used_samples) == 1 else sorted(used_samples),
         # (which state of the model was scored: an eval run while training goes on is tied to its step)
         "model_step": light_field.meta.get("progress", {}).get("step"),
         "model_status": light_field.meta.get("progress", {}).get("status"),

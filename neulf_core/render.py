@@ -69,6 +69,14 @@ PRECISIONS = ("auto", "half", "full")
 # 1.5 dB on CanClip.
 PIXEL_SAMPLES = (1, 4, 9, 16)
 DEFAULT_PIXEL_SAMPLES = 4
+# ... except where a render is this many times finer than the photos the model trained on (its
+# focal length in pixels against theirs: Blender renders a camera at its photo's full size from a
+# model trained at the scale rule's smaller one): there the default takes the centre ray alone.
+# A render pixel that small falls inside one trained pixel, and the points over it gained +0.014
+# dB on average at 1.5 times (8 models) and +0.002 dB at 2 times (14 models, three seeds of the
+# synthetic scenes), for 2 to 5 times one point's render time; at the trained size they gain
+# +0.10 dB (benchmarks/sample_contrast.py --render-scale F, docs/PIXEL_SAMPLES.md).
+FINE_RENDER_SCALE = 1.5
 PIXEL_FOOTPRINT = 0.5
 # Which pixels take the points (`sample_contrast`): only those whose centre-ray colour differs
 # from a neighbour's (left, right, above, below) by more than this in some channel (colours 0-1;
@@ -122,6 +130,7 @@ class Rendering:
     warnings: list[str] = field(default_factory=list)
     complete: bool = True           # False where `on_chunk` stopped it: the rows below hold no picture
     refined: float = 0.0            # the share of its pixels that took the points (pixel_samples above 1)
+    pixel_samples: int = 1          # the points per pixel it was rendered with (default_pixel_samples where None was asked)
 
 
 def image_size(width, height) -> tuple[int, int]:
@@ -257,13 +266,13 @@ class LightField:
 
     def render(self, K, width: int, height: int, R, t, *, depth: bool = True, chunk: int | None = None,
                on_chunk=None, focus_distance: float | None = None, aperture: float = 0.0,
-               max_samples: int = MAX_SAMPLES, pixel_samples: int = 1,
+               max_samples: int = MAX_SAMPLES, pixel_samples: int | None = 1,
                pixel_footprint: float = PIXEL_FOOTPRINT, sample_contrast: float = SAMPLE_CONTRAST) -> Rendering:
         """Render a pinhole camera (K, world-to-camera R, t in the scene's COLMAP frame).
 
         With `aperture` > 0 (lens radius, scene units) and `focus_distance` (depth along the
         optical axis), the image is refocused by synthetic aperture (see refocus.py); depth
-        stays the pinhole ray's.  `pixel_samples` (PIXEL_SAMPLES): each pixel's colour the mean
+        stays the pinhole ray's.  `pixel_samples` (PIXEL_SAMPLES; None: default_pixel_samples(K)): each pixel's colour the mean
         over that many points of its central `pixel_footprint` square (pixel_offsets), in the
         pixels whose centre-ray colour differs from a neighbour's by more than `sample_contrast`
         (SAMPLE_CONTRAST; 0: in every pixel), the others the centre ray's; depth stays the centre
@@ -277,6 +286,7 @@ class LightField:
         width, height = image_size(width, height)
         K, R, t = camera_arrays(K, R, t)
         lens = self._lens_plan(K, focus_distance, aperture, max_samples)
+        pixel_samples = self.default_pixel_samples(K) if pixel_samples is None else pixel_samples
         offsets = pixel_offsets(pixel_samples, pixel_footprint)  # checked even where the lens takes over
         if lens is not None:
             offsets = pixel_offsets(1)
@@ -363,7 +373,8 @@ class LightField:
             warnings.append(f"rendering stopped after {rows_done} of {height} rows (on_chunk returned False): the rows "
                             "below hold no picture")
         return Rendering(rgb_out, depth_out, valid_out, warnings, complete=rows_done == height,
-                         refined=float(refined[:rows_done].sum()) / max(1, rows_done * width))
+                         refined=float(refined[:rows_done].sum()) / max(1, rows_done * width),
+                         pixel_samples=len(offsets))
 
     def _camera_slab_z(self, R, t) -> float:
         """The camera centre's depth along the slab axis (the uv plane at the rig)."""
@@ -437,8 +448,19 @@ class LightField:
                          "move the camera closer to the capture positions for reliable results")
         return notes
 
+    def default_pixel_samples(self, K) -> int:
+        """Points per pixel where none were asked: DEFAULT_PIXEL_SAMPLES, and 1 where the camera
+        K renders FINE_RENDER_SCALE times finer than the photos the model trained on or more."""
+        rig = self.meta.get("rig") or {}
+        try:
+            trained = np.asarray(rig["K"], np.float64)
+            finer = math.sqrt(abs(float(K[0][0]) * float(K[1][1])) / abs(float(trained[0, 0]) * float(trained[1, 1])))
+        except (KeyError, TypeError, ValueError, IndexError, ZeroDivisionError):  # (a model without its rig's record)
+            return DEFAULT_PIXEL_SAMPLES
+        return 1 if math.isfinite(finer) and finer >= FINE_RENDER_SCALE else DEFAULT_PIXEL_SAMPLES
+
     def render_view(self, view: View, scale: float | None = None, *, depth: bool = True, chunk: int | None = None,
-                    pixel_samples: int = 1, pixel_footprint: float = PIXEL_FOOTPRINT,
+                    pixel_samples: int | None = 1, pixel_footprint: float = PIXEL_FOOTPRINT,
                     sample_contrast: float = SAMPLE_CONTRAST, focus_distance: float | None = None,
                     aperture: float = 0.0, max_samples: int = MAX_SAMPLES) -> Rendering:
         """Render a registered view through its own camera model (distortion included), so
@@ -462,6 +484,7 @@ class LightField:
         valid = np.empty(len(directions), bool)
         depth_map = np.empty(len(directions), np.float32) if depth else None
         lens = self._lens_plan(pinhole_K(camera), focus_distance, aperture, max_samples)
+        pixel_samples = self.default_pixel_samples(pinhole_K(camera)) if pixel_samples is None else pixel_samples
         offsets = pixel_offsets(pixel_samples, pixel_footprint)
         if lens is not None:  # (the lens samples spread over each pixel's light: as render)
             offsets = pixel_offsets(1)
@@ -519,7 +542,7 @@ class LightField:
             depth_map[~valid] = np.nan
         return Rendering(rgb_out.reshape(height, width, 3), depth_map, valid,
                          self._camera_warnings(view.R, view.t, valid, int(outside.sum()), int(behind.sum())),
-                         refined=refined)
+                         refined=refined, pixel_samples=len(offsets))
 
     def view_depth_at(self, view: View, scale: float | None, x: float, y: float) -> float:
         """Depth along the optical axis under image point (x, y) of a registered view, through its

@@ -142,19 +142,19 @@ class Service:
 
     def render(self, model_dir: str, K, width: int, height: int, R, t, depth: bool = True, chunk: int | None = None,
                on_progress=None, focus_distance: float | None = None, aperture: float = 0.0,
-               pixel_samples: int = 4, max_lens_samples: int | None = None) -> dict:
+               pixel_samples: int | None = None, max_lens_samples: int | None = None) -> dict:
         """RGB (H, W, 3) float32 in [0, 1], row 0 at the top; depth along the optical axis.
         `aperture` > 0 (lens radius, model units) refocuses at `focus_distance` with at most
         `max_lens_samples` lens samples (None: refocus.MAX_SAMPLES); each pixel the mean over
-        `pixel_samples` points of it (render.PIXEL_SAMPLES; the default 4 is
-        render.DEFAULT_PIXEL_SAMPLES, written out: torch is imported lazily here); `chunk` rays
+        `pixel_samples` points of it (render.PIXEL_SAMPLES; None: the model's default for the
+        camera, LightField.default_pixel_samples); `chunk` rays
         per call of the field (None or 0: the device's own, LightField.default_chunk)."""
         field = self.light_field(model_dir)
         report = None if on_progress is None else (lambda done, total: on_progress(done / total))
         lens = {"max_samples": int(max_lens_samples)} if max_lens_samples else {}
         rendering = field.render(np.asarray(K), int(width), int(height), np.asarray(R), np.asarray(t), depth=depth,
                                  chunk=int(chunk) if chunk else None, on_chunk=report, focus_distance=focus_distance, aperture=aperture,
-                                 pixel_samples=int(pixel_samples), **lens)
+                                 pixel_samples=None if pixel_samples is None else int(pixel_samples), **lens)
         return {"rgb": rendering.rgb, "depth": rendering.depth, "valid": rendering.valid,
                 "warnings": list(rendering.warnings)}
 

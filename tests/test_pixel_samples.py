@@ -173,7 +173,7 @@ def test_the_commands_render_and_score_four_points_by_default(light_field, tiny_
     for command in ("render", "eval", "video"):  # the CLI spells the choices out (no torch import there)
         actions = {a.dest: a for a in build_parser()._subparsers._group_actions[0].choices[command]._actions}
         action = actions["pixel_samples"]
-        assert tuple(action.choices) == PIXEL_SAMPLES and action.default == DEFAULT_PIXEL_SAMPLES
+        assert tuple(action.choices) == PIXEL_SAMPLES and action.default is None  # (None: default_pixel_samples)
         assert actions["sample_contrast"].default == SAMPLE_CONTRAST
     assert main(["eval", model, "--scene", str(tiny_scene), "--pixel-samples", "3"]) != 0
     message = capfd.readouterr().err.strip().splitlines()
@@ -182,6 +182,47 @@ def test_the_commands_render_and_score_four_points_by_default(light_field, tiny_
         assert main(["eval", model, "--scene", str(tiny_scene), "--sample-contrast", wrong]) == 2
         message = capfd.readouterr().err.strip().splitlines()
         assert len(message) == 1 and "--sample-contrast" in message[0], message
+
+
+def test_a_render_finer_than_the_trained_photos_takes_one_point_by_default(light_field, tiny_scene, tmp_path):
+    """Where no count is asked, a camera that renders FINE_RENDER_SCALE times the trained
+    resolution or finer takes the centre ray alone (the points gained 0.014 dB or less there);
+    nearer the trained size it takes DEFAULT_PIXEL_SAMPLES; a count asked is taken as asked."""
+    from neulf_core.cli import main
+    from neulf_core.render import FINE_RENDER_SCALE
+
+    view = load_scene(tiny_scene).view("view_00.png")
+    camera = view.scaled_camera(light_field.trained_scale)
+    K, width, height = np.array(camera.calibration_matrix()), int(camera.width), int(camera.height)
+
+    def points(finer: float, asked=None) -> int:
+        scaled = K * np.array([[finer], [finer], [1.0]])
+        return light_field.render(scaled, round(width * finer), round(height * finer), view.R, view.t, depth=False,
+                                  pixel_samples=asked).pixel_samples
+
+    assert points(1.0) == DEFAULT_PIXEL_SAMPLES and points(FINE_RENDER_SCALE * 0.95) == DEFAULT_PIXEL_SAMPLES
+    assert points(FINE_RENDER_SCALE) == 1 and points(2.0) == 1
+    assert points(2.0, asked=4) == 4 and points(1.0, asked=1) == 1
+    one = light_field.render(K * np.array([[2.0], [2.0], [1.0]]), width * 2, height * 2, view.R, view.t, depth=False)
+    assert one.pixel_samples == 1 and one.refined == 0.0  # (the render's own default stays 1: an API caller's)
+    assert light_field.render_view(view, 2.0 * light_field.trained_scale, depth=False, pixel_samples=None).pixel_samples == 1
+    assert light_field.render_view(view, depth=False, pixel_samples=None).pixel_samples == DEFAULT_PIXEL_SAMPLES
+    # eval at twice the trained size records the points it took
+    assert main(["eval", str(light_field.model_dir), "--scene", str(tiny_scene), "--views", "view_00",
+                 "--out", str(tmp_path / "eval")]) == 0
+    assert json.loads((tmp_path / "eval" / "eval.json").read_text())["pixel_samples"] == DEFAULT_PIXEL_SAMPLES
+
+
+def test_a_model_without_its_rigs_record_takes_the_default_points(light_field):
+    """A model whose metadata lacks the trained camera (an older or hand-made one) keeps the
+    default count rather than failing."""
+    K = np.array([[1e6, 0, 10], [0, 1e6, 10], [0, 0, 1]])
+    saved = light_field.meta.pop("rig")
+    try:
+        assert light_field.default_pixel_samples(K) == DEFAULT_PIXEL_SAMPLES
+    finally:
+        light_field.meta["rig"] = saved
+    assert light_field.default_pixel_samples(K) == 1
 
 
 def test_the_benchmark_blurs_as_it_says_and_tables_gains_per_seed(benchmark_script):
