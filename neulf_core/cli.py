@@ -257,9 +257,8 @@ def cmd_train(args) -> int:
 
         from .autosize import SEARCH_FILE
 
-        saved_step = _saved_step(Path(args.out).expanduser())
-        if result is None:
-            progress({"event": "cancelled", "step": saved_step or 0, "setting_up": True})
+        if result is None and args.progress == "json":  # (for a reader that waits for the last event: Blender)
+            progress({"event": "cancelled", "step": _saved_step(Path(args.out).expanduser()) or 0, "setting_up": True})
         if (Path(args.out).expanduser() / SEARCH_FILE).is_file() and not checkpoint_path(Path(args.out)).is_file():
             message = (f"cancelled during the auto preset's size search; the sizes scored so far are kept in "
                        f"{Path(args.out) / SEARCH_FILE}. Continue with the same command and --resume.")

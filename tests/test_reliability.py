@@ -1653,6 +1653,14 @@ def test_a_stop_while_setting_up_ends_the_training_at_once(tiny_scene, tmp_path,
     assert not (model / CHECKPOINT_NAME).exists() and not (model / "training.lock").exists()
 
 
+def test_a_stop_while_setting_up_with_the_progress_bar_says_one_line(tiny_scene, tmp_path):
+    """With the progress bar (a terminal's default), the stop while setting up ends in the one
+    line, no traceback (the bar's line for a cancel wants the elapsed time of a run that had none)."""
+    code, _, err, _ = stop_while_setting_up(tiny_scene, tmp_path / "model", signal.SIGINT, "--progress", "bar")
+    assert code == 128 + signal.SIGINT and "Traceback" not in err, err
+    assert err.strip().splitlines()[-1].startswith("cancelled before the first checkpoint; nothing was saved."), err
+
+
 def test_a_stop_while_a_resumed_training_sets_up_keeps_the_model_as_it_was(model, tiny_scene, tmp_path,
                                                                            record_property):
     """Ctrl-C while a resumed training sets up: the saved model is left as it was, and the
