@@ -73,9 +73,9 @@ DEFAULT_PIXEL_SAMPLES = 4
 # focal length in pixels against theirs: Blender renders a camera at its photo's full size from a
 # model trained at the scale rule's smaller one): there the default takes the centre ray alone.
 # A render pixel that small falls inside one trained pixel, and the points over it gained +0.014
-# dB on average at 1.5 times (8 models) and +0.002 dB at 2 times (14 models, three seeds of the
-# synthetic scenes), for 2 to 5 times one point's render time; at the trained size they gain
-# +0.10 dB (benchmarks/sample_contrast.py --render-scale F, docs/PIXEL_SAMPLES.md).
+# dB on average at 1.5 times (8 models) and +0.001 dB at 2 times (18 models: three seeds of five
+# scenes, one of three), for 1.6 to 5 times one point's render time; at the trained size they gain
+# +0.10 dB (benchmarks/sample_contrast.py --render-scale F, docs/PIXEL_SAMPLES.md, 2026-12-07).
 FINE_RENDER_SCALE = 1.5
 PIXEL_FOOTPRINT = 0.5
 # Which pixels take the points (`sample_contrast`): only those whose centre-ray colour differs
