@@ -1694,6 +1694,8 @@ def test_time_stopped_does_not_count_against_a_minutes_budget(tiny_scene, tmp_pa
             event = json.loads(line)
             if event["event"] == "step":
                 break
+        else:
+            pytest.fail(f"the training took no step: {process.communicate()[1]}")
         process.send_signal(signal.SIGSTOP)
         stopped_at = time.monotonic()
         time.sleep(pause)
