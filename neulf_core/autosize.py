@@ -137,7 +137,8 @@ def train_auto(scene: Scene | str | Path, model_dir: str | Path, config: TrainCo
     # of the folder started meanwhile trained to its end, and this run, its search spent, was then
     # refused as overwriting a model.  The final train() takes the lock again (training_lock).
     with training_lock(model_dir):
-        refuse_a_path_too_long(model_dir, Path(SCRATCH_DIR) / f"{SCRATCH_PREFIX}12345678" / longest_path_written(config))
+        # (a candidate's folder: tempfile's 8 random characters after the prefix)
+        refuse_a_path_too_long(model_dir, Path(SCRATCH_DIR) / f"{SCRATCH_PREFIX}{'x' * 8}" / longest_path_written(config))
         shutil.rmtree(model_dir / SCRATCH_DIR, ignore_errors=True)  # a killed run's (the lock says none is running)
         if resume and checkpoint_path(model_dir).is_file():  # the size was chosen before: continue it
             record = load_checkpoint(model_dir).get("autosize") or (saved_search(model_dir) or {}).get("record")

@@ -483,8 +483,9 @@ class LightField:
         rgb_out = np.empty((len(directions), 3), np.float32)
         valid = np.empty(len(directions), bool)
         depth_map = np.empty(len(directions), np.float32) if depth else None
-        lens = self._lens_plan(pinhole_K(camera), focus_distance, aperture, max_samples)
-        pixel_samples = self.default_pixel_samples(pinhole_K(camera)) if pixel_samples is None else pixel_samples
+        K = pinhole_K(camera)
+        lens = self._lens_plan(K, focus_distance, aperture, max_samples)
+        pixel_samples = self.default_pixel_samples(K) if pixel_samples is None else pixel_samples
         offsets = pixel_offsets(pixel_samples, pixel_footprint)
         if lens is not None:  # (the lens samples spread over each pixel's light: as render)
             offsets = pixel_offsets(1)
